@@ -1,0 +1,187 @@
+"""Batched reach environment with a gymnasium-style API.
+
+``N`` :class:`sim.world.SimWorld` instances share one renderer (one GL context). An episode ends
+at the first step where an object is reached (:func:`sim.outcome.reach_outcome`) or after
+``spec.episode.max_steps`` steps. A finished env stays frozen (its observation and state no longer
+change) until it is reset, so batches of episodes can be run to completion without auto-reset
+surprises; :meth:`ReachEnv.reset_envs` restarts a subset.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.action import check_actions, next_tcp_pose
+from sim.configs import InitialConfig
+from sim.expert import expert_actions
+from sim.outcome import NONE, object_distances, reach_outcome
+from sim.render import SceneRenderer
+from sim.variations import Randomization
+from sim.world import SimWorld, _image_size
+
+__all__ = ["ReachEnv"]
+
+
+class ReachEnv:
+    """``N`` reach environments rendered from the wrist camera.
+
+    Args:
+        spec: the :class:`sim.spec.SceneSpec`.
+        num_envs: batch size ``N``.
+        image_size: observation size: int (square), ``(H, W)`` or ``None`` (the spec camera's).
+        seed: the first reset without explicit seeds uses seeds ``seed .. seed + N - 1``.
+        randomization: per-episode appearance variation (lights, background, sensor noise).
+        render_masks: also render the id pass each step (per-object masks in ``info``); off by
+            default because policies need only RGB and the extra pass costs time.
+        stereo: also render the right camera of the stereo pair (``info["rgb_right"]``).
+
+    Observations are ``(N, H, W, 3)`` uint8.
+    """
+
+    def __init__(self, spec, num_envs: int = 1, image_size=None, seed: int = 0,
+                 randomization: Randomization | None = None, render_masks: bool = False, stereo: bool = False):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.spec = spec
+        self.num_envs = int(num_envs)
+        self.height, self.width = _image_size(spec, image_size)
+        self.render_masks = render_masks
+        self.stereo = stereo
+        if stereo and spec.camera.stereo_baseline_m <= 0:
+            raise ValueError("stereo=True needs camera.stereo_baseline_m > 0 in the scene spec")
+        self.renderer = SceneRenderer(spec, self.width, self.height)
+        self.worlds = [
+            SimWorld(spec, (self.height, self.width), seed + i, renderer=self.renderer, randomization=randomization)
+            for i in range(self.num_envs)
+        ]
+        self.goal_index = spec.object_index("goal")
+        self.adv_index = spec.object_index("adversarial")
+        ep = spec.episode
+        self.max_steps, self.radius_m = ep.max_steps, ep.success_radius_m
+        self.max_step_m, self.max_step_rad = ep.max_step_m, ep.max_step_rad
+        self._seed = int(seed)
+        self._obs = np.zeros((self.num_envs, self.height, self.width, 3), np.uint8)
+        self._right = np.zeros_like(self._obs) if stereo else None
+        self._masks: list = [None] * self.num_envs
+        self.steps = np.zeros(self.num_envs, np.int64)
+        self.done = np.zeros(self.num_envs, bool)
+        self.reached = np.full(self.num_envs, NONE, np.int64)
+        self.min_dist = np.full((self.num_envs, len(spec.objects)), np.inf)
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def T_world_tcp(self) -> np.ndarray:
+        """(N, 4, 4) current TCP poses."""
+        return np.stack([w.T_world_tcp for w in self.worlds])
+
+    @property
+    def object_centers(self) -> np.ndarray:
+        """(N, K, 3) m object centres."""
+        return np.stack([w.object_center_array for w in self.worlds])
+
+    @property
+    def configs(self) -> list[InitialConfig]:
+        return [w.config for w in self.worlds]
+
+    def _render(self, i: int) -> None:
+        w = self.worlds[i]
+        out = w.render(with_ids=self.render_masks)
+        self._obs[i] = out.rgb
+        self._masks[i] = out.masks if self.render_masks else None
+        if self.stereo:
+            self._right[i] = w.render(w.camera_pose(right=True), with_ids=False).rgb
+
+    def _info(self) -> dict:
+        tcp = self.T_world_tcp
+        centers = self.object_centers
+        info = {
+            "T_world_tcp": tcp,
+            "object_pos": centers,
+            "distances": object_distances(tcp[:, :3, 3], centers),
+            "min_distances": self.min_dist.copy(),
+            "reached": self.reached.copy(),
+            "success": self.reached == self.goal_index,
+            "step": self.steps.copy(),
+            "done": self.done.copy(),
+            "seeds": np.array([w.config.seed for w in self.worlds]),
+        }
+        if self.render_masks:
+            info["masks"] = list(self._masks)
+        if self.stereo:
+            info["rgb_right"] = self._right.copy()
+        return info
+
+    # ------------------------------------------------------------------ API
+    def reset(self, seed: int | None = None, configs: list[InitialConfig] | None = None):
+        """Reset all envs (seeds ``seed + i``, or the given ``configs``) -> ``(obs, info)``."""
+        if configs is not None and len(configs) != self.num_envs:
+            raise ValueError(f"reset: got {len(configs)} configs for {self.num_envs} envs")
+        base = self._seed if seed is None else int(seed)
+        if seed is None:
+            self._seed += self.num_envs  # the next unseeded reset draws fresh configurations
+        self.reset_envs(range(self.num_envs), None if configs is None else configs, seeds=[base + i for i in range(self.num_envs)])
+        return self._obs.copy(), self._info()
+
+    def reset_envs(self, indices, configs=None, seeds=None) -> None:
+        """Restart the envs in ``indices`` from ``configs`` (or ``seeds``)."""
+        indices = list(indices)
+        for j, i in enumerate(indices):
+            w = self.worlds[i]
+            if configs is not None:
+                w.reset(config=configs[j])
+            else:
+                w.reset(seed=None if seeds is None else seeds[j])
+            self.steps[i] = 0
+            self.done[i] = False
+            self.reached[i] = NONE
+            self.min_dist[i] = object_distances(w.T_world_tcp[None, :3, 3], w.object_center_array[None])[0]
+            self._render(i)
+
+    def observe(self) -> np.ndarray:
+        return self._obs.copy()
+
+    def step(self, actions):
+        """Apply ``actions: (N, 6)`` in [-1, 1] -> ``(obs, reward, terminated, truncated, info)``.
+
+        NaN/Inf actions raise :class:`sim.action.ActionError`; finished envs ignore their action.
+        """
+        a = check_actions(actions, self.num_envs)
+        active = ~self.done
+        tcp = self.T_world_tcp
+        centers = self.object_centers
+        d_before = np.linalg.norm(centers[:, self.goal_index] - tcp[:, :3, 3], axis=-1)
+        T_next = next_tcp_pose(tcp, a, self.max_step_m, self.max_step_rad)
+        # Kinematic workspace limit: the floating gripper cannot pass through the table.
+        T_next[:, 2, 3] = np.maximum(T_next[:, 2, 3], self.spec.episode.min_tcp_height_m)
+        for i in np.flatnonzero(active):
+            self.worlds[i].set_tcp_pose(T_next[i])
+        tcp = self.T_world_tcp
+        d = object_distances(tcp[:, :3, 3], centers)
+        outcome = reach_outcome(tcp[:, :3, 3], centers, self.radius_m)
+        self.steps[active] += 1
+        self.min_dist[active] = np.minimum(self.min_dist[active], d[active])
+        newly = active & (outcome != NONE)
+        self.reached[newly] = outcome[newly]
+        terminated = newly
+        truncated = active & ~newly & (self.steps >= self.max_steps)
+        # Dense progress toward the goal (in steps), with a bonus or penalty at the end.
+        reward = np.where(active, (d_before - d[:, self.goal_index]) / self.max_step_m, 0.0)
+        reward = reward + np.where(newly & (outcome == self.goal_index), 10.0, 0.0)
+        reward = reward - np.where(newly & (outcome != self.goal_index), 10.0, 0.0)
+        self.done |= terminated | truncated
+        for i in np.flatnonzero(active):
+            self._render(i)
+        return self._obs.copy(), reward, terminated, truncated, self._info()
+
+    def expert_actions(self) -> np.ndarray:
+        """(N, 6) privileged expert actions for the current states."""
+        return expert_actions(self.T_world_tcp, self.object_centers, self.goal_index, self.max_step_m, self.max_step_rad)
+
+    def close(self) -> None:
+        self.renderer.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -1,0 +1,476 @@
+"""Scene rendering with pyrender (real OpenGL, headless EGL by default).
+
+One :class:`SceneRenderer` owns one GL context and one pyrender scene. Each frame is a color pass
+(RGB + depth) and, optionally, an *id pass*: a FLAT (unlit) pass in which every surface carries an
+exact 24-bit code. The id buffer gives per-object visible masks and, for the adversarial object,
+the index of the mesh face seen at each pixel, which the attack's differentiable texture path
+needs (see ``attack/render.py``).
+
+Multisampling is disabled: resolved MSAA samples blend neighbouring codes at silhouettes and would
+corrupt the ids; it also makes the color pass and the id pass cover exactly the same pixels.
+
+Id codes (24-bit, ``r << 16 | g << 8 | b``):
+  0                      nothing (background)
+  1                      table
+  2                      gripper
+  OBJECT_BASE + k        scene object k (spec order)
+  FACE_BASE + f          face f of the *face-coded* object (the adversarial one by default)
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import numpy as np
+import trimesh
+
+from sim.geometry import make_T, so3_exp
+
+__all__ = [
+    "RenderError",
+    "RenderOutput",
+    "SceneRenderer",
+    "BACKGROUND_ID",
+    "TABLE_ID",
+    "GRIPPER_ID",
+    "OBJECT_BASE",
+    "FACE_BASE",
+    "gl_from_cv",
+    "gripper_meshes",
+]
+
+BACKGROUND_ID = 0
+TABLE_ID = 1
+GRIPPER_ID = 2
+OBJECT_BASE = 16
+FACE_BASE = 1 << 16  # up to 16.7M - 65536 faces for the face-coded object
+
+# OpenCV camera (x right, y down, z forward) -> OpenGL camera (x right, y up, z backward).
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def gl_from_cv(T_world_cvcam: np.ndarray) -> np.ndarray:
+    """pyrender camera pose from an OpenCV-convention camera pose."""
+    return np.asarray(T_world_cvcam) @ _CV_TO_GL
+
+
+class RenderError(RuntimeError):
+    """OpenGL could not be initialised or a render failed."""
+
+
+_GL_HELP = (
+    "No usable OpenGL for headless rendering. Install Mesa's EGL driver "
+    "(Debian/Ubuntu: apt-get install libegl1 libgl1-mesa-dri) and keep PYOPENGL_PLATFORM=egl; "
+    "or install OSMesa (apt-get install libosmesa6) and set PYOPENGL_PLATFORM=osmesa."
+)
+
+
+@dataclass
+class RenderOutput:
+    """One rendered frame.
+
+    rgb: (H, W, 3) uint8; depth: (H, W) float32 m along the optical axis (0 where empty);
+    ids: (H, W) int32 id codes, or None when the id pass was skipped.
+    """
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    ids: np.ndarray | None = None
+    object_names: tuple[str, ...] = field(default_factory=tuple)
+    face_coded: int | None = None
+
+    def object_mask(self, k: int) -> np.ndarray:
+        """Visible mask (H, W) bool of scene object ``k``."""
+        if self.ids is None:
+            raise RenderError("masks need the id pass (render with with_ids=True)")
+        if k == self.face_coded:
+            return self.ids >= FACE_BASE
+        return self.ids == OBJECT_BASE + k
+
+    @property
+    def masks(self) -> dict[str, np.ndarray]:
+        return {name: self.object_mask(k) for k, name in enumerate(self.object_names)}
+
+    @property
+    def face_ids(self) -> np.ndarray:
+        """(H, W) int64 face index of the face-coded object, -1 elsewhere."""
+        if self.ids is None:
+            raise RenderError("face ids need the id pass (render with with_ids=True)")
+        return np.where(self.ids >= FACE_BASE, self.ids - FACE_BASE, -1).astype(np.int64)
+
+
+def _encode(code: np.ndarray) -> np.ndarray:
+    code = np.asarray(code, dtype=np.int64)
+    return np.stack([(code >> 16) & 255, (code >> 8) & 255, code & 255], -1).astype(np.uint8)
+
+
+def _decode(rgb: np.ndarray) -> np.ndarray:
+    rgb = rgb.astype(np.int32)
+    return (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+
+
+def _single_sample_framebuffer(renderer) -> None:
+    """Make a pyrender ``Renderer`` allocate its 'multisample' buffers with 0 samples."""
+    from OpenGL import GL
+
+    original = renderer._configure_main_framebuffer
+
+    def configure():
+        real = GL.glRenderbufferStorageMultisample
+
+        def no_msaa(target, samples, fmt, w, h):
+            return real(target, 0, fmt, w, h)
+
+        import pyrender.renderer as pr
+
+        pr.glRenderbufferStorageMultisample = no_msaa
+        try:
+            original()
+        finally:
+            pr.glRenderbufferStorageMultisample = real
+
+    renderer._configure_main_framebuffer = configure
+
+
+def _texture(image: np.ndarray, repeat: bool):
+    import pyrender
+    from OpenGL.GL import GL_CLAMP_TO_EDGE, GL_REPEAT
+
+    wrap = GL_REPEAT if repeat else GL_CLAMP_TO_EDGE
+    sampler = pyrender.Sampler(wrapS=wrap, wrapT=wrap)
+    return pyrender.Texture(source=np.ascontiguousarray(image[..., :3]), source_channels="RGB", sampler=sampler)
+
+
+def _material(texture_image: np.ndarray | None, color=(1.0, 1.0, 1.0), repeat: bool = False):
+    import pyrender
+
+    # Dielectric, fully rough: the shading is diffuse (multiplicative in the albedo) plus a
+    # small albedo-independent specular term, which the attack's shading passes recover.
+    kw = dict(metallicFactor=0.0, roughnessFactor=1.0, baseColorFactor=(*color, 1.0))
+    if texture_image is not None:
+        kw["baseColorTexture"] = _texture(texture_image, repeat)
+    return pyrender.MetallicRoughnessMaterial(**kw)
+
+
+def _uv_of(mesh: trimesh.Trimesh) -> np.ndarray | None:
+    uv = getattr(mesh.visual, "uv", None)
+    return None if uv is None else np.asarray(uv, dtype=np.float32)
+
+
+def textured_pyrender_mesh(mesh: trimesh.Trimesh, texture_image: np.ndarray | None, color=None, repeat=False):
+    """A pyrender mesh of ``mesh`` with smooth normals, UVs and a texture (or a flat color)."""
+    import pyrender
+
+    uv = _uv_of(mesh)
+    if texture_image is not None and uv is None:
+        raise RenderError(f"mesh {mesh.metadata.get('name', '?')} has no UVs to carry a texture")
+    prim = pyrender.Primitive(
+        positions=np.asarray(mesh.vertices, dtype=np.float32),
+        normals=np.asarray(mesh.vertex_normals, dtype=np.float32),
+        texcoord_0=uv if texture_image is not None else None,
+        indices=np.asarray(mesh.faces, dtype=np.uint32),
+        material=_material(texture_image, color if color is not None else (1.0, 1.0, 1.0), repeat),
+    )
+    return pyrender.Mesh([prim])
+
+
+def id_pyrender_mesh(mesh: trimesh.Trimesh, code: int | None):
+    """Unlit mesh whose every pixel reads back an exact id code.
+
+    ``code=None`` codes each face as ``FACE_BASE + face index`` (vertices unshared so the
+    per-vertex color is constant over each face).
+    """
+    import pyrender
+
+    faces = np.asarray(mesh.faces)
+    if code is None:
+        positions = np.asarray(mesh.vertices, dtype=np.float32)[faces].reshape(-1, 3)
+        codes = np.repeat(FACE_BASE + np.arange(len(faces)), 3)
+        indices = np.arange(len(positions), dtype=np.uint32).reshape(-1, 3)
+    else:
+        positions = np.asarray(mesh.vertices, dtype=np.float32)
+        codes = np.full(len(positions), code)
+        indices = faces.astype(np.uint32)
+    colors = np.concatenate([_encode(codes), np.full((len(codes), 1), 255, np.uint8)], -1)
+    prim = pyrender.Primitive(
+        positions=positions,
+        color_0=colors.astype(np.float32) / 255.0,
+        indices=indices,
+        material=pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0)),
+    )
+    return pyrender.Mesh([prim])
+
+
+def gripper_meshes(gripper) -> list[trimesh.Trimesh]:
+    """Panda-like gripper geometry in the TCP frame: palm plus two fingers ending at the TCP.
+
+    ``gripper``: a :class:`sim.spec.GripperSpec`. The fingers extend along +z (approach) and are
+    separated along x; the finger tips sit at z = 0 (the TCP).
+    """
+    L, w, t = gripper.finger_length_m, gripper.finger_width_m, gripper.finger_thickness_m
+    px, py, pz = gripper.palm_size_m
+    half_open = gripper.opening_m / 2.0
+    parts = []
+    for sx in (-1.0, 1.0):
+        f = trimesh.creation.box((t, w, L))
+        f.apply_translation((sx * (half_open + t / 2.0), 0.0, -L / 2.0))
+        parts.append(f)
+    palm = trimesh.creation.box((px, py, pz))
+    palm.apply_translation((0.0, 0.0, -L - pz / 2.0))
+    parts.append(palm)
+    return parts
+
+
+def _light_pose(direction) -> np.ndarray:
+    d = np.asarray(direction, dtype=np.float64)
+    z = -d / np.linalg.norm(d)  # pyrender lights shine along their node's -z
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_T(np.stack([x, y, z], -1), np.zeros(3))
+
+
+@dataclass
+class _ObjectNodes:
+    color: object
+    ids: object
+    mesh: trimesh.Trimesh
+    variants: dict = field(default_factory=dict)
+
+
+class SceneRenderer:
+    """Renders a :class:`sim.spec.SceneSpec` from arbitrary OpenCV camera poses.
+
+    Args:
+        spec: the scene.
+        width, height: image size in px (defaults to the spec camera's).
+        meshes: optional pre-built trimesh per object (default: built from the spec).
+        face_coded: index of the object whose faces are id-coded (default: the adversarial one).
+    """
+
+    def __init__(self, spec, width: int | None = None, height: int | None = None, meshes=None, face_coded=None):
+        try:
+            import pyrender
+        except Exception as err:  # ImportError, or PyOpenGL failing to find the platform library
+            raise RenderError(f"{_GL_HELP} (import failed: {err})") from None
+        from sim.assets import build_mesh, default_texture, table_mesh
+
+        self.spec = spec
+        self.width = int(width or spec.camera.width)
+        self.height = int(height or spec.camera.height)
+        self.K = spec.camera.K(self.width, self.height)
+        self.object_names = tuple(o.name for o in spec.objects)
+        self.face_coded = spec.object_index("adversarial") if face_coded is None else face_coded
+        try:
+            self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
+        except Exception as err:
+            raise RenderError(f"{_GL_HELP} (context creation failed: {type(err).__name__}: {err})") from None
+        _single_sample_framebuffer(self._renderer._renderer)
+
+        self.scene = pyrender.Scene(bg_color=(*spec.background, 1.0), ambient_light=spec.lighting.ambient)
+        self._light_nodes = []
+        self.set_lights(spec.lighting)
+
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        # pyrender measures the principal point from the image edge, OpenCV from the first
+        # pixel centre: shift by half a pixel.
+        cam = pyrender.IntrinsicsCamera(fx, fy, cx + 0.5, cy + 0.5, znear=spec.camera.znear_m, zfar=spec.camera.zfar_m)
+        self._camera_node = self.scene.add(cam, pose=np.eye(4))
+
+        # Table: a tiled texture (repeat wrap) on a box whose top is z = 0.
+        self._table_mesh = table_mesh(tuple(spec.table.size_m), spec.table.thickness_m)
+        self._table = self._add_static(self._table_mesh, spec.table.texture, TABLE_ID, repeat=True, default_name="table")
+
+        # Gripper: children of a TCP node so one pose update moves all parts.
+        self._tcp_node = pyrender.Node(name="tcp", matrix=np.eye(4))
+        self.scene.add_node(self._tcp_node)
+        self._gripper_nodes = []
+        for part in gripper_meshes(spec.gripper):
+            c = pyrender.Node(mesh=textured_pyrender_mesh(part, None, spec.gripper.color))
+            i = pyrender.Node(mesh=id_pyrender_mesh(part, GRIPPER_ID))
+            self.scene.add_node(c, parent_node=self._tcp_node)
+            self.scene.add_node(i, parent_node=self._tcp_node)
+            self._gripper_nodes.append((c, i))
+
+        self._objects: list[_ObjectNodes] = []
+        for k, ospec in enumerate(spec.objects):
+            mesh = meshes[k] if meshes is not None else build_mesh(ospec.mesh, ospec.scale)
+            tex = self._resolve_texture(ospec.texture, mesh, default_texture)
+            color = tuple(ospec.texture) if isinstance(ospec.texture, tuple) else None
+            cnode = self.scene.add(textured_pyrender_mesh(mesh, tex, color), pose=np.eye(4))
+            code = None if k == self.face_coded else OBJECT_BASE + k
+            inode = self.scene.add(id_pyrender_mesh(mesh, code), pose=np.eye(4))
+            self._objects.append(_ObjectNodes(cnode, inode, mesh))
+        self._hidden: set[int] = set()
+        self._gripper_visible = True
+
+    # ------------------------------------------------------------------ building
+    @staticmethod
+    def _resolve_texture(texture, mesh, default_texture):
+        """Image for a spec texture field: None -> the mesh's own look, str -> image file."""
+        if isinstance(texture, tuple):
+            return None
+        if texture is None or texture == "default":
+            img = getattr(getattr(mesh.visual, "material", None), "image", None)
+            if img is not None:
+                return np.asarray(img.convert("RGB"))
+            return default_texture(mesh.metadata.get("name", "plain"))
+        import imageio.v3 as iio
+
+        try:
+            img = iio.imread(texture)
+        except Exception as err:
+            raise RenderError(f"{texture}: cannot read texture image ({err})") from None
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, -1)
+        return np.ascontiguousarray(img[..., :3]).astype(np.uint8)
+
+    def _add_static(self, mesh, texture, code, repeat, default_name):
+        from sim.assets import default_texture
+
+        tex = self._resolve_texture(texture, mesh, lambda _n: default_texture(default_name))
+        if tex is None:  # a flat color: a tiny image keeps one code path for texture swaps
+            tex = np.full((4, 4, 3), np.round(np.asarray(texture) * 255), np.uint8)
+        self._table_texture = tex
+        c = self.scene.add(textured_pyrender_mesh(mesh, tex, None, repeat=repeat), pose=np.eye(4))
+        i = self.scene.add(id_pyrender_mesh(mesh, code), pose=np.eye(4))
+        return c, i
+
+    def set_lights(self, lighting) -> None:
+        """Replace ambient and lights with a :class:`sim.spec.LightingSpec`."""
+        import pyrender
+
+        for n in self._light_nodes:
+            self.scene.remove_node(n)
+        self._light_nodes = []
+        self.scene.ambient_light = np.asarray(lighting.ambient, dtype=np.float64)
+        for light in lighting.lights:
+            if light.type == "directional":
+                node = self.scene.add(
+                    pyrender.DirectionalLight(color=light.color, intensity=light.intensity), pose=_light_pose(light.direction)
+                )
+            else:
+                node = self.scene.add(
+                    pyrender.PointLight(color=light.color, intensity=light.intensity),
+                    pose=make_T(np.eye(3), light.position_m),
+                )
+            self._light_nodes.append(node)
+
+    def set_table_texture(self, image: np.ndarray) -> None:
+        """Swap the table's texture (used by background variation)."""
+        self._table[0].mesh = textured_pyrender_mesh(self._table_mesh, image, repeat=True)
+
+    def set_background(self, rgb) -> None:
+        self.scene.bg_color = np.array([*rgb, 1.0])
+
+    def apply_appearance(self, appearance) -> None:
+        """Apply a :class:`sim.variations.Appearance` (lights, table, backdrop); no-op if current."""
+        if appearance == getattr(self, "_appearance", None):
+            return
+        from sim.variations import table_variant_texture
+
+        self.set_lights(appearance.lighting)
+        self.set_background(appearance.background if appearance.background is not None else self.spec.background)
+        if appearance.table_variant != getattr(getattr(self, "_appearance", None), "table_variant", -1):
+            tex = self._table_texture if appearance.table_variant < 0 else table_variant_texture(appearance.table_variant)
+            self.set_table_texture(tex)
+        self._appearance = appearance
+
+    def object_mesh(self, k: int) -> trimesh.Trimesh:
+        return self._objects[k].mesh
+
+    def set_object_texture(self, k: int, image: np.ndarray | None, color=None) -> None:
+        """Re-texture object ``k`` for the color pass (e.g. an optimised adversarial texture)."""
+        self._objects[k].color.mesh = textured_pyrender_mesh(self._objects[k].mesh, image, color)
+
+    def add_variant(self, k: int, variant: str, image: np.ndarray | None, color=(1.0, 1.0, 1.0)) -> None:
+        """Register an alternative look of object ``k`` selectable per render (e.g. white albedo)."""
+        import pyrender
+
+        node = pyrender.Node(mesh=textured_pyrender_mesh(self._objects[k].mesh, image, color), matrix=np.eye(4))
+        self.scene.add_node(node)
+        self._objects[k].variants[variant] = node
+
+    # ------------------------------------------------------------------ state
+    def set_state(self, T_world_objects: np.ndarray, T_world_tcp: np.ndarray | None) -> None:
+        """Place objects (``T_world_objects: (K, 4, 4)``) and the gripper (``None`` hides it)."""
+        for obj, T in zip(self._objects, T_world_objects):
+            self.scene.set_pose(obj.color, T)
+            self.scene.set_pose(obj.ids, T)
+            for v in obj.variants.values():
+                self.scene.set_pose(v, T)
+        self._gripper_visible = T_world_tcp is not None
+        if self._gripper_visible:
+            self.scene.set_pose(self._tcp_node, np.asarray(T_world_tcp, dtype=np.float64))
+
+    def set_object_visible(self, k: int, visible: bool) -> None:
+        """Show or hide object ``k`` in every pass (e.g. an object removed from a condition)."""
+        (self._hidden.discard if visible else self._hidden.add)(k)
+
+    # ------------------------------------------------------------------ rendering
+    def _set_pass(self, color_pass: bool, variants: dict) -> None:
+        """Node visibility for one pass: color meshes (with variants swapped in) or id meshes."""
+        self._table[0].mesh.is_visible = color_pass
+        self._table[1].mesh.is_visible = not color_pass
+        for c, i in self._gripper_nodes:
+            c.mesh.is_visible = color_pass and self._gripper_visible
+            i.mesh.is_visible = (not color_pass) and self._gripper_visible
+        for k, obj in enumerate(self._objects):
+            shown = k not in self._hidden
+            chosen = variants.get(k)
+            obj.color.mesh.is_visible = color_pass and shown and chosen is None
+            obj.ids.mesh.is_visible = (not color_pass) and shown
+            for name, node in obj.variants.items():
+                node.mesh.is_visible = color_pass and shown and chosen == name
+
+    def render(self, T_world_cam: np.ndarray, with_ids: bool = True, with_color: bool = True, variants=None) -> RenderOutput:
+        """Render from an OpenCV camera pose ``T_world_cam: (4, 4)``.
+
+        ``variants``: ``{object index: variant name}`` swaps in looks registered with
+        :meth:`add_variant` for this color pass only.
+        """
+        import pyrender
+
+        variants = dict(variants or {})
+        for k, name in variants.items():
+            if name not in self._objects[k].variants:
+                raise RenderError(f"object {self.object_names[k]} has no variant {name!r}")
+        self.scene.set_pose(self._camera_node, gl_from_cv(T_world_cam))
+        rgb = depth = ids = None
+        if with_color:
+            self._set_pass(True, variants)
+            rgb, depth = self._renderer.render(self.scene)
+        if with_ids:
+            self._set_pass(False, {})
+            flat, d2 = self._renderer.render(self.scene, flags=pyrender.RenderFlags.FLAT)
+            ids = _decode(flat)
+            depth = d2 if depth is None else depth
+        if rgb is None:
+            rgb = np.zeros((self.height, self.width, 3), np.uint8)
+        return RenderOutput(np.ascontiguousarray(rgb), depth.astype(np.float32), ids, self.object_names, self.face_coded)
+
+    def close(self) -> None:
+        if getattr(self, "_renderer", None) is not None:
+            self._renderer.delete()
+            self._renderer = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+def object_pose(x_m: float, y_m: float, yaw_rad: float) -> np.ndarray:
+    """``T_world_object`` for an object standing on the table at (x, y) with yaw about +z."""
+    return make_T(so3_exp(np.array([0.0, 0.0, yaw_rad])), np.array([x_m, y_m, 0.0]))

@@ -1,0 +1,307 @@
+"""Scene specification: a validated description of the reach scene, loaded from YAML.
+
+Every model forbids unknown keys, and every validation error names the offending field with its
+dotted path (``objects.1.pose.yaw_deg: ...``) and the file it came from.
+"""
+
+from __future__ import annotations
+
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from sim.geometry import make_T, so3_exp
+
+__all__ = [
+    "SpecError",
+    "TableSpec",
+    "LightSpec",
+    "LightingSpec",
+    "ObjectPose",
+    "ObjectSpec",
+    "CameraSpec",
+    "GripperSpec",
+    "EpisodeSpec",
+    "InitSpec",
+    "SceneSpec",
+    "load_scene",
+    "default_scene",
+    "scene_from_dict",
+    "ROLES",
+]
+
+ROLES = ("goal", "adversarial", "distractor", "obstacle")
+
+Rgb = Annotated[tuple[float, float, float], Field(description="linear RGB in [0, 1]")]
+Positive = Annotated[float, Field(gt=0)]
+
+
+class SpecError(ValueError):
+    """A scene file or dict failed validation; the message names the file and field."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _check_rgb(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    if any(not (0.0 <= c <= 1.0) for c in v):
+        raise ValueError("color components must lie in [0, 1]")
+    return v
+
+
+class TableSpec(_Strict):
+    size_m: tuple[Positive, Positive] = (1.6, 1.6)
+    thickness_m: Positive = 0.03
+    # "default" = the built-in wood look; otherwise an image path or an RGB triple.
+    texture: str | Rgb = "default"
+
+
+class LightSpec(_Strict):
+    type: Literal["directional", "point"] = "directional"
+    intensity: Annotated[float, Field(ge=0)] = 3.0
+    color: Rgb = (1.0, 1.0, 1.0)
+    # directional: the direction light travels (world frame); point: ignored.
+    direction: tuple[float, float, float] = (0.3, 0.2, -1.0)
+    # point: position in the world frame (m); directional: ignored.
+    position_m: tuple[float, float, float] = (0.0, 0.0, 1.5)
+
+    _v_color = field_validator("color")(_check_rgb)
+
+    @field_validator("direction")
+    @classmethod
+    def _nonzero(cls, v):
+        if math.hypot(*v) < 1e-9:
+            raise ValueError("direction must be non-zero")
+        return v
+
+
+class LightingSpec(_Strict):
+    ambient: Rgb = (0.35, 0.35, 0.35)
+    lights: list[LightSpec] = Field(default_factory=lambda: [LightSpec()])
+
+    _v_amb = field_validator("ambient")(_check_rgb)
+
+
+class ObjectPose(_Strict):
+    """Nominal pose on the table: the object's base centre at (x, y, 0), rotated by yaw about +z."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_deg: float = 0.0
+
+
+class ObjectSpec(_Strict):
+    name: Annotated[str, Field(min_length=1)]
+    mesh: Annotated[str, Field(min_length=1, description="built-in mesh name or a mesh file path")]
+    scale: Positive | tuple[Positive, Positive, Positive] = 1.0
+    pose: ObjectPose = ObjectPose()
+    role: Literal["goal", "adversarial", "distractor", "obstacle"]
+    # None = the mesh's own default look; a string is an image path; a triple is a flat color.
+    texture: str | Rgb | None = None
+
+
+class CameraSpec(_Strict):
+    """Wrist camera. Give either fx/fy/cx/cy or ``fov_deg`` (vertical field of view)."""
+
+    width: Annotated[int, Field(gt=0, le=4096)] = 128
+    height: Annotated[int, Field(gt=0, le=4096)] = 128
+    fx: Positive | None = None
+    fy: Positive | None = None
+    cx: float | None = None
+    cy: float | None = None
+    fov_deg: Annotated[float, Field(gt=1, lt=179)] | None = 70.0
+    znear_m: Positive = 0.005
+    zfar_m: Positive = 10.0
+    # Mount extrinsic: camera pose in the TCP frame, as translation (m) + axis-angle (rad).
+    t_tcp_cam_m: tuple[float, float, float] = (0.0, -0.04, -0.06)
+    rotvec_tcp_cam: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Stereo option: a second camera offset by this baseline along the first camera's +x.
+    stereo_baseline_m: Annotated[float, Field(ge=0)] = 0.0
+
+    @model_validator(mode="after")
+    def _intrinsics(self):
+        given = [v is not None for v in (self.fx, self.fy, self.cx, self.cy)]
+        if any(given) and not all(given):
+            raise ValueError("give all of fx, fy, cx, cy or none of them (then fov_deg is used)")
+        if not any(given) and self.fov_deg is None:
+            raise ValueError("give fx, fy, cx, cy or fov_deg")
+        if self.znear_m >= self.zfar_m:
+            raise ValueError("znear_m must be smaller than zfar_m")
+        return self
+
+    def K(self, width: int | None = None, height: int | None = None) -> np.ndarray:
+        """Intrinsics (3, 3) at ``width x height`` px (defaults to the spec's size).
+
+        Explicit fx/fy/cx/cy are rescaled with the image so the field of view is preserved.
+        """
+        w = width or self.width
+        h = height or self.height
+        if self.fx is not None:
+            sx, sy = w / self.width, h / self.height
+            fx, fy = self.fx * sx, self.fy * sy
+            cx, cy = (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5
+        else:
+            fy = 0.5 * h / math.tan(math.radians(self.fov_deg) / 2)
+            fx = fy
+            cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def T_tcp_cam(self) -> np.ndarray:
+        return make_T(so3_exp(np.asarray(self.rotvec_tcp_cam)), np.asarray(self.t_tcp_cam_m))
+
+
+class GripperSpec(_Strict):
+    """Floating Panda-like two-finger gripper; the TCP sits between the finger tips."""
+
+    finger_length_m: Positive = 0.054
+    finger_width_m: Positive = 0.02
+    finger_thickness_m: Positive = 0.012
+    opening_m: Annotated[float, Field(ge=0)] = 0.06
+    palm_size_m: tuple[Positive, Positive, Positive] = (0.2, 0.06, 0.04)
+    color: Rgb = (0.85, 0.85, 0.85)
+
+
+class EpisodeSpec(_Strict):
+    max_steps: Annotated[int, Field(gt=0)] = 60
+    success_radius_m: Positive = 0.10
+    max_step_m: Positive = 0.02
+    max_step_rad: Positive = 0.1
+    # Kinematic workspace clamp for the floating gripper (no physics engine: a reach task
+    # needs kinematics and rendering only).
+    min_tcp_height_m: float = 0.01
+
+
+class InitSpec(_Strict):
+    """How initial configurations are drawn: the TCP at (r, theta, phi) from the adversarial object.
+
+    ``phi`` is the polar angle from the object's up axis, ``theta`` the azimuth about it.
+    """
+
+    r_range_m: tuple[Positive, Positive] = (0.25, 0.80)
+    phi_range_deg: tuple[float, float] = (0.0, 90.0)
+    theta_range_deg: tuple[float, float] = (-180.0, 180.0)
+    aim_noise_m: Annotated[float, Field(ge=0)] = 0.03
+    randomize_objects: bool = True
+    region_x_m: tuple[float, float] = (-0.25, 0.25)
+    region_y_m: tuple[float, float] = (-0.25, 0.25)
+    min_separation_m: Positive = 0.22
+
+    @model_validator(mode="after")
+    def _ranges(self):
+        for name in ("r_range_m", "phi_range_deg", "theta_range_deg", "region_x_m", "region_y_m"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"{name}: lower bound {lo} exceeds upper bound {hi}")
+        lo, hi = self.phi_range_deg
+        if lo < 0 or hi > 90:
+            raise ValueError("phi_range_deg must lie within [0, 90]")
+        return self
+
+
+class SceneSpec(_Strict):
+    name: str = "scene"
+    background: Rgb = (0.55, 0.6, 0.65)
+    table: TableSpec = TableSpec()
+    lighting: LightingSpec = LightingSpec()
+    objects: list[ObjectSpec]
+    camera: CameraSpec = CameraSpec()
+    gripper: GripperSpec = GripperSpec()
+    episode: EpisodeSpec = EpisodeSpec()
+    init: InitSpec = InitSpec()
+
+    _v_bg = field_validator("background")(_check_rgb)
+
+    @model_validator(mode="after")
+    def _roles(self):
+        names = [o.name for o in self.objects]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"object names must be unique, repeated: {sorted(dup)}")
+        for role in ("goal", "adversarial"):
+            n = sum(o.role == role for o in self.objects)
+            if n != 1:
+                raise ValueError(f"exactly one object must have role '{role}', found {n}")
+        return self
+
+    def object_index(self, role: str) -> int:
+        """Index of the (unique) object with ``role`` (goal or adversarial)."""
+        for i, o in enumerate(self.objects):
+            if o.role == role:
+                return i
+        raise KeyError(role)
+
+    @property
+    def goal(self) -> ObjectSpec:
+        return self.objects[self.object_index("goal")]
+
+    @property
+    def adversarial(self) -> ObjectSpec:
+        return self.objects[self.object_index("adversarial")]
+
+    def with_updates(self, **changes) -> "SceneSpec":
+        """A validated copy with top-level fields replaced."""
+        return scene_from_dict({**self.model_dump(), **changes}, source="<update>")
+
+
+def _format_error(err: ValidationError, source: str) -> str:
+    lines = [f"{source}: invalid scene spec"]
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        lines.append(f"  {loc}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def scene_from_dict(data: dict, source: str = "<dict>") -> SceneSpec:
+    """Validate ``data`` into a :class:`SceneSpec`; errors name ``source`` and each field."""
+    if not isinstance(data, dict):
+        raise SpecError(f"{source}: a scene spec must be a mapping, got {type(data).__name__}")
+    try:
+        spec = SceneSpec.model_validate(data)
+    except ValidationError as err:
+        raise SpecError(_format_error(err, source)) from None
+    return _resolve_paths(spec, source)
+
+
+def _resolve_paths(spec: SceneSpec, source: str) -> SceneSpec:
+    """Make relative mesh/texture paths relative to the YAML file that named them."""
+    if source.startswith("<"):
+        return spec
+    base = Path(source).resolve().parent
+
+    def fix(p):
+        # Built-in names never collide with files next to the YAML in practice; only rewrite
+        # names that resolve to an existing file there.
+        if isinstance(p, str) and not Path(p).is_absolute() and (base / p).is_file():
+            return str(base / p)
+        return p
+
+    objects = [o.model_copy(update={"mesh": fix(o.mesh), "texture": fix(o.texture)}) for o in spec.objects]
+    table = spec.table.model_copy(update={"texture": fix(spec.table.texture)})
+    return spec.model_copy(update={"objects": objects, "table": table})
+
+
+def load_scene(path: str | Path) -> SceneSpec:
+    """Load and validate a scene YAML file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise SpecError(f"{path}: cannot read scene file ({err.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise SpecError(f"{path}: not valid YAML ({err})") from None
+    return scene_from_dict(data, source=str(path))
+
+
+def default_scene() -> SceneSpec:
+    """The built-in scene reproducing the paper's task (soup can goal, mustard bottle adversary)."""
+    text = resources.files("sim").joinpath("data/default_scene.yaml").read_text()
+    return scene_from_dict(yaml.safe_load(text), source="<built-in default_scene.yaml>")
