@@ -203,7 +203,8 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)):
         raise ValueError("look_at: eye and target coincide")
     z = z / n
     up = np.broadcast_to(np.asarray(up, dtype=np.float64), z.shape)
-    x = np.cross(z, -up)
+    # x = y x z with y = -up  =>  x = z x up; then y = z x x is -up with its z component removed.
+    x = np.cross(z, up)
     xn = np.linalg.norm(x, axis=-1, keepdims=True)
     alt = np.cross(z, np.broadcast_to([0.0, 1.0, 0.0], z.shape))
     x = np.where(xn < 1e-9, alt, x)

@@ -224,10 +224,13 @@ class SceneSpec(_Strict):
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise ValueError(f"object names must be unique, repeated: {sorted(dup)}")
-        for role in ("goal", "adversarial"):
-            n = sum(o.role == role for o in self.objects)
-            if n != 1:
-                raise ValueError(f"exactly one object must have role '{role}', found {n}")
+        problems = [
+            f"exactly one object must have role '{role}', found {n}"
+            for role in ("goal", "adversarial")
+            if (n := sum(o.role == role for o in self.objects)) != 1
+        ]
+        if problems:
+            raise ValueError("; ".join(problems))
         return self
 
     def object_index(self, role: str) -> int:
