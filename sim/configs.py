@@ -9,6 +9,8 @@ changed spec is detected rather than silently reinterpreted.
 
 from __future__ import annotations
 
+from sim.errors import AdvobjError
+
 import hashlib
 import json
 import math
@@ -35,7 +37,7 @@ __all__ = [
 _MAX_TRIES = 200
 
 
-class PoolError(ValueError):
+class PoolError(AdvobjError, ValueError):
     """A config pool file is missing, malformed, or was made for a different scene."""
 
 

@@ -28,7 +28,7 @@ def expert_actions(
     goal_index: int,
     max_step_m: float,
     max_step_rad: float,
-    avoid_radius_m: float = 0.16,
+    avoid_radius_m: float = 0.17,
     min_height_m: float = 0.03,
 ) -> np.ndarray:
     """Expert actions ``(B, 6)`` in [-1, 1] for TCP poses ``(B, 4, 4)`` and centres ``(B, K, 3)`` m."""
@@ -43,8 +43,11 @@ def expert_actions(
     others = np.delete(centers, goal_index, axis=1)
     away = p[:, None, :] - others
     d = np.linalg.norm(away, axis=-1, keepdims=True)
-    push = np.clip((avoid_radius_m - d) / avoid_radius_m, 0.0, None) * away / np.maximum(d, 1e-9)
-    direction = direction + 2.0 * push.sum(axis=1)
+    # Barrier that grows without bound toward an object, biased upward so the path climbs over
+    # an object standing between the TCP and the goal instead of stalling in front of it.
+    gain = np.clip(avoid_radius_m / np.maximum(d, 1e-9) - 1.0, 0.0, 10.0)
+    push = gain * (away / np.maximum(d, 1e-9) + np.array([0.0, 0.0, 0.7]))
+    direction = direction + 1.5 * push.sum(axis=1)
     # Keep clear of the table top.
     direction[:, 2] += np.clip((min_height_m - p[:, 2]) / min_height_m, 0.0, None)
     direction /= np.maximum(np.linalg.norm(direction, axis=-1, keepdims=True), 1e-9)

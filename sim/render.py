@@ -19,6 +19,8 @@ Id codes (24-bit, ``r << 16 | g << 8 | b``):
 
 from __future__ import annotations
 
+from sim.errors import AdvobjError
+
 import os
 from dataclasses import dataclass, field
 
@@ -57,7 +59,7 @@ def gl_from_cv(T_world_cvcam: np.ndarray) -> np.ndarray:
     return np.asarray(T_world_cvcam) @ _CV_TO_GL
 
 
-class RenderError(RuntimeError):
+class RenderError(AdvobjError, RuntimeError):
     """OpenGL could not be initialised or a render failed."""
 
 
@@ -446,7 +448,12 @@ class SceneRenderer:
             rgb, depth = self._renderer.render(self.scene)
         if with_ids:
             self._set_pass(False, {})
-            flat, d2 = self._renderer.render(self.scene, flags=pyrender.RenderFlags.FLAT)
+            bg = self.scene.bg_color.copy()
+            self.scene.bg_color = np.array([0.0, 0.0, 0.0, 1.0])  # code 0 = nothing hit
+            try:
+                flat, d2 = self._renderer.render(self.scene, flags=pyrender.RenderFlags.FLAT)
+            finally:
+                self.scene.bg_color = bg
             ids = _decode(flat)
             depth = d2 if depth is None else depth
         if rgb is None:
@@ -454,9 +461,30 @@ class SceneRenderer:
         return RenderOutput(np.ascontiguousarray(rgb), depth.astype(np.float32), ids, self.object_names, self.face_coded)
 
     def close(self) -> None:
-        if getattr(self, "_renderer", None) is not None:
-            self._renderer.delete()
-            self._renderer = None
+        """Free this renderer's GL resources (other renderers keep working)."""
+        r = getattr(self, "_renderer", None)
+        if r is None:
+            return
+        self._renderer = None
+        platform = r._platform
+        platform.make_current()
+        r._renderer.delete()
+        if getattr(platform, "_egl_context", None) is not None:
+            # pyrender's own delete() calls eglTerminate, which destroys every context on the
+            # shared EGL display, i.e. every other live renderer: destroy only ours.
+            from OpenGL import EGL
+
+            EGL.eglMakeCurrent(platform._egl_display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+            EGL.eglDestroyContext(platform._egl_display, platform._egl_context)
+            # The platform's __del__ would eglTerminate the display it still names.
+            platform._egl_context = None
+            platform._egl_display = None
+        else:
+            platform.delete_context()
+        # OffscreenRenderer.__del__ would run pyrender's delete() (and eglTerminate) again;
+        # without a platform it fails inside its own try/except and does nothing.
+        r._platform = None
+        r._renderer = None
 
     def __enter__(self):
         return self

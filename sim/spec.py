@@ -6,6 +6,8 @@ dotted path (``objects.1.pose.yaw_deg: ...``) and the file it came from.
 
 from __future__ import annotations
 
+from sim.errors import AdvobjError
+
 import math
 from importlib import resources
 from pathlib import Path
@@ -41,7 +43,7 @@ Rgb = Annotated[tuple[float, float, float], Field(description="linear RGB in [0,
 Positive = Annotated[float, Field(gt=0)]
 
 
-class SpecError(ValueError):
+class SpecError(AdvobjError, ValueError):
     """A scene file or dict failed validation; the message names the file and field."""
 
 

@@ -2,10 +2,34 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="Red-team wrist-camera visuomotor policies with 3D adversarial objects.")
 
 
+from trials import cli_scene  # noqa: E402
+
+app.add_typer(cli_scene.app, name="scene")
+
+
+@app.command()
+def demo(out: Path = typer.Option(Path("runs/demo"), help="output directory"), seed: int = typer.Option(0)) -> None:
+    """The main job on the built-in scene, with quick settings."""
+    from trials.demo import run_demo
+
+    result = run_demo(out, seed)
+    typer.echo(f"demo: expert reached {result['reached']} in {result['steps']} steps; outputs in {out}/")
+
+
 def main() -> None:
-    app()
+    import sys
+
+    from sim.errors import AdvobjError
+
+    try:
+        app()
+    except AdvobjError as err:
+        typer.secho(f"error: {err}", err=True, fg=typer.colors.RED)
+        sys.exit(2)

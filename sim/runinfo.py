@@ -1,0 +1,49 @@
+"""Provenance written beside every run's outputs: resolved config, seed, git commit, versions."""
+
+from __future__ import annotations
+
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["git_commit", "write_run_info"]
+
+
+def git_commit() -> str:
+    """The source tree's commit (``+dirty`` if modified), or ``"unknown"`` outside a checkout."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=5)
+        if sha.returncode != 0:
+            return "unknown"
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True, timeout=5)
+        return sha.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+
+
+def write_run_info(out_dir: str | Path, config: dict, seed: int | None, name: str = "run.json") -> Path:
+    """Write ``out_dir/run.json`` with the resolved ``config`` (JSON-able), seed and provenance."""
+    import numpy
+    import torch
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "config": config,
+        "seed": seed,
+        "git_commit": git_commit(),
+        "argv": sys.argv,
+        "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": numpy.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "machine": platform.machine(),
+    }
+    path = out / name
+    path.write_text(json.dumps(doc, indent=2, default=str))
+    return path
