@@ -1,0 +1,194 @@
+"""Policy checkpoints: a directory with safetensors weights and a JSON policy card.
+
+Layout::
+
+    <dir>/policy.json          the card (PolicyCard): architecture, image size, normalization,
+                               action scaling, training config, clean success, seed, git commit,
+                               and the SHA-256 of the weights file
+    <dir>/weights.safetensors  the state_dict
+
+Nothing is ever unpickled: weights are safetensors only, and the card's hash must match the
+weights file, so a swapped or edited weights file (or a pickle dressed up as one) is refused
+before it is parsed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from sim.policies.interface import PolicyError
+from sim.policies.policy import PolicyArch
+
+__all__ = [
+    "CARD_NAME",
+    "WEIGHTS_NAME",
+    "CARD_FORMAT",
+    "ActionScaling",
+    "CleanSuccess",
+    "PolicyCard",
+    "save_checkpoint",
+    "load_card",
+    "load_checkpoint",
+    "load_policy",
+    "is_checkpoint",
+]
+
+CARD_NAME = "policy.json"
+WEIGHTS_NAME = "weights.safetensors"
+CARD_FORMAT = "advobj-policy/1"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ActionScaling(_Strict):
+    """How a network output in [-1, 1] becomes a motion (see :mod:`sim.action`)."""
+
+    max_step_m: float = Field(gt=0, description="translation per step at |a| = 1, m")
+    max_step_rad: float = Field(gt=0, description="rotation per step at |a| = 1, rad")
+    frame: str = "tcp"
+
+
+class CleanSuccess(_Strict):
+    """Clean success rate over ``n`` episodes with its Wilson interval."""
+
+    k: int = Field(ge=0)
+    n: int = Field(ge=0)
+    rate: float | None
+    lo: float
+    hi: float
+    confidence: float
+    episodes_seed: int
+    image_size: int
+
+
+class PolicyCard(_Strict):
+    format: str = CARD_FORMAT
+    arch: PolicyArch
+    action: ActionScaling
+    training: dict[str, Any] = Field(default_factory=dict, description="resolved training config")
+    clean_success: CleanSuccess | None = None
+    seed: int | None = None
+    git_commit: str = "unknown"
+    created_utc: str = ""
+    weights_sha256: str = ""
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def is_checkpoint(path: str | Path) -> bool:
+    p = Path(path)
+    return p.is_dir() and (p / CARD_NAME).is_file()
+
+
+def save_checkpoint(out_dir: str | Path, policy, card: PolicyCard) -> PolicyCard:
+    """Write ``policy``'s weights and ``card`` (hash and time filled in) into ``out_dir``.
+
+    Files are written to temporaries and renamed, so an interrupted save leaves the previous
+    checkpoint intact.
+    """
+    from safetensors.torch import save_file
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if card.arch != policy.config:
+        raise PolicyError("card.arch does not match the policy's architecture")
+    state = {k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()}
+    tmp_w = out / (WEIGHTS_NAME + ".tmp")
+    save_file(state, str(tmp_w), metadata={"format": CARD_FORMAT})
+    card = card.model_copy(update={"weights_sha256": _sha256(tmp_w), "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())})
+    tmp_c = out / (CARD_NAME + ".tmp")
+    tmp_c.write_text(card.model_dump_json(indent=2))
+    tmp_w.replace(out / WEIGHTS_NAME)
+    tmp_c.replace(out / CARD_NAME)
+    return card
+
+
+def load_card(path: str | Path) -> PolicyCard:
+    """The validated card of checkpoint directory ``path`` (or of a ``policy.json`` file)."""
+    p = Path(path)
+    card_path = p / CARD_NAME if p.is_dir() else p
+    if not card_path.is_file():
+        if p.is_file():
+            raise PolicyError(f"{p}: not a policy checkpoint; expected a directory with {CARD_NAME} and {WEIGHTS_NAME}, or an .onnx file")
+        raise PolicyError(f"{p}: no such policy checkpoint (expected a directory with {CARD_NAME})")
+    try:
+        doc = json.loads(card_path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise PolicyError(f"{card_path}: not a JSON policy card ({err})") from None
+    if not isinstance(doc, dict) or doc.get("format") != CARD_FORMAT:
+        raise PolicyError(f"{card_path}: not an advobj policy card (missing format {CARD_FORMAT!r})")
+    try:
+        return PolicyCard.model_validate(doc)
+    except ValidationError as err:
+        e = err.errors()[0]
+        loc = ".".join(str(x) for x in e["loc"])
+        raise PolicyError(f"{card_path}: {loc}: {e['msg']}") from None
+
+
+def load_checkpoint(path: str | Path, device="cpu"):
+    """``(policy, card)`` from checkpoint directory ``path``; the policy is in eval mode on ``device``.
+
+    Refuses (with :class:`PolicyError`) a missing or malformed card, weights whose hash differs
+    from the card's, a weights file that is not safetensors, and weights that do not fit the
+    architecture.
+    """
+    import torch
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    from sim.policies.policy import VisuomotorPolicy
+
+    p = Path(path)
+    card = load_card(p)
+    if not p.is_dir():
+        raise PolicyError(f"{p}: a checkpoint is a directory holding {CARD_NAME} and {WEIGHTS_NAME}")
+    wpath = p / WEIGHTS_NAME
+    if not wpath.is_file():
+        raise PolicyError(f"{wpath}: weights file missing")
+    if not card.weights_sha256:
+        raise PolicyError(f"{p / CARD_NAME}: weights_sha256 is empty; cannot verify {WEIGHTS_NAME}")
+    if _sha256(wpath) != card.weights_sha256:
+        raise PolicyError(f"{wpath}: weights do not match the card's weights_sha256 (file modified or replaced); refusing to load")
+    try:
+        state = load_file(str(wpath), device="cpu")
+    except (SafetensorError, OSError, ValueError) as err:
+        raise PolicyError(f"{wpath}: not a safetensors weights file ({err})") from None
+    policy = VisuomotorPolicy(card.arch)
+    try:
+        policy.load_state_dict(state, strict=True)
+    except RuntimeError as err:
+        first = str(err).splitlines()[0:2]
+        raise PolicyError(f"{wpath}: weights do not fit arch {card.arch.arch!r} ({' '.join(first)})") from None
+    return policy.to(torch.device(device)).eval(), card
+
+
+def load_policy(path: str | Path, device="cpu"):
+    """Any policy behind the :class:`sim.policies.interface.Policy` interface.
+
+    A checkpoint directory gives a white-box :class:`VisuomotorPolicy`; an ``.onnx`` file a
+    black-box :class:`sim.policies.onnx_policy.OnnxPolicy`. Anything else is refused.
+    """
+    p = Path(path)
+    if p.is_file() and p.suffix.lower() == ".onnx":
+        from sim.policies.onnx_policy import OnnxPolicy
+
+        return OnnxPolicy(p)
+    if p.is_dir() or p.name == CARD_NAME:
+        return load_checkpoint(p if p.is_dir() else p.parent, device)[0]
+    if p.exists():
+        raise PolicyError(f"{p}: not a policy; expected a checkpoint directory (with {CARD_NAME}) or an .onnx file")
+    raise PolicyError(f"{p}: no such file or directory")

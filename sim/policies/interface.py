@@ -1,0 +1,72 @@
+"""The policy interface shared by torch (white-box) and ONNX (black-box) policies.
+
+A policy maps wrist-camera images to actions through ``act(images) -> (B, 6) float32`` in
+[-1, 1] (the action semantics of :mod:`sim.action`). ``images`` is either what the env returns,
+``(B, H, W, 3)`` uint8, or network input, ``(B, 3, H, W)`` float in [0, 1]. This module is
+numpy-only so black-box use never needs torch.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from sim.errors import AdvobjError
+
+__all__ = ["Policy", "PolicyError", "WhiteBoxRequired", "prepare_images", "require_white_box"]
+
+
+class PolicyError(AdvobjError, ValueError):
+    """A policy file, card or input is invalid; the message names the file or field."""
+
+
+class WhiteBoxRequired(AdvobjError, TypeError):
+    """A gradient-based method was given a policy without gradients (e.g. an ONNX file)."""
+
+
+@runtime_checkable
+class Policy(Protocol):
+    image_size: int
+    white_box: bool
+
+    def act(self, images) -> np.ndarray: ...
+
+
+def prepare_images(images, image_size: int) -> np.ndarray:
+    """``(B, 3, S, S)`` float32 in [0, 1] from env images ``(B, S, S, 3)`` uint8 or network input.
+
+    Raises :class:`PolicyError` naming the expected shape when ``images`` does not match.
+    """
+    a = np.asarray(images)
+    if a.ndim == 3:
+        a = a[None]
+    if a.ndim != 4:
+        raise PolicyError(f"images: expected (B, {image_size}, {image_size}, 3) uint8 or (B, 3, {image_size}, {image_size}) float, got shape {a.shape}")
+    if a.dtype == np.uint8:
+        if a.shape[-1] != 3:
+            raise PolicyError(f"images: uint8 images must be (B, H, W, 3), got shape {a.shape}")
+        a = np.ascontiguousarray(a.transpose(0, 3, 1, 2), dtype=np.float32) / np.float32(255.0)
+    elif np.issubdtype(a.dtype, np.floating):
+        if a.shape[1] != 3:
+            raise PolicyError(f"images: float images must be (B, 3, H, W) in [0, 1], got shape {a.shape}")
+        a = np.ascontiguousarray(a, dtype=np.float32)
+    else:
+        raise PolicyError(f"images: expected uint8 or float, got dtype {a.dtype}")
+    if a.shape[2:] != (image_size, image_size):
+        raise PolicyError(f"images: policy expects {image_size}x{image_size} px, got {a.shape[2]}x{a.shape[3]}")
+    return a
+
+
+def require_white_box(policy) -> None:
+    """Raise :class:`WhiteBoxRequired` unless ``policy`` exposes ``features``/``head`` gradients.
+
+    The attack calls this first: it needs ``policy.head(policy.features(x))`` in torch.
+    """
+    if getattr(policy, "white_box", False) and callable(getattr(policy, "features", None)) and callable(getattr(policy, "head", None)):
+        return
+    kind = type(policy).__name__
+    raise WhiteBoxRequired(
+        f"the attack needs a white-box torch policy (a checkpoint directory with policy.json), got a {kind}; "
+        "ONNX and other black-box policies can be evaluated (advobj policy eval) but not attacked"
+    )

@@ -1,0 +1,110 @@
+"""The white-box visuomotor policy: normalization -> backbone -> MLP head -> tanh action.
+
+``act = head(features(x))`` with
+
+* ``features(x: (B, 3, S, S) float in [0, 1]) -> A: (B, C, h, w)``, the last conv feature map
+  (normalization happens inside, so attacks work in image space);
+* ``head(A) -> (B, 6)`` in [-1, 1]: 1x1 conv to ``head_channels``, flatten, MLP, ``tanh``.
+
+Grad-CAM is then ``w = d||a|| / dA`` averaged over ``(h, w)`` without hooks. The head flattens the
+map instead of global-average-pooling it because the action depends on *where* the goal is in the
+image; this ties a policy to its image size (recorded in the policy card).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
+
+from sim.policies.backbones import BACKBONES, build_backbone
+from sim.policies.interface import PolicyError, prepare_images
+
+__all__ = ["PolicyArch", "VisuomotorPolicy", "IMAGENET_MEAN", "IMAGENET_STD", "ACTION_DIM"]
+
+ACTION_DIM = 6
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+ArchName = Literal[tuple(BACKBONES)]  # type: ignore[valid-type]
+
+
+class PolicyArch(BaseModel):
+    """Everything needed to rebuild the network (stored in the policy card)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    arch: ArchName = "resnet18"
+    image_size: int = Field(64, ge=32, le=512, description="square input size, px")
+    small_stem: bool = True
+    head_channels: int = Field(32, ge=1)
+    head_hidden: int = Field(256, ge=1)
+    mean: tuple[float, float, float] = IMAGENET_MEAN
+    std: tuple[float, float, float] = IMAGENET_STD
+
+
+class VisuomotorPolicy(nn.Module):
+    """Image-to-action policy; see the module docstring for the white-box contract."""
+
+    white_box = True
+
+    def __init__(self, config: PolicyArch | None = None, **kwargs):
+        super().__init__()
+        self.config = config if config is not None else PolicyArch(**kwargs)
+        if any(s <= 0 for s in self.config.std):
+            raise PolicyError(f"std: normalization std must be positive, got {self.config.std}")
+        self.image_size = self.config.image_size
+        self.register_buffer("mean", torch.tensor(self.config.mean, dtype=torch.float32).view(1, 3, 1, 1))
+        self.register_buffer("std", torch.tensor(self.config.std, dtype=torch.float32).view(1, 3, 1, 1))
+        self.backbone = build_backbone(self.config.arch, self.config.small_stem)
+        with torch.no_grad():
+            c, h, w = self.backbone.eval()(torch.zeros(1, 3, self.image_size, self.image_size)).shape[1:]
+        self.backbone.train()
+        self.feature_shape = (int(c), int(h), int(w))
+        self.reduce = nn.Sequential(nn.Conv2d(c, self.config.head_channels, 1), nn.ReLU())
+        self.mlp = nn.Sequential(
+            nn.Flatten(),
+            nn.Linear(self.config.head_channels * h * w, self.config.head_hidden),
+            nn.ReLU(),
+            nn.Linear(self.config.head_hidden, ACTION_DIM),
+        )
+
+    @property
+    def device(self) -> torch.device:
+        return self.mean.device
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """``x: (B, 3, S, S)`` float in [0, 1] -> last conv feature map ``(B, C, h, w)``."""
+        # Shape check in Python; skipped while tracing for ONNX export, where it would be baked in.
+        if not torch.jit.is_tracing() and (x.ndim != 4 or x.shape[1] != 3 or tuple(x.shape[2:]) != (self.image_size, self.image_size)):
+            raise PolicyError(f"images: policy expects (B, 3, {self.image_size}, {self.image_size}) float in [0, 1], got {tuple(x.shape)}")
+        return self.backbone((x - self.mean) / self.std)
+
+    def head(self, A: torch.Tensor) -> torch.Tensor:
+        """Feature map ``(B, C, h, w)`` -> action ``(B, 6)`` in [-1, 1]."""
+        return torch.tanh(self.mlp(self.reduce(A)))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x))
+
+    @torch.no_grad()
+    def act(self, images) -> np.ndarray:
+        """Actions ``(B, 6)`` float32 for env images ``(B, S, S, 3)`` uint8 or ``(B, 3, S, S)`` floats.
+
+        Runs in eval mode (BN running statistics) and restores the previous mode.
+        """
+        if isinstance(images, torch.Tensor):
+            x = images.to(self.device, torch.float32)
+            if images.dtype == torch.uint8:
+                x = x.permute(0, 3, 1, 2) / 255.0
+        else:
+            x = torch.from_numpy(prepare_images(images, self.image_size)).to(self.device)
+        was_training = self.training
+        self.eval()
+        try:
+            return self(x).cpu().numpy().astype(np.float32)
+        finally:
+            self.train(was_training)
