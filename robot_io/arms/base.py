@@ -1,0 +1,100 @@
+"""The arm interface every driver implements, and the fault it reports.
+
+Drivers are never used directly by trials: :func:`robot_io.config.build_arm` wraps them in
+:class:`robot_io.safety.SafeArm`, which is the only path commands take to a driver.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+__all__ = ["Fault", "Arm"]
+
+FaultKind = Literal["protective_stop", "emergency_stop", "connection_lost", "program_stopped",
+                    "heartbeat_timeout", "device_fault"]
+
+
+@dataclass(frozen=True)
+class Fault:
+    """Why the arm cannot move, and what the operator should do about it."""
+
+    kind: FaultKind
+    message: str
+    recovery: str = ""
+
+    def __str__(self) -> str:
+        text = f"arm fault ({self.kind}): {self.message}"
+        return f"{text}. To recover: {self.recovery}" if self.recovery else text
+
+
+class Arm(abc.ABC):
+    """A robot arm moving a TCP in its base frame.
+
+    Motion commands: :meth:`move_to` (blocking positioning move) and :meth:`servo` (one
+    non-blocking step of a streamed trajectory, reached over ``duration_s``; the policy loop).
+    """
+
+    name: str = "arm"
+
+    def __init__(self):
+        self._connected = False
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    def connect(self) -> None:
+        if not self._connected:
+            self._open()
+            self._connected = True
+
+    def disconnect(self) -> None:
+        if self._connected:
+            self._connected = False
+            self._close()
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        try:
+            if exc_type is not None and self._connected:
+                self.stop()
+        finally:
+            self.disconnect()
+        return False
+
+    @abc.abstractmethod
+    def _open(self) -> None: ...
+
+    @abc.abstractmethod
+    def _close(self) -> None:
+        """Stop motion and release the connection (must not raise on a dead link)."""
+
+    @abc.abstractmethod
+    def tcp_pose(self) -> np.ndarray:
+        """``T_base_tcp`` (4, 4), measured."""
+
+    @abc.abstractmethod
+    def move_to(self, T_base_tcp: np.ndarray, speed_mps: float) -> None:
+        """Move linearly to ``T_base_tcp`` and return when there (positioning, not the policy loop)."""
+
+    @abc.abstractmethod
+    def servo(self, T_base_tcp: np.ndarray, duration_s: float) -> None:
+        """Stream one target to be reached in ``duration_s``; returns immediately."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Stop any motion now (decelerating as fast as the arm allows)."""
+
+    @abc.abstractmethod
+    def fault(self) -> Fault | None:
+        """The current fault, or ``None`` when the arm can move."""
+
+    def keepalive(self) -> None:
+        """Tell the arm's watchdog we are alive; called every control loop iteration."""

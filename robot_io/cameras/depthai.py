@@ -1,0 +1,117 @@
+"""Luxonis OAK cameras through the depthai v3 API (``pip install 'advobj[oak]'``).
+
+Pipeline: ``Camera`` node built on a board socket -> ``requestOutput`` at the wanted size and
+fps -> a host queue of one non-blocking slot, so the device overwrites stale frames and ``read()``
+always gets the newest. Intrinsics come from the device's factory calibration unless a YAML is
+given. The device's USB link failing surfaces as ``RuntimeError('... X_LINK ...')``; it becomes
+:class:`CameraLostError`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from robot_io.cameras.base import Camera, CameraIntrinsics, Frame
+from robot_io.errors import CameraLostError, require_extra
+
+__all__ = ["DepthAICamera"]
+
+
+def _lost(err: Exception) -> Exception:
+    if "X_LINK" in str(err):
+        return CameraLostError(f"OAK camera lost (USB link error: {err}); check the cable and power, then reconnect")
+    return err
+
+
+class DepthAICamera(Camera):
+    """An OAK colour camera.
+
+    Args:
+        socket: board socket name, ``CAM_A`` (the RGB sensor on most OAK-D models), ``CAM_B``, ...
+        width, height, fps: requested output (the ISP scales to it).
+        intrinsics: a calibration to use instead of the device's factory calibration.
+        timeout_ms: ``read()`` raises :class:`CameraLostError` when no frame arrives in time.
+    """
+
+    name = "depthai"
+
+    def __init__(self, socket: str = "CAM_A", width: int = 640, height: int = 480, fps: float = 30.0,
+                 intrinsics: CameraIntrinsics | None = None, timeout_ms: float = 1000.0):
+        super().__init__()
+        self.socket = socket
+        self.width, self.height, self.fps = int(width), int(height), float(fps)
+        self.timeout_ms = float(timeout_ms)
+        self._calibration = intrinsics
+        self._device_intrinsics: CameraIntrinsics | None = None
+        self._pipeline = None
+        self._queue = None
+        self._seq = 0
+
+    def _open(self) -> None:
+        dai = require_extra("depthai", "oak", "the OAK (depthai) camera")
+        try:
+            socket = getattr(dai.CameraBoardSocket, self.socket)
+        except AttributeError:
+            raise CameraLostError(f"unknown OAK board socket {self.socket!r} (expected CAM_A, CAM_B, ...)") from None
+        try:
+            pipeline = dai.Pipeline()
+            cam = pipeline.create(dai.node.Camera).build(socket)
+            out = cam.requestOutput((self.width, self.height), type=dai.ImgFrame.Type.BGR888i, fps=self.fps)
+            self._queue = out.createOutputQueue(maxSize=1, blocking=False)
+            pipeline.start()
+            self._pipeline = pipeline
+            if self._calibration is None:
+                calib = pipeline.getDefaultDevice().readCalibration()
+                K = np.asarray(calib.getCameraIntrinsics(socket, self.width, self.height), dtype=np.float64)
+                dist = np.asarray(calib.getDistortionCoefficients(socket), dtype=np.float64)[:5]
+                self._device_intrinsics = CameraIntrinsics(K, self.width, self.height, dist)
+        except RuntimeError as err:
+            self._close()
+            raise _lost(err) from None
+        self._seq = 0
+
+    def _close(self) -> None:
+        pipeline, self._pipeline, self._queue = self._pipeline, None, None
+        if pipeline is not None:
+            try:
+                pipeline.stop()
+            except RuntimeError:
+                pass  # the device may already be gone; nothing left to release
+
+    def _read(self) -> Frame:
+        deadline = time.monotonic() + self.timeout_ms / 1000.0
+        try:
+            while True:
+                msg = self._queue.tryGet()
+                if msg is not None:
+                    break
+                if time.monotonic() > deadline:
+                    raise CameraLostError(f"OAK camera {self.socket}: no frame within {self.timeout_ms:.0f} ms")
+                time.sleep(0.001)
+            bgr = msg.getCvFrame()
+        except RuntimeError as err:
+            raise _lost(err) from None
+        now = time.monotonic()
+        ts = now
+        # Device timestamps are synced to the host's steady clock (= time.monotonic on Linux);
+        # they include the USB transfer, so prefer them when they are plausible.
+        get_ts = getattr(msg, "getTimestamp", None)
+        if get_ts is not None:
+            t = get_ts()
+            t = t.total_seconds() if hasattr(t, "total_seconds") else float(t)
+            if 0.0 <= now - t < 5.0:
+                ts = t
+        seq_fn = getattr(msg, "getSequenceNum", None)
+        seq = int(seq_fn()) if seq_fn is not None else self._seq
+        self._seq = seq + 1
+        return Frame(np.ascontiguousarray(bgr[:, :, 2::-1]), ts, seq)
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        if self._calibration is not None:
+            return self._calibration.scaled_to(self.width, self.height)
+        if self._device_intrinsics is None:
+            raise CameraLostError("OAK intrinsics are read from the device: connect() first")
+        return self._device_intrinsics

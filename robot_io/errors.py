@@ -1,0 +1,60 @@
+"""Errors raised by robot_io; all are :class:`sim.errors.AdvobjError`, so the CLI prints them cleanly."""
+
+from __future__ import annotations
+
+from sim.errors import AdvobjError
+
+__all__ = [
+    "RobotIOError",
+    "HardwareConfigError",
+    "MissingExtraError",
+    "CameraLostError",
+    "ArmFaultError",
+    "ProtocolError",
+    "SafetyStop",
+    "require_extra",
+]
+
+
+class RobotIOError(AdvobjError):
+    """Base of every camera, arm and safety error."""
+
+
+class HardwareConfigError(RobotIOError, ValueError):
+    """A hardware or calibration YAML that does not validate; the message names file and field."""
+
+
+class MissingExtraError(RobotIOError, ImportError):
+    """A vendor SDK is not installed; the message names the pip extra that provides it."""
+
+
+class CameraLostError(RobotIOError):
+    """The camera stopped delivering frames (unplugged, X_LINK error, read timeout)."""
+
+
+class ArmFaultError(RobotIOError):
+    """The arm reports a protective stop, an emergency stop or a lost connection."""
+
+    def __init__(self, fault):
+        self.fault = fault
+        super().__init__(str(fault))
+
+
+class ProtocolError(RobotIOError):
+    """The serial arm answered garbage, the wrong protocol version, or not at all."""
+
+
+class SafetyStop(RobotIOError):
+    """The safety layer stopped the arm and ended the trial (e.g. maximum trial duration)."""
+
+
+def require_extra(module: str, extra: str, what: str):
+    """Import a vendor SDK lazily; a missing one becomes an error naming the pip extra."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as err:
+        raise MissingExtraError(
+            f"{what} needs the '{module}' module, which is not installed: pip install 'advobj[{extra}]' ({err})"
+        ) from None
