@@ -1,0 +1,692 @@
+"""Object meshes: procedural built-ins and validated mesh files, all with UVs and a texture.
+
+Every mesh returned here:
+
+* has vertices in metres in its object frame: origin at the centre of its base, +z up, so it
+  stands on the table (z = 0) at the identity pose (user files keep their origin unless
+  ``recenter=True``);
+* carries ``trimesh.visual.TextureVisuals`` with per-vertex ``uv`` (in [0, 1] except the table,
+  whose UVs tile) and a default texture image (PIL), generated in code;
+* has ``metadata["name"]`` and ``metadata["optimizable_faces"]`` ((F,) bool: faces whose texture
+  the attack may change; all True except the patch's sides and bottom);
+* has consistent, outward winding and no degenerate faces. Vertices are duplicated along UV seams,
+  so closed built-ins are watertight once vertices are merged by position.
+
+Built-ins (:data:`BUILTIN_MESHES`): ``tomato_soup_can``, ``mustard_bottle`` (the paper's
+simulated goal and adversarial objects, YCB look-alikes), ``cube`` and ``cylinder`` (its
+real-world shapes), ``duck`` and ``dog`` (its generalisation study), ``patch`` (the 2D baseline)
+and ``table``. Geometry lives here; the looks (shaders) live in :mod:`sim.textures`.
+
+Built-ins with a wrap layout (soup can, mustard bottle, cylinder) also carry
+``metadata["uv_islands"]``: ``{island: (u0, v0, u1, v1)}`` bounding boxes in UV, for printing.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+import trimesh
+from PIL import Image
+
+from sim import textures as tx
+from sim.errors import AdvobjError
+
+__all__ = [
+    "AssetError",
+    "BUILTIN_MESHES",
+    "build_mesh",
+    "load_mesh_file",
+    "ensure_uv",
+    "default_texture",
+    "table_mesh",
+    "patch_side_m",
+    "silhouette_area_m2",
+    "texel_density_ratio",
+    "PATCH_THICKNESS_M",
+    "PATCH_TOP_UV",
+    "TABLE_TILE_M",
+    "TEXTURE_SIZE",
+]
+
+TEXTURE_SIZE = 512  # px, side of the default texture images
+TABLE_TILE_M = 0.20  # the table texture repeats every 20 cm
+PATCH_THICKNESS_M = 0.002
+_PATCH_STRIP = 1.0 / 32.0  # UV width of the patch's reserved (non-optimizable) strips
+PATCH_TOP_UV = (_PATCH_STRIP, _PATCH_STRIP, 1.0, 1.0)  # (u0, v0, u1, v1) of the patch top face
+_GUTTER = 0.02  # UV gap between islands, as a fraction of the packed atlas side (~10 px at 512)
+_DEGENERATE_REL_AREA = 1e-12  # face area below this times (bbox diagonal)^2 counts as degenerate
+
+
+class AssetError(AdvobjError, ValueError):
+    """A mesh source could not be built or loaded; the message names the file or built-in."""
+
+
+# ============================================================================ mesh assembly
+class _Parts(NamedTuple):
+    """Raw geometry of a built-in before it becomes a Trimesh (all arrays float64 / int64)."""
+
+    vertices: np.ndarray  # (V, 3) m, object frame
+    faces: np.ndarray  # (F, 3)
+    uv: np.ndarray  # (V, 2)
+    shader: tx.Shader
+    tags: np.ndarray | None = None  # (F,) part index passed to the shader
+    optimizable: np.ndarray | None = None  # (F,) bool, default all True
+    islands: dict | None = None  # name -> (u0, v0, u1, v1)
+
+
+def _make_trimesh(name: str, vertices, faces, uv, image: np.ndarray, optimizable=None, extra=None) -> trimesh.Trimesh:
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    visual = trimesh.visual.TextureVisuals(uv=np.asarray(uv, dtype=np.float64), image=Image.fromarray(image))
+    # process=False: keep seam vertices (merging would drop the UV seams) and face order.
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, visual=visual, process=False)
+    opt = np.ones(len(faces), bool) if optimizable is None else np.asarray(optimizable, bool)
+    mesh.metadata["name"] = name
+    mesh.metadata["optimizable_faces"] = opt
+    if extra:
+        mesh.metadata.update(extra)
+    return mesh
+
+
+def _to_base_frame(vertices: np.ndarray) -> np.ndarray:
+    """Translate (V, 3) so the bounding box's base centre is the origin."""
+    lo, hi = vertices.min(0), vertices.max(0)
+    return vertices - np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+
+
+# ============================================================================ UV packing
+class _Island(NamedTuple):
+    """A chart: faces with UVs in metres (texel density 1), its lower-left corner at (0, 0)."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv_m: np.ndarray
+
+
+def _pack(islands: list[_Island], row_width_m: float | None = None):
+    """Shelf-pack charts into the unit square at one common scale (uniform texel density).
+
+    Charts go left to right in rows of width ``row_width_m`` (default: the widest chart), in the
+    given order. Returns vertices (V, 3), faces (F, 3), uv (V, 2) and the island boxes in UV.
+    """
+    sizes = [isl.uv_m.max(0) for isl in islands]
+    width = row_width_m or max(s[0] for s in sizes)
+    gap = _GUTTER * width
+    offsets, x, y, row_h = [], gap, gap, 0.0
+    for s in sizes:
+        if x > gap and x + s[0] + gap > width + 2 * gap + 1e-12:
+            x, y, row_h = gap, y + row_h + gap, 0.0
+        offsets.append(np.array([x, y]))
+        x += s[0] + gap
+        row_h = max(row_h, s[1])
+    side = max(width + 2 * gap, y + row_h + gap)
+    verts, faces, uvs, boxes, n = [], [], [], {}, 0
+    for isl, off, s in zip(islands, offsets, sizes):
+        verts.append(isl.vertices)
+        faces.append(isl.faces + n)
+        uvs.append((isl.uv_m + off) / side)
+        boxes[isl.name] = tuple(float(c) for c in (*(off / side), *((off + s) / side)))
+        n += len(isl.vertices)
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs), boxes
+
+
+# ============================================================================ primitives
+def _superellipse_ring(a: float, b: float, exponent: float, n: int) -> np.ndarray:
+    """(n, 2) points, counter-clockwise from (+a, 0), evenly spaced by arc length, on
+    ``|x/a|^e + |y/b|^e = 1`` (e = 2: ellipse; larger e: rounder rectangle)."""
+    t = np.linspace(0.0, 2 * np.pi, 4096, endpoint=False)
+    c, s = np.cos(t), np.sin(t)
+    p = np.stack([a * np.sign(c) * np.abs(c) ** (2 / exponent), b * np.sign(s) * np.abs(s) ** (2 / exponent)], -1)
+    closed = np.concatenate([p, p[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=-1))])
+    target = np.arange(n) * arc[-1] / n
+    return np.stack([np.interp(target, arc, closed[:, k]) for k in range(2)], -1)
+
+
+def _lathe(rings, segments: int, cap_bottom: bool = True, cap_top: bool = True) -> list[_Island]:
+    """Loft of horizontal superelliptic rings: a side wrap chart plus flat cap charts.
+
+    Args:
+        rings: sequence of ``(z_m, half_x_m, half_y_m, exponent)``, z non-decreasing.
+        segments: points per ring.
+    The side chart is area-preserving to first order: u is arc length along each ring (centred,
+    so narrow rings make a narrower strip) and v arc length along each meridian column. The seam
+    is on the +x side (column 0 is duplicated as column ``segments``).
+    """
+    rings = [tuple(map(float, r)) for r in rings]
+    pts = np.stack([_superellipse_ring(a, b, e, segments) for _, a, b, e in rings])  # (R, n, 2)
+    z = np.array([r[0] for r in rings])
+    R, n = pts.shape[:2]
+    ring3 = np.concatenate([pts, np.broadcast_to(z[:, None, None], (R, n, 1))], -1)
+    ring3 = np.concatenate([ring3, ring3[:, :1]], 1)  # seam column
+    seg = np.linalg.norm(np.diff(ring3[..., :2], axis=1), axis=-1)  # (R, n)
+    s = np.concatenate([np.zeros((R, 1)), np.cumsum(seg, 1)], 1)  # (R, n + 1)
+    perim = s[:, -1]
+    u = s - perim[:, None] / 2 + perim.max() / 2
+    dv = np.linalg.norm(np.diff(ring3, axis=0), axis=-1)  # (R - 1, n + 1)
+    v = np.concatenate([np.zeros((1, n + 1)), np.cumsum(dv, 0)], 0)
+    idx = np.arange(R * (n + 1)).reshape(R, n + 1)
+    a, b = idx[:-1, :-1], idx[:-1, 1:]
+    c, d = idx[1:, 1:], idx[1:, :-1]
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    # Drop zero-height, zero-width quads (none for the profiles here; kept for safety).
+    tri = ring3.reshape(-1, 3)[faces]
+    keep = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=-1) > 1e-14
+    islands = [_Island("side", ring3.reshape(-1, 3), faces[keep], np.stack([u, v], -1).reshape(-1, 2))]
+
+    def cap(k: int, up: bool) -> _Island:
+        ring = np.concatenate([pts[k], np.full((n, 1), z[k])], -1)
+        verts = np.concatenate([[[0.0, 0.0, z[k]]], ring])
+        j = np.arange(n)
+        f = np.stack([np.zeros(n, np.int64), 1 + j, 1 + (j + 1) % n], -1)
+        if not up:
+            f = f[:, [0, 2, 1]]
+        # Planar UVs seen from outside: the bottom cap is mirrored so it is not read backwards.
+        uvm = verts[:, :2] * np.array([1.0 if up else -1.0, 1.0])
+        return _Island("top" if up else "bottom", verts, f, uvm - uvm.min(0))
+
+    if cap_top:
+        islands.append(cap(R - 1, True))
+    if cap_bottom:
+        islands.append(cap(0, False))
+    return islands
+
+
+def _grid_quad(origin, du, dv, nu: int, nv: int, uv0, uv_du, uv_dv):
+    """A planar quad split into ``nu x nv`` cells (2 triangles each), normal along du x dv.
+
+    Returns vertices (V, 3), faces (F, 3), uv (V, 2); UV = uv0 + a * uv_du + b * uv_dv with
+    (a, b) in [0, 1]^2 the position in the quad.
+    """
+    a, b = np.meshgrid(np.linspace(0, 1, nu + 1), np.linspace(0, 1, nv + 1), indexing="xy")
+    a, b = a.ravel(), b.ravel()
+    verts = np.asarray(origin, float) + a[:, None] * np.asarray(du, float) + b[:, None] * np.asarray(dv, float)
+    uv = np.asarray(uv0, float) + a[:, None] * np.asarray(uv_du, float) + b[:, None] * np.asarray(uv_dv, float)
+    idx = np.arange((nu + 1) * (nv + 1)).reshape(nv + 1, nu + 1)
+    p, q, r, s = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
+    faces = np.concatenate([np.stack([p, q, r], -1).reshape(-1, 3), np.stack([p, r, s], -1).reshape(-1, 3)])
+    return verts, faces, uv
+
+
+def _concat(parts):
+    verts, faces, uvs, n = [], [], [], 0
+    for v, f, u in parts:
+        verts.append(v)
+        faces.append(f + n)
+        uvs.append(u)
+        n += len(v)
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs)
+
+
+def _box_faces(size, uv_of_face):
+    """Box ``size = (sx, sy, sz)`` with its base centre at the origin, one grid quad per face.
+
+    ``uv_of_face(name) -> (uv0, uv_du, uv_dv, nu, nv)`` for names ``+x -x +y -y +z -z``; each face's
+    (du, dv) follow the wrap order described in :func:`_cube_parts`. Returns (V, 3), (F, 3), (V, 2)
+    and (F,) face-name index.
+    """
+    sx, sy, sz = (float(s) for s in size)
+    hx, hy = sx / 2, sy / 2
+    geo = {  # origin, du, dv (du x dv points outward)
+        "-x": ([-hx, hy, 0], [0, -sy, 0], [0, 0, sz]),
+        "-y": ([-hx, -hy, 0], [sx, 0, 0], [0, 0, sz]),
+        "+x": ([hx, -hy, 0], [0, sy, 0], [0, 0, sz]),
+        "+y": ([hx, hy, 0], [-sx, 0, 0], [0, 0, sz]),
+        "+z": ([-hx, -hy, sz], [sx, 0, 0], [0, sy, 0]),
+        "-z": ([-hx, hy, 0], [sx, 0, 0], [0, -sy, 0]),
+    }
+    parts, which = [], []
+    for k, (name, (o, du, dv)) in enumerate(geo.items()):
+        uv0, uv_du, uv_dv, nu, nv = uv_of_face(name)
+        v, f, u = _grid_quad(o, du, dv, nu, nv, uv0, uv_du, uv_dv)
+        parts.append((v, f, u))
+        which.append(np.full(len(f), k))
+    v, f, u = _concat(parts)
+    return v, f, u, np.concatenate(which)
+
+
+def _ellipsoid(radii, center, subdivisions: int = 2, rotvec=(0.0, 0.0, 0.0)):
+    from sim.geometry import so3_exp
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    v = (np.asarray(s.vertices) * np.asarray(radii, float)) @ so3_exp(np.asarray(rotvec, float)).T + np.asarray(center, float)
+    return v, np.asarray(s.faces, np.int64)
+
+
+def _cylinder(radius: float, z0: float, z1: float, xy, sections: int = 12):
+    c = trimesh.creation.cylinder(radius=radius, segment=[[xy[0], xy[1], z0], [xy[0], xy[1], z1]], sections=sections)
+    return np.asarray(c.vertices, float), np.asarray(c.faces, np.int64)
+
+
+def _atlas(vertices: np.ndarray, faces: np.ndarray):
+    """xatlas charts + packing. Returns vertices (V', 3), faces (F, 3) (same order), uv (V', 2)
+    and ``vmapping`` (V',) into the input vertices."""
+    import xatlas
+
+    vmap, idx, uv = xatlas.parametrize(np.asarray(vertices, np.float32), np.asarray(faces, np.uint32))
+    vmap = np.asarray(vmap, np.int64)
+    return np.asarray(vertices, np.float64)[vmap], np.asarray(idx, np.int64), np.clip(np.asarray(uv, np.float64), 0.0, 1.0), vmap
+
+
+# ============================================================================ built-ins
+SOUP_CAN_DIAMETER_M = 0.066
+SOUP_CAN_HEIGHT_M = 0.101
+CYLINDER_DIAMETER_M = 0.066
+CYLINDER_HEIGHT_M = 0.100
+CUBE_SIZE_M = 0.06
+ANIMAL_LENGTH_M = 0.15  # duck and dog: largest extent
+
+# Mustard bottle profile: (z, half-x, half-y, superellipse exponent), metres. A rounded-rectangle
+# body 9.6 x 5.8 cm, a shoulder narrowing to a round neck, and a flip-top cap to 19 cm.
+_MUSTARD_BODY_TOP_M = 0.120
+_MUSTARD_CAP_BOTTOM_M = 0.1625
+_MUSTARD_RINGS = (
+    (0.000, 0.0455, 0.0265, 3.0),
+    (0.004, 0.0480, 0.0290, 3.0),
+    (0.030, 0.0480, 0.0290, 3.0),
+    (0.060, 0.0480, 0.0290, 3.0),
+    (0.090, 0.0480, 0.0290, 3.0),
+    (0.120, 0.0480, 0.0290, 3.0),
+    (0.130, 0.0465, 0.0285, 2.9),
+    (0.139, 0.0420, 0.0270, 2.7),
+    (0.147, 0.0345, 0.0240, 2.5),
+    (0.154, 0.0260, 0.0205, 2.3),
+    (0.159, 0.0190, 0.0170, 2.1),
+    (0.1620, 0.0155, 0.0150, 2.0),
+    (0.1625, 0.0168, 0.0168, 2.0),
+    (0.1860, 0.0160, 0.0160, 2.0),
+    (0.1900, 0.0110, 0.0110, 2.0),
+)
+
+
+def _wrap_parts(rings, segments, shader) -> _Parts:
+    islands = _lathe(rings, segments)
+    v, f, uv, boxes = _pack(islands)
+    return _Parts(v, f, uv, shader, islands=boxes)
+
+
+def _soup_can_parts() -> _Parts:
+    r, h = SOUP_CAN_DIAMETER_M / 2, SOUP_CAN_HEIGHT_M
+    rings = [(z, r, r, 2.0) for z in np.linspace(0.0, h, 9)]
+    return _wrap_parts(rings, 48, tx.soup_can_shader(h))
+
+
+def _cylinder_parts() -> _Parts:
+    r, h = CYLINDER_DIAMETER_M / 2, CYLINDER_HEIGHT_M
+    rings = [(z, r, r, 2.0) for z in np.linspace(0.0, h, 9)]
+    return _wrap_parts(rings, 48, tx.cylinder_shader(h))
+
+
+def _mustard_parts() -> _Parts:
+    shader = tx.mustard_shader(_MUSTARD_BODY_TOP_M, _MUSTARD_CAP_BOTTOM_M, _MUSTARD_RINGS[1][1])
+    return _wrap_parts(_MUSTARD_RINGS, 48, shader)
+
+
+# Cube net (4 x 3 tiles of 1/4): middle row -x, -y, +x, +y wrapping counter-clockwise seen from
+# above (u along the wrap, v up); +z above the -y tile, -z below it. Each tile is inset by a
+# gutter so bilinear lookups stay inside their face.
+_CUBE_TILES = {"-x": (0, 1), "-y": (1, 1), "+x": (2, 1), "+y": (3, 1), "+z": (1, 2), "-z": (1, 0)}
+
+
+def _cube_parts() -> _Parts:
+    tile, inset = 0.25, 0.25 * _GUTTER
+
+    def uv_of_face(name):
+        col, row = _CUBE_TILES[name]
+        return (col * tile + inset, row * tile + inset), (tile - 2 * inset, 0), (0, tile - 2 * inset), 3, 3
+
+    v, f, uv, _ = _box_faces((CUBE_SIZE_M,) * 3, uv_of_face)
+    return _Parts(v, f, uv, tx.cube_shader(CUBE_SIZE_M))
+
+
+def _composite_parts(pieces, shader, length_m: float) -> _Parts:
+    """Union (by concatenation) of closed parts, scaled to ``length_m`` largest extent, packed by
+    xatlas into one atlas; ``pieces``: list of (tag, vertices, faces)."""
+    verts, faces, tags, n = [], [], [], 0
+    for tag, v, f in pieces:
+        verts.append(v)
+        faces.append(f + n)
+        tags.append(np.full(len(f), tag))
+        n += len(v)
+    v = np.concatenate(verts)
+    v = _to_base_frame(v * (length_m / (v.max(0) - v.min(0)).max()))
+    v, f, uv, _ = _atlas(v, np.concatenate(faces))
+    return _Parts(v, f, uv, shader, tags=np.concatenate(tags))
+
+
+def _duck_parts() -> _Parts:
+    # Design units: cm; scaled to ANIMAL_LENGTH_M afterwards. Tags index textures.DUCK_PARTS.
+    P = [
+        (0, *_ellipsoid((6.0, 3.8, 3.2), (0.0, 0.0, 4.2))),  # body
+        (3, *_ellipsoid((2.2, 1.6, 1.0), (-5.6, 0.0, 5.6), 1, (0.0, -0.6, 0.0))),  # tail, tilted up
+        (2, *_ellipsoid((1.9, 1.9, 2.6), (3.6, 0.0, 7.0), 1)),  # neck
+        (1, *_ellipsoid((2.7, 2.5, 2.5), (4.2, 0.0, 9.2))),  # head
+        (4, *_ellipsoid((1.8, 1.1, 0.5), (6.8, 0.0, 8.8), 1)),  # beak
+        (5, *_ellipsoid((0.45, 0.3, 0.45), (6.1, 1.35, 10.0), 1)),  # eyes
+        (5, *_ellipsoid((0.45, 0.3, 0.45), (6.1, -1.35, 10.0), 1)),
+        (6, *_cylinder(0.45, 0.3, 1.8, (0.6, 1.5))),  # legs
+        (6, *_cylinder(0.45, 0.3, 1.8, (0.6, -1.5))),
+        (7, *_ellipsoid((1.4, 0.9, 0.3), (1.3, 1.6, 0.3), 1)),  # feet
+        (7, *_ellipsoid((1.4, 0.9, 0.3), (1.3, -1.6, 0.3), 1)),
+    ]
+    return _composite_parts(P, tx.duck_shader(), ANIMAL_LENGTH_M)
+
+
+def _dog_parts() -> _Parts:
+    # Design units: cm; scaled to ANIMAL_LENGTH_M afterwards. Tags index textures.DOG_PARTS.
+    P = [
+        (0, *_ellipsoid((5.5, 2.6, 2.6), (0.0, 0.0, 6.2))),  # body
+        (1, *_ellipsoid((2.4, 2.2, 2.3), (5.3, 0.0, 9.4))),  # head
+        (2, *_ellipsoid((1.8, 1.2, 1.1), (7.4, 0.0, 8.8), 1)),  # snout
+        (3, *_ellipsoid((0.45, 0.5, 0.4), (9.1, 0.0, 9.2), 1)),  # nose
+        (4, *_ellipsoid((0.5, 1.0, 1.9), (4.6, 2.1, 10.0), 1, (-0.5, 0.0, 0.0))),  # ears, hanging
+        (4, *_ellipsoid((0.5, 1.0, 1.9), (4.6, -2.1, 10.0), 1, (0.5, 0.0, 0.0))),
+        (7, *_ellipsoid((0.35, 0.3, 0.35), (6.8, 1.2, 10.3), 1)),  # eyes
+        (7, *_ellipsoid((0.35, 0.3, 0.35), (6.8, -1.2, 10.3), 1)),
+        (5, *_cylinder(0.8, 0.0, 5.2, (3.6, 1.4))),  # legs
+        (5, *_cylinder(0.8, 0.0, 5.2, (3.6, -1.4))),
+        (5, *_cylinder(0.8, 0.0, 5.2, (-3.6, 1.4))),
+        (5, *_cylinder(0.8, 0.0, 5.2, (-3.6, -1.4))),
+        (6, *_ellipsoid((0.5, 0.5, 2.4), (-6.2, 0.0, 8.4), 1, (0.0, -0.7, 0.0))),  # tail, up and back
+    ]
+    return _composite_parts(P, tx.dog_shader(), ANIMAL_LENGTH_M)
+
+
+def _patch_parts() -> _Parts:
+    """Top face -> PATCH_TOP_UV (most of the texture, optimizable); the four sides share the
+    bottom strip and the bottom face the left strip (reserved, not optimizable)."""
+    side, t = patch_side_m(), PATCH_THICKNESS_M
+    r = _PATCH_STRIP
+    g = r * 0.25  # gutter between the strips and the top face
+    w = 1.0 - r  # top face UV side
+
+    def uv_of_face(name):
+        if name == "+z":
+            return (r, r), (w, 0), (0, w), 4, 4
+        if name == "-z":
+            return (0.0, r), (r - g, 0), (0, w), 4, 4
+        k = ["-x", "-y", "+x", "+y"].index(name)
+        return (r + k * w / 4, 0.0), (w / 4 - g, 0), (0, r - g), 4, 1
+
+    v, f, uv, which = _box_faces((side, side, t), uv_of_face)
+    optimizable = which == 4  # "+z" is the 5th face of _box_faces
+    return _Parts(v, f, uv, tx.patch_shader(), optimizable=optimizable, islands={"top": PATCH_TOP_UV})
+
+
+_BUILDERS: dict[str, Callable[[], _Parts]] = {
+    "tomato_soup_can": _soup_can_parts,
+    "mustard_bottle": _mustard_parts,
+    "cube": _cube_parts,
+    "cylinder": _cylinder_parts,
+    "duck": _duck_parts,
+    "dog": _dog_parts,
+    "patch": _patch_parts,
+}
+
+
+@lru_cache(maxsize=None)
+def _parts(name: str) -> _Parts:
+    return _BUILDERS[name]()
+
+
+@lru_cache(maxsize=None)
+def _builtin_mesh(name: str) -> trimesh.Trimesh:
+    p = _parts(name)
+    image = tx.bake_texture(p.vertices, p.faces, p.uv, p.shader, TEXTURE_SIZE, p.tags)
+    extra = {"uv_islands": p.islands} if p.islands else None
+    return _make_trimesh(name, p.vertices, p.faces, p.uv, image, p.optimizable, extra)
+
+
+def _builtin(name: str) -> Callable[[], trimesh.Trimesh]:
+    def build() -> trimesh.Trimesh:
+        return _builtin_mesh(name).copy()
+
+    build.__name__ = name
+    build.__doc__ = f"A fresh copy of the built-in ``{name}`` mesh."
+    return build
+
+
+def table_mesh(size_xy_m: tuple[float, float], thickness_m: float = 0.03) -> trimesh.Trimesh:
+    """Table box ``size_xy_m`` (x, y) m, centred on the origin, top face at z = 0.
+
+    UVs are in metres / :data:`TABLE_TILE_M`, so the (repeat-wrapped) wood texture tiles every
+    20 cm at any table size; they exceed [0, 1] by design.
+    """
+    try:
+        sx, sy = (float(s) for s in size_xy_m)
+        t = float(thickness_m)
+    except (TypeError, ValueError):
+        raise AssetError(f"table: size_xy_m must be two numbers, got {size_xy_m!r}") from None
+    for label, val in (("size_xy_m[0]", sx), ("size_xy_m[1]", sy), ("thickness_m", t)):
+        if not (math.isfinite(val) and val > 0):
+            raise AssetError(f"table: {label} must be a positive finite number, got {val}")
+    k = 1.0 / TABLE_TILE_M
+    dims = {"-x": (sy, t), "+x": (sy, t), "-y": (sx, t), "+y": (sx, t), "+z": (sx, sy), "-z": (sx, sy)}
+
+    def uv_of_face(name):
+        a, b = dims[name]
+        return (0.0, 0.0), (a * k, 0.0), (0.0, b * k), 1, 1
+
+    v, f, uv, _ = _box_faces((sx, sy, t), uv_of_face)
+    v[:, 2] -= t
+    return _make_trimesh("table", v, f, uv, tx.wood_texture(TEXTURE_SIZE))
+
+
+BUILTIN_MESHES: dict[str, Callable[[], trimesh.Trimesh]] = {
+    **{name: _builtin(name) for name in _BUILDERS},
+    "table": lambda: table_mesh((1.6, 1.6)),
+}
+
+
+def default_texture(name: str, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """The default look (size, size, 3) uint8 of built-in ``name`` (``"plain"``: uniform grey)."""
+    if not (isinstance(size, (int, np.integer)) and 8 <= size <= 8192):
+        raise AssetError(f"{name}: texture size must be an integer in [8, 8192], got {size!r}")
+    if name == "table":
+        return tx.wood_texture(int(size))
+    if name == "plain":
+        return tx.plain_texture(int(size))
+    if name not in _BUILDERS:
+        raise AssetError(f"{name!r}: no default texture; built-ins are {', '.join(BUILTIN_MESHES)} (or 'plain')")
+    if size == TEXTURE_SIZE:
+        return np.asarray(_builtin_mesh(name).visual.material.image.convert("RGB")).copy()
+    p = _parts(name)
+    return tx.bake_texture(p.vertices, p.faces, p.uv, p.shader, int(size), p.tags)
+
+
+# ============================================================================ measurements
+def silhouette_area_m2(mesh: trimesh.Trimesh, view_axis: int = 1, resolution: int = 2048) -> float:
+    """Area (m^2) of the mesh's orthographic silhouette along ``view_axis`` (1: front view, x-z).
+
+    Rasterises the projected triangles at ``resolution`` px over the larger extent; PIL's fill
+    includes boundary pixels, a bias of about half a pixel along the outline (< 0.2% at 2048 px
+    for the built-ins).
+    """
+    keep = [k for k in range(3) if k != view_axis]
+    p = np.asarray(mesh.vertices, float)[:, keep]
+    lo = p.min(0)
+    px = (p.max(0) - lo).max() / resolution
+    q = (p - lo) / px
+    w, h = (np.ceil(q.max(0)).astype(int) + 2).tolist()
+    img = Image.new("1", (w, h), 0)
+    from PIL import ImageDraw
+
+    draw = ImageDraw.Draw(img)
+    for tri in q[np.asarray(mesh.faces)]:
+        draw.polygon([tuple(t) for t in tri], fill=1)
+    return float(np.count_nonzero(np.asarray(img))) * px * px
+
+
+@lru_cache(maxsize=None)
+def patch_side_m() -> float:
+    """Side (m) of the 2D baseline patch: its square top has the area of the mustard bottle's
+    largest silhouette (front view, x-z plane), measured on the built mesh, so the 2D and 3D
+    attacks get the same visible area."""
+    return math.sqrt(silhouette_area_m2(_builtin_mesh("mustard_bottle"), view_axis=1))
+
+
+def texel_density_ratio(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Per-face ``sqrt(3D area / UV area)`` (F,), metres per UV unit (inf for zero UV area)."""
+    uv = np.asarray(mesh.visual.uv, float)[np.asarray(mesh.faces)]
+    uv_area = 0.5 * np.abs(np.cross(uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]))
+    with np.errstate(divide="ignore"):
+        return np.sqrt(np.asarray(mesh.area_faces) / uv_area)
+
+
+# ============================================================================ files
+_MESH_EXTS = {".obj", ".glb", ".gltf", ".ply", ".stl", ".off", ".dae"}
+
+
+def _texture_image(visual) -> np.ndarray | None:
+    mat = getattr(visual, "material", None)
+    if mat is None:
+        return None
+    img = getattr(mat, "image", None)
+    if img is None:
+        img = getattr(mat, "baseColorTexture", None)
+    if img is None:
+        return None
+    return np.asarray(img.convert("RGB"))
+
+
+def _valid_uv(visual, n_vertices: int) -> np.ndarray | None:
+    uv = getattr(visual, "uv", None) if getattr(visual, "kind", None) == "texture" else None
+    if uv is None:
+        return None
+    uv = np.asarray(uv, float)
+    if uv.shape != (n_vertices, 2) or not np.all(np.isfinite(uv)):
+        return None
+    return uv
+
+
+def ensure_uv(mesh: trimesh.Trimesh, name: str) -> trimesh.Trimesh:
+    """``mesh`` with UVs in [0, 1] and a texture image; ``name`` labels errors and metadata.
+
+    Kept as is when it already has in-range UVs (a missing image becomes plain grey). Otherwise
+    an xatlas atlas is made and the old look is baked into it: the old texture sampled with
+    repeat wrap when UVs were out of range, vertex colours when present, else plain grey.
+    Metadata (``name``, ``optimizable_faces`` default all True) is filled in.
+    """
+    vertices = np.asarray(mesh.vertices, float)
+    faces = np.asarray(mesh.faces, np.int64)
+    if len(faces) == 0:
+        raise AssetError(f"{name}: mesh has no faces")
+    uv = _valid_uv(mesh.visual, len(vertices))
+    image = _texture_image(mesh.visual) if uv is not None else None
+    opt = mesh.metadata.get("optimizable_faces")
+    if uv is not None and uv.min() >= 0.0 and uv.max() <= 1.0:
+        img = image if image is not None else tx.plain_texture(TEXTURE_SIZE)
+        return _make_trimesh(name, vertices, faces, uv, img, opt)
+
+    try:
+        new_v, new_f, new_uv, vmap = _atlas(vertices, faces)
+    except Exception as err:  # xatlas rejects some inputs (e.g. non-manifold fans) with errors
+        raise AssetError(f"{name}: UV atlas generation failed ({type(err).__name__}: {err})") from None
+    size = TEXTURE_SIZE
+    if uv is not None and image is not None:  # tiled UVs: resample the old texture into the atlas
+        values = uv[vmap]
+        texel_uv, covered = tx.bake_vertex_values(new_f, new_uv, values, size)
+        rgb = np.zeros((size, size, 3), np.float64)
+        rgb[covered] = tx.sample_texture(image, texel_uv[covered], wrap=True) / 255.0
+        img = tx.finish_bake(rgb, covered)
+    elif getattr(mesh.visual, "kind", None) == "vertex":
+        colors = np.asarray(mesh.visual.vertex_colors, float)[vmap, :3] / 255.0
+        rgb, covered = tx.bake_vertex_values(new_f, new_uv, colors, size)
+        img = tx.finish_bake(rgb, covered)
+    else:
+        img = tx.plain_texture(size)
+    return _make_trimesh(name, new_v, new_f, new_uv, img, opt)
+
+
+def load_mesh_file(path: str | os.PathLike, recenter: bool = False) -> trimesh.Trimesh:
+    """Load a mesh file (OBJ / GLB / GLTF / PLY / STL / OFF via trimesh) and validate it.
+
+    A multi-part file (``trimesh.Scene``) is concatenated in world placement. Raises
+    :class:`AssetError` naming the file for: a missing file, an unreadable or unsupported
+    format, no faces, non-finite vertices, or zero total area. Individually degenerate faces
+    (area below 1e-12 x bbox diagonal^2) are removed with a warning. The origin is kept unless
+    ``recenter`` (then: base centre of the bounding box). UVs per :func:`ensure_uv`.
+    """
+    path = Path(path)
+    label = str(path)
+    if not path.is_file():
+        raise AssetError(f"{label}: mesh file not found")
+    try:
+        loaded = trimesh.load(str(path), process=False)
+    except Exception as err:
+        raise AssetError(f"{label}: cannot read mesh ({type(err).__name__}: {err})") from None
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
+        if not geoms:
+            raise AssetError(f"{label}: file contains no triangle mesh")
+        mesh = geoms[0] if len(geoms) == 1 else trimesh.util.concatenate(geoms)
+    elif isinstance(loaded, trimesh.Trimesh):
+        mesh = loaded
+    else:
+        raise AssetError(f"{label}: file contains no triangle mesh (got {type(loaded).__name__})")
+
+    vertices = np.asarray(mesh.vertices, float)
+    faces = np.asarray(mesh.faces, np.int64)
+    if len(faces) == 0 or len(vertices) == 0:
+        raise AssetError(f"{label}: mesh is empty (no faces)")
+    if not np.all(np.isfinite(vertices)):
+        raise AssetError(f"{label}: {int((~np.isfinite(vertices)).any(-1).sum())} vertices are not finite (NaN/inf)")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise AssetError(f"{label}: face indices out of range")
+    used = vertices[np.unique(faces)]
+    diag = float(np.linalg.norm(used.max(0) - used.min(0)))
+    area = np.asarray(mesh.area_faces, float)
+    bad = ~(area > _DEGENERATE_REL_AREA * diag * diag)
+    if bad.all():
+        raise AssetError(f"{label}: zero total area (all {len(faces)} faces are degenerate)")
+    if bad.any():
+        warnings.warn(f"{label}: removed {int(bad.sum())} degenerate face(s) of {len(faces)}", stacklevel=2)
+        mesh = mesh.copy()
+        mesh.update_faces(~bad)
+        mesh.remove_unreferenced_vertices()
+    out = ensure_uv(mesh, path.stem)
+    out.metadata["source"] = label
+    if recenter:
+        out.vertices = _to_base_frame(np.asarray(out.vertices, float))
+    return out
+
+
+# ============================================================================ entry point
+def _scale_vector(source, scale) -> np.ndarray:
+    try:
+        s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy()
+        if np.ndim(scale) not in (0, 1):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise AssetError(f"{source}: scale must be a positive number or 3 positive numbers, got {scale!r}") from None
+    if not (np.all(np.isfinite(s)) and np.all(s > 0)):
+        raise AssetError(f"{source}: scale must be positive and finite, got {scale!r}")
+    return s
+
+
+def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, float] = 1.0) -> trimesh.Trimesh:
+    """A fresh mesh from a built-in name (:data:`BUILTIN_MESHES`) or a mesh file path, scaled.
+
+    ``scale``: one factor or per-axis (x, y, z) factors of the object frame, applied after
+    loading (UVs unchanged). Raises :class:`AssetError` naming the source.
+    """
+    if not isinstance(source, (str, os.PathLike)):
+        raise AssetError(f"mesh source must be a built-in name or a file path, got {source!r}")
+    s = _scale_vector(source, scale)
+    key = os.fspath(source)
+    if isinstance(source, str) and key in BUILTIN_MESHES:
+        mesh = BUILTIN_MESHES[key]()
+    elif Path(key).suffix.lower() in _MESH_EXTS or Path(key).exists():
+        mesh = load_mesh_file(key)
+    else:
+        raise AssetError(f"{key!r}: not a built-in mesh ({', '.join(BUILTIN_MESHES)}) nor a mesh file path")
+    if not np.all(s == 1.0):
+        mesh.vertices = np.asarray(mesh.vertices) * s
+    return mesh
