@@ -1,0 +1,136 @@
+"""YAML files of the calibration package: strict schemas, errors that name the file and field.
+
+Poses are stored as ``{translation_m: [x, y, z], rotvec_rad: [rx, ry, rz]}`` (axis-angle, the
+project's rotation exchange format); :func:`pose_to_T` / :func:`T_to_pose` convert to 4x4.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, TypeVar
+
+import math
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from calibration.errors import CalibrationFileError
+from sim.geometry import make_T, so3_exp, so3_log
+
+__all__ = ["Strict", "PoseModel", "Vec3", "pose_to_T", "T_to_pose", "read_yaml", "load_model", "write_yaml", "check_T"]
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class Strict(BaseModel):
+    """Base of every file schema: unknown keys are errors, values are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _finite(v: tuple[float, ...]) -> tuple[float, ...]:
+    if not all(math.isfinite(x) for x in v):
+        raise ValueError("values must be finite numbers")
+    return v
+
+
+Vec3 = Annotated[tuple[float, float, float], Field(description="3-vector")]
+
+
+class PoseModel(Strict):
+    """A rigid transform ``T_parent_child`` as translation (m) + axis-angle rotation (rad)."""
+
+    translation_m: Vec3 = (0.0, 0.0, 0.0)
+    rotvec_rad: Vec3 = (0.0, 0.0, 0.0)
+
+    _check = field_validator("translation_m", "rotvec_rad")(_finite)
+
+    @property
+    def T(self) -> np.ndarray:
+        return pose_to_T(self)
+
+
+def pose_to_T(pose: PoseModel) -> np.ndarray:
+    """4x4 ``T_parent_child`` from a :class:`PoseModel`."""
+    return make_T(so3_exp(np.asarray(pose.rotvec_rad)), np.asarray(pose.translation_m))
+
+
+def T_to_pose(T: np.ndarray) -> PoseModel:
+    """:class:`PoseModel` of a 4x4 rigid transform."""
+    T = check_T(T, "T")
+    return PoseModel(
+        translation_m=tuple(float(x) for x in T[:3, 3]),
+        rotvec_rad=tuple(float(x) for x in so3_log(T[:3, :3])),
+    )
+
+
+def check_T(T, name: str, tol: float = 1e-6) -> np.ndarray:
+    """``T`` as a float64 (..., 4, 4) rigid transform, or ValueError naming ``name``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape[-2:] != (4, 4):
+        raise ValueError(f"{name}: expected shape (..., 4, 4), got {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{name}: contains NaN or inf")
+    R = T[..., :3, :3]
+    if np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max() > tol or np.any(np.linalg.det(R) < 0):
+        raise ValueError(f"{name}: rotation part is not a proper rotation matrix")
+    if np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max() > tol:
+        raise ValueError(f"{name}: last row must be [0, 0, 0, 1]")
+    return T
+
+
+def read_yaml(path) -> object:
+    """Parsed YAML of ``path``; missing or malformed files raise :class:`CalibrationFileError`."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise CalibrationFileError(path, "<file>", f"cannot read ({err.strerror or err})") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise CalibrationFileError(path, "<yaml>", f"not valid YAML{where}") from None
+
+
+def load_model(path, model: type[M], data: object | None = None) -> M:
+    """Validate ``data`` (default: the YAML in ``path``) against ``model``.
+
+    The first validation error becomes a :class:`CalibrationFileError` naming the file and the
+    dotted field path (``K.0``, ``samples.3.T_base_tcp.rotvec_rad``); the others are listed after it.
+    """
+    data = read_yaml(path) if data is None else data
+    if not isinstance(data, dict):
+        raise CalibrationFileError(path, "<root>", f"expected a mapping, got {type(data).__name__}")
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        errs = err.errors()
+        locs = [".".join(str(p) for p in e["loc"]) or "<root>" for e in errs]
+        msg = errs[0]["msg"]
+        if len(errs) > 1:
+            msg += "; also: " + "; ".join(f"{l}: {e['msg']}" for l, e in zip(locs[1:], errs[1:]))
+        raise CalibrationFileError(path, locs[0], msg) from None
+
+
+def write_yaml(path, data: dict, header: str | None = None) -> Path:
+    """Write ``data`` as block-style YAML (lists of numbers inline), creating parent directories."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    class _Dumper(yaml.SafeDumper):
+        pass
+
+    def _list(dumper, seq):
+        flow = all(isinstance(x, (int, float)) for x in seq)
+        return dumper.represent_sequence("tag:yaml.org,2002:seq", seq, flow_style=flow)
+
+    _Dumper.add_representer(list, _list)
+    _Dumper.add_representer(tuple, _list)
+    text = yaml.dump(data, Dumper=_Dumper, sort_keys=False)
+    if header:
+        text = "".join(f"# {line}\n" for line in header.splitlines()) + text
+    path.write_text(text)
+    return path
