@@ -23,6 +23,8 @@ DEFAULT_OPSET = 17
 
 def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET) -> Path:
     """Export torch ``policy`` to ``path`` (opset >= 17) with ``card`` in the metadata."""
+    import warnings
+
     import onnx
     import torch
 
@@ -35,16 +37,20 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
     policy.eval()
     try:
         dummy = torch.rand(2, 3, s, s, device=policy.device)
-        torch.onnx.export(
-            policy,
-            (dummy,),
-            str(path),
-            input_names=["images"],
-            output_names=["actions"],
-            dynamic_axes={"images": {0: "batch"}, "actions": {0: "batch"}},
-            opset_version=opset,
-            dynamo=False,  # the TorchScript exporter needs no extra packages and handles these nets
-        )
+        # The TorchScript exporter is deprecated in favour of the torch.export one, which needs
+        # onnxscript and is slower; it still exports these plain conv nets exactly (parity tests).
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            torch.onnx.export(
+                policy,
+                (dummy,),
+                str(path),
+                input_names=["images"],
+                output_names=["actions"],
+                dynamic_axes={"images": {0: "batch"}, "actions": {0: "batch"}},
+                opset_version=opset,
+                dynamo=False,
+            )
     finally:
         policy.train(was_training)
     model = onnx.load(str(path))
