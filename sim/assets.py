@@ -157,7 +157,7 @@ def _lathe(rings, segments: int, cap_bottom: bool = True, cap_top: bool = True) 
         rings: sequence of ``(z_m, half_x_m, half_y_m, exponent)``, z non-decreasing.
         segments: points per ring.
     The side chart is area-preserving to first order: u is arc length along each ring (centred,
-    so narrow rings make a narrower strip) and v arc length along each meridian column. The seam
+    so narrow rings make a narrower strip) and v the mean meridian arc length. The seam
     is on the +x side (column 0 is duplicated as column ``segments``).
     """
     rings = [tuple(map(float, r)) for r in rings]
@@ -170,8 +170,10 @@ def _lathe(rings, segments: int, cap_bottom: bool = True, cap_top: bool = True) 
     s = np.concatenate([np.zeros((R, 1)), np.cumsum(seg, 1)], 1)  # (R, n + 1)
     perim = s[:, -1]
     u = s - perim[:, None] / 2 + perim.max() / 2
-    dv = np.linalg.norm(np.diff(ring3, axis=0), axis=-1)  # (R - 1, n + 1)
-    v = np.concatenate([np.zeros((1, n + 1)), np.cumsum(dv, 0)], 0)
+    # Rings stay horizontal lines in UV (v = mean meridian arc length), so the per-ring centring
+    # of u is a shear, which keeps every triangle's area.
+    dv = np.linalg.norm(np.diff(ring3, axis=0), axis=-1).mean(-1)  # (R - 1,)
+    v = np.broadcast_to(np.concatenate([[0.0], np.cumsum(dv)])[:, None], (R, n + 1))
     idx = np.arange(R * (n + 1)).reshape(R, n + 1)
     a, b = idx[:-1, :-1], idx[:-1, 1:]
     c, d = idx[1:, 1:], idx[1:, :-1]
@@ -620,6 +622,9 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False) -> trimesh.T
         raise AssetError(f"{label}: mesh file not found")
     try:
         loaded = trimesh.load(str(path), process=False)
+    except ImportError:
+        # trimesh only reaches for its optional charset detector when the bytes are not text.
+        raise AssetError(f"{label}: cannot read mesh (not valid {path.suffix.lstrip('.').upper()} data)") from None
     except Exception as err:
         raise AssetError(f"{label}: cannot read mesh ({type(err).__name__}: {err})") from None
     if isinstance(loaded, trimesh.Scene):

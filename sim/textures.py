@@ -231,8 +231,9 @@ def soup_can_shader(height_m: float) -> Shader:
         letters = _in_box(s, z, 0.2, 0.8, 0.68, 0.86) & _blocks((s - 0.2) / 0.6, (z - 0.68) / 0.18, 1, 2, 9, 0.7)
         _paint(out, side & letters, _CAN_WHITE)
         # Gold medallion on the white band, with dark print beside it.
-        ds, dz = (s - 0.3) * 2 * np.pi * 0.033 * 2, (z - 0.32) * height_m
-        medal = np.hypot(ds / 0.5, dz) < 0.011
+        radius = np.hypot(p[:, 0], p[:, 1]).max(initial=0.0)
+        ds, dz = (s - 0.3) * np.pi * radius, (z - 0.3) * height_m  # m along the wall; s spans half
+        medal = np.hypot(ds, dz) < 0.1 * height_m
         _paint(out, white & medal, _CAN_GOLD)
         text = _in_box(s, z, 0.45, 0.85, 0.12, 0.42) & _blocks((s - 0.45) / 0.4, (z - 0.12) / 0.3, 2, 4, 8, 0.6)
         _paint(out, white & text, _INK)
