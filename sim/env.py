@@ -34,18 +34,22 @@ class ReachEnv:
         render_masks: also render the id pass each step (per-object masks in ``info``); off by
             default because policies need only RGB and the extra pass costs time.
         stereo: also render the right camera of the stereo pair (``info["rgb_right"]``).
+        render_obs: render observations at all; callers that render their own views (the attack)
+            turn it off to skip a color pass per step.
 
     Observations are ``(N, H, W, 3)`` uint8.
     """
 
     def __init__(self, spec, num_envs: int = 1, image_size=None, seed: int = 0,
-                 randomization: Randomization | None = None, render_masks: bool = False, stereo: bool = False):
+                 randomization: Randomization | None = None, render_masks: bool = False, stereo: bool = False,
+                 render_obs: bool = True):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.spec = spec
         self.num_envs = int(num_envs)
         self.height, self.width = _image_size(spec, image_size)
         self.render_masks = render_masks
+        self.render_obs = render_obs
         self.stereo = stereo
         if stereo and spec.camera.stereo_baseline_m <= 0:
             raise ValueError("stereo=True needs camera.stereo_baseline_m > 0 in the scene spec")
@@ -84,6 +88,8 @@ class ReachEnv:
         return [w.config for w in self.worlds]
 
     def _render(self, i: int) -> None:
+        if not self.render_obs:
+            return
         w = self.worlds[i]
         out = w.render(with_ids=self.render_masks)
         self._obs[i] = out.rgb

@@ -241,6 +241,8 @@ class _ObjectNodes:
     color: object
     ids: object
     mesh: trimesh.Trimesh
+    texture: np.ndarray | None  # the object's own look, restored by set_object_texture(k, None)
+    flat_color: tuple | None
     variants: dict = field(default_factory=dict)
 
 
@@ -306,7 +308,7 @@ class SceneRenderer:
             cnode = self.scene.add(textured_pyrender_mesh(mesh, tex, color), pose=np.eye(4))
             code = None if k == self.face_coded else OBJECT_BASE + k
             inode = self.scene.add(id_pyrender_mesh(mesh, code), pose=np.eye(4))
-            self._objects.append(_ObjectNodes(cnode, inode, mesh))
+            self._objects.append(_ObjectNodes(cnode, inode, mesh, tex, color))
         self._hidden: set[int] = set()
         self._gripper_visible = True
 
@@ -385,9 +387,14 @@ class SceneRenderer:
     def object_mesh(self, k: int) -> trimesh.Trimesh:
         return self._objects[k].mesh
 
-    def set_object_texture(self, k: int, image: np.ndarray | None, color=None) -> None:
-        """Re-texture object ``k`` for the color pass (e.g. an optimised adversarial texture)."""
-        self._objects[k].color.mesh = textured_pyrender_mesh(self._objects[k].mesh, image, color)
+    def set_object_texture(self, k: int, image: np.ndarray | None) -> None:
+        """Re-texture object ``k`` (e.g. with an optimised texture); ``None`` restores its own look."""
+        obj = self._objects[k]
+        if image is None:
+            image, color = obj.texture, obj.flat_color
+        else:
+            image, color = np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3]), None
+        obj.color.mesh = textured_pyrender_mesh(obj.mesh, image, color)
 
     def add_variant(self, k: int, variant: str, image: np.ndarray | None, color=(1.0, 1.0, 1.0)) -> None:
         """Register an alternative look of object ``k`` selectable per render (e.g. white albedo)."""

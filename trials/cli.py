@@ -12,6 +12,9 @@ app = typer.Typer(no_args_is_help=True, add_completion=False, help="Red-team wri
 from trials import cli_scene  # noqa: E402
 
 app.add_typer(cli_scene.app, name="scene")
+from trials import cli_attack  # noqa: E402
+
+app.add_typer(cli_attack.app, name="attack")
 
 
 @app.command()

@@ -1,0 +1,140 @@
+"""Artifacts of an attack run: texture files, textured meshes, plots and overlays."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["texture_to_uint8", "write_texture_png", "textured_mesh", "export_meshes", "plot_losses", "gradcam_overlay", "write_outputs"]
+
+
+def texture_to_uint8(texture: torch.Tensor | np.ndarray) -> np.ndarray:
+    """``(3, H, W)`` float [0, 1] (torch) or ``(H, W, 3)`` -> ``(H, W, 3)`` uint8."""
+    if isinstance(texture, torch.Tensor):
+        texture = texture.detach().cpu().permute(1, 2, 0).numpy()
+    return np.clip(np.rint(np.asarray(texture) * 255.0), 0, 255).astype(np.uint8)
+
+
+def write_texture_png(path: str | Path, texture) -> Path:
+    import imageio.v3 as iio
+
+    path = Path(path)
+    iio.imwrite(path, texture_to_uint8(texture))
+    return path
+
+
+def textured_mesh(mesh, texture_rgb: np.ndarray):
+    """A copy of ``mesh`` carrying ``texture_rgb (H, W, 3)`` uint8 on its UVs."""
+    import trimesh
+    from PIL import Image
+
+    m = mesh.copy()
+    m.visual = trimesh.visual.TextureVisuals(uv=np.asarray(mesh.visual.uv), image=Image.fromarray(texture_rgb))
+    return m
+
+
+def export_meshes(out_dir: str | Path, mesh, texture_rgb: np.ndarray, stem: str = "adversarial") -> dict[str, Path]:
+    """Write ``stem.glb`` and ``stem.obj`` (+ .mtl + .png) for color 3D printing or re-rendering."""
+    out = Path(out_dir)
+    m = textured_mesh(mesh, texture_rgb)
+    glb = out / f"{stem}.glb"
+    glb.write_bytes(m.export(file_type="glb"))
+    obj_dir = out / f"{stem}_obj"
+    obj_dir.mkdir(parents=True, exist_ok=True)
+    m.export(obj_dir / f"{stem}.obj", file_type="obj")
+    return {"glb": glb, "obj": obj_dir / f"{stem}.obj"}
+
+
+def plot_losses(path: str | Path, history) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h = history
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
+    axes[0].plot(h.iteration, h.loss_pose, label="pose")
+    axes[0].plot(h.iteration, h.loss_ori, label="ori", alpha=0.7)
+    axes[0].set_title("pose loss (mean per pair)")
+    axes[0].legend()
+    axes[1].plot(h.iteration, h.loss_saliency)
+    axes[1].set_title("lambda_sal * saliency loss")
+    axes[2].semilogy(h.iteration, np.maximum(np.asarray(h.grad_norm), 1e-12))
+    axes[2].set_title("|g| (after PCGrad)")
+    for ax in axes:
+        ax.set_xlabel("iteration")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
+def gradcam_overlay(policy, image: torch.Tensor) -> np.ndarray:
+    """``image (3, H, W)`` -> (H, W, 3) uint8 with the Grad-CAM map blended in red."""
+    import torch.nn.functional as F
+
+    from attack.losses import grad_cam
+
+    x = image[None].detach().clone().requires_grad_(True)  # gives A a graph (weights are frozen)
+    A = policy.features(x)
+    S = grad_cam(A, policy.head(A)).detach()[0]
+    S = F.interpolate(S[None, None], size=image.shape[-2:], mode="bilinear", align_corners=False)[0, 0]
+    S = (S / S.max().clamp_min(1e-12)).cpu().numpy()
+    rgb = image.detach().cpu().permute(1, 2, 0).numpy()
+    heat = np.stack([S, np.zeros_like(S), np.zeros_like(S)], -1)
+    return np.clip(255 * (0.55 * rgb + 0.45 * heat * 1.0 + 0.0), 0, 255).astype(np.uint8)
+
+
+def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dict:
+    """Everything a run directory holds besides the checkpoint and run.json."""
+    import imageio.v3 as iio
+
+    from attack.render import render_adversarial
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tex = run.texture.detach().cpu()
+    write_texture_png(out / "texture.png", tex)
+    np.save(out / "texture.npy", tex.permute(1, 2, 0).numpy().astype(np.float32))
+    mesh = run.env.renderer.object_mesh(run.adv)
+    paths = export_meshes(out, mesh, texture_to_uint8(tex))
+    plot_losses(out / "loss_curves.png", run.history)
+
+    # Grad-CAM before/after and a rollout strip from the same configuration (the pool's first).
+    env = run.env
+    env.reset_envs([0], configs=[run.pool[0]])
+    cap = run.hybrid.capture(env.worlds[0])
+    before = render_adversarial(cap, texture_before.to(run.device), run.cfg.sampler)
+    after = render_adversarial(cap, run.texture, run.cfg.sampler)
+    iio.imwrite(out / "gradcam_before_after.png", np.concatenate([gradcam_overlay(run.policy, before), gradcam_overlay(run.policy, after)], 1))
+    frames = []
+    for _ in range(8):
+        if env.done[0]:
+            break
+        cap = run.hybrid.capture(env.worlds[0])
+        img = render_adversarial(cap, run.texture, run.cfg.sampler)
+        frames.append(texture_to_uint8(img))
+        with torch.no_grad():
+            a = run.policy(img[None]).cpu().numpy()
+        actions = np.zeros((env.num_envs, 6))
+        actions[0] = a[0]
+        env.step(actions)
+    iio.imwrite(out / "rollout_strip.png", np.concatenate(frames, 1))
+    h = run.history
+    tail = max(1, len(h.loss_pose) // 10)
+    metrics = {
+        "iterations": run.iteration,
+        "seconds": h.seconds,
+        "seconds_per_iteration": h.seconds / max(1, len(h.iteration)),
+        "final_loss_pose": float(np.mean(h.loss_pose[-tail:])) if h.loss_pose else None,
+        "initial_loss_pose": float(np.mean(h.loss_pose[:tail])) if h.loss_pose else None,
+        "final_loss_saliency": float(np.mean(h.loss_saliency[-tail:])) if h.loss_saliency else None,
+        "skipped_updates": h.skipped,
+        "texture_change_l2": float(torch.linalg.vector_norm(tex - texture_before.cpu())),
+        "meshes": {k: str(v.relative_to(out)) for k, v in paths.items()},
+    }
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics

@@ -1,0 +1,330 @@
+"""Hybrid rendering: a differentiable texture path composited into pyrender's image.
+
+Pipeline, by composition (as in pytorch3d):
+
+1. the standard renderer gives ``I_sim`` plus an id pass (see :mod:`sim.render`);
+2. :func:`rasterize_fragments` turns the id pass into a frozen :class:`Fragments` record for the
+   adversarial object's visible pixels: face ids, barycentrics (exact ray-triangle intersection),
+   UVs, UV screen derivatives (for mip-level selection) and the shading pyrender applied there
+   (recovered from a white-albedo and a black-albedo pass);
+3. a swappable texture sampler (:func:`sample_bilinear`, :func:`sample_trilinear`) reads the
+   texture at those UVs with ``grid_sample`` (the only differentiable step);
+4. :func:`shade` applies pyrender's lighting model and color space, and :func:`composite` forms
+   ``I_adv = (1 - M) * I_sim + M * I_diff``.
+
+pyrender's shader, which :func:`shade` mirrors: the texture is decoded with the exact sRGB curve,
+multiplied by the diffuse+ambient light ``D`` and added to the albedo-independent specular term
+``S``, clamped, then encoded with a 2.2 power. With a white albedo the pass shows
+``(D + S)^(1/2.2)``, with a black albedo ``S^(1/2.2)``; both are recovered per pixel.
+
+Texture convention: ``texture: (3, Ht, Wt)`` float sRGB in [0, 1], row 0 = top of the image;
+``uv`` follows trimesh/OpenGL (v = 0 is the bottom row).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+__all__ = [
+    "Fragments",
+    "rasterize_fragments",
+    "srgb_to_linear",
+    "sample_bilinear",
+    "sample_trilinear",
+    "SAMPLERS",
+    "shade",
+    "composite",
+    "mip_pyramid",
+    "Capture",
+    "HybridRenderer",
+    "render_adversarial",
+]
+
+_GAMMA = 2.2
+
+
+@dataclass(frozen=True)
+class Fragments:
+    """Per-pixel surface record of one frame's adversarial object (P visible pixels).
+
+    pix: (P,) long flat pixel indices into the H x W image; face: (P,) long face ids;
+    bary: (P, 3) barycentrics; uv: (P, 2); duv: (P, 2, 2) d(uv)/d(x, y) per pixel (rows: u, v);
+    diffuse: (P, 3) linear light multiplying the albedo; specular: (P, 3) linear additive light;
+    height, width: image size in px.
+    """
+
+    pix: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    uv: np.ndarray
+    duv: np.ndarray
+    diffuse: np.ndarray
+    specular: np.ndarray
+    height: int
+    width: int
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.pix.shape[0])
+
+    def mask(self) -> np.ndarray:
+        """(H, W) bool visible mask ``M``."""
+        m = np.zeros(self.height * self.width, bool)
+        m[self.pix] = True
+        return m.reshape(self.height, self.width)
+
+
+def _ray_dirs(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Camera-frame ray directions (P, 3) through pixel centres (u, v) (OpenCV convention)."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+
+
+def _barycentric(tri: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Barycentrics (P, 3) of rays from the origin along ``d: (P, 3)`` hitting the planes of
+    triangles ``tri: (P, 3, 3)`` (Moller-Trumbore without the inside test: the id pass already
+    says which face the pixel shows; grazing rays parallel to the plane return the centroid)."""
+    v0, v1, v2 = tri[:, 0], tri[:, 1], tri[:, 2]
+    e1, e2 = v1 - v0, v2 - v0
+    p = np.cross(d, e2)
+    det = np.einsum("pi,pi->p", e1, p)
+    ok = np.abs(det) > 1e-14
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = -v0
+    b1 = np.einsum("pi,pi->p", s, p) * inv
+    q = np.cross(s, e1)
+    b2 = np.einsum("pi,pi->p", d, q) * inv
+    bary = np.stack([1.0 - b1 - b2, b1, b2], -1)
+    bary = np.where(ok[:, None], bary, 1.0 / 3.0)
+    return bary
+
+
+def _clamp_bary(bary: np.ndarray) -> np.ndarray:
+    # Pixel centres on a silhouette can fall a hair outside their face (rasterisation rules);
+    # project back onto the triangle so UVs stay inside the face's chart.
+    b = np.clip(bary, 0.0, None)
+    return b / np.maximum(b.sum(-1, keepdims=True), 1e-12)
+
+
+def rasterize_fragments(
+    face_ids: np.ndarray,
+    K: np.ndarray,
+    T_cam_object: np.ndarray,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    uv: np.ndarray,
+    white_rgb: np.ndarray,
+    black_rgb: np.ndarray,
+    face_filter: np.ndarray | None = None,
+) -> Fragments:
+    """Build :class:`Fragments` from an id pass and two shading passes.
+
+    Args:
+        face_ids: (H, W) int face index of the object per pixel, -1 elsewhere.
+        K: (3, 3) intrinsics (OpenCV). T_cam_object: (4, 4) object pose in the camera frame.
+        vertices: (V, 3) m object-frame vertices; faces: (F, 3); uv: (V, 2).
+        white_rgb, black_rgb: (H, W, 3) uint8 renders with the object's albedo white / black.
+        face_filter: optional (F,) bool; faces marked False are left to ``I_sim`` (e.g. the 2D
+            patch's sides, which are not optimised).
+    """
+    H, W = face_ids.shape
+    flat = face_ids.reshape(-1)
+    pix = np.flatnonzero(flat >= 0)
+    face = flat[pix].astype(np.int64)
+    if face_filter is not None:
+        keep = face_filter[face]
+        pix, face = pix[keep], face[keep]
+    v_img, u_img = np.divmod(pix, W)
+    verts_cam = vertices @ T_cam_object[:3, :3].T + T_cam_object[:3, 3]
+    tri = verts_cam[faces[face]]  # (P, 3, 3)
+    tri_uv = uv[faces[face]]  # (P, 3, 2)
+    u_img = u_img.astype(np.float64)
+    v_img = v_img.astype(np.float64)
+
+    def uv_at(du: float, dv: float) -> np.ndarray:
+        b = _barycentric(tri, _ray_dirs(K, u_img + du, v_img + dv))
+        return np.einsum("pk,pkc->pc", b, tri_uv), b
+
+    # Screen derivatives by intersecting the neighbouring pixels' rays with the same face plane
+    # (what a GPU's per-quad differences approximate), before clamping to the triangle.
+    uv_x, _ = uv_at(1.0, 0.0)
+    uv_y, _ = uv_at(0.0, 1.0)
+    uv0_raw, b0 = uv_at(0.0, 0.0)
+    bary = _clamp_bary(b0)
+    uv_pix = np.einsum("pk,pkc->pc", bary, tri_uv)
+    duv = np.stack([uv_x - uv0_raw, uv_y - uv0_raw], -1)  # (P, 2 [u, v], 2 [x, y])
+
+    w = (white_rgb.reshape(-1, 3)[pix].astype(np.float64) / 255.0) ** _GAMMA
+    s = (black_rgb.reshape(-1, 3)[pix].astype(np.float64) / 255.0) ** _GAMMA
+    diffuse = np.clip(w - s, 0.0, None)
+    return Fragments(pix, face, bary, uv_pix, duv, diffuse, s, H, W)
+
+
+def srgb_to_linear(c: torch.Tensor) -> torch.Tensor:
+    """The exact sRGB decoding curve pyrender applies to base-color textures."""
+    c = c.clamp(0.0, 1.0)
+    return torch.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055).clamp_min(1e-12) ** 2.4)
+
+
+def _to_grid(uv: torch.Tensor) -> torch.Tensor:
+    # grid_sample's y runs from the top row (-1) to the bottom (+1); uv's v runs bottom-up.
+    return torch.stack([2.0 * uv[:, 0] - 1.0, 1.0 - 2.0 * uv[:, 1]], -1).view(1, 1, -1, 2)
+
+
+def sample_bilinear(texture: torch.Tensor, uv: torch.Tensor, duv: torch.Tensor | None = None) -> torch.Tensor:
+    """Bilinear texture lookup: ``texture (3, Ht, Wt)``, ``uv (P, 2)`` -> ``(P, 3)``.
+
+    Clamp-to-edge addressing, as the renderer's object textures use.
+    """
+    out = F.grid_sample(texture[None], _to_grid(uv).to(texture.dtype), mode="bilinear", padding_mode="border", align_corners=False)
+    return out[0, :, 0, :].T
+
+
+def mip_pyramid(texture: torch.Tensor) -> list[torch.Tensor]:
+    """Mip levels of ``texture (3, Ht, Wt)`` down to 1 px: 2x2 box filter, as glGenerateMipmap."""
+    levels = [texture]
+    t = texture
+    while t.shape[-1] > 1 or t.shape[-2] > 1:
+        h, w = max(1, t.shape[-2] // 2), max(1, t.shape[-1] // 2)
+        t = F.adaptive_avg_pool2d(t[None], (h, w))[0]
+        levels.append(t)
+    return levels
+
+
+def mip_level(duv: torch.Tensor, tex_hw: tuple[int, int]) -> torch.Tensor:
+    """OpenGL's level of detail ``lambda = log2(rho)`` per pixel from ``duv (P, 2, 2)``."""
+    h, w = tex_hw
+    scale = torch.tensor([w, h], dtype=duv.dtype, device=duv.device)[:, None]
+    d = duv * scale  # texels per pixel step
+    rho = torch.maximum(d[:, :, 0].norm(dim=-1), d[:, :, 1].norm(dim=-1))
+    return torch.log2(rho.clamp_min(1e-8))
+
+
+def sample_trilinear(texture: torch.Tensor, uv: torch.Tensor, duv: torch.Tensor | None = None) -> torch.Tensor:
+    """Mip-mapped (trilinear) lookup, as ``GL_LINEAR_MIPMAP_LINEAR``: ``(P, 3)``.
+
+    Without ``duv`` it falls back to bilinear (level 0).
+    """
+    if duv is None:
+        return sample_bilinear(texture, uv)
+    levels = mip_pyramid(texture)
+    top = len(levels) - 1
+    lam = mip_level(duv, texture.shape[-2:]).clamp(0.0, top)
+    lo = lam.floor().long()
+    hi = (lo + 1).clamp(max=top)
+    frac = (lam - lo.to(lam.dtype)).to(texture.dtype)
+    out = torch.zeros(uv.shape[0], 3, dtype=texture.dtype, device=texture.device)
+    for k in torch.unique(torch.cat([lo, hi])).tolist():
+        # Weight of level k: (1 - frac) as the finer level, frac as the coarser one; at the top
+        # level lo == hi and the two add up to 1.
+        weight = (1 - frac) * (lo == k) + frac * (hi == k)
+        idx = torch.nonzero(weight > 0).squeeze(1)
+        if idx.numel():
+            out = out.index_add(0, idx, weight[idx, None] * sample_bilinear(levels[k], uv[idx]))
+    return out
+
+
+SAMPLERS = {"bilinear": sample_bilinear, "trilinear": sample_trilinear}
+
+
+def shade(albedo_srgb: torch.Tensor, diffuse: torch.Tensor, specular: torch.Tensor) -> torch.Tensor:
+    """pyrender's output color (P, 3) in [0, 1] for sampled texture colors ``albedo_srgb (P, 3)``."""
+    lin = srgb_to_linear(albedo_srgb) * diffuse + specular
+    # clamp_min keeps the gradient of x^(1/2.2) finite at x = 0 (black texels, unlit pixels).
+    return lin.clamp(0.0, 1.0).clamp_min(1e-6) ** (1.0 / _GAMMA)
+
+
+def composite(i_sim: torch.Tensor, pix: torch.Tensor, colors: torch.Tensor) -> torch.Tensor:
+    """``I_adv = (1 - M) * I_sim + M * I_diff`` for one image.
+
+    i_sim: (3, H, W) float in [0, 1]; pix: (P,) flat pixel indices of ``M``; colors: (P, 3).
+    Returns (3, H, W); gradients flow only into ``colors``.
+    """
+    c, h, w = i_sim.shape
+    flat = i_sim.reshape(c, h * w)
+    out = flat.index_put((torch.arange(c, device=pix.device)[:, None], pix[None, :]), colors.T.to(flat.dtype))
+    return out.reshape(c, h, w)
+
+
+@dataclass(frozen=True)
+class Capture:
+    """Everything the attack needs from one standard-renderer frame.
+
+    i_sim: (H, W, 3) uint8 standard render (adversarial object in its benign look);
+    fragments: the adversarial object's visible, optimisable pixels;
+    adv_mask, goal_mask: (H, W) bool visible masks (for the saliency loss).
+    """
+
+    i_sim: np.ndarray
+    fragments: Fragments
+    adv_mask: np.ndarray
+    goal_mask: np.ndarray
+
+
+class HybridRenderer:
+    """Wraps a :class:`sim.render.SceneRenderer` to capture :class:`Capture` records.
+
+    Registers white- and black-albedo looks of the adversarial object (for the shading passes)
+    and renders four passes per frame: color, ids, white, black.
+    """
+
+    def __init__(self, renderer, face_filter: np.ndarray | None = None):
+        self.renderer = renderer
+        self.adv = renderer.face_coded
+        self.goal = renderer.spec.object_index("goal")
+        mesh = renderer.object_mesh(self.adv)
+        self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        self.faces = np.asarray(mesh.faces, dtype=np.int64)
+        uv = getattr(mesh.visual, "uv", None)
+        if uv is None:
+            raise ValueError(f"adversarial mesh {mesh.metadata.get('name', '?')} has no UVs")
+        self.uv = np.asarray(uv, dtype=np.float64)
+        if face_filter is None:
+            face_filter = mesh.metadata.get("optimizable_faces")
+        self.face_filter = None if face_filter is None else np.asarray(face_filter, bool)
+        renderer.add_variant(self.adv, "white", None, (1.0, 1.0, 1.0))
+        renderer.add_variant(self.adv, "black", None, (0.0, 0.0, 0.0))
+
+    def capture(self, world, T_world_cam: np.ndarray | None = None) -> Capture:
+        """Render ``world`` (a :class:`sim.world.SimWorld` sharing this renderer)."""
+        from sim.geometry import invert_T
+
+        world.prepare()
+        T_world_cam = world.camera_pose() if T_world_cam is None else T_world_cam
+        r = self.renderer
+        out = r.render(T_world_cam, with_ids=True)
+        adv_mask = out.object_mask(self.adv)
+        if adv_mask.any():
+            white = r.render(T_world_cam, with_ids=False, variants={self.adv: "white"}).rgb
+            black = r.render(T_world_cam, with_ids=False, variants={self.adv: "black"}).rgb
+        else:  # nothing to shade: skip two passes
+            white = black = out.rgb
+        T_cam_obj = invert_T(T_world_cam) @ world.T_world_objects[self.adv]
+        frags = rasterize_fragments(out.face_ids, r.K, T_cam_obj, self.vertices, self.faces, self.uv, white, black, self.face_filter)
+        return Capture(out.rgb, frags, adv_mask, out.object_mask(self.goal))
+
+
+def render_adversarial(capture: Capture, texture: torch.Tensor, sampler: str = "trilinear",
+                       color_transform: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """``I_adv: (3, H, W)`` float in [0, 1] for ``texture (3, Ht, Wt)`` (differentiable in it).
+
+    color_transform: optional per-channel ``(gain (3,), bias (3,))`` applied to the sampled texture
+    colors, modelling printer/camera color error (the print-aware option).
+    """
+    device, dtype = texture.device, texture.dtype
+    i_sim = torch.from_numpy(capture.i_sim).to(device=device, dtype=dtype).permute(2, 0, 1) / 255.0
+    f = capture.fragments
+    if f.num_pixels == 0:
+        return i_sim
+    uv = torch.from_numpy(f.uv).to(device=device, dtype=dtype)
+    duv = torch.from_numpy(f.duv).to(device=device, dtype=dtype)
+    albedo = SAMPLERS[sampler](texture, uv, duv)
+    if color_transform is not None:
+        gain, bias = color_transform
+        albedo = (albedo * gain + bias).clamp(0.0, 1.0)
+    colors = shade(albedo, torch.from_numpy(f.diffuse).to(device, dtype), torch.from_numpy(f.specular).to(device, dtype))
+    return composite(i_sim, torch.from_numpy(f.pix).to(device), colors)
