@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import abc
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Frame", "CameraIntrinsics", "Camera"]
+# The calibration package owns the intrinsics type and its YAML file; cameras only carry it.
+from calibration.intrinsics import CameraIntrinsics
+
+__all__ = ["Frame", "CameraIntrinsics", "Camera", "scale_intrinsics"]
 
 
 @dataclass(frozen=True)
@@ -33,31 +36,15 @@ class Frame:
         return time.monotonic() - self.timestamp_s
 
 
-@dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole intrinsics ``K`` (3, 3) at ``width x height`` px, plus OpenCV distortion coefficients."""
-
-    K: np.ndarray
-    width: int
-    height: int
-    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
-
-    def __post_init__(self):
-        K = np.asarray(self.K, dtype=np.float64)
-        if K.shape != (3, 3) or not np.isfinite(K).all():
-            raise ValueError(f"K must be a finite (3, 3) matrix, got shape {K.shape}")
-        object.__setattr__(self, "K", K)
-        object.__setattr__(self, "dist", np.asarray(self.dist, dtype=np.float64).ravel())
-
-    def scaled_to(self, width: int, height: int) -> "CameraIntrinsics":
-        """The same camera at another resolution (same field of view, pixel-centre convention)."""
-        if (width, height) == (self.width, self.height):
-            return self
-        sx, sy = width / self.width, height / self.height
-        fx, fy = self.K[0, 0] * sx, self.K[1, 1] * sy
-        cx, cy = (self.K[0, 2] + 0.5) * sx - 0.5, (self.K[1, 2] + 0.5) * sy - 0.5
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        return CameraIntrinsics(K, width, height, self.dist)
+def scale_intrinsics(intr: CameraIntrinsics, width: int, height: int) -> CameraIntrinsics:
+    """The same camera at another resolution (same field of view, pixel-centre convention)."""
+    if (width, height) == (intr.width, intr.height):
+        return intr
+    sx, sy = width / intr.width, height / intr.height
+    fx, fy = intr.K[0, 0] * sx, intr.K[1, 1] * sy
+    cx, cy = (intr.K[0, 2] + 0.5) * sx - 0.5, (intr.K[1, 2] + 0.5) * sy - 0.5
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return CameraIntrinsics(K, intr.dist, int(width), int(height), intr.rms_px)
 
 
 class Camera(abc.ABC):

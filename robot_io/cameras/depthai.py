@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from robot_io.cameras.base import Camera, CameraIntrinsics, Frame
+from robot_io.cameras.base import Camera, CameraIntrinsics, Frame, scale_intrinsics
 from robot_io.errors import CameraLostError, require_extra
 
 __all__ = ["DepthAICamera"]
@@ -66,7 +66,7 @@ class DepthAICamera(Camera):
                 calib = pipeline.getDefaultDevice().readCalibration()
                 K = np.asarray(calib.getCameraIntrinsics(socket, self.width, self.height), dtype=np.float64)
                 dist = np.asarray(calib.getDistortionCoefficients(socket), dtype=np.float64)[:5]
-                self._device_intrinsics = CameraIntrinsics(K, self.width, self.height, dist)
+                self._device_intrinsics = CameraIntrinsics(K, dist, self.width, self.height)
         except RuntimeError as err:
             self._close()
             raise _lost(err) from None
@@ -111,7 +111,7 @@ class DepthAICamera(Camera):
     @property
     def intrinsics(self) -> CameraIntrinsics:
         if self._calibration is not None:
-            return self._calibration.scaled_to(self.width, self.height)
+            return scale_intrinsics(self._calibration, self.width, self.height)
         if self._device_intrinsics is None:
             raise CameraLostError("OAK intrinsics are read from the device: connect() first")
         return self._device_intrinsics

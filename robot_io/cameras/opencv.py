@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from robot_io.cameras.base import Camera, CameraIntrinsics, Frame
+from robot_io.cameras.base import Camera, CameraIntrinsics, Frame, scale_intrinsics
 from robot_io.errors import CameraLostError, RobotIOError
 
 __all__ = ["OpenCVCamera", "resolve_device"]
@@ -176,7 +176,7 @@ class OpenCVCamera(Camera):
         if self.size != (self._calibration.width, self._calibration.height):
             log.warning("intrinsics calibrated at %dx%d, camera delivers %dx%d: rescaling K",
                         self._calibration.width, self._calibration.height, *self.size)
-        return self._calibration.scaled_to(*self.size)
+        return scale_intrinsics(self._calibration, *self.size)
 
 
 def _to_rgb(img: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robot_io.cameras.base import Camera, CameraIntrinsics, Frame
+from robot_io.cameras.base import Camera, CameraIntrinsics, Frame, scale_intrinsics
 from robot_io.errors import CameraLostError, RobotIOError
 
 __all__ = ["ReplayCamera", "IMAGE_SUFFIXES"]
@@ -110,4 +110,4 @@ class ReplayCamera(Camera):
     def intrinsics(self) -> CameraIntrinsics:
         if self._calibration is None:
             raise RobotIOError(f"replay {self.path}: no intrinsics; set camera.intrinsics in the hardware config")
-        return self._calibration if self.size is None else self._calibration.scaled_to(*self.size)
+        return self._calibration if self.size is None else scale_intrinsics(self._calibration, *self.size)

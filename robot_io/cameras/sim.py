@@ -44,4 +44,4 @@ class SimCamera(Camera):
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
-        return CameraIntrinsics(self.world.K, self.world.width, self.world.height)
+        return CameraIntrinsics(self.world.K, np.zeros(5), self.world.width, self.world.height)

@@ -1,0 +1,297 @@
+"""A serial-line arm controller speaking the advobj line protocol (``docs/serial-protocol.md``).
+
+Framing (v1), ASCII, one line per message::
+
+    host   -> device   >SEQ CMD ARG...*CS\\n
+    device -> host     <SEQ OK FIELD...*CS\\n   or   <SEQ ERR CODE...*CS\\n
+    device -> host     #TEXT\\n                (unsolicited: boot banner, fault notices)
+    host   -> device   !                       (one byte, outside framing: stop now)
+
+``CS`` is the XOR of the bytes between the start character and ``*``, as two hex digits. One
+command is in flight at a time. A reply that times out or fails its checksum, and an ``ERR CHK``,
+make the host resend the *same* ``SEQ``; the device answers a repeated ``SEQ`` from its reply
+cache without executing it again, so a resend never doubles a motion.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from robot_io.arms.base import Arm, Fault
+from robot_io.errors import ArmFaultError, ProtocolError
+from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
+
+__all__ = ["SerialArm", "PROTOCOL_VERSION", "STOP_BYTE", "checksum", "encode", "decode", "FAULT_KINDS"]
+
+log = logging.getLogger(__name__)
+
+PROTOCOL_VERSION = 1
+STOP_BYTE = b"!"
+SEQ_MODULO = 10000
+# Device fault codes -> Fault kinds, with what the operator does about each.
+FAULT_KINDS = {
+    "HEARTBEAT": ("heartbeat_timeout", "the device stopped: no command within its heartbeat timeout",
+                  "find why the host stalled, then reconnect (connect() clears the fault)"),
+    "ESTOP": ("emergency_stop", "the emergency stop is pressed", "release the e-stop, then reconnect"),
+    "PSTOP": ("protective_stop", "the controller raised a protective stop (collision or limit)",
+              "clear the workspace, then reconnect (connect() sends CLEAR)"),
+}
+
+
+def checksum(body: bytes) -> str:
+    """XOR of ``body``'s bytes as two upper-case hex digits."""
+    c = 0
+    for b in body:
+        c ^= b
+    return f"{c:02X}"
+
+
+def encode(start: str, seq: int, fields: list[str]) -> bytes:
+    """One framed line: ``start`` is ``>`` (request) or ``<`` (reply)."""
+    body = " ".join([str(seq), *fields]).encode("ascii")
+    return start.encode() + body + b"*" + checksum(body).encode() + b"\n"
+
+
+def decode(line: bytes, start: str) -> tuple[int, list[str]]:
+    """``(seq, fields)`` of a framed line; :class:`ValueError` on bad framing or checksum."""
+    line = line.rstrip(b"\r\n")
+    if not line.startswith(start.encode()) or b"*" not in line:
+        raise ValueError(f"bad framing: {line!r}")
+    body, _, cs = line[1:].rpartition(b"*")
+    if cs.decode("ascii", "replace").upper() != checksum(body):
+        raise ValueError(f"checksum mismatch: {line!r}")
+    parts = body.decode("ascii").split()
+    if not parts or not parts[0].isdigit():
+        raise ValueError(f"missing sequence number: {line!r}")
+    return int(parts[0]), parts[1:]
+
+
+def _fault_from_code(code: str) -> Fault | None:
+    if code == "NONE":
+        return None
+    kind, msg, recovery = FAULT_KINDS.get(code, ("device_fault", f"device fault {code}", "see the controller's manual"))
+    return Fault(kind, msg, recovery)
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.6f}"
+
+
+class SerialArm(Arm):
+    """Host side of the protocol.
+
+    Args:
+        port: a device (``/dev/ttyACM0``, ``/dev/serial/by-id/...``) or any pyserial URL
+            (``socket://host:port`` for a serial-over-TCP bridge).
+        baudrate: line speed.
+        timeout_ms: how long to wait for each reply before resending.
+        retries: resends before the link counts as lost.
+        boot_timeout_ms: how long to wait for the boot banner after opening the port (opening
+            toggles DTR, which resets Arduino-style controllers).
+        expect_banner: ``False`` for boards that do not reset on open: go straight to ``HELLO``.
+    """
+
+    name = "serial"
+
+    def __init__(self, port: str, baudrate: int = 115200, timeout_ms: float = 200.0, retries: int = 3,
+                 boot_timeout_ms: float = 3000.0, expect_banner: bool = True):
+        super().__init__()
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.timeout_ms = float(timeout_ms)
+        self.retries = int(retries)
+        self.boot_timeout_ms = float(boot_timeout_ms)
+        self.expect_banner = bool(expect_banner)
+        self.device_info: dict[str, str] = {}
+        self.stats = {"resends": 0, "checksum_errors": 0, "timeouts": 0, "stale_replies": 0}
+        self._ser = None
+        self._buf = bytearray()
+        self._seq = 0
+        self._lock = threading.RLock()  # re-entered to ask STATUS after an ERR FAULT
+        self._notices: list[str] = []
+        self._link_lost: str | None = None
+
+    # ------------------------------------------------------------------ link
+    def _open(self) -> None:
+        import serial
+
+        try:
+            self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)
+        except (serial.SerialException, OSError, ValueError) as err:
+            raise ArmFaultError(Fault("connection_lost", f"cannot open serial port {self.port}: {err}",
+                                      "check the cable and the port name (ls /dev/serial/by-id/)")) from None
+        self._buf.clear()
+        self._link_lost = None
+        try:
+            banner = self._wait_banner() if self.expect_banner else None
+            if banner is None:
+                # No banner: the board did not reset on open (or it was missed); ask directly.
+                _, fields = self._transact(["HELLO"])
+                info = dict(f.split("=", 1) for f in fields if "=" in f)
+            else:
+                info = dict(f.split("=", 1) for f in banner.split()[1:] if "=" in f)
+            if info.get("proto") != str(PROTOCOL_VERSION):
+                raise ProtocolError(f"serial arm on {self.port} speaks protocol {info.get('proto', '?')}, "
+                                    f"this host speaks {PROTOCOL_VERSION}: update the firmware or advobj")
+            self.device_info = info
+            self._transact(["CLEAR"])
+        except BaseException:
+            self._ser.close()
+            self._ser = None
+            raise
+
+    def _close(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is None:
+            return
+        try:
+            ser.write(STOP_BYTE)
+            ser.flush()
+        except Exception:  # noqa: BLE001 - the link may already be gone; closing must still happen
+            pass
+        finally:
+            ser.close()
+
+    def _readline(self, deadline: float) -> bytes | None:
+        while True:
+            nl = self._buf.find(b"\n")
+            if nl >= 0:
+                line = bytes(self._buf[: nl + 1])
+                del self._buf[: nl + 1]
+                return line
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            self._ser.timeout = min(remaining, 0.05)
+            chunk = self._ser.read(max(1, self._ser.in_waiting))
+            if chunk:
+                self._buf.extend(chunk)
+
+    def _notice(self, line: bytes) -> None:
+        text = line[1:].decode("ascii", "replace").strip()
+        self._notices.append(text)
+        del self._notices[:-50]
+        log.info("serial arm %s: %s", self.port, text)
+
+    def _wait_banner(self) -> str | None:
+        deadline = time.monotonic() + self.boot_timeout_ms / 1000.0
+        while (line := self._readline(deadline)) is not None:
+            # Bootloaders print noise before the firmware starts; only a '#BOOT' line counts.
+            if line.startswith(b"#BOOT"):
+                return line[1:].decode("ascii", "replace").strip()
+        log.warning("serial arm %s: no boot banner within %.0f ms; sending HELLO", self.port, self.boot_timeout_ms)
+        return None
+
+    def _transact(self, fields: list[str]) -> tuple[str, list[str]]:
+        """Send one command and return ``('OK', fields)``; raises on ``ERR`` or a dead link."""
+        if self._ser is None:
+            raise ArmFaultError(Fault("connection_lost", f"serial arm {self.port} is not connected", "call connect()"))
+        with self._lock:
+            self._seq = self._seq % (SEQ_MODULO - 1) + 1
+            seq = self._seq
+            frame = encode(">", seq, fields)
+            for attempt in range(self.retries + 1):
+                if attempt:
+                    self.stats["resends"] += 1
+                self._ser.write(frame)
+                reply = self._await_reply(seq)
+                if reply is None:
+                    continue
+                status, rest = reply[0], reply[1:]
+                if status == "OK":
+                    return status, rest
+                if status == "ERR" and rest[:1] == ["CHK"]:
+                    self.stats["checksum_errors"] += 1  # the device saw a corrupted request
+                    continue
+                code = rest[0] if rest else "?"
+                if code == "FAULT":
+                    raise ArmFaultError(self._status_fault() or Fault("device_fault", " ".join(rest), ""))
+                raise ProtocolError(f"serial arm {self.port} rejected {fields[0]}: ERR {' '.join(rest)}")
+            self._link_lost = f"no valid reply to {fields[0]} after {self.retries + 1} attempts of {self.timeout_ms:.0f} ms"
+            raise ArmFaultError(Fault("connection_lost", f"serial arm {self.port}: {self._link_lost}",
+                                      "check the cable and that the controller is powered, then reconnect"))
+
+    def _await_reply(self, seq: int) -> list[str] | None:
+        deadline = time.monotonic() + self.timeout_ms / 1000.0
+        while (line := self._readline(deadline)) is not None:
+            if line.startswith(b"#"):
+                self._notice(line)
+                continue
+            try:
+                got, fields = decode(line, "<")
+            except ValueError as err:
+                self.stats["checksum_errors"] += 1
+                log.warning("serial arm %s: discarding reply (%s)", self.port, err)
+                return None  # resend now rather than wait out the timeout
+            if got != seq:
+                self.stats["stale_replies"] += 1  # a late answer to an earlier, already resent request
+                continue
+            if fields:
+                return fields
+        self.stats["timeouts"] += 1
+        return None
+
+    # ------------------------------------------------------------------ state
+    def _status(self) -> dict[str, str]:
+        _, fields = self._transact(["STATUS"])
+        return dict(f.split("=", 1) for f in fields if "=" in f)
+
+    def _status_fault(self) -> Fault | None:
+        return _fault_from_code(self._status().get("fault", "NONE"))
+
+    def fault(self) -> Fault | None:
+        if self._ser is None:
+            return Fault("connection_lost", f"serial arm {self.port} is not connected", "call connect()")
+        try:
+            return self._status_fault()
+        except ArmFaultError as err:
+            return err.fault
+
+    def status(self) -> dict[str, str]:
+        """The device's ``STATUS`` fields (``state``, ``fault``, ``pose``)."""
+        return self._status()
+
+    def tcp_pose(self) -> np.ndarray:
+        _, fields = self._transact(["POSE"])
+        try:
+            return pose_from_vec([float(x) for x in fields])
+        except ValueError:
+            raise ProtocolError(f"serial arm {self.port}: malformed POSE reply {fields}") from None
+
+    # ------------------------------------------------------------------ motion
+    def keepalive(self) -> None:
+        self._transact(["HB"])
+
+    def _move(self, T_base_tcp: np.ndarray, speed_mps: float) -> None:
+        self._transact(["MOVE", *(_fmt(x) for x in pose_to_vec(T_base_tcp)), _fmt(speed_mps)])
+
+    def servo(self, T_base_tcp: np.ndarray, duration_s: float) -> None:
+        dp, _ = pose_step(self.tcp_pose(), T_base_tcp)
+        self._move(T_base_tcp, max(dp / float(duration_s), 1e-4))
+
+    def move_to(self, T_base_tcp: np.ndarray, speed_mps: float, timeout_s: float | None = None) -> None:
+        dp, _ = pose_step(self.tcp_pose(), T_base_tcp)
+        self._move(T_base_tcp, float(speed_mps))
+        # Polling STATUS doubles as the heartbeat while the device moves.
+        deadline = time.monotonic() + (timeout_s if timeout_s is not None else 2.0 * dp / speed_mps + 2.0)
+        while True:
+            st = self._status()
+            if st.get("fault", "NONE") != "NONE":
+                raise ArmFaultError(_fault_from_code(st["fault"]))
+            if st.get("state") == "IDLE":
+                return
+            if time.monotonic() > deadline:
+                self.stop()
+                raise ProtocolError(f"serial arm {self.port}: move did not finish in time (state {st.get('state')})")
+            time.sleep(0.01)
+
+    def stop(self) -> None:
+        # Written outside the command lock on purpose: the stop byte must not wait for a reply.
+        ser = self._ser
+        if ser is not None:
+            ser.write(STOP_BYTE)
+            ser.flush()

@@ -1,0 +1,298 @@
+"""The hardware config YAML: which camera, which arm, the safety limits, the calibration files.
+
+Validated with pydantic (unknown keys are errors; every error names the file and field), and
+turned into devices by :func:`build_camera` / :func:`build_arm` through explicit type -> class
+tables. ``build_arm`` returns the arm wrapped in :class:`robot_io.safety.SafeArm`: callers never
+hold a raw driver. Relative paths in the YAML are relative to the YAML file.
+
+A ``sim`` camera and a ``sim`` arm share one :class:`sim.world.SimWorld` (``build_world``), so a
+whole trial session runs without hardware.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from robot_io.errors import HardwareConfigError
+from robot_io.safety import SafeArm, SafetyLimits
+
+__all__ = [
+    "HardwareConfig",
+    "SimCameraConfig",
+    "OpenCVCameraConfig",
+    "DepthAICameraConfig",
+    "ReplayCameraConfig",
+    "SimArmConfig",
+    "URArmConfig",
+    "SerialArmConfig",
+    "SimConfig",
+    "load_hardware_config",
+    "hardware_config_from_dict",
+    "load_T_tcp_cam",
+    "build_world",
+    "build_camera",
+    "build_arm",
+    "CAMERA_TYPES",
+    "ARM_TYPES",
+]
+
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+Px = Annotated[int, Field(gt=0, le=8192)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# ---------------------------------------------------------------------- cameras
+class SimCameraConfig(_Strict):
+    """Renders the sim world from the sim arm's TCP (needs ``arm.type: sim``)."""
+
+    type: Literal["sim"]
+
+
+class OpenCVCameraConfig(_Strict):
+    type: Literal["opencv"]
+    device: str | int = Field(description="/dev/v4l/by-id/... (stable), /dev/videoN or an index")
+    width: Px | None = None
+    height: Px | None = None
+    fps: Positive | None = None
+    fourcc: Annotated[str, Field(min_length=4, max_length=4)] | None = None
+    timeout_ms: Positive = 1000.0
+    intrinsics: Path | None = Field(None, description="camera YAML written by the calibration tools")
+
+
+class DepthAICameraConfig(_Strict):
+    type: Literal["depthai"]
+    socket: Literal["CAM_A", "CAM_B", "CAM_C", "CAM_D"] = "CAM_A"
+    width: Px = 640
+    height: Px = 480
+    fps: Positive = 30.0
+    timeout_ms: Positive = 1000.0
+    intrinsics: Path | None = Field(None, description="overrides the device's factory calibration")
+
+
+class ReplayCameraConfig(_Strict):
+    type: Literal["replay"]
+    path: Path = Field(description="a folder of images or a video file")
+    loop: bool = False
+    fps: Positive | None = None
+    intrinsics: Path | None = None
+
+
+CameraConfig = Annotated[
+    Union[SimCameraConfig, OpenCVCameraConfig, DepthAICameraConfig, ReplayCameraConfig], Field(discriminator="type")
+]
+
+
+# ---------------------------------------------------------------------- arms
+class SimArmConfig(_Strict):
+    type: Literal["sim"]
+    max_speed_mps: Positive = 0.5
+    max_speed_radps: Positive = 2.0
+    realtime: bool = False
+
+
+class URArmConfig(_Strict):
+    type: Literal["ur_rtde"]
+    host: Annotated[str, Field(min_length=1, description="controller address")]
+    mode: Literal["servoL", "speedL"] = "servoL"
+    acceleration_mps2: Positive = 0.5
+    lookahead_time_s: Annotated[float, Field(ge=0.03, le=0.2)] = 0.1
+    gain: Annotated[float, Field(ge=100, le=2000)] = 300.0
+    watchdog_min_hz: Positive = 10.0
+
+
+class SerialArmConfig(_Strict):
+    type: Literal["serial"]
+    port: Annotated[str, Field(min_length=1, description="/dev/serial/by-id/..., /dev/ttyACM0 or a pyserial URL")]
+    baudrate: Annotated[int, Field(gt=0)] = 115200
+    timeout_ms: Positive = 200.0
+    retries: Annotated[int, Field(ge=0, le=20)] = 3
+    boot_timeout_ms: Positive = 3000.0
+    expect_banner: bool = True
+
+
+ArmConfig = Annotated[Union[SimArmConfig, URArmConfig, SerialArmConfig], Field(discriminator="type")]
+
+
+class SimConfig(_Strict):
+    """The simulated world behind ``sim`` devices."""
+
+    scene: Path | None = Field(None, description="scene YAML; default: the built-in paper scene")
+    seed: int = 0
+    image_size: tuple[Px, Px] | None = Field(None, description="(H, W); default: the scene camera's")
+
+
+class HardwareConfig(_Strict):
+    camera: CameraConfig
+    arm: ArmConfig
+    safety: SafetyLimits
+    T_tcp_cam: Path | None = Field(None, description="YAML with the camera pose in the TCP frame (hand-eye result)")
+    sim: SimConfig = SimConfig()
+
+    @model_validator(mode="after")
+    def _sim_pairing(self):
+        if self.camera.type == "sim" and self.arm.type != "sim":
+            raise ValueError("camera.type 'sim' renders from the sim arm's pose: it needs arm.type 'sim'")
+        return self
+
+
+# ---------------------------------------------------------------------- loading
+def _format(err: ValidationError, source: str) -> str:
+    lines = [f"{source}: invalid hardware config"]
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        lines.append(f"  {loc}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def _resolve(cfg: HardwareConfig, base: Path | None) -> HardwareConfig:
+    if base is None:
+        return cfg
+
+    def fix(p: Path | None) -> Path | None:
+        return p if p is None or p.is_absolute() else base / p
+
+    cam_updates = {k: fix(getattr(cfg.camera, k)) for k in ("intrinsics", "path") if hasattr(cfg.camera, k)}
+    return cfg.model_copy(update={
+        "camera": cfg.camera.model_copy(update=cam_updates),
+        "T_tcp_cam": fix(cfg.T_tcp_cam),
+        "sim": cfg.sim.model_copy(update={"scene": fix(cfg.sim.scene)}),
+    })
+
+
+def hardware_config_from_dict(data, source: str = "<dict>", base: Path | None = None) -> HardwareConfig:
+    if not isinstance(data, dict):
+        raise HardwareConfigError(f"{source}: a hardware config must be a mapping, got {type(data).__name__}")
+    try:
+        cfg = HardwareConfig.model_validate(data)
+    except ValidationError as err:
+        raise HardwareConfigError(_format(err, source)) from None
+    return _resolve(cfg, base)
+
+
+def load_hardware_config(path: str | Path) -> HardwareConfig:
+    """Load and validate a hardware YAML; errors name the file and the field."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise HardwareConfigError(f"{path}: cannot read hardware config ({err.strerror or err})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise HardwareConfigError(f"{path}: not valid YAML ({err})") from None
+    return hardware_config_from_dict(data, source=str(path), base=path.resolve().parent)
+
+
+class _TcpCamFile(_Strict):
+    translation_m: tuple[float, float, float]
+    rotvec_rad: tuple[float, float, float]
+
+
+def load_T_tcp_cam(path: str | Path) -> np.ndarray:
+    """``T_tcp_cam`` (4, 4) from ``{translation_m: [..], rotvec_rad: [..]}``, top level or under ``T_tcp_cam:``."""
+    from calibration.io import load_model, read_yaml
+
+    data = read_yaml(path)
+    if isinstance(data, dict) and set(data) == {"T_tcp_cam"}:
+        data = data["T_tcp_cam"]
+    m = load_model(path, _TcpCamFile, data=data)
+    from sim.geometry import make_T, so3_exp
+
+    return make_T(so3_exp(np.asarray(m.rotvec_rad)), np.asarray(m.translation_m))
+
+
+def _intrinsics(path: Path | None):
+    if path is None:
+        return None
+    from calibration.intrinsics import load_camera_yaml
+
+    return load_camera_yaml(path)
+
+
+# ---------------------------------------------------------------------- factories
+def build_world(cfg: HardwareConfig):
+    """The :class:`sim.world.SimWorld` shared by ``sim`` devices (the caller closes it)."""
+    from sim.spec import default_scene, load_scene
+    from sim.world import SimWorld
+
+    spec = load_scene(cfg.sim.scene) if cfg.sim.scene is not None else default_scene()
+    return SimWorld(spec, image_size=cfg.sim.image_size, seed=cfg.sim.seed)
+
+
+def _sim_camera(cfg: HardwareConfig, world):
+    from robot_io.cameras.sim import SimCamera
+
+    return SimCamera(world, None if cfg.T_tcp_cam is None else load_T_tcp_cam(cfg.T_tcp_cam))
+
+
+def _opencv_camera(cfg: HardwareConfig, world):
+    from robot_io.cameras.opencv import OpenCVCamera
+
+    c = cfg.camera
+    return OpenCVCamera(c.device, c.width, c.height, c.fps, c.fourcc, _intrinsics(c.intrinsics), c.timeout_ms)
+
+
+def _depthai_camera(cfg: HardwareConfig, world):
+    from robot_io.cameras.depthai import DepthAICamera
+
+    c = cfg.camera
+    return DepthAICamera(c.socket, c.width, c.height, c.fps, _intrinsics(c.intrinsics), c.timeout_ms)
+
+
+def _replay_camera(cfg: HardwareConfig, world):
+    from robot_io.cameras.replay import ReplayCamera
+
+    c = cfg.camera
+    return ReplayCamera(c.path, c.loop, c.fps, _intrinsics(c.intrinsics))
+
+
+def _sim_arm(cfg: HardwareConfig, world):
+    from robot_io.arms.sim import SimArm
+
+    a = cfg.arm
+    return SimArm(world, a.max_speed_mps, a.max_speed_radps, a.realtime)
+
+
+def _ur_arm(cfg: HardwareConfig, world):
+    from robot_io.arms.ur_rtde import URArm
+
+    a = cfg.arm
+    return URArm(a.host, a.mode, a.acceleration_mps2, a.lookahead_time_s, a.gain, a.watchdog_min_hz)
+
+
+def _serial_arm(cfg: HardwareConfig, world):
+    from robot_io.arms.serial import SerialArm
+
+    a = cfg.arm
+    return SerialArm(a.port, a.baudrate, a.timeout_ms, a.retries, a.boot_timeout_ms, a.expect_banner)
+
+
+CAMERA_TYPES = {"sim": _sim_camera, "opencv": _opencv_camera, "depthai": _depthai_camera, "replay": _replay_camera}
+ARM_TYPES = {"sim": _sim_arm, "ur_rtde": _ur_arm, "serial": _serial_arm}
+
+
+def _needs_world(kind: str, world) -> None:
+    if world is None:
+        raise HardwareConfigError(f"a '{kind}' device needs the shared sim world: pass world=build_world(cfg)")
+
+
+def build_camera(cfg: HardwareConfig, world=None):
+    """The configured camera (not connected). ``sim`` cameras render ``world``."""
+    if cfg.camera.type == "sim":
+        _needs_world("sim camera", world)
+    return CAMERA_TYPES[cfg.camera.type](cfg, world)
+
+
+def build_arm(cfg: HardwareConfig, world=None) -> SafeArm:
+    """The configured arm wrapped in the safety layer (not connected)."""
+    if cfg.arm.type == "sim":
+        _needs_world("sim arm", world)
+    return SafeArm(ARM_TYPES[cfg.arm.type](cfg, world), cfg.safety)
