@@ -537,7 +537,7 @@ def patch_side_m() -> float:
 def texel_density_ratio(mesh: trimesh.Trimesh) -> np.ndarray:
     """Per-face ``sqrt(3D area / UV area)`` (F,), metres per UV unit (inf for zero UV area)."""
     uv = np.asarray(mesh.visual.uv, float)[np.asarray(mesh.faces)]
-    uv_area = 0.5 * np.abs(np.cross(uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]))
+    uv_area = 0.5 * np.abs(tx.cross2(uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]))
     with np.errstate(divide="ignore"):
         return np.sqrt(np.asarray(mesh.area_faces) / uv_area)
 

@@ -21,6 +21,7 @@ from PIL import Image, ImageDraw
 
 __all__ = [
     "Shader",
+    "cross2",
     "rasterize_uv",
     "bake_texture",
     "bake_vertex_values",
@@ -46,6 +47,11 @@ _DILATE_PX = 6  # gutter texels filled from their neighbours so bilinear lookups
 
 
 # ----------------------------------------------------------------------------- baking
+def cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z of the cross product of 2D vectors ``(..., 2)`` -> ``(...)`` (twice the signed area)."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
 def rasterize_uv(uv: np.ndarray, faces: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """Which face covers each texel, and where.
 
@@ -65,7 +71,7 @@ def rasterize_uv(uv: np.ndarray, faces: np.ndarray, size: int) -> tuple[np.ndarr
     draw = ImageDraw.Draw(img)
     # Larger faces first so that small faces sharing border texels keep their own texels.
     tri = px[faces]
-    area = 0.5 * np.abs(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+    area = 0.5 * np.abs(cross2(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
     for f in np.argsort(-area, kind="stable"):
         draw.polygon([tuple(p) for p in tri[f]], fill=int(f), outline=int(f))
     face_id = np.asarray(img, dtype=np.int64)
@@ -390,7 +396,7 @@ def wood_texture(size: int = 512, seed: int = 7) -> np.ndarray:
     img = base * (1 - g[..., None] * 0.5) + dark * (g[..., None] * 0.5)
     img = img * (1.0 + tone[..., None])
     # Plank joints: a dark line at each plank boundary.
-    joint = np.abs((yy * planks) - np.round(yy * planks)) < 0.01
+    joint = (yy * planks) % 1.0 < 1.5 * planks / size  # the first row(s) of every plank
     img[joint] *= 0.55
     return (np.clip(img, 0, 1) * 255).astype(np.uint8)
 
