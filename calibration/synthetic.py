@@ -21,7 +21,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import numpy as np
 
-from sim.geometry import look_at, make_T, so3_exp
+from sim.geometry import make_T, so3_exp
 
 __all__ = [
     "TexturedPlane",
@@ -32,6 +32,7 @@ __all__ = [
     "degrade",
     "default_K",
     "camera_facing",
+    "random_view_poses",
 ]
 
 # OpenCV camera (x right, y down, z forward) -> OpenGL camera (x right, y up, z backward).
@@ -199,6 +200,3 @@ def random_view_poses(n: int, distance_range_m=(0.35, 0.6), max_tilt_deg: float 
                                  rng.uniform(-0.03, 0.03, 2)))
     return np.stack(out)
 
-
-__all__.append("random_view_poses")
-_ = look_at  # re-exported for callers that build scenes from camera positions
