@@ -26,6 +26,11 @@ def demo(out: Path = typer.Option(Path("runs/demo"), help="output directory"), s
     typer.echo(f"demo: expert reached {result['reached']} in {result['steps']} steps; outputs in {out}/")
 
 
+from trials import cli_hw  # noqa: E402
+
+app.add_typer(cli_hw.app, name="hw")
+
+
 def main() -> None:
     import sys
 

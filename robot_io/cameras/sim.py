@@ -38,9 +38,11 @@ class SimCamera(Camera):
         pass  # the world (and its GL context) belongs to whoever created it
 
     def _read(self) -> Frame:
+        # Stamp at the start: the image shows the scene as it was then (like an exposure time).
+        t_capture = time.monotonic()
         T_world_cam = self.world.T_world_tcp @ self.T_tcp_cam
         out = self.world.render(T_world_cam, with_ids=False)
-        return Frame(np.ascontiguousarray(out.rgb), time.monotonic(), next(self._seq))
+        return Frame(np.ascontiguousarray(out.rgb), t_capture, next(self._seq))
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
