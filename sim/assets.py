@@ -17,8 +17,10 @@ simulated goal and adversarial objects, YCB look-alikes), ``cube`` and ``cylinde
 real-world shapes), ``duck`` and ``dog`` (its generalisation study), ``patch`` (the 2D baseline)
 and ``table``. Geometry lives here; the looks (shaders) live in :mod:`sim.textures`.
 
-Built-ins with a wrap layout (soup can, mustard bottle, cylinder) also carry
-``metadata["uv_islands"]``: ``{island: (u0, v0, u1, v1)}`` bounding boxes in UV, for printing.
+Built-ins with an exact layout (soup can, mustard bottle, cylinder, cube, patch) also carry, for
+printing: ``metadata["uv_side_m"]``, the surface length (m) of one UV unit (print the texture as a
+square of that side for true size), and the wrap layouts and the patch
+``metadata["uv_islands"]``: ``{island: (u0, v0, u1, v1)}`` bounding boxes in UV.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ class _Parts(NamedTuple):
     tags: np.ndarray | None = None  # (F,) part index passed to the shader
     optimizable: np.ndarray | None = None  # (F,) bool, default all True
     islands: dict | None = None  # name -> (u0, v0, u1, v1)
+    uv_side_m: float | None = None  # metres of surface per UV unit (uniform-density layouts)
 
 
 def _make_trimesh(name: str, vertices, faces, uv, image: np.ndarray, optimizable=None, extra=None) -> trimesh.Trimesh:
@@ -114,7 +117,8 @@ def _pack(islands: list[_Island], row_width_m: float | None = None):
     """Shelf-pack charts into the unit square at one common scale (uniform texel density).
 
     Charts go left to right in rows of width ``row_width_m`` (default: the widest chart), in the
-    given order. Returns vertices (V, 3), faces (F, 3), uv (V, 2) and the island boxes in UV.
+    given order. Returns vertices (V, 3), faces (F, 3), uv (V, 2), the island boxes in UV and
+    the atlas side in metres (surface length per UV unit).
     """
     sizes = [isl.uv_m.max(0) for isl in islands]
     width = row_width_m or max(s[0] for s in sizes)
@@ -134,7 +138,7 @@ def _pack(islands: list[_Island], row_width_m: float | None = None):
         uvs.append((isl.uv_m + off) / side)
         boxes[isl.name] = tuple(float(c) for c in (*(off / side), *((off + s) / side)))
         n += len(isl.vertices)
-    return np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs), boxes
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs), boxes, float(side)
 
 
 # ============================================================================ primitives
@@ -310,8 +314,8 @@ _MUSTARD_RINGS = (
 
 def _wrap_parts(rings, segments, shader) -> _Parts:
     islands = _lathe(rings, segments)
-    v, f, uv, boxes = _pack(islands)
-    return _Parts(v, f, uv, shader, islands=boxes)
+    v, f, uv, boxes, side = _pack(islands)
+    return _Parts(v, f, uv, shader, islands=boxes, uv_side_m=side)
 
 
 def _soup_can_parts() -> _Parts:
@@ -321,6 +325,17 @@ def _soup_can_parts() -> _Parts:
 
 
 def _cylinder_parts() -> _Parts:
+    """Printable cylinder, 6.6 cm x 10 cm, 48 sides. UV layout (unit square, v up, one common
+    scale: ``metadata["uv_side_m"]`` = 0.2155 m of surface per UV unit):
+
+    * ``side`` wrap: u in [0.019, 0.981] (the 48-gon perimeter, seam on the +x side, u growing
+      counter-clockwise seen from above), v in [0.019, 0.483] (z = 0 to the top);
+    * ``top`` cap: the disk in [0.019, 0.326] x [0.503, 0.809], seen from above (u = +x, v = +y);
+    * ``bottom`` cap: [0.345, 0.651] x [0.503, 0.809], seen from below (u = -x, v = +y);
+    * the rest is unused; 2% gutters separate the charts.
+
+    Exact boxes: ``metadata["uv_islands"]``.
+    """
     r, h = CYLINDER_DIAMETER_M / 2, CYLINDER_HEIGHT_M
     rings = [(z, r, r, 2.0) for z in np.linspace(0.0, h, 9)]
     return _wrap_parts(rings, 48, tx.cylinder_shader(h))
@@ -345,7 +360,7 @@ def _cube_parts() -> _Parts:
         return (col * tile + inset, row * tile + inset), (tile - 2 * inset, 0), (0, tile - 2 * inset), 3, 3
 
     v, f, uv, _ = _box_faces((CUBE_SIZE_M,) * 3, uv_of_face)
-    return _Parts(v, f, uv, tx.cube_shader(CUBE_SIZE_M))
+    return _Parts(v, f, uv, tx.cube_shader(CUBE_SIZE_M), uv_side_m=CUBE_SIZE_M / (tile - 2 * inset))
 
 
 def _composite_parts(pieces, shader, length_m: float) -> _Parts:
@@ -419,7 +434,7 @@ def _patch_parts() -> _Parts:
 
     v, f, uv, which = _box_faces((side, side, t), uv_of_face)
     optimizable = which == 4  # "+z" is the 5th face of _box_faces
-    return _Parts(v, f, uv, tx.patch_shader(), optimizable=optimizable, islands={"top": PATCH_TOP_UV})
+    return _Parts(v, f, uv, tx.patch_shader(), optimizable=optimizable, islands={"top": PATCH_TOP_UV}, uv_side_m=side / w)
 
 
 _BUILDERS: dict[str, Callable[[], _Parts]] = {
@@ -442,7 +457,11 @@ def _parts(name: str) -> _Parts:
 def _builtin_mesh(name: str) -> trimesh.Trimesh:
     p = _parts(name)
     image = tx.bake_texture(p.vertices, p.faces, p.uv, p.shader, TEXTURE_SIZE, p.tags)
-    extra = {"uv_islands": p.islands} if p.islands else None
+    extra = {}
+    if p.islands:
+        extra["uv_islands"] = p.islands
+    if p.uv_side_m:
+        extra["uv_side_m"] = p.uv_side_m
     return _make_trimesh(name, p.vertices, p.faces, p.uv, image, p.optimizable, extra)
 
 

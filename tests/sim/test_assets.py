@@ -146,6 +146,13 @@ def test_texel_density_metric_catches_a_misscaled_chart(meshes):
     assert r.std() / r.mean() > 2 * TEXEL_CV_BOUND
 
 
+@pytest.mark.parametrize("name", ["tomato_soup_can", "mustard_bottle", "cylinder", "cube", "patch"])
+def test_uv_side_m_is_the_surface_length_per_uv_unit(meshes, name):
+    m = meshes[name]
+    r = A.texel_density_ratio(m)[m.metadata["optimizable_faces"]]
+    assert np.median(r) == pytest.approx(m.metadata["uv_side_m"], rel=0.01)
+
+
 def test_wrap_layout_islands_do_not_overlap_and_side_is_below_caps(meshes):
     for name in ("cylinder", "tomato_soup_can", "mustard_bottle"):
         isl = meshes[name].metadata["uv_islands"]
