@@ -33,6 +33,8 @@ __all__ = [
     "default_K",
     "camera_facing",
     "random_view_poses",
+    "hand_eye_poses",
+    "perturb_poses",
 ]
 
 # OpenCV camera (x right, y down, z forward) -> OpenGL camera (x right, y up, z backward).
@@ -200,3 +202,39 @@ def random_view_poses(n: int, distance_range_m=(0.35, 0.6), max_tilt_deg: float 
                                  rng.uniform(-0.03, 0.03, 2)))
     return np.stack(out)
 
+
+
+def hand_eye_poses(n: int, T_tcp_cam: np.ndarray, T_base_board: np.ndarray, board_center_board=(0.0, 0.0, 0.0),
+                   distance_range_m=(0.3, 0.45), lateral_m: float = 0.15, roll_rad: float = 0.6, seed: int = 0):
+    """``n`` eye-in-hand samples looking at a board: ``(T_base_tcp (n, 4, 4), T_cam_board (n, 4, 4))``, noise-free.
+
+    Camera positions scatter above the board (base +z side of the board's face) within
+    ``lateral_m``, at ``distance_range_m``, aimed near ``board_center_board`` (board frame) with a
+    random roll about the optical axis, so motions rotate about diverse axes.
+    """
+    from sim.geometry import compose, invert_T, look_at, transform_points
+
+    rng = np.random.default_rng(seed)
+    T_base_board = np.asarray(T_base_board, dtype=np.float64)
+    center = transform_points(T_base_board, np.asarray(board_center_board, dtype=np.float64)[None])[0]
+    normal = -T_base_board[:3, 2]  # board +z points into the board; the camera stays on the printed side
+    A, B = [], []
+    for _ in range(n):
+        lat = rng.uniform(-lateral_m, lateral_m, 3)
+        lat -= normal * (lat @ normal)
+        eye = center + normal * rng.uniform(*distance_range_m) + lat
+        T_base_cam = look_at(eye, center + rng.normal(0.0, 0.02, 3)) @ make_T(so3_exp([0.0, 0.0, rng.uniform(-roll_rad, roll_rad)]), np.zeros(3))
+        A.append(compose(T_base_cam, invert_T(T_tcp_cam)))
+        B.append(compose(invert_T(T_base_cam), T_base_board))
+    return np.stack(A), np.stack(B)
+
+
+def perturb_poses(T, position_sigma_m: float, rotation_sigma_rad: float, seed: int = 0) -> np.ndarray:
+    """``T: (n, 4, 4)`` with Gaussian noise applied in each pose's own frame (per-axis sigmas)."""
+    from sim.geometry import se3_exp
+
+    rng = np.random.default_rng(seed)
+    T = np.asarray(T, dtype=np.float64)
+    xi = np.concatenate([rng.normal(0.0, position_sigma_m, T.shape[:-2] + (3,)),
+                         rng.normal(0.0, rotation_sigma_rad, T.shape[:-2] + (3,))], -1)
+    return T @ se3_exp(xi)
