@@ -236,8 +236,8 @@ class AttackRun:
                 g_pose += torch.autograd.grad(l1, tex, retain_graph=l2.requires_grad)[0]
             if l2.requires_grad:
                 g_sal += torch.autograd.grad(l2, tex)[0]
-            sums["pose"] += float(l1)
-            sums["sal"] += float(l2)
+            sums["pose"] += float(l1.detach())
+            sums["sal"] += float(l2.detach())
             for k in ("ori", "dist"):
                 if k in parts:
                     sums[k] += float(parts[k].sum())
@@ -310,7 +310,7 @@ class AttackRun:
             raise AttackError(f"{ckpt}: unreadable checkpoint ({err})") from None
         saved = AttackConfig(**state["config"])
         if saved != self.cfg:
-            diff = sorted(k for k in saved.model_fields if getattr(saved, k) != getattr(self.cfg, k))
+            diff = sorted(k for k in AttackConfig.model_fields if getattr(saved, k) != getattr(self.cfg, k))
             raise AttackError(f"{ckpt}: checkpoint was made with a different config (fields: {', '.join(diff)})")
         self.texture = tensors["texture"].to(self.device)
         self.torch_gen.set_state(tensors["torch_rng"])

@@ -1,0 +1,86 @@
+"""The attack loop: resume reaches the same texture, black-box policies are refused, outputs exist."""
+
+import json
+
+import pytest
+import torch
+
+from attack.optimize import AttackRun, find_checkpoint, resolve_config, run_attack
+from sim.configs import sample_pool
+from sim.policies.interface import WhiteBoxRequired
+from sim.policies.policy import VisuomotorPolicy
+from sim.spec import default_scene
+
+CFG = {"iterations": 4, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "checkpoint_every": 2, "pool_size": 8, "lr": 0.5}
+
+
+def _policy():
+    torch.manual_seed(0)
+    return VisuomotorPolicy(arch="small_cnn", image_size=32)
+
+
+@pytest.fixture(scope="module")
+def spec_pool():
+    spec = default_scene()
+    return spec, sample_pool(spec, 8, seed=5)
+
+
+def test_resume_reaches_the_same_final_texture(tmp_path, spec_pool):
+    spec, pool = spec_pool
+    cfg = resolve_config("quick", CFG)
+    full = AttackRun(_policy(), spec, cfg, pool=pool, out_dir=tmp_path / "full")
+    run_attack(full, progress=False)
+    full.close()
+
+    part = AttackRun(_policy(), spec, cfg, pool=pool, out_dir=tmp_path / "part")
+    part.step()
+    part.step()
+    part.save_checkpoint()
+    part.close()  # "crash" after iteration 2
+
+    resumed = AttackRun(_policy(), spec, cfg, pool=pool, out_dir=tmp_path / "part")
+    resumed.load_checkpoint(find_checkpoint(tmp_path / "part"))
+    assert resumed.iteration == 2
+    run_attack(resumed, progress=False)
+    resumed.close()
+    assert torch.equal(full.texture, resumed.texture)
+    assert full.history.loss_pose == resumed.history.loss_pose
+    state = json.loads((tmp_path / "part" / "checkpoint" / "state.json").read_text())
+    assert state["iteration"] == 4 and (tmp_path / "part" / "checkpoint" / "texture.png").is_file()
+
+
+def test_checkpoint_with_other_config_is_refused(tmp_path, spec_pool):
+    spec, pool = spec_pool
+    run = AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=pool, out_dir=tmp_path)
+    run.step()
+    run.save_checkpoint()
+    run.close()
+    other = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "lr": 0.25}), pool=pool, out_dir=tmp_path)
+    with pytest.raises(ValueError, match="lr"):
+        other.load_checkpoint(find_checkpoint(tmp_path))
+    other.close()
+
+
+def test_black_box_policy_is_refused(spec_pool):
+    spec, pool = spec_pool
+
+    class Blackbox:
+        image_size = 32
+
+        def act(self, images):
+            return images
+
+    with pytest.raises(WhiteBoxRequired, match="white-box"):
+        AttackRun(Blackbox(), spec, resolve_config("quick", CFG), pool=pool)
+
+
+def test_texture_moves_and_stays_in_range_for_every_loss_variant(spec_pool):
+    spec, pool = spec_pool
+    for extra in ({}, {"loss": "untargeted"}, {"use_saliency": False}, {"use_pose": False}, {"pcgrad": False, "print_aware": True, "light_randomization": True}):
+        run = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "iterations": 2, **extra}), pool=pool)
+        before = run.texture.clone()
+        run_attack(run, progress=False)
+        run.close()
+        assert torch.isfinite(run.texture).all()
+        assert run.texture.min() >= 0 and run.texture.max() <= 1
+        assert not torch.equal(before, run.texture) or run.history.skipped == 2, extra

@@ -1,0 +1,84 @@
+"""Hybrid rendering: the composite matches pyrender's own render of the textured object."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from attack.render import HybridRenderer, render_adversarial
+from sim.geometry import look_at
+from sim.render import SceneRenderer
+from sim.spec import default_scene
+from sim.world import SimWorld
+
+
+@pytest.fixture(scope="module")
+def rig():
+    spec = default_scene()
+    r = SceneRenderer(spec, 128, 128)
+    hr = HybridRenderer(r)
+    w = SimWorld(spec, image_size=128, seed=0, renderer=r)
+    yield spec, r, hr, w
+    r.close()
+
+
+def _texture(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    t = F.interpolate(torch.rand(1, 3, 16, 16, generator=g), size=(128, 128), mode="bilinear", align_corners=False)[0]
+    return (t * 255).round().byte().permute(1, 2, 0).numpy()
+
+
+def _errors(rig, dist, phi_deg, tex):
+    spec, r, hr, w = rig
+    adv = r.face_coded
+    c = w.object_center_array[adv]
+    phi = np.radians(phi_deg)
+    T = look_at(c + dist * np.array([np.sin(phi), 0.1, np.cos(phi)]), c)
+    r.set_object_texture(adv, None)
+    cap = hr.capture(w, T)
+    r.set_object_texture(adv, tex)
+    ref = r.render(T, with_ids=False).rgb.astype(np.float64)
+    r.set_object_texture(adv, None)
+    m = cap.fragments.mask()
+    tex_t = torch.from_numpy(tex).permute(2, 0, 1).float() / 255.0
+    out = {}
+    for s in ("bilinear", "trilinear"):
+        img = render_adversarial(cap, tex_t, s).permute(1, 2, 0).numpy() * 255.0
+        out[s] = np.abs(img[m] - ref[m]).mean()
+        assert np.array_equal(np.round(img[~m]), ref[~m]) or np.abs(img[~m] - ref[~m]).max() <= 1.0
+    return out, m.sum()
+
+
+@pytest.mark.parametrize("dist", [0.25, 0.5, 0.8])
+def test_composite_matches_pyrender_within_2_of_255_with_trilinear(rig, dist):
+    errs, n = _errors(rig, dist, 45, _texture())
+    assert n > 50
+    assert errs["trilinear"] <= 2.0, errs
+    assert errs["trilinear"] <= errs["bilinear"] + 0.5
+
+
+def test_mask_respects_occlusion_by_the_gripper_and_goal(rig):
+    spec, r, hr, w = rig
+    adv, goal = r.face_coded, spec.object_index("goal")
+    # Put the goal straight between the camera and the adversarial object.
+    c_adv = w.object_center_array[adv]
+    c_goal = w.object_center_array[goal]
+    eye = c_goal + (c_goal - c_adv) / np.linalg.norm(c_goal - c_adv) * 0.15
+    cap = hr.capture(w, look_at(eye, c_adv))
+    assert not (cap.fragments.mask() & cap.goal_mask).any()
+    assert (cap.fragments.mask() == cap.adv_mask).all() or cap.fragments.num_pixels <= cap.adv_mask.sum()
+
+
+def test_out_of_view_and_inside_object_give_empty_fragments_without_error(rig):
+    spec, r, hr, w = rig
+    adv = r.face_coded
+    c = w.object_center_array[adv]
+    away = look_at(c + np.array([0, 0, 0.5]), c + np.array([0, 0, 2.0]))  # looking at the sky
+    inside = look_at(c, c + np.array([0.1, 0, 0]))  # camera inside the bounding box
+    tex = torch.rand(3, 32, 32, requires_grad=True)
+    for T in (away, inside):
+        cap = hr.capture(w, T)
+        img = render_adversarial(cap, tex)
+        assert torch.isfinite(img).all()
+    cap = hr.capture(w, away)
+    assert cap.fragments.num_pixels == 0
