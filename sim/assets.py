@@ -34,7 +34,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 import trimesh
-from PIL import Image
+from PIL import Image, ImageDraw
 
 from sim import textures as tx
 from sim.errors import AdvobjError
@@ -537,8 +537,6 @@ def silhouette_area_m2(mesh: trimesh.Trimesh, view_axis: int = 1, resolution: in
     q = (p - lo) / px
     w, h = (np.ceil(q.max(0)).astype(int) + 2).tolist()
     img = Image.new("1", (w, h), 0)
-    from PIL import ImageDraw
-
     draw = ImageDraw.Draw(img)
     for tri in q[np.asarray(mesh.faces)]:
         draw.polygon([tuple(t) for t in tri], fill=1)
