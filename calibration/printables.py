@@ -1,0 +1,144 @@
+"""True-scale printable PDFs: AprilTag sheets and ChArUco boards.
+
+Pages are matplotlib figures whose size is set in inches, drawn on a millimetre axis that spans
+the whole page, and saved with the PDF backend: one drawing unit is exactly one printed millimetre
+(print at 100 % / "actual size"). Each page carries a 50 mm scale bar to check the printout with a
+ruler. Marker images are embedded unresampled (``interpolation="none"``), one image pixel per
+marker cell or per board pixel, so edges stay sharp at any zoom.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from calibration.errors import CalibrationError
+from calibration.intrinsics import BoardSpec
+
+__all__ = ["A4_MM", "tag_sheet_pdf", "board_pdf", "parse_id_ranges"]
+
+A4_MM = (210.0, 297.0)
+MM_PER_INCH = 25.4
+SCALE_BAR_MM = 50.0
+
+
+def parse_id_ranges(text: str) -> list[int]:
+    """``"0-7,12,20-21"`` -> [0..7, 12, 20, 21]; ValueError naming the bad part."""
+    ids: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            if "-" in part:
+                a, b = (int(x) for x in part.split("-", 1))
+                if b < a:
+                    raise ValueError
+                ids.extend(range(a, b + 1))
+            else:
+                ids.append(int(part))
+        except ValueError:
+            raise ValueError(f"ids: cannot parse {part!r}; use e.g. 0-7,12") from None
+    if not ids:
+        raise ValueError("ids: empty")
+    return ids
+
+
+def _page(width_mm: float, height_mm: float):
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_mm / MM_PER_INCH, height_mm / MM_PER_INCH))
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.set_xlim(0.0, width_mm)
+    ax.set_ylim(height_mm, 0.0)  # y down, like the page as read
+    ax.set_axis_off()
+    return fig, ax
+
+
+def _scale_bar(ax, x_mm: float, y_mm: float):
+    from matplotlib.patches import Rectangle
+
+    ax.add_patch(Rectangle((x_mm, y_mm), SCALE_BAR_MM, 1.0, facecolor="black", edgecolor="none"))
+    for k in range(6):
+        ax.add_patch(Rectangle((x_mm + 10.0 * k - 0.15, y_mm - 2.0), 0.3, 3.0, facecolor="black", edgecolor="none"))
+    ax.text(x_mm + SCALE_BAR_MM + 3.0, y_mm + 0.5, f"{SCALE_BAR_MM:.0f} mm: check with a ruler, print at 100 %",
+            fontsize=7, va="center")
+
+
+def _image(ax, img: np.ndarray, x_mm: float, y_mm: float, w_mm: float, h_mm: float):
+    ax.imshow(img, cmap="gray", vmin=0, vmax=255, interpolation="none", extent=(x_mm, x_mm + w_mm, y_mm + h_mm, y_mm),
+              aspect="auto")
+
+
+def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_MM, margin_mm: float = 12.0) -> Path:
+    """AprilTags (tag36h11) ``tag_ids`` at ``tag_size_mm`` (black square side) on as many pages as needed.
+
+    Each tag keeps a white quiet zone of two cells and is labelled with its id and size.
+    """
+    import cv2
+    from matplotlib.backends.backend_pdf import PdfPages
+
+    if not tag_size_mm > 0:
+        raise CalibrationError("size_mm: must be positive")
+    bad = [i for i in tag_ids if not 0 <= i < 587]
+    if bad:
+        raise CalibrationError(f"ids: tag36h11 has ids 0..586; got {bad}")
+    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+    cells = d.markerSize + 2
+    cell_mm = tag_size_mm / cells
+    quiet_mm = 2 * cell_mm
+    pitch_x = tag_size_mm + 2 * quiet_mm + 4.0
+    pitch_y = pitch_x + 5.0  # room for the label
+    W, H = page_mm
+    usable_w, usable_h = W - 2 * margin_mm, H - 2 * margin_mm - 10.0  # bottom strip: scale bar
+    cols, rows = int(usable_w // pitch_x), int(usable_h // pitch_y)
+    if cols < 1 or rows < 1:
+        raise CalibrationError(f"size_mm: a {tag_size_mm:g} mm tag does not fit a {W:g} x {H:g} mm page with {margin_mm:g} mm margins")
+    per_page = cols * rows
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with PdfPages(path) as pdf:
+        for start in range(0, len(tag_ids), per_page):
+            fig, ax = _page(W, H)
+            for k, tag_id in enumerate(tag_ids[start : start + per_page]):
+                r, c = divmod(k, cols)
+                x = margin_mm + c * pitch_x + quiet_mm
+                y = margin_mm + r * pitch_y + quiet_mm
+                img = cv2.aruco.generateImageMarker(d, int(tag_id), cells, borderBits=1)  # 1 px per cell
+                _image(ax, img, x, y, tag_size_mm, tag_size_mm)
+                ax.text(x + tag_size_mm / 2, y + tag_size_mm + quiet_mm + 1.0, f"tag36h11 id {tag_id}  {tag_size_mm:g} mm",
+                        fontsize=6, ha="center", va="top")
+            _scale_bar(ax, margin_mm, H - margin_mm)
+            pdf.savefig(fig)
+    return path
+
+
+def board_pdf(path, board: BoardSpec, margin_mm: float = 8.0, px_per_square: int = 120) -> Path:
+    """One page with the ChArUco ``board`` at true scale: A4 (either orientation) if it fits, else a custom page."""
+    w_mm = board.squares_x * board.square_size_m * 1000.0
+    h_mm = board.squares_y * board.square_size_m * 1000.0
+    need = (w_mm + 2 * margin_mm, h_mm + 2 * margin_mm + 12.0)
+    if need[0] <= A4_MM[0] and need[1] <= A4_MM[1]:
+        W, H = A4_MM
+    elif need[0] <= A4_MM[1] and need[1] <= A4_MM[0]:
+        W, H = A4_MM[1], A4_MM[0]
+    else:
+        W, H = math.ceil(need[0]), math.ceil(need[1])
+    img = board.cv_board().generateImage((board.squares_x * px_per_square, board.squares_y * px_per_square), marginSize=0, borderBits=1)
+    fig, ax = _page(W, H)
+    x, y = (W - w_mm) / 2, margin_mm
+    _image(ax, img, x, y, w_mm, h_mm)
+    ax.text(x, y + h_mm + 4.0, f"ChArUco {board.squares_x}x{board.squares_y}, square {board.square_size_m * 1000:g} mm, "
+            f"marker {board.marker_size_m * 1000:g} mm, DICT_{board.dictionary}{', legacy pattern' if board.legacy_pattern else ''}",
+            fontsize=7, va="top")
+    _scale_bar(ax, x, H - margin_mm)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="pdf")
+    return path
