@@ -1,0 +1,206 @@
+"""DAgger from the privileged expert (:func:`sim.expert.expert_actions`), resumable.
+
+Each iteration ``i``:
+
+1. roll out ``episodes_per_iter`` episodes with domain randomisation on; each episode is driven
+   by the expert with probability ``beta_i = max(beta_min, beta0 * beta_decay**i)`` and by the
+   current policy otherwise (per-episode mixing: the policy-driven episodes then double as an
+   on-policy success estimate at no extra cost);
+2. label every visited state with the expert's action and add it to the aggregated data set
+   (oldest frames dropped beyond ``max_frames``);
+3. take ``grad_steps_per_iter`` Adam steps of MSE regression on minibatches of the aggregate;
+4. optionally evaluate ``eval_episodes`` clean episodes (no randomisation) for the learning curve;
+5. save the state (weights, optimizer, data set, history) so an interrupted run resumes here.
+
+The state directory holds only safetensors, ``.npz`` arrays (loaded with ``allow_pickle=False``)
+and the optimizer state (``torch.load(weights_only=True)``): nothing executable.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from sim.policies.interface import PolicyError
+from sim.policies.rollout import EnvConfig, run_episodes, set_randomization
+
+__all__ = ["DaggerConfig", "train_dagger", "TRAIN_SEED_BASE", "collect"]
+
+# Training configurations come from seeds >= TRAIN_SEED_BASE; evaluation uses small seeds.
+TRAIN_SEED_BASE = 10_000_000
+
+
+class DaggerConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    iterations: int = Field(8, ge=1)
+    episodes_per_iter: int = Field(64, ge=1)
+    num_envs: int = Field(16, ge=1)
+    beta0: float = Field(1.0, ge=0.0, le=1.0)
+    beta_decay: float = Field(0.5, ge=0.0, le=1.0)
+    beta_min: float = Field(0.0, ge=0.0, le=1.0)
+    grad_steps_per_iter: int = Field(300, ge=0)
+    batch_size: int = Field(64, ge=1)
+    lr: float = Field(1e-3, gt=0)
+    weight_decay: float = Field(0.0, ge=0)
+    max_frames: int = Field(60_000, ge=1)
+    eval_episodes: int = Field(0, ge=0, description="clean episodes after each iteration (learning curve)")
+    stop_at_success: float | None = Field(None, gt=0, le=1, description="stop once clean eval success reaches this")
+
+    def beta(self, iteration: int) -> float:
+        return max(self.beta_min, self.beta0 * self.beta_decay**iteration)
+
+
+def collect(env, policy, expert_mask: np.ndarray, seeds: list[int]):
+    """One batch of episodes; returns ``(images (T, H, W, 3) uint8, actions (T, 6) f32, success, driven)``.
+
+    ``expert_mask[j]`` says env ``j`` executes expert actions; the others execute the policy's.
+    Every visited state (of every env) is labelled with the expert's action.
+    """
+    env.reset_envs(range(env.num_envs), seeds=seeds)
+    obs = env.observe()
+    frames, labels = [], []
+    while not env.done.all():
+        active = ~env.done
+        expert = env.expert_actions()
+        frames.append(obs[active])
+        labels.append(expert[active].astype(np.float32))
+        act = expert.copy()
+        if not expert_mask.all():
+            act[~expert_mask] = policy.act(obs[~expert_mask])
+        obs, *_ = env.step(act)
+    success = env.reached == env.goal_index
+    return np.concatenate(frames), np.concatenate(labels), success, ~expert_mask
+
+
+class _State:
+    """The resumable training state on disk (``<out>/train_state``)."""
+
+    def __init__(self, out_dir: Path):
+        self.dir = out_dir / "train_state"
+
+    def exists(self) -> bool:
+        return (self.dir / "progress.json").is_file()
+
+    def save(self, policy, optimizer, images, actions, progress: dict) -> None:
+        import torch
+        from safetensors.torch import save_file
+
+        self.dir.mkdir(parents=True, exist_ok=True)
+        save_file({k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()}, str(self.dir / "model.safetensors.tmp"))
+        torch.save(optimizer.state_dict(), self.dir / "optim.pt.tmp")
+        with open(self.dir / "data.npz.tmp", "wb") as f:
+            np.savez(f, images=images, actions=actions)
+        (self.dir / "progress.json.tmp").write_text(json.dumps(progress, indent=2))
+        # progress.json is renamed last: it marks the set as complete.
+        for name in ("model.safetensors", "optim.pt", "data.npz", "progress.json"):
+            (self.dir / (name + ".tmp")).replace(self.dir / name)
+
+    def load(self, policy, optimizer):
+        import torch
+        from safetensors.torch import load_file
+
+        progress = json.loads((self.dir / "progress.json").read_text())
+        policy.load_state_dict(load_file(str(self.dir / "model.safetensors")))
+        optimizer.load_state_dict(torch.load(self.dir / "optim.pt", weights_only=True))
+        with np.load(self.dir / "data.npz", allow_pickle=False) as d:
+            images, actions = d["images"], d["actions"]
+        return images, actions, progress
+
+
+def _train_steps(policy, optimizer, images, actions, steps: int, batch: int, rng: np.random.Generator, device) -> float:
+    import torch
+
+    if steps == 0 or len(images) == 0:
+        return float("nan")
+    policy.train()
+    losses = []
+    for _ in range(steps):
+        idx = rng.integers(0, len(images), size=min(batch, len(images)))
+        x = torch.from_numpy(images[idx]).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+        y = torch.from_numpy(actions[idx]).to(device)
+        loss = torch.nn.functional.mse_loss(policy(x), y)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    policy.eval()
+    return float(np.mean(losses[-max(1, steps // 5):]))
+
+
+def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: str | Path, seed: int = 0,
+                 fingerprint: str = "", device="cpu", progress: bool = True, log=print) -> dict:
+    """Train ``policy`` in place with DAgger in ``env``; resumes from ``out_dir/train_state``.
+
+    Args:
+        policy: a :class:`sim.policies.policy.VisuomotorPolicy` on ``device``.
+        env: a :class:`sim.env.ReachEnv` with ``cfg.num_envs`` envs at the policy's image size.
+        env_cfg: the training randomisation (evaluation switches it off temporarily).
+        fingerprint: identifies the run's resolved config; resuming with another one is refused.
+
+    Returns the progress record: per-iteration frames, loss, wall time, success rates.
+    """
+    import torch
+    from tqdm.auto import tqdm
+
+    out_dir = Path(out_dir)
+    if env.num_envs != cfg.num_envs:
+        raise ValueError(f"env has {env.num_envs} envs, config says num_envs={cfg.num_envs}")
+    optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    state = _State(out_dir)
+    h = w = env_cfg.image_size
+    images, actions = np.zeros((0, h, w, 3), np.uint8), np.zeros((0, 6), np.float32)
+    prog = {"fingerprint": fingerprint, "iterations_done": 0, "elapsed_s": 0.0, "history": [], "stopped_early": False}
+    if state.exists():
+        images, actions, prog = state.load(policy, optimizer)
+        if prog.get("fingerprint") != fingerprint:
+            raise PolicyError(f"{state.dir}: holds a run with a different config; use a new --out or delete that directory")
+        log(f"resuming after iteration {prog['iterations_done']} ({len(images)} frames, {prog['elapsed_s']:.0f} s so far)")
+    clean = EnvConfig(image_size=env_cfg.image_size)
+    N = cfg.num_envs
+    batches = -(-cfg.episodes_per_iter // N)
+    bar = tqdm(total=cfg.iterations, initial=prog["iterations_done"], desc="dagger", unit="iter", disable=not progress)
+    for it in range(prog["iterations_done"], cfg.iterations):
+        if prog["stopped_early"]:
+            break
+        t0 = time.perf_counter()
+        torch.manual_seed(seed * 1000 + it)
+        rng = np.random.default_rng([seed, it])
+        beta = cfg.beta(it)
+        set_randomization(env, env_cfg)
+        driven_success = []
+        new_x, new_y = [], []
+        for b in range(batches):
+            seeds = [TRAIN_SEED_BASE + seed * 1_000_000 + it * 10_000 + b * N + j for j in range(N)]
+            expert_mask = rng.random(N) < beta
+            x, y, success, driven = collect(env, policy, expert_mask, seeds)
+            new_x.append(x)
+            new_y.append(y)
+            driven_success += success[driven].tolist()
+        images = np.concatenate([images, *new_x])[-cfg.max_frames:]
+        actions = np.concatenate([actions, *new_y])[-cfg.max_frames:]
+        loss = _train_steps(policy, optimizer, images, actions, cfg.grad_steps_per_iter, cfg.batch_size, rng, device)
+        record = {"iteration": it, "beta": beta, "frames": int(len(images)), "loss": loss,
+                  "policy_driven_success": float(np.mean(driven_success)) if driven_success else None,
+                  "policy_driven_episodes": len(driven_success)}
+        if cfg.eval_episodes:
+            set_randomization(env, clean)
+            res = run_episodes(env, policy, range(cfg.eval_episodes))
+            record["clean_success"] = res.success_rate.rate
+            if cfg.stop_at_success is not None and res.success_rate.rate >= cfg.stop_at_success:
+                prog["stopped_early"] = True
+        prog["elapsed_s"] += time.perf_counter() - t0
+        record["elapsed_s"] = prog["elapsed_s"]
+        prog["history"].append(record)
+        prog["iterations_done"] = it + 1
+        state.save(policy, optimizer, images, actions, prog)
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4f}", frames=len(images), clean=record.get("clean_success"))
+    bar.close()
+    set_randomization(env, env_cfg)
+    policy.eval()
+    return prog
