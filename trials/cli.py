@@ -31,6 +31,11 @@ from trials import cli_hw  # noqa: E402
 app.add_typer(cli_hw.app, name="hw")
 
 
+from trials import cli_calibrate  # noqa: E402
+
+app.add_typer(cli_calibrate.app, name="calibrate")
+
+
 def main() -> None:
     import sys
 

@@ -1,0 +1,196 @@
+"""``advobj calibrate``: printables, intrinsics, tag detection, hand-eye, synthetic self-check."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, help="Calibrate cameras, tags and hand-eye for real trials.")
+
+
+def _board(board: Optional[Path], squares_x: int, squares_y: int, square_mm: float, marker_mm: float, dictionary: str, legacy: bool):
+    from calibration.intrinsics import BoardSpec, load_board_yaml
+
+    if board is not None:
+        return load_board_yaml(board)
+    try:
+        return BoardSpec(squares_x=squares_x, squares_y=squares_y, square_size_m=square_mm / 1000, marker_size_m=marker_mm / 1000,
+                         dictionary=dictionary, legacy_pattern=legacy)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+
+
+def _read_image(path: Path):
+    import cv2
+
+    from calibration.errors import CalibrationError
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CalibrationError(f"{path}: cannot read as an image")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return img
+
+
+_SQX = typer.Option(8, "--squares-x", help="board squares across")
+_SQY = typer.Option(6, "--squares-y", help="board squares down")
+_SQ = typer.Option(30.0, "--square-mm", help="square side, mm")
+_MK = typer.Option(22.0, "--marker-mm", help="marker side, mm")
+_DICT = typer.Option("5X5_100", "--dictionary", help="ArUco dictionary of the board markers (e.g. 5X5_100)")
+_LEG = typer.Option(False, "--legacy", help="board printed by OpenCV < 4.6 (even row count)")
+
+
+@app.command()
+def board(
+    out: Path = typer.Option(Path("board.pdf"), help="output PDF; the board YAML is written next to it"),
+    squares_x: int = _SQX, squares_y: int = _SQY, square_mm: float = _SQ, marker_mm: float = _MK, dictionary: str = _DICT,
+    legacy: bool = _LEG,
+) -> None:
+    """Write a true-scale printable ChArUco board (PDF) and its description (YAML)."""
+    from calibration.intrinsics import save_board_yaml
+    from calibration.printables import board_pdf
+
+    spec = _board(None, squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
+    board_pdf(out, spec)
+    y = save_board_yaml(out.with_suffix(".yaml"), spec)
+    typer.echo(f"wrote {out} and {y}; print at 100 % and check the 50 mm scale bar")
+
+
+@app.command()
+def tags(
+    ids: str = typer.Option("0-7", help="tag ids, e.g. 0-7,12"),
+    size_mm: float = typer.Option(40.0, "--size-mm", help="black-square side, mm"),
+    out: Path = typer.Option(Path("tags.pdf"), help="output PDF"),
+) -> None:
+    """Write true-scale printable tag36h11 AprilTags (PDF)."""
+    from calibration.printables import parse_id_ranges, tag_sheet_pdf
+
+    try:
+        id_list = parse_id_ranges(ids)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+    tag_sheet_pdf(out, id_list, size_mm)
+    typer.echo(f"wrote {out}: {len(id_list)} tag(s) of {size_mm:g} mm; print at 100 % and check the 50 mm scale bar")
+
+
+@app.command()
+def intrinsics(
+    images: List[Path] = typer.Argument(..., help="ChArUco board photos"),
+    out: Path = typer.Option(Path("cam.yaml"), help="output camera YAML"),
+    board: Optional[Path] = typer.Option(None, help="board YAML (from 'calibrate board'); default: the options below"),
+    squares_x: int = _SQX, squares_y: int = _SQY, square_mm: float = _SQ, marker_mm: float = _MK, dictionary: str = _DICT,
+    legacy: bool = _LEG,
+    min_corners: int = typer.Option(12, help="reject images with fewer ChArUco corners"),
+    min_sharpness: float = typer.Option(60.0, help="reject images whose board area is blurrier (variance of Laplacian)"),
+) -> None:
+    """Calibrate K and distortion from ChArUco photos; report per-image and RMS reprojection error."""
+    from calibration.intrinsics import CalibrationOptions, calibrate_intrinsics, save_camera_yaml
+
+    spec = _board(board, squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
+    res = calibrate_intrinsics([_read_image(p) for p in images], spec, [str(p) for p in images],
+                               CalibrationOptions(min_corners=min_corners, min_sharpness=min_sharpness))
+    for r in res.images:
+        status = f"{r.reprojection_rms_px:.3f} px" if r.accepted else f"REJECTED: {r.reason}"
+        typer.echo(f"  {r.name}: {r.n_corners} corners, {status}")
+    save_camera_yaml(out, res.camera, res.images)
+    K = res.camera.K
+    typer.echo(f"RMS {res.rms_px:.3f} px over {len(res.images) - len(res.rejected)} image(s); fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
+               f"cx={K[0, 2]:.2f} cy={K[1, 2]:.2f}; wrote {out}")
+
+
+@app.command()
+def detect(
+    image: Path = typer.Argument(..., help="a photo"),
+    camera: Path = typer.Option(..., help="camera YAML"),
+    registry: Optional[Path] = typer.Option(None, help="object registry YAML (tag id -> object)"),
+    size_mm: Optional[float] = typer.Option(None, "--size-mm", help="tag size for tags not in the registry"),
+    as_json: bool = typer.Option(False, "--json", help="print JSON"),
+) -> None:
+    """Print every detected tag (both pose solutions, errors, ambiguity) and every registered object's position."""
+    import numpy as np
+
+    from calibration.apriltag import detect_tags
+    from calibration.intrinsics import load_camera_yaml
+    from calibration.registry import TABLE, load_registry, locate_objects
+    from sim.geometry import invert_T, transform_points
+
+    cam = load_camera_yaml(camera)
+    reg = load_registry(registry) if registry else None
+    default = size_mm / 1000 if size_mm else None
+
+    def size_of(i: int):
+        s = reg.tag_size(i) if reg else None
+        return s if s is not None else default
+
+    dets = detect_tags(_read_image(image), cam, size_of)
+    objects, missing = {}, []
+    if reg is not None:
+        obs = locate_objects(dets, reg, cam)
+        T_table_cam = invert_T(obs[TABLE].T_cam_object) if TABLE in obs else None
+        for name in reg.objects:
+            if name not in obs:
+                missing.append(name)
+                continue
+            o = obs[name]
+            d = {"position_cam_m": np.round(o.position_cam_m, 5).tolist(), "tag_ids": list(o.tag_ids),
+                 "reprojection_rms_px": round(o.reprojection_rms_px, 4), "ambiguous": o.ambiguous,
+                 "alternative_positions_cam_m": [np.round(a[:3, 3], 5).tolist() for a in o.alternatives]}
+            if T_table_cam is not None:
+                d["position_table_m"] = np.round(transform_points(T_table_cam, o.position_cam_m[None])[0], 5).tolist()
+            objects[name] = d
+    report = {"image": str(image), "tags": [d.to_dict() for d in dets], "objects": objects, "not_detected": missing}
+    if as_json:
+        typer.echo(json.dumps(report, indent=2))
+        return
+    typer.echo(f"{len(dets)} tag(s) in {image}")
+    for d in dets:
+        sols = ", ".join(f"t={np.round(s.T_cam_tag[:3, 3], 4).tolist()} m err {s.reprojection_rms_px:.3f} px" for s in d.solutions)
+        typer.echo(f"  id {d.tag_id}: {sols or 'no pose (unknown size)'} {' '.join(d.flags)}")
+    for name, o in objects.items():
+        where = f" table {o['position_table_m']}" if "position_table_m" in o else ""
+        typer.echo(f"  object {name}: cam {o['position_cam_m']}{where}{' AMBIGUOUS' if o['ambiguous'] else ''}")
+    for name in missing:
+        typer.echo(f"  object {name}: not detected")
+
+
+@app.command()
+def handeye(
+    samples: Path = typer.Argument(..., help="samples YAML: T_base_tcp plus an image (with board/camera files) or T_cam_board"),
+    out: Path = typer.Option(Path("T_tcp_cam.yaml"), help="output YAML"),
+    method: str = typer.Option("park", help="tsai | park | horaud | andreff | daniilidis"),
+    check: str = typer.Option("tsai", help="second method to cross-check against"),
+    refine: bool = typer.Option(True, "--refine/--no-refine", help="refine jointly with the board pose (AX = YB)"),
+) -> None:
+    """Eye-in-hand calibration: solve T_tcp_cam, cross-check two methods, report residuals."""
+    from calibration.handeye import HandEyeOptions, load_samples_yaml, save_hand_eye_yaml, solve_hand_eye
+
+    try:
+        opt = HandEyeOptions(method=method, check_method=check, refine=refine)
+    except ValueError as err:
+        raise typer.BadParameter(str(err).splitlines()[-1]) from None
+    A, B, notes = load_samples_yaml(samples)
+    for n in notes:
+        typer.echo(f"  {n}")
+    res = solve_hand_eye(A, B, opt)
+    typer.echo(res.summary())
+    save_hand_eye_yaml(out, res)
+    typer.echo(f"wrote {out}")
+
+
+@app.command()
+def selfcheck(seed: int = typer.Option(0, help="random seed")) -> None:
+    """Run the pipeline on synthetic OpenGL renders with known ground truth and print the errors."""
+    from calibration.selfcheck import handeye_check, intrinsics_check, tag_check
+
+    i = intrinsics_check(n_images=8, seed=seed)
+    typer.echo(f"intrinsics: max error {i['max_pct']:.3f} % (fx {i['fx_pct']:.3f}, fy {i['fy_pct']:.3f}), RMS {i['rms_px']:.3f} px")
+    t = tag_check(n=5, seed=seed)
+    typer.echo(f"tag 40 mm at 0.5 m, frontal: position max {t['position_mm_max']:.2f} mm, orientation median "
+               f"{t['orientation_deg_median']:.2f} deg ({t['detected']}/{t['n']} detected, {t['flagged']} flagged)")
+    h = handeye_check(seed=seed)
+    typer.echo(f"hand-eye: {h['position_mm']:.2f} mm, {h['rotation_deg']:.3f} deg; park vs tsai "
+               f"{h['methods_disagreement_mm']:.2f} mm, {h['methods_disagreement_deg']:.3f} deg")
