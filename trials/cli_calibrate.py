@@ -85,17 +85,17 @@ def intrinsics(
     squares_x: int = _SQX, squares_y: int = _SQY, square_mm: float = _SQ, marker_mm: float = _MK, dictionary: str = _DICT,
     legacy: bool = _LEG,
     min_corners: int = typer.Option(12, help="reject images with fewer ChArUco corners"),
-    min_sharpness: float = typer.Option(60.0, help="reject images whose board area is blurrier (variance of Laplacian)"),
+    max_blur_px: float = typer.Option(1.5, help="reject images whose board edges are blurrier than this (px)"),
 ) -> None:
     """Calibrate K and distortion from ChArUco photos; report per-image and RMS reprojection error."""
     from calibration.intrinsics import CalibrationOptions, calibrate_intrinsics, save_camera_yaml
 
     spec = _board(board, squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
     res = calibrate_intrinsics([_read_image(p) for p in images], spec, [str(p) for p in images],
-                               CalibrationOptions(min_corners=min_corners, min_sharpness=min_sharpness))
+                               CalibrationOptions(min_corners=min_corners, max_blur_px=max_blur_px))
     for r in res.images:
         status = f"{r.reprojection_rms_px:.3f} px" if r.accepted else f"REJECTED: {r.reason}"
-        typer.echo(f"  {r.name}: {r.n_corners} corners, {status}")
+        typer.echo(f"  {r.name}: {r.n_corners} corners, blur {r.blur_px:.2f} px, {status}")
     save_camera_yaml(out, res.camera, res.images)
     K = res.camera.K
     typer.echo(f"RMS {res.rms_px:.3f} px over {len(res.images) - len(res.rejected)} image(s); fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
