@@ -48,5 +48,11 @@ def is_valid_pose(T, tol: float = 1e-6) -> bool:
     if T.shape != (4, 4) or not np.issubdtype(T.dtype, np.number) or not np.isfinite(T).all():
         return False
     R = T[:3, :3].astype(np.float64)
-    return (np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
-            and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tol))
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: overflow means "not a rotation"
+        ortho = float(np.abs(R.T @ R - _EYE3).max())
+        bottom = float(np.abs(T[3] - _BOTTOM).max())
+        return bool(ortho <= tol and bottom <= tol and abs(np.linalg.det(R) - 1.0) < tol)
+
+
+_EYE3 = np.eye(3)
+_BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])

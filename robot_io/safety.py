@@ -115,7 +115,7 @@ def limit_command(T_now: np.ndarray, T_target: np.ndarray, prev_step_m: np.ndarr
     p_tgt = T_target[:3, 3]
     p_box = np.clip(p_tgt, lo, hi)
     if not np.array_equal(p_box, p_tgt):
-        reasons.append(f"target {np.round(p_tgt, 4).tolist()} m outside the workspace: clipped to {np.round(p_box, 4).tolist()}")
+        reasons.append(f"target {_vec(p_tgt)} m outside the workspace: clipped to {_vec(p_box)}")
     dp = p_box - p_now
     cap = limits.step_cap_m
     n = float(np.linalg.norm(dp))
@@ -147,6 +147,10 @@ def limit_command(T_now: np.ndarray, T_target: np.ndarray, prev_step_m: np.ndarr
         reasons.append(f"rotation step {np.degrees(ang):.2f} deg capped to {np.degrees(rcap):.2f} deg")
         r = r * (rcap / ang)
     return make_T(R_now @ so3_exp(r), p_cmd), dp, reasons
+
+
+def _vec(v) -> str:
+    return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
 
 
 def _frame_time(frame) -> float | None:
@@ -244,7 +248,7 @@ class SafeArm:
             raise SafetyRefusal("positioning target is not a finite rigid (4, 4) transform")
         p = np.asarray(T_base_tcp, dtype=np.float64)[:3, 3]
         if not self.limits.contains(p):
-            reason = f"positioning target {np.round(p, 4).tolist()} m is outside the workspace box"
+            reason = f"positioning target {_vec(p)} m is outside the workspace box"
             self._record("refused", reason)
             raise SafetyRefusal(reason)
         v = self.limits.positioning_speed_mps if speed_mps is None else float(speed_mps)
@@ -282,7 +286,9 @@ class SafeArm:
                 raise _Refuse(f"delta must have 6 entries [dx, dy, dz, rx, ry, rz], got shape {d.shape}")
             if not np.isfinite(d).all():
                 raise _Refuse("non-finite delta (NaN or Inf)")
-            return next_tcp_pose(T_now, d, 1.0, 1.0)
+            # Huge finite deltas may overflow; the non-finite result is refused below.
+            with np.errstate(over="ignore", invalid="ignore"):
+                return next_tcp_pose(T_now, d, 1.0, 1.0)
 
         return self._guarded(target, frame)
 

@@ -1,0 +1,391 @@
+"""Fakes at the vendor-SDK boundary only: ur-rtde modules, a depthai module, cv2.VideoCapture.
+
+Each fake records the calls it receives so tests can assert on what the driver told the "SDK".
+"""
+
+from __future__ import annotations
+
+import datetime
+import threading
+import time
+import types
+
+import numpy as np
+
+# ---------------------------------------------------------------------------- ur-rtde
+
+
+class FakeURController:
+    """The robot side shared by the three fake ur-rtde interfaces."""
+
+    def __init__(self, pose=(0.4, 0.0, 0.3, 3.14159, 0.0, 0.0)):
+        self.pose = list(pose)
+        self.calls: list[tuple] = []
+        self.protective_stopped = False
+        self.emergency_stopped = False
+        self.program_running = True
+        self.connected = True
+        self.fail_connect = False
+
+    def log(self, *call):
+        self.calls.append(call)
+
+    def names(self) -> list[str]:
+        return [c[0] for c in self.calls]
+
+
+def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
+    class RTDEControlInterface:
+        def __init__(self, host):
+            if ctrl.fail_connect:
+                raise RuntimeError("Failed to connect to the robot")
+            ctrl.log("control_init", host)
+
+        def setWatchdog(self, min_frequency=10.0):
+            ctrl.log("setWatchdog", min_frequency)
+            return True
+
+        def kickWatchdog(self):
+            ctrl.log("kickWatchdog")
+            return True
+
+        def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
+            ctrl.log("moveL", list(pose), speed, acceleration)
+            if ctrl.protective_stopped:
+                return False
+            ctrl.pose = list(pose)
+            return True
+
+        def servoL(self, pose, speed, acceleration, time, lookahead_time, gain):
+            ctrl.log("servoL", list(pose), speed, acceleration, time, lookahead_time, gain)
+            ctrl.pose = list(pose)
+            return True
+
+        def speedL(self, xd, acceleration=0.25, time=0.0):
+            ctrl.log("speedL", list(xd), acceleration, time)
+            ctrl.pose = [p + v * time for p, v in zip(ctrl.pose[:3], xd[:3])] + ctrl.pose[3:]
+            return True
+
+        def servoStop(self, a=10.0):
+            ctrl.log("servoStop")
+
+        def speedStop(self, a=10.0):
+            ctrl.log("speedStop")
+
+        def stopScript(self):
+            ctrl.log("stopScript")
+
+        def reuploadScript(self):
+            ctrl.log("reuploadScript")
+            ctrl.program_running = True
+            return True
+
+        def isProgramRunning(self):
+            return ctrl.program_running
+
+        def isConnected(self):
+            return ctrl.connected
+
+        def disconnect(self):
+            ctrl.log("control_disconnect")
+
+    class RTDEReceiveInterface:
+        def __init__(self, host):
+            if ctrl.fail_connect:
+                raise RuntimeError("Failed to connect to the robot")
+            ctrl.log("receive_init", host)
+
+        def getActualTCPPose(self):
+            return list(ctrl.pose)
+
+        def isProtectiveStopped(self):
+            return ctrl.protective_stopped
+
+        def isEmergencyStopped(self):
+            return ctrl.emergency_stopped
+
+        def isConnected(self):
+            return ctrl.connected
+
+        def disconnect(self):
+            ctrl.log("receive_disconnect")
+
+    class DashboardClient:
+        def __init__(self, host):
+            ctrl.log("dashboard_init", host)
+
+        def connect(self):
+            ctrl.log("dashboard_connect")
+
+        def closeSafetyPopup(self):
+            ctrl.log("closeSafetyPopup")
+
+        def unlockProtectiveStop(self):
+            ctrl.log("unlockProtectiveStop")
+            ctrl.protective_stopped = False
+
+        def disconnect(self):
+            ctrl.log("dashboard_disconnect")
+
+    mods = {}
+    for name, attrs in {
+        "rtde_control": {"RTDEControlInterface": RTDEControlInterface},
+        "rtde_receive": {"RTDEReceiveInterface": RTDEReceiveInterface},
+        "dashboard_client": {"DashboardClient": DashboardClient},
+    }.items():
+        m = types.ModuleType(name)
+        for k, v in attrs.items():
+            setattr(m, k, v)
+        mods[name] = m
+    return mods
+
+
+def install_ur(monkeypatch, ctrl: FakeURController | None = None) -> FakeURController:
+    ctrl = ctrl or FakeURController()
+    for name, mod in make_ur_modules(ctrl).items():
+        monkeypatch.setitem(__import__("sys").modules, name, mod)
+    return ctrl
+
+
+# ---------------------------------------------------------------------------- depthai
+
+XLINK_MESSAGE = "Communication exception - possible device error. Original message 'Couldn't read data from stream: 'out' (X_LINK_ERROR)'"
+
+
+class FakeOak:
+    """Device state behind the fake depthai module."""
+
+    def __init__(self):
+        self.requested: list[tuple] = []
+        self.started = False
+        self.stopped = False
+        self.fail_after: int | None = None  # frames before the USB link "drops"
+        self.served = 0
+        self.period_s = 0.002
+
+
+def make_depthai(oak: FakeOak) -> types.ModuleType:
+    dai = types.ModuleType("depthai")
+
+    class CameraBoardSocket:
+        CAM_A, CAM_B, CAM_C, CAM_D = "CAM_A", "CAM_B", "CAM_C", "CAM_D"
+
+    class ImgFrame:
+        class Type:
+            BGR888i = "BGR888i"
+            NV12 = "NV12"
+
+    class _Msg:
+        def __init__(self, bgr, seq):
+            self._bgr, self._seq = bgr, seq
+            self._ts = datetime.timedelta(seconds=time.monotonic() - 0.004)  # 4 ms exposure-to-host
+
+        def getCvFrame(self):
+            return self._bgr
+
+        def getSequenceNum(self):
+            return self._seq
+
+        def getTimestamp(self):
+            return self._ts
+
+    class _Queue:
+        def __init__(self, size):
+            self.w, self.h = size
+            self._next = time.monotonic()
+
+        def tryGet(self):
+            if oak.fail_after is not None and oak.served >= oak.fail_after:
+                raise RuntimeError(XLINK_MESSAGE)
+            if time.monotonic() < self._next:
+                return None
+            self._next = time.monotonic() + oak.period_s
+            bgr = np.zeros((self.h, self.w, 3), np.uint8)
+            bgr[..., 0] = 200  # blue in BGR
+            msg = _Msg(bgr, oak.served)
+            oak.served += 1
+            return msg
+
+    class _Output:
+        def __init__(self, size):
+            self.size = size
+
+        def createOutputQueue(self, maxSize=16, blocking=True):
+            oak.requested.append(("queue", maxSize, blocking))
+            return _Queue(self.size)
+
+    class _CameraNode:
+        def build(self, socket):
+            oak.requested.append(("build", socket))
+            return self
+
+        def requestOutput(self, size, type=None, fps=None):
+            oak.requested.append(("output", tuple(size), type, fps))
+            return _Output(tuple(size))
+
+    class _Calib:
+        def getCameraIntrinsics(self, socket, w, h):
+            return [[0.9 * w, 0.0, w / 2.0], [0.0, 0.9 * w, h / 2.0], [0.0, 0.0, 1.0]]
+
+        def getDistortionCoefficients(self, socket):
+            return [0.01] + [0.0] * 13
+
+    class _Device:
+        def readCalibration(self):
+            return _Calib()
+
+    class Pipeline:
+        def create(self, kind):
+            return kind()
+
+        def start(self):
+            oak.started = True
+
+        def stop(self):
+            oak.stopped = True
+
+        def getDefaultDevice(self):
+            return _Device()
+
+    dai.Pipeline = Pipeline
+    dai.CameraBoardSocket = CameraBoardSocket
+    dai.ImgFrame = ImgFrame
+    dai.node = types.SimpleNamespace(Camera=_CameraNode)
+    return dai
+
+
+def install_depthai(monkeypatch, oak: FakeOak | None = None) -> FakeOak:
+    oak = oak or FakeOak()
+    monkeypatch.setitem(__import__("sys").modules, "depthai", make_depthai(oak))
+    return oak
+
+
+# ---------------------------------------------------------------------------- cv2.VideoCapture
+
+
+class FakeCaptureDevice:
+    """What a UVC device supports; FakeVideoCapture instances read from it."""
+
+    def __init__(self, sizes=((640, 480), (1280, 720), (320, 240)), fps=200.0, honours_fps=True,
+                 fourccs=("YUYV", "MJPG")):
+        self.sizes = list(sizes)
+        self.fps = fps
+        self.honours_fps = honours_fps
+        self.fourccs = fourccs
+        self.fail_after: int | None = None
+        self.opened_with: list = []
+        self.set_calls: list[tuple[int, float]] = []
+        self.frames_read = 0
+        self.released = threading.Event()
+
+
+def make_video_capture(dev: FakeCaptureDevice, cv2):
+    class FakeVideoCapture:
+        def __init__(self, src, api=None):
+            dev.opened_with.append((src, api))
+            self.props = {cv2.CAP_PROP_FRAME_WIDTH: dev.sizes[0][0], cv2.CAP_PROP_FRAME_HEIGHT: dev.sizes[0][1],
+                          cv2.CAP_PROP_FPS: 30.0, cv2.CAP_PROP_BUFFERSIZE: 4.0,
+                          cv2.CAP_PROP_FOURCC: float(cv2.VideoWriter_fourcc(*dev.fourccs[0]))}
+            self._open = True
+
+        def isOpened(self):
+            return self._open
+
+        def set(self, prop, value):
+            dev.set_calls.append((prop, value))
+            if prop == cv2.CAP_PROP_FPS and not dev.honours_fps:
+                return False
+            if prop == cv2.CAP_PROP_FOURCC:
+                code = "".join(chr((int(value) >> 8 * i) & 0xFF) for i in range(4))
+                if code not in dev.fourccs:
+                    return False
+            if prop in (cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT):
+                # Like V4L2: pick the supported size nearest to the request on this axis.
+                axis = 0 if prop == cv2.CAP_PROP_FRAME_WIDTH else 1
+                other = self.props[cv2.CAP_PROP_FRAME_HEIGHT if axis == 0 else cv2.CAP_PROP_FRAME_WIDTH]
+                best = min(dev.sizes, key=lambda s: (abs(s[axis] - value), abs(s[1 - axis] - other)))
+                self.props[cv2.CAP_PROP_FRAME_WIDTH], self.props[cv2.CAP_PROP_FRAME_HEIGHT] = best
+                return True
+            self.props[prop] = float(value)
+            return True
+
+        def get(self, prop):
+            return float(self.props.get(prop, 0.0))
+
+        def read(self):
+            time.sleep(1.0 / dev.fps)
+            if dev.fail_after is not None and dev.frames_read >= dev.fail_after:
+                return False, None
+            w, h = int(self.props[cv2.CAP_PROP_FRAME_WIDTH]), int(self.props[cv2.CAP_PROP_FRAME_HEIGHT])
+            bgr = np.zeros((h, w, 3), np.uint8)
+            bgr[..., 2] = 255  # red in BGR
+            dev.frames_read += 1
+            return True, bgr
+
+        def release(self):
+            self._open = False
+            dev.released.set()
+
+    return FakeVideoCapture
+
+
+def install_video_capture(monkeypatch, dev: FakeCaptureDevice | None = None) -> FakeCaptureDevice:
+    import cv2
+
+    dev = dev or FakeCaptureDevice()
+    monkeypatch.setattr(cv2, "VideoCapture", make_video_capture(dev, cv2))
+    return dev
+
+
+# ---------------------------------------------------------------------------- a pure-math arm
+
+from robot_io.arms.base import Arm, Fault  # noqa: E402
+from robot_io.poses import pose_from_vec  # noqa: E402
+
+
+def make_pose(x=0.4, y=0.0, z=0.3, rotvec=(np.pi, 0.0, 0.0)) -> np.ndarray:
+    return pose_from_vec([x, y, z, *rotvec])
+
+
+class RecordingArm(Arm):
+    """Follows every command exactly and records it: what the safety layer let through."""
+
+    name = "recording"
+
+    def __init__(self, T_start=None):
+        super().__init__()
+        self.T = make_pose() if T_start is None else np.array(T_start, dtype=np.float64)
+        self.servos: list[tuple[np.ndarray, np.ndarray, float]] = []  # (T_before, T_cmd, duration_s)
+        self.moves: list[tuple[np.ndarray, float]] = []
+        self.stops = 0
+        self.kicks = 0
+        self.fault_value: Fault | None = None
+        self.raise_on_servo: BaseException | None = None
+
+    def _open(self):
+        pass
+
+    def _close(self):
+        pass
+
+    def tcp_pose(self):
+        return self.T.copy()
+
+    def move_to(self, T_base_tcp, speed_mps):
+        self.moves.append((np.array(T_base_tcp), speed_mps))
+        self.T = np.array(T_base_tcp, dtype=np.float64)
+
+    def servo(self, T_base_tcp, duration_s):
+        if self.raise_on_servo is not None:
+            raise self.raise_on_servo
+        self.servos.append((self.T.copy(), np.array(T_base_tcp), duration_s))
+        self.T = np.array(T_base_tcp, dtype=np.float64)
+
+    def stop(self):
+        self.stops += 1
+
+    def fault(self):
+        return self.fault_value
+
+    def keepalive(self):
+        self.kicks += 1
