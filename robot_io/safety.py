@@ -300,7 +300,7 @@ class SafeArm:
             self._stop(f"refused command: {r.reason}")
             return StepResult("refused", None, (r.reason,))
         except BaseException as err:
-            if not isinstance(err, ArmFaultError):
+            if not isinstance(err, (ArmFaultError, SafetyStop)):  # those already stopped the arm
                 self._stop(f"{type(err).__name__} during a control step: {err}")
             raise
 
