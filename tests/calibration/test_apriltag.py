@@ -58,7 +58,6 @@ def test_small_frontal_tag_with_poor_orientation_is_flagged(K, cam):
             n_bad += 1
             assert {"ambiguous", "uncertain_orientation"} & set(d.flags), (err, d.flags)
         assert d.orientation_std_deg > 0.3  # the reported uncertainty admits it
-    assert np.isfinite(n_bad)
 
 
 def test_both_ippe_solutions_are_reported_best_first(K, cam):
