@@ -1,0 +1,139 @@
+"""UR driver against fake ur-rtde modules injected through sys.modules."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from robot_io.arms.ur_rtde import URArm
+from robot_io.config import build_arm, hardware_config_from_dict
+from robot_io.errors import ArmFaultError, MissingExtraError
+from tests.robot_io.fakes import FakeURController, install_ur
+
+SAFETY = {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6], "max_frame_age_ms": 1000}
+
+
+def ur_config(**arm):
+    return hardware_config_from_dict({
+        "camera": {"type": "replay", "path": "frames"},
+        "arm": {"type": "ur_rtde", "host": "10.0.0.2", **arm},
+        "safety": SAFETY,
+    })
+
+
+def run_loop(arm, n):
+    for _ in range(n):
+        arm.step_delta([0.001, 0.0, 0.0, 0.0, 0.0, 0.0], time.monotonic())
+
+
+def test_watchdog_is_armed_and_kicked_before_every_servo_command(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    with build_arm(ur_config(watchdog_min_hz=25)) as arm:
+        run_loop(arm, 20)
+    names = ctrl.names()
+    assert ("setWatchdog", 25.0) in ctrl.calls
+    servo_idx = [i for i, n in enumerate(names) if n == "servoL"]
+    assert len(servo_idx) == 20
+    prev = names.index("setWatchdog")
+    for i in servo_idx:
+        assert "kickWatchdog" in names[prev:i], "a loop iteration sent servoL without kicking the watchdog"
+        prev = i
+
+
+def test_servo_l_gets_the_step_period_and_smoothing_parameters(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    with build_arm(ur_config(lookahead_time_s=0.05, gain=500)) as arm:
+        run_loop(arm, 1)
+    call = next(c for c in ctrl.calls if c[0] == "servoL")
+    _, pose, _, _, t, lookahead, gain = call
+    assert t == pytest.approx(arm.limits.control_period_s) and lookahead == 0.05 and gain == 500
+    assert pose[0] == pytest.approx(0.401, abs=1e-6)  # 1 mm along the TCP x axis (= base x here)
+
+
+def test_exception_in_the_loop_stops_the_arm_then_stops_script_and_disconnects(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    with pytest.raises(RuntimeError, match="policy exploded"):
+        with build_arm(ur_config()) as arm:
+            run_loop(arm, 3)
+            raise RuntimeError("policy exploded")
+    names = ctrl.names()
+    tail = names[names.index("servoStop"):]
+    assert tail.index("servoStop") < tail.index("stopScript") < tail.index("control_disconnect")
+    assert "receive_disconnect" in tail
+
+
+def test_teardown_continues_when_servo_stop_itself_fails(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    arm = URArm("10.0.0.2")
+    arm.connect()
+
+    def broken():
+        ctrl.log("servoStop")
+        raise RuntimeError("controller went away")
+
+    arm._rtde_c.servoStop = broken
+    with pytest.raises(RuntimeError, match="went away"):
+        arm.disconnect()
+    assert {"stopScript", "control_disconnect", "receive_disconnect"} <= set(ctrl.names())
+
+
+def test_protective_stop_becomes_a_clean_explained_error(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    with build_arm(ur_config()) as arm:
+        run_loop(arm, 2)
+        ctrl.protective_stopped = True
+        with pytest.raises(ArmFaultError) as info:
+            run_loop(arm, 1)
+        n_servo = ctrl.names().count("servoL")
+        assert n_servo == 2  # nothing sent after the stop was seen
+    err = info.value
+    assert err.fault.kind == "protective_stop"
+    assert "protective stop" in str(err) and "unlockProtectiveStop" in str(err) and "reuploadScript" in str(err)
+
+
+def test_recover_unlocks_through_the_dashboard_then_reuploads(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    arm = URArm("10.0.0.2")
+    with arm:
+        ctrl.protective_stopped = True
+        assert arm.fault().kind == "protective_stop"
+        arm.recover()
+        assert arm.fault() is None
+    names = ctrl.names()
+    assert names.index("unlockProtectiveStop") < names.index("reuploadScript")
+
+
+@pytest.mark.parametrize("flag,kind", [("emergency_stopped", "emergency_stop"), ("program_running", "program_stopped"),
+                                       ("connected", "connection_lost")])
+def test_fault_reports_estop_stopped_script_and_lost_link(monkeypatch, flag, kind):
+    ctrl = install_ur(monkeypatch)
+    with URArm("10.0.0.2") as arm:
+        setattr(ctrl, flag, not getattr(ctrl, flag))
+        assert arm.fault().kind == kind
+
+
+def test_speed_l_mode_streams_velocities_and_stops_with_speed_stop(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    with build_arm(ur_config(mode="speedL")) as arm:
+        run_loop(arm, 1)
+    call = next(c for c in ctrl.calls if c[0] == "speedL")
+    xd, t = np.array(call[1]), call[3]
+    assert xd[0] > 0 and np.allclose(xd[1:], 0.0, atol=1e-6) and xd[0] * t <= 0.0011
+    assert "speedStop" in ctrl.names() and "servoStop" not in ctrl.names()
+
+
+def test_unreachable_controller_is_a_connection_fault(monkeypatch):
+    ctrl = FakeURController()
+    ctrl.fail_connect = True
+    install_ur(monkeypatch, ctrl)
+    with pytest.raises(ArmFaultError, match="cannot connect to UR controller at 10.0.0.2"):
+        URArm("10.0.0.2").connect()
+
+
+def test_missing_sdk_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "rtde_control", None)  # makes the import fail
+    with pytest.raises(MissingExtraError, match=r"advobj\[ur\]"):
+        URArm("10.0.0.2").connect()
