@@ -53,8 +53,10 @@ class SerialArmSimulator:
     def __init__(self, fd: int, heartbeat_timeout_ms: float = 500.0, boot_delay_s: float = 0.05,
                  send_banner: bool = True, boot_noise: bytes = b"\x00\xfe boot v0.1\r\n",
                  max_speed_mps: float = 0.5, max_speed_radps: float = 2.0,
-                 T_base_tcp: np.ndarray | None = None, keep_fd: int | None = None):
+                 T_base_tcp: np.ndarray | None = None, keep_fd: int | None = None,
+                 protocol_version: int = PROTOCOL_VERSION):
         self.fd = fd
+        self.protocol_version = int(protocol_version)
         self._keep_fd = keep_fd
         self.heartbeat_timeout_ms = float(heartbeat_timeout_ms)
         self.boot_delay_s = float(boot_delay_s)
@@ -143,7 +145,7 @@ class SerialArmSimulator:
                     booted = True
                     self._last_rx = now
                     if self.send_banner:
-                        self._send(self.boot_noise + f"#BOOT advobj-arm fw={FIRMWARE} proto={PROTOCOL_VERSION} "
+                        self._send(self.boot_noise + f"#BOOT advobj-arm fw={FIRMWARE} proto={self.protocol_version} "
                                    f"hb_ms={self.heartbeat_timeout_ms:.0f}\n".encode())
                     self.booted.set()
                 t_prev = now
@@ -227,7 +229,7 @@ class SerialArmSimulator:
     def _execute(self, cmd: str, args: list[str]) -> list[str]:
         with self._lock:
             if cmd == "HELLO":
-                return ["OK", f"proto={PROTOCOL_VERSION}", f"fw={FIRMWARE}", f"hb_ms={self.heartbeat_timeout_ms:.0f}"]
+                return ["OK", f"proto={self.protocol_version}", f"fw={FIRMWARE}", f"hb_ms={self.heartbeat_timeout_ms:.0f}"]
             if cmd == "HB":
                 return ["OK"]
             if cmd == "STATUS":
