@@ -34,6 +34,9 @@ app.add_typer(cli_hw.app, name="hw")
 from trials import cli_calibrate  # noqa: E402
 
 app.add_typer(cli_calibrate.app, name="calibrate")
+from trials import cli_policy  # noqa: E402
+
+app.add_typer(cli_policy.app, name="policy")
 
 
 def main() -> None:

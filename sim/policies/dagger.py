@@ -154,7 +154,7 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
     state = _State(out_dir)
     h = w = env_cfg.image_size
     images, actions = np.zeros((0, h, w, 3), np.uint8), np.zeros((0, 6), np.float32)
-    prog = {"fingerprint": fingerprint, "iterations_done": 0, "elapsed_s": 0.0, "history": [], "stopped_early": False}
+    prog = {"fingerprint": fingerprint, "iterations_done": 0, "elapsed_s": 0.0, "cpu_s": 0.0, "history": [], "stopped_early": False}
     if state.exists():
         images, actions, prog = state.load(policy, optimizer)
         if prog.get("fingerprint") != fingerprint:
@@ -167,7 +167,7 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
     for it in range(prog["iterations_done"], cfg.iterations):
         if prog["stopped_early"]:
             break
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         torch.manual_seed(seed * 1000 + it)
         rng = np.random.default_rng([seed, it])
         beta = cfg.beta(it)
@@ -194,7 +194,8 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
             if cfg.stop_at_success is not None and res.success_rate.rate >= cfg.stop_at_success:
                 prog["stopped_early"] = True
         prog["elapsed_s"] += time.perf_counter() - t0
-        record["elapsed_s"] = prog["elapsed_s"]
+        prog["cpu_s"] = prog.get("cpu_s", 0.0) + time.process_time() - c0  # CPU time of all threads: the cost on an idle machine
+        record["elapsed_s"], record["cpu_s"] = prog["elapsed_s"], prog["cpu_s"]
         prog["history"].append(record)
         prog["iterations_done"] = it + 1
         state.save(policy, optimizer, images, actions, prog)

@@ -202,7 +202,7 @@ def train_ppo(arch, env, cfg: PPOConfig, env_cfg: EnvConfig, out_dir: str | Path
     set_randomization(env, env_cfg)
     vec = ReachVecEnv(env, TRAIN_SEED_BASE + seed * 1_000_000)
     model = _make_model(vec, arch, cfg, seed, device)
-    prog = {"fingerprint": fingerprint, "timesteps": 0, "elapsed_s": 0.0, "history": [], "stopped_early": False}
+    prog = {"fingerprint": fingerprint, "timesteps": 0, "elapsed_s": 0.0, "cpu_s": 0.0, "history": [], "stopped_early": False}
     if (state_dir / "progress.json").is_file():
         prog = json.loads((state_dir / "progress.json").read_text())
         if prog.get("fingerprint") != fingerprint:
@@ -217,7 +217,7 @@ def train_ppo(arch, env, cfg: PPOConfig, env_cfg: EnvConfig, out_dir: str | Path
     clean = EnvConfig(image_size=env_cfg.image_size)
     bar = tqdm(total=cfg.total_timesteps, initial=prog["timesteps"], desc="ppo", unit="step", disable=not progress)
     while prog["timesteps"] < cfg.total_timesteps and not prog["stopped_early"]:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         chunk = min(cfg.chunk_timesteps, cfg.total_timesteps - prog["timesteps"])
         model.learn(total_timesteps=chunk, reset_num_timesteps=False)
         done = model.num_timesteps - prog["timesteps"]
@@ -234,8 +234,9 @@ def train_ppo(arch, env, cfg: PPOConfig, env_cfg: EnvConfig, out_dir: str | Path
             if cfg.stop_at_success is not None and res.success_rate.rate >= cfg.stop_at_success:
                 prog["stopped_early"] = True
         prog["elapsed_s"] += time.perf_counter() - t0
+        prog["cpu_s"] = prog.get("cpu_s", 0.0) + time.process_time() - c0  # CPU time of all threads: the cost on an idle machine
         prog["timesteps"] = int(model.num_timesteps)
-        record["elapsed_s"] = prog["elapsed_s"]
+        record["elapsed_s"], record["cpu_s"] = prog["elapsed_s"], prog["cpu_s"]
         prog["history"].append(record)
         state_dir.mkdir(parents=True, exist_ok=True)
         save_file(_unaliased_state(model.policy), str(state_dir / "model.safetensors.tmp"))

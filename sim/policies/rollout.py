@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from sim.stats import Proportion, proportion
 
-__all__ = ["EnvConfig", "make_env", "set_randomization", "EpisodeResults", "run_episodes", "EVAL_SEED_BASE"]
+__all__ = ["EnvConfig", "make_env", "set_randomization", "EpisodeResults", "run_episodes", "evaluate_policy", "EVAL_SEED_BASE"]
 
 
 class EnvConfig(BaseModel):
@@ -110,3 +110,26 @@ def run_episodes(env, policy, seeds, progress=None) -> EpisodeResults:
         if progress is not None:
             progress(m)
     return EpisodeResults(np.asarray(seeds, np.int64), success, reached, steps, configs)
+
+
+def evaluate_policy(policy, spec, episodes: int, seed: int = EVAL_SEED_BASE, num_envs: int = 16, env_cfg: EnvConfig | None = None,
+                    env=None, progress: bool = True) -> EpisodeResults:
+    """Clean evaluation: ``episodes`` episodes from seeds ``seed .. seed + episodes - 1``.
+
+    ``env_cfg`` defaults to no randomisation at the policy's image size. Pass ``env`` to reuse an
+    existing :class:`sim.env.ReachEnv` (its randomisation is switched to ``env_cfg``).
+    """
+    from tqdm.auto import tqdm
+
+    env_cfg = env_cfg or EnvConfig(image_size=policy.image_size)
+    own = env is None
+    if own:
+        env = make_env(spec, env_cfg, min(num_envs, max(1, episodes)))
+    else:
+        set_randomization(env, env_cfg)
+    try:
+        with tqdm(total=episodes, desc="eval", unit="ep", disable=not progress) as bar:
+            return run_episodes(env, policy, range(seed, seed + episodes), progress=bar.update)
+    finally:
+        if own:
+            env.close()

@@ -1,0 +1,58 @@
+"""One training run end to end: config -> DAgger or PPO -> clean evaluation -> checkpoint.
+
+Outputs in ``out_dir``: the checkpoint (``policy.json`` + ``weights.safetensors``), ``run.json``
+(resolved config, seed, git commit), ``train_state/`` (for resuming), and
+``feasible_pool.json`` from the final clean evaluation.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from sim.configs import spec_fingerprint
+from sim.policies.checkpoint import ActionScaling, CleanSuccess, PolicyCard, save_checkpoint
+from sim.policies.pool import write_feasible_pool
+from sim.policies.presets import TrainConfig
+from sim.policies.rollout import EVAL_SEED_BASE, evaluate_policy, make_env
+from sim.runinfo import git_commit, write_run_info
+
+__all__ = ["train_policy"]
+
+
+def train_policy(cfg: TrainConfig, out_dir: str | Path, spec, device="cpu", progress: bool = True, log=print) -> PolicyCard:
+    """Train per ``cfg`` on scene ``spec``; resumes an interrupted run in the same ``out_dir``."""
+    import torch
+
+    from sim.policies.dagger import train_dagger
+    from sim.policies.policy import VisuomotorPolicy
+    from sim.policies.ppo import train_ppo
+
+    out_dir = Path(out_dir)
+    resolved = cfg.model_dump(mode="json")
+    resolved["scene"] = {"name": spec.name, "fingerprint": spec_fingerprint(spec)}
+    write_run_info(out_dir, resolved, cfg.seed)
+    torch.manual_seed(cfg.seed)
+    fp = cfg.fingerprint()
+    if cfg.method == "dagger":
+        env = make_env(spec, cfg.env, cfg.dagger.num_envs, seed=cfg.seed)
+        policy = VisuomotorPolicy(cfg.policy).to(device)
+        prog = train_dagger(policy, env, cfg.dagger, cfg.env, out_dir, cfg.seed, fp, device, progress, log)
+    else:
+        env = make_env(spec, cfg.env, cfg.ppo.num_envs, seed=cfg.seed)
+        policy, prog = train_ppo(cfg.policy, env, cfg.ppo, cfg.env, out_dir, cfg.seed, fp, device, progress, log)
+        policy = policy.to(device)
+    try:
+        clean = None
+        if cfg.final_eval_episodes:
+            res = evaluate_policy(policy, spec, cfg.final_eval_episodes, EVAL_SEED_BASE, env=env, progress=progress)
+            p = res.success_rate
+            clean = CleanSuccess(k=p.k, n=p.n, rate=p.rate, lo=p.lo, hi=p.hi, confidence=p.confidence,
+                                 episodes_seed=EVAL_SEED_BASE, image_size=cfg.env.image_size)
+            write_feasible_pool(out_dir / "feasible_pool.json", spec, res, meta={"policy": str(out_dir), "seed": EVAL_SEED_BASE})
+            log(f"clean success: {p}")
+    finally:
+        env.close()
+    training = {**resolved, "train_time_s": prog["elapsed_s"], "train_cpu_s": prog.get("cpu_s"), "history": prog["history"], "stopped_early": prog["stopped_early"]}
+    card = PolicyCard(arch=cfg.policy, action=ActionScaling(max_step_m=spec.episode.max_step_m, max_step_rad=spec.episode.max_step_rad),
+                      training=training, clean_success=clean, seed=cfg.seed, git_commit=git_commit())
+    return save_checkpoint(out_dir, policy.cpu(), card)
