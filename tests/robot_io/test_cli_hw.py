@@ -1,0 +1,59 @@
+"""``advobj hw check`` on the sim config: reports the camera and arm, moves nothing without --jog."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from trials.cli import app
+
+SIM_YAML = Path(__file__).resolve().parents[2] / "examples" / "hardware" / "sim.yaml"
+
+
+class _Borrowed:
+    """The shared test world, lent to the CLI (which closes what it builds) without being closed."""
+
+    def __init__(self, world):
+        self._world = world
+
+    def __getattr__(self, name):
+        return getattr(self._world, name)
+
+    def close(self):
+        pass
+
+
+@pytest.fixture
+def lend_world(monkeypatch, fresh_world):
+    import robot_io.config
+
+    monkeypatch.setattr(robot_io.config, "build_world", lambda cfg: _Borrowed(fresh_world))
+    return fresh_world
+
+
+def test_check_reports_fps_latency_and_pose_and_moves_nothing(lend_world):
+    T0 = lend_world.T_world_tcp
+    result = CliRunner().invoke(app, ["hw", "check", "--config", str(SIM_YAML), "--frames", "5"])
+    assert result.exit_code == 0, result.output
+    assert "fps over 5 frames" in result.output and "read()" in result.output and "frame age" in result.output
+    assert "arm (sim): xyz = [" in result.output and "fault: none" in result.output
+    assert "nothing moved" in result.output
+    assert (lend_world.T_world_tcp == T0).all()
+
+
+def test_check_with_jog_moves_up_and_back(lend_world):
+    T0 = lend_world.T_world_tcp
+    result = CliRunner().invoke(app, ["hw", "check", "-c", str(SIM_YAML), "--frames", "3", "--jog", "--jog-mm", "5"])
+    assert result.exit_code == 0, result.output
+    assert "jog: up to" in result.output and "back to" in result.output
+    assert abs(lend_world.T_world_tcp[2, 3] - T0[2, 3]) < 1e-9
+
+
+def test_check_rejects_a_bad_config_with_the_field_named(tmp_path):
+    bad = tmp_path / "hw.yaml"
+    bad.write_text("camera: {type: sim}\narm: {type: sim, speed: 3}\nsafety: {workspace_min_m: [0,0,0], workspace_max_m: [1,1,1]}\n")
+    result = CliRunner().invoke(app, ["hw", "check", "--config", str(bad)])
+    assert result.exit_code != 0
+    assert "arm.sim.speed" in str(result.exception)
