@@ -5,5 +5,5 @@ Modules: ``intrinsics`` (board, calibration, camera YAML), ``apriltag`` (detecti
 solutions, ambiguity, bundles), ``registry`` (tag id -> object), ``handeye``, ``frames``,
 ``outcome`` (reach criterion with *unknown*), ``printables`` (true-scale PDFs), ``synthetic``
 (OpenGL renders with known ground truth), ``selfcheck``, ``io`` and ``errors``.
-Ground floor: imports ``sim.geometry`` and ``sim.outcome`` only.
+Ground floor: imports ``sim.geometry``, ``sim.outcome`` and ``sim.errors`` only.
 """
