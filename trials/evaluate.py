@@ -1,0 +1,331 @@
+"""The evaluation harness behind ``advobj eval``: paired closed-loop episodes per condition.
+
+For every condition the same task-feasible initial configurations are rolled out for up to
+``max_steps`` steps with the policy acting on the *attacked* observation. At every step the clean
+observation of the same state (the adversarial object in its benign look, same light, same
+background, same sensor-noise draw) is rendered too, in the same frame via a renderer variant, and
+the policy's action on it gives the per-step action errors (:func:`trials.metrics.action_errors`).
+
+Rendering is the standard pyrender path (:class:`sim.render.SceneRenderer`) with the texture on
+the mesh. Episodes run ``num_envs`` at a time; a slot whose episode ends is refilled at once, and
+each finished episode is appended to ``episodes.csv`` immediately, so an interrupted evaluation
+resumes without redoing anything (:mod:`trials.storage`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from sim.errors import AdvobjError
+
+__all__ = ["EvalError", "EvalConfig", "rollout_condition", "resolve_pool", "run_eval", "load_eval_config"]
+
+
+class EvalError(AdvobjError, ValueError):
+    """Bad evaluation config or inputs."""
+
+
+class EvalConfig(BaseModel):
+    """Everything that defines an evaluation (stored in ``manifest.json``; resume must match)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    policy: str = Field(description="target policy: checkpoint directory or .onnx file")
+    conditions: tuple[str, ...] = ("clean", "attack")
+    episodes: int = Field(500, ge=1, description="episodes per condition (the paper: 500)")
+    max_steps: int = Field(60, ge=1, description="steps per episode (the paper: 60)")
+    num_envs: int = Field(8, ge=1, description="episodes rolled out in parallel")
+    seed: int = Field(0, ge=0, description="first candidate seed when a task-feasible pool is built")
+    pool_factor: int = Field(4, ge=1, description="building a pool tries up to episodes * pool_factor candidates")
+    pool: str | None = Field(None, description="task-feasible pool JSON (default: the policy's, else built)")
+    scene: str | None = None
+    attack: str | None = None
+    patch: str | None = None
+    shapes: dict[str, str] = Field(default_factory=dict)
+    gifs: int = Field(2, ge=0, description="configurations recorded as rollout GIFs per condition")
+    device: str = "cpu"
+
+
+def load_eval_config(**fields) -> EvalConfig:
+    try:
+        return EvalConfig(**fields)
+    except ValidationError as err:
+        lines = ["invalid evaluation config"] + [f"  {'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors()]
+        raise EvalError("\n".join(lines)) from None
+
+
+# ---------------------------------------------------------------------------------------------
+def _noise_rng(seed: int) -> np.random.Generator:
+    """Per-episode sensor-noise stream: a function of the config seed only (paired across arms)."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), 0x5E75]))
+
+
+def _noisy(rgb: np.ndarray, z: np.ndarray | None) -> np.ndarray:
+    if z is None:
+        return rgb
+    return np.clip(np.rint(rgb.astype(np.float32) + z), 0, 255).astype(np.uint8)
+
+
+class _Observer:
+    """Renders attacked and clean observations of the env's worlds for one condition."""
+
+    def __init__(self, env, cond):
+        self.env = env
+        self.cond = cond
+        self.adv = env.adv_index
+        self.attacked = cond.texture is not None
+        if self.attacked:
+            # The color node keeps the benign look; the attack texture is a variant, so the
+            # attacked and the clean view of one state come from the same scene setup.
+            env.renderer.add_variant(self.adv, "attack", cond.texture)
+        self.noise = [None] * env.num_envs
+
+    def reset(self, i: int, seed: int) -> None:
+        self.noise[i] = _noise_rng(seed)
+
+    def views(self, i: int) -> dict[str, np.ndarray]:
+        """``{"adv": (V, H, W, 3), "clean": (V, H, W, 3)}`` uint8, V = 1 (mono) or 2 (stereo)."""
+        w = self.env.worlds[i]
+        r = self.env.renderer
+        w.prepare()
+        poses = [w.camera_pose()] + ([w.camera_pose(right=True)] if self.cond.stereo else [])
+        std = w.appearance.noise_std
+        out = {"adv": [], "clean": []}
+        for T in poses:
+            z = self.noise[i].normal(0.0, std * 255.0, size=(r.height, r.width, 3)).astype(np.float32) if std > 0 else None
+            clean = _noisy(r.render(T, with_ids=False).rgb, z)
+            out["clean"].append(clean)
+            out["adv"].append(_noisy(r.render(T, with_ids=False, variants={self.adv: "attack"}).rgb, z) if self.attacked else clean)
+        return {k: np.stack(v) for k, v in out.items()}
+
+
+def rollout_condition(policy, spec, cond, configs, num_envs: int, on_done: Callable[[int, dict], None],
+                      on_frame: Callable | None = None) -> None:
+    """Roll out one episode per config under ``cond``; call ``on_done(j, result)`` as each ends.
+
+    Args:
+        policy: ``act(images (B, S, S, 3) uint8) -> (B, 6)`` with ``image_size = S``.
+        spec: the scene (``max_steps`` already applied); the condition's mesh swap happens here.
+        cond: a :class:`trials.conditions.Condition`.
+        configs: initial configurations (:class:`sim.configs.InitialConfig`).
+        num_envs: parallel slots.
+        on_done: ``on_done(j, result)`` with ``j`` the index into ``configs`` and ``result`` a
+            dict: ``reached`` (object index, -1 none), ``steps``, ``min_dist (K,)`` m,
+            ``e_trans`` and ``e_rot`` (episode means; NaN for a zero-step episode).
+        on_frame: optional ``on_frame(j, step, adv_rgb, clean_rgb)`` for every observation the
+            policy acts on (left camera), e.g. to write GIFs.
+    """
+    from sim.env import ReachEnv
+    from trials.conditions import condition_spec
+    from trials.metrics import action_errors
+
+    if not configs:
+        return
+    spec_c = condition_spec(spec, cond)
+    S = int(policy.image_size)
+    N = max(1, min(int(num_envs), len(configs)))
+    env = ReachEnv(spec_c, num_envs=N, image_size=S, seed=0, randomization=cond.randomization, render_obs=False)
+    try:
+        obs = _Observer(env, cond)
+        queue = list(range(len(configs)))[::-1]
+        slot = [-1] * N  # config index per slot (-1 = idle)
+        err = np.zeros((N, 2))
+
+        def fill(i: int) -> None:
+            j = queue.pop()
+            slot[i] = j
+            env.reset_envs([i], configs=[configs[j]])
+            obs.reset(i, configs[j].seed)
+            err[i] = 0.0
+
+        for i in range(N):
+            fill(i)
+        while any(j >= 0 for j in slot):
+            active = [i for i in range(N) if slot[i] >= 0 and not env.done[i]]
+            if active:
+                views = [obs.views(i) for i in active]
+                V = views[0]["adv"].shape[0]
+                batch = [v["adv"] for v in views] + ([v["clean"] for v in views] if obs.attacked else [])
+                a = np.asarray(policy.act(np.concatenate(batch)), dtype=np.float64).reshape(len(batch), V, 6).mean(1)
+                a_adv = a[: len(active)]
+                a_clean = a[len(active):] if obs.attacked else a_adv
+                e_t, e_r = action_errors(a_adv, a_clean, spec_c.episode.max_step_rad)
+                if on_frame is not None:
+                    for k, i in enumerate(active):
+                        on_frame(slot[i], int(env.steps[i]), views[k]["adv"][0], views[k]["clean"][0])
+                actions = np.zeros((N, 6))
+                actions[active] = a_adv
+                err[active, 0] += e_t
+                err[active, 1] += e_r
+                env.step(actions)
+            for i in range(N):
+                if slot[i] >= 0 and env.done[i]:
+                    n = int(env.steps[i])
+                    on_done(slot[i], {
+                        "reached": int(env.reached[i]),
+                        "steps": n,
+                        "min_dist": env.min_dist[i].copy(),
+                        "e_trans": float(err[i, 0] / n) if n else float("nan"),
+                        "e_rot": float(err[i, 1] / n) if n else float("nan"),
+                    })
+                    slot[i] = -1
+                    if queue:
+                        fill(i)
+    finally:
+        env.close()
+
+
+# ---------------------------------------------------------------------------------------------
+def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True) -> tuple[list, str]:
+    """The task-feasible configurations and where they came from.
+
+    An explicit ``cfg.pool`` must match the scene. Otherwise the policy's own pool
+    (:func:`trials.attack_job.feasible_pool_path`) is used if it was made for this scene and
+    episode length; otherwise one is built here by running the clean policy on candidate seeds
+    ``cfg.seed, cfg.seed + 1, ...`` and keeping the configs where it reaches the goal (the
+    definition of task-feasible), saved as ``out/feasible_pool.json``.
+    """
+    from sim.configs import PoolError, load_pool, sample_pool, save_pool
+    from trials.attack_job import feasible_pool_path
+    from trials.conditions import Condition
+
+    if cfg.pool is not None:
+        return load_pool(cfg.pool, spec), str(cfg.pool)
+    own = feasible_pool_path(Path(cfg.policy)) if Path(cfg.policy).is_dir() else None
+    if own is not None and own.is_file():
+        try:
+            return load_pool(own, spec), str(own)
+        except PoolError:
+            pass  # made for another scene or episode length: build one for this evaluation
+    path = out / "feasible_pool.json"
+    if path.is_file():
+        return load_pool(path, spec), str(path)
+    from tqdm import tqdm
+
+    n_cand = cfg.episodes * cfg.pool_factor
+    feasible: list = []
+    bar = tqdm(total=cfg.episodes, desc="feasible pool", disable=not progress, dynamic_ncols=True)
+    tried = 0
+    start = cfg.seed
+    goal = spec.object_index("goal")
+    while len(feasible) < cfg.episodes and tried < n_cand:
+        # twice the shortfall per round: a policy reaching the goal half the time needs one round
+        k = min(max(cfg.num_envs, 2 * (cfg.episodes - len(feasible))), n_cand - tried)
+        cands = sample_pool(spec, k, seed=start + tried)
+        ok = np.zeros(k, bool)
+
+        def done(j, res):
+            ok[j] = res["reached"] == goal
+
+        rollout_condition(policy, spec, Condition("clean"), cands, cfg.num_envs, done)
+        tried += k
+        new = [c for c, good in zip(cands, ok) if good][: cfg.episodes - len(feasible)]
+        feasible += new
+        bar.update(len(new))
+    bar.close()
+    if not feasible:
+        raise EvalError(f"policy {cfg.policy}: reached the goal in none of {tried} candidate configurations; nothing is task-feasible")
+    save_pool(path, spec, feasible, meta={"definition": "configs where the clean policy reaches the goal", "policy": cfg.policy,
+                                          "candidates": tried, "first_seed": cfg.seed, "max_steps": spec.episode.max_steps})
+    return feasible, str(path)
+
+
+def _row(cond_name: str, config, res: dict, spec) -> dict:
+    goal, adv = spec.object_index("goal"), spec.object_index("adversarial")
+    reached = res["reached"]
+    outcome = "none" if reached < 0 else ("goal" if reached == goal else ("adversarial" if reached == adv else spec.objects[reached].name))
+    row = {
+        "condition": cond_name,
+        "seed": int(config.seed),
+        "r_m": float(config.r_m),
+        "theta_rad": float(config.theta_rad),
+        "phi_rad": float(config.phi_rad),
+        "outcome": outcome,
+        "reached": int(reached),
+        "success": reached == goal,
+        "targeted": reached == adv,
+        "steps": int(res["steps"]),
+        "e_trans": float(res["e_trans"]),
+        "e_rot": float(res["e_rot"]),
+    }
+    for o, d in zip(spec.objects, res["min_dist"]):
+        row[f"min_dist_{o.name}"] = float(d)
+    return row
+
+
+def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: bool = True, report: bool = True) -> dict:
+    """Run (or resume) an evaluation into ``out``; returns the summary (also ``summary.json``)."""
+    from tqdm import tqdm
+
+    from sim.policies.checkpoint import load_policy
+    from sim.runinfo import write_run_info
+    from trials.conditions import Sources, build_conditions
+    from trials.scene_tools import load_spec
+    from trials.storage import EpisodeStore
+
+    out = Path(out)
+    conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes)))
+    base = load_spec(cfg.scene)
+    spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
+    policy = load_policy(cfg.policy, cfg.device)
+    out.mkdir(parents=True, exist_ok=True)
+    configs, pool_src = resolve_pool(cfg, policy, spec, out, progress)
+    configs = configs[: cfg.episodes]
+    resolved = {
+        "job": "eval",
+        "eval": cfg.model_dump(mode="json"),
+        "conditions": [c.to_dict() for c in conds],
+        "pool": pool_src,
+        "seeds": [int(c.seed) for c in configs],
+        "scene": spec.model_dump(mode="json"),
+    }
+    store = EpisodeStore(out, resolved, [o.name for o in spec.objects], resume=resume)
+    write_run_info(out, resolved, cfg.seed)
+    gif_seeds = {int(c.seed) for c in configs[: cfg.gifs]}
+    todo = {c.name: [x for x in configs if not store.is_done(c.name, x.seed)] for c in conds}
+    bar = tqdm(total=sum(len(v) for v in todo.values()), desc="eval", disable=not progress, dynamic_ncols=True)
+    for cond in conds:
+        cfgs = todo[cond.name]
+        if not cfgs:
+            continue
+        bar.set_postfix(condition=cond.name, refresh=False)
+        frames: dict[int, list] = {}
+
+        def on_frame(j, step, adv_rgb, clean_rgb, cfgs=cfgs, frames=frames):
+            if cfgs[j].seed in gif_seeds:
+                frames.setdefault(j, []).append(adv_rgb.copy())
+
+        def on_done(j, res, cfgs=cfgs, cond=cond, frames=frames):
+            if j in frames:
+                _write_gif(out / "gifs" / f"{cond.name}_seed{cfgs[j].seed}.gif", frames.pop(j))
+            store.append([_row(cond.name, cfgs[j], res, spec)])
+            bar.update(1)
+
+        rollout_condition(policy, spec, cond, cfgs, cfg.num_envs, on_done, on_frame if gif_seeds else None)
+    bar.close()
+    from trials.report import summarize, write_report
+
+    summary = summarize(store.rows, spec, [c.name for c in conds], meta={"pool": pool_src, "episodes_requested": cfg.episodes,
+                                                                          "episodes_available": len(configs), "policy": cfg.policy,
+                                                                          "max_steps": cfg.max_steps})
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+    if report:
+        write_report(out, summary, conds)
+    return summary
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    raise TypeError(f"not JSON-able: {type(o).__name__}")
+
+
+def _write_gif(path: Path, frames: list) -> None:
+    from trials.scene_tools import write_gif
+
+    write_gif(path, frames)
