@@ -1,0 +1,140 @@
+"""Cost of one attack iteration at the paper's shape, split by stage, vs a policy-only iteration.
+
+Run: ``.venv/bin/python benchmarks/bench_attack.py [--iters 3] [--size 128] [--arch resnet18]``.
+
+Shape: resnet18 policy at 128x128, 4 envs x 10 steps = 40 image-action pairs, saliency + PCGrad on.
+Prints ms per iteration for standard rendering (4 pyrender passes per pair), the differentiable
+texture path, the policy forward (features + head + Grad-CAM graph) and the backward passes; the
+ratio of a full iteration to a *policy-only* iteration (the same losses and gradients on
+pre-rendered images: the floor for a white-box attack); and peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import statistics
+import time
+from contextlib import contextmanager
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import numpy as np
+import torch
+
+
+class Timer:
+    def __init__(self):
+        self.t = {}
+
+    @contextmanager
+    def __call__(self, key):
+        t0 = time.perf_counter()
+        yield
+        self.t[key] = self.t.get(key, 0.0) + time.perf_counter() - t0
+
+
+def instrument(run, timer):
+    """Wrap the run's stages with timers (no change to what they compute)."""
+    import attack.optimize as opt
+    import attack.render as ar
+
+    cap = run.hybrid.capture
+
+    def capture(*a, **k):
+        with timer("standard render"):
+            return cap(*a, **k)
+
+    run.hybrid.capture = capture
+    rad = ar.render_adversarial
+
+    def render_adv(*a, **k):
+        with timer("differentiable texture"):
+            return rad(*a, **k)
+
+    ar.render_adversarial = render_adv
+    losses = run._losses
+
+    def timed_losses(*a, **k):
+        # Includes Grad-CAM's create_graph gradient: the forward graph the losses need.
+        with timer("policy forward + Grad-CAM"):
+            return losses(*a, **k)
+
+    run._losses = timed_losses
+    grad = torch.autograd.grad
+
+    def timed_grad(*a, **k):
+        if k.get("create_graph"):  # inside the loss computation, already timed there
+            return grad(*a, **k)
+        with timer("backward to the texture"):
+            return grad(*a, **k)
+
+    torch.autograd.grad = timed_grad
+    return opt
+
+
+def policy_only_iteration(run, imgs, caps, T, p_adv):
+    """The same losses and gradients w.r.t. the images, without any rendering."""
+    total = 0.0
+    for step in range(run.cfg.rollout_steps):
+        x = imgs.clone().requires_grad_(True)
+        t0 = time.perf_counter()
+        l1, l2, _, _ = run._losses(x, caps, T, p_adv, None)
+        g1 = torch.autograd.grad(l1, x, retain_graph=True)[0]
+        g2 = torch.autograd.grad(l2, x)[0]
+        total += time.perf_counter() - t0
+    return total
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--iters", type=int, default=3)
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--arch", default="resnet18")
+    ap.add_argument("--sampler", default="trilinear")
+    args = ap.parse_args()
+    from attack.optimize import AttackRun, resolve_config
+    from attack.render import render_adversarial
+    from sim.policies.policy import VisuomotorPolicy
+    from sim.spec import default_scene
+
+    torch.manual_seed(0)
+    policy = VisuomotorPolicy(arch=args.arch, image_size=args.size)
+    cfg = resolve_config("paper", {"iterations": args.iters + 1, "pool_size": 50, "sampler": args.sampler})
+    run = AttackRun(policy, default_scene(), cfg)
+    run.step()  # warm-up: GL uploads, allocator
+    timer = Timer()
+    instrument(run, timer)
+    walls = []
+    for _ in range(args.iters):
+        t0 = time.perf_counter()
+        run.step()
+        walls.append(time.perf_counter() - t0)
+    n = args.iters
+    stages = dict(timer.t)  # snapshot: the floor below runs through the same instrumented calls
+    # Policy-only floor on frames captured from the current state.
+    run.env.reset_envs(range(cfg.num_envs), configs=run.pool[: cfg.num_envs])
+    caps = [run.hybrid.capture(w) for w in run.env.worlds]
+    imgs = torch.stack([render_adversarial(c, run.texture) for c in caps]).detach()
+    T = torch.from_numpy(run.env.T_world_tcp).float()
+    p_adv = torch.from_numpy(run.env.object_centers[:, run.adv]).float()
+    floor = statistics.median(policy_only_iteration(run, imgs, caps, T, p_adv) for _ in range(n))
+    full = statistics.median(walls)
+    rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    print(f"# {args.arch} {args.size}x{args.size}, {cfg.num_envs} envs x {cfg.rollout_steps} steps, saliency+PCGrad, "
+          f"sampler={args.sampler}; cores={os.cpu_count()} torch={torch.__version__} threads={torch.get_num_threads()}")
+    print("| stage | ms / iteration |")
+    print("|---|---|")
+    for k, v in stages.items():
+        print(f"| {k} | {1000 * v / n:.0f} |")
+    print(f"| full iteration (median of {n}) | {1000 * full:.0f} |")
+    print(f"| policy-only iteration | {1000 * floor:.0f} |")
+    print(f"ratio full / policy-only: {full / floor:.2f} (target <= 1.3)")
+    print(f"peak RSS: {rss_gb:.2f} GB (target <= 4 GB)")
+    run.close()
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=3)
+    main()
