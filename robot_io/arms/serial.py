@@ -114,6 +114,14 @@ class SerialArm(Arm):
         self._lock = threading.RLock()  # re-entered to ask STATUS after an ERR FAULT
         self._notices: list[str] = []
         self._link_lost: str | None = None
+        # Round trips cost milliseconds at serial speeds, so per-step checks use what the link
+        # already told us: fault notices, the last STATUS (refreshed every status_interval_s) and
+        # the last POSE; the device refuses motion while faulted either way.
+        self.status_interval_s = 0.2
+        self._fault_code = "NONE"
+        self._last_status_s = -np.inf
+        self._last_ok_s = -np.inf
+        self._last_pose: tuple[float, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ link
     def _open(self) -> None:
@@ -126,6 +134,9 @@ class SerialArm(Arm):
                                       "check the cable and the port name (ls /dev/serial/by-id/)")) from None
         self._buf.clear()
         self._link_lost = None
+        self._fault_code = "NONE"
+        self._last_status_s = -np.inf
+        self._last_pose = None
         try:
             banner = self._wait_banner() if self.expect_banner else None
             if banner is None:
@@ -173,6 +184,8 @@ class SerialArm(Arm):
 
     def _notice(self, line: bytes) -> None:
         text = line[1:].decode("ascii", "replace").strip()
+        if text.startswith("FAULT "):
+            self._fault_code = text.split()[1] if len(text.split()) > 1 else "UNKNOWN"
         self._notices.append(text)
         del self._notices[:-50]
         log.info("serial arm %s: %s", self.port, text)
@@ -203,6 +216,7 @@ class SerialArm(Arm):
                     continue
                 status, rest = reply[0], reply[1:]
                 if status == "OK":
+                    self._last_ok_s = time.monotonic()
                     return status, rest
                 if status == "ERR" and rest[:1] == ["CHK"]:
                     self.stats["checksum_errors"] += 1  # the device saw a corrupted request
@@ -238,7 +252,21 @@ class SerialArm(Arm):
     # ------------------------------------------------------------------ state
     def _status(self) -> dict[str, str]:
         _, fields = self._transact(["STATUS"])
-        return dict(f.split("=", 1) for f in fields if "=" in f)
+        st = dict(f.split("=", 1) for f in fields if "=" in f)
+        self._fault_code = st.get("fault", "NONE")
+        self._last_status_s = time.monotonic()
+        return st
+
+    def _drain_notices(self) -> None:
+        """Read what the device sent unasked (between commands only stale replies or notices)."""
+        with self._lock:
+            if self._ser.in_waiting:
+                self._buf.extend(self._ser.read(self._ser.in_waiting))
+            while (nl := self._buf.find(b"\n")) >= 0:
+                line = bytes(self._buf[: nl + 1])
+                del self._buf[: nl + 1]
+                if line.startswith(b"#"):
+                    self._notice(line)
 
     def _status_fault(self) -> Fault | None:
         return _fault_from_code(self._status().get("fault", "NONE"))
@@ -246,10 +274,18 @@ class SerialArm(Arm):
     def fault(self) -> Fault | None:
         if self._ser is None:
             return Fault("connection_lost", f"serial arm {self.port} is not connected", "call connect()")
+        if self._link_lost:
+            return Fault("connection_lost", f"serial arm {self.port}: {self._link_lost}",
+                         "check the cable and that the controller is powered, then reconnect")
         try:
-            return self._status_fault()
+            self._drain_notices()
+            if time.monotonic() - self._last_status_s > self.status_interval_s:
+                self._status()
         except ArmFaultError as err:
             return err.fault
+        except OSError as err:
+            return Fault("connection_lost", f"serial arm {self.port}: {err}", "check the cable, then reconnect")
+        return _fault_from_code(self._fault_code)
 
     def status(self) -> dict[str, str]:
         """The device's ``STATUS`` fields (``state``, ``fault``, ``pose``)."""
@@ -258,19 +294,26 @@ class SerialArm(Arm):
     def tcp_pose(self) -> np.ndarray:
         _, fields = self._transact(["POSE"])
         try:
-            return pose_from_vec([float(x) for x in fields])
+            T = pose_from_vec([float(x) for x in fields])
         except ValueError:
             raise ProtocolError(f"serial arm {self.port}: malformed POSE reply {fields}") from None
+        self._last_pose = (time.monotonic(), T)
+        return T.copy()
 
     # ------------------------------------------------------------------ motion
     def keepalive(self) -> None:
-        self._transact(["HB"])
+        # Any answered command is a heartbeat; send HB only when the link has been quiet.
+        hb_s = float(self.device_info.get("hb_ms", 500)) / 1000.0
+        if time.monotonic() - self._last_ok_s > hb_s / 4.0:
+            self._transact(["HB"])
 
     def _move(self, T_base_tcp: np.ndarray, speed_mps: float) -> None:
         self._transact(["MOVE", *(_fmt(x) for x in pose_to_vec(T_base_tcp)), _fmt(speed_mps)])
 
     def servo(self, T_base_tcp: np.ndarray, duration_s: float) -> None:
-        dp, _ = pose_step(self.tcp_pose(), T_base_tcp)
+        # The safety layer has just read the pose: reuse it rather than ask again.
+        fresh = self._last_pose is not None and time.monotonic() - self._last_pose[0] < duration_s
+        dp, _ = pose_step(self._last_pose[1] if fresh else self.tcp_pose(), T_base_tcp)
         self._move(T_base_tcp, max(dp / float(duration_s), 1e-4))
 
     def move_to(self, T_base_tcp: np.ndarray, speed_mps: float, timeout_s: float | None = None) -> None:

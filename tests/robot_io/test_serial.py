@@ -93,7 +93,7 @@ def test_corrupted_reply_is_resent_without_repeating_the_motion(link):
 def test_corrupted_request_is_answered_err_chk_and_resent(link):
     sim, arm = link
     sim.corrupt_requests = 1
-    arm.keepalive()
+    arm.status()
     assert arm.stats["checksum_errors"] == 1 and arm.stats["resends"] == 1
 
 
@@ -113,10 +113,32 @@ def test_silent_device_becomes_a_connection_fault_after_the_retries(link):
     sim.drop_replies = 100
     t0 = time.monotonic()
     with pytest.raises(ArmFaultError) as info:
-        arm.keepalive()
+        arm.status()
     elapsed = time.monotonic() - t0
     assert info.value.fault.kind == "connection_lost" and "4 attempts" in str(info.value)
     assert 0.3 <= elapsed < 1.5  # 4 attempts x 80 ms
+
+
+def test_keepalive_sends_a_heartbeat_only_when_the_link_was_quiet(link):
+    sim, arm = link  # the device announced hb_ms=2000: quiet means > 500 ms
+    n_hb = lambda: [c for _, c in sim.executed].count("HB")  # noqa: E731
+    arm.tcp_pose()
+    arm.keepalive()
+    assert n_hb() == 0
+    arm._last_ok_s -= 1.0  # pretend a second passed without traffic
+    arm.keepalive()
+    assert n_hb() == 1
+
+
+def test_a_policy_step_costs_two_round_trips(link, limits):
+    from robot_io.safety import SafeArm
+
+    sim, arm = link
+    safe = SafeArm(arm, limits)
+    safe.step_delta([0.001, 0, 0, 0, 0, 0], time.monotonic())  # may refresh STATUS
+    n = len(sim.executed)
+    safe.step_delta([0.001, 0, 0, 0, 0, 0], time.monotonic())
+    assert [c for _, c in sim.executed[n:]] == ["POSE", "MOVE"]
 
 
 def test_stop_byte_halts_a_move_immediately(link):
