@@ -2,7 +2,9 @@
 
 Detection is ``cv2.aruco`` with ``CORNER_REFINE_APRILTAG``. That refinement reports corners in
 the AprilTag library's pixel convention (pixel centres at +0.5), half a pixel off OpenCV's
-(pixel centres at integers); we shift them back so poses are unbiased.
+(pixel centres at integers); we shift them back. It is also off by up to ~0.5 px when tag edges
+align with the pixel grid, so by default each corner is re-fit as the intersection of sub-pixel
+edge lines (:func:`refine_corners_edges`).
 
 A square tag seen by a pinhole camera has two pose solutions (a reflection of the tag's tilt
 about the line of sight). ``solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)`` returns both; each
@@ -150,10 +152,10 @@ def detect_tag_corners(gray: np.ndarray, dictionary: int | None = None):
         return []  # OpenCV rejects degenerate inputs (e.g. a 1-pixel image) by throwing
     if ids is None:
         return []
-    offset = APRILTAG_PIXEL_OFFSET if dictionary is None or "APRILTAG" in _dict_name(dictionary) else 0.0
     out = []
     for c, i in zip(corners, ids.reshape(-1)):
-        c = c.reshape(4, 2).astype(np.float64) - offset
+        # The offset belongs to the refinement method, whatever the dictionary.
+        c = c.reshape(4, 2).astype(np.float64) - APRILTAG_PIXEL_OFFSET
         if np.all(np.isfinite(c)):
             out.append((int(i), c))
     return out
@@ -213,15 +215,6 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, cells: int = 
     if not np.all(np.isfinite(out)) or np.abs(out - c).max() > max(1.5, np.linalg.norm(c[1] - c[0]) / cells):
         return c
     return out
-
-
-def _dict_name(dictionary: int) -> str:
-    import cv2
-
-    for name in dir(cv2.aruco):
-        if name.startswith("DICT_") and getattr(cv2.aruco, name) == dictionary:
-            return name
-    return ""
 
 
 def tag_pose_solutions(corners_px: np.ndarray, tag_size_m: float, camera: CameraIntrinsics) -> tuple[PoseSolution, ...]:
