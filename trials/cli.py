@@ -15,6 +15,9 @@ app.add_typer(cli_scene.app, name="scene")
 from trials import cli_attack  # noqa: E402
 
 app.add_typer(cli_attack.app, name="attack")
+from trials import cli_eval  # noqa: E402
+
+app.command("eval")(cli_eval.eval_command)
 
 
 @app.command()
@@ -49,3 +52,7 @@ def main() -> None:
     except AdvobjError as err:
         typer.secho(f"error: {err}", err=True, fg=typer.colors.RED)
         sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,51 @@
+"""Shared fixtures: a tiny untrained policy checkpoint, a short-episode pool and an attack dir."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+MAX_STEPS = 3
+
+
+@pytest.fixture(scope="session")
+def tiny_policy_dir(tmp_path_factory):
+    from sim.policies.checkpoint import ActionScaling, PolicyCard, save_checkpoint
+    from sim.policies.policy import VisuomotorPolicy
+
+    torch.manual_seed(0)
+    policy = VisuomotorPolicy(arch="small_cnn", image_size=32)
+    d = tmp_path_factory.mktemp("policy")
+    save_checkpoint(d, policy, PolicyCard(arch=policy.config, action=ActionScaling(max_step_m=0.02, max_step_rad=0.1)))
+    return d
+
+
+@pytest.fixture(scope="session")
+def short_spec():
+    from sim.spec import default_scene
+
+    spec = default_scene()
+    return spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": MAX_STEPS})
+
+
+@pytest.fixture(scope="session")
+def pool_file(tmp_path_factory, short_spec):
+    from sim.configs import sample_pool, save_pool
+
+    path = tmp_path_factory.mktemp("pool") / "pool.json"
+    save_pool(path, short_spec, sample_pool(short_spec, 24, seed=0))
+    return path
+
+
+def make_attack_dir(path, mesh=None, seed=0, size=16):
+    """An attack run directory in the format 'advobj attack run' writes (texture.npy + run.json)."""
+    path.mkdir(parents=True, exist_ok=True)
+    np.save(path / "texture.npy", np.random.default_rng(seed).random((size, size, 3)).astype(np.float32))
+    (path / "run.json").write_text(json.dumps({"config": {"attack": {"adversarial_mesh": mesh}}}))
+    return path
+
+
+@pytest.fixture(scope="session")
+def attack_dir(tmp_path_factory):
+    return make_attack_dir(tmp_path_factory.mktemp("attack") / "run")

@@ -1,0 +1,106 @@
+"""The harness: paired frames across conditions, shared noise draws, resume, reports."""
+
+import json
+
+import numpy as np
+import pytest
+
+import trials.evaluate as ev
+from sim.configs import load_pool
+from sim.policies.checkpoint import load_policy
+from trials.conditions import Sources, build_conditions
+from trials.evaluate import load_eval_config, rollout_condition, run_eval
+
+from .conftest import MAX_STEPS
+
+
+def _first_frames(policy, spec, cond, configs):
+    frames = {}
+
+    def on_frame(j, step, adv, clean):
+        if step == 0:
+            frames[configs[j].seed] = (adv.copy(), clean.copy())
+
+    rollout_condition(policy, spec, cond, configs, 3, lambda j, r: None, on_frame)
+    return frames
+
+
+def test_same_seeds_give_the_same_initial_frames_across_conditions(tiny_policy_dir, short_spec, pool_file, attack_dir):
+    policy = load_policy(tiny_policy_dir)
+    configs = load_pool(pool_file, short_spec)[:3]
+    clean, attack, noise = build_conditions(["attack", "noise"], Sources(attack=str(attack_dir)))
+    f_clean = _first_frames(policy, short_spec, clean, configs)
+    f_attack = _first_frames(policy, short_spec, attack, configs)
+    assert sorted(f_clean) == sorted(f_attack) == [c.seed for c in configs]
+    for s in f_clean:
+        adv0, clean0 = f_clean[s]
+        assert np.array_equal(adv0, clean0)  # the clean arm acts on the clean view
+        # the attack arm's clean view of the same state is pixel-identical to the clean arm's
+        assert np.array_equal(f_attack[s][1], clean0)
+    # and the attack texture is visible in at least one start
+    assert any(not np.array_equal(f_attack[s][0], f_attack[s][1]) for s in f_attack)
+
+    # Sensor noise: one draw per frame shared by the attacked and the clean view, so they
+    # differ only on the adversarial object, while both differ from the noise-free frame.
+    f_noise = _first_frames(policy, short_spec, noise, configs)
+    for s, (adv, cl) in f_noise.items():
+        assert not np.array_equal(cl, f_clean[s][1])
+        assert (adv == cl).all(-1).mean() > 0.5
+
+
+def test_noise_draws_repeat_for_the_same_seed(tiny_policy_dir, short_spec, pool_file, attack_dir):
+    policy = load_policy(tiny_policy_dir)
+    configs = load_pool(pool_file, short_spec)[:1]
+    noise = build_conditions(["noise"], Sources(attack=str(attack_dir)))[1]
+    a = _first_frames(policy, short_spec, noise, configs)[configs[0].seed]
+    b = _first_frames(policy, short_spec, noise, configs)[configs[0].seed]
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+def test_interrupted_eval_resumes_without_redoing_finished_episodes(tmp_path, monkeypatch, tiny_policy_dir, pool_file, attack_dir):
+    cfg = load_eval_config(policy=str(tiny_policy_dir), conditions=("attack",), episodes=4, max_steps=MAX_STEPS, num_envs=2,
+                           pool=str(pool_file), attack=str(attack_dir), gifs=0)
+    real_row = ev._row
+    calls = []
+
+    def crashing_row(*a, **k):
+        calls.append(a[1].seed)
+        if len(calls) == 5:
+            raise KeyboardInterrupt  # killed after 4 finished episodes
+        return real_row(*a, **k)
+
+    monkeypatch.setattr(ev, "_row", crashing_row)
+    with pytest.raises(KeyboardInterrupt):
+        run_eval(cfg, tmp_path, progress=False)
+    assert len((tmp_path / "episodes.csv").read_text().splitlines()) == 1 + 4
+    calls.clear()
+    monkeypatch.setattr(ev, "_row", lambda *a, **k: (calls.append(a[1].seed), real_row(*a, **k))[1])
+    summary = run_eval(cfg, tmp_path, resume=True, progress=False)
+    assert len(calls) == 4  # only the 4 unfinished episodes ran
+    rows = [l.split(",")[:2] for l in (tmp_path / "episodes.csv").read_text().splitlines()[1:]]
+    assert len(rows) == 8 and len({tuple(r) for r in rows}) == 8
+    assert summary["conditions"]["clean"]["n"] == 4 and summary["conditions"]["attack"]["n"] == 4
+    with pytest.raises(Exception, match="different config"):
+        run_eval(cfg.model_copy(update={"episodes": 3}), tmp_path, resume=True, progress=False)
+
+
+def test_eval_writes_rows_summary_report_and_provenance(tmp_path, tiny_policy_dir, pool_file, attack_dir):
+    cfg = load_eval_config(policy=str(tiny_policy_dir), conditions=("attack",), episodes=3, max_steps=MAX_STEPS, num_envs=3,
+                           pool=str(pool_file), attack=str(attack_dir), gifs=1)
+    summary = run_eval(cfg, tmp_path, progress=False)
+    for name in ("episodes.csv", "manifest.json", "summary.json", "run.json", "report.md", "bars_by_phi.png", "bars_by_distance.png",
+                 "textures/attack.png"):
+        assert (tmp_path / name).is_file(), name
+    gifs = sorted(p.name for p in (tmp_path / "gifs").iterdir())
+    assert any(g.startswith("compare_clean_vs_attack_seed") for g in gifs)
+    header = (tmp_path / "episodes.csv").read_text().splitlines()[0].split(",")
+    assert header[:12] == ["condition", "seed", "r_m", "theta_rad", "phi_rad", "outcome", "reached", "success", "targeted",
+                           "steps", "e_trans", "e_rot"] and "min_dist_mustard_bottle" in header
+    att = summary["conditions"]["attack"]
+    assert att["n"] == 3 and 0 <= att["asr"]["lo"] <= att["asr"]["hi"] <= 1
+    assert summary["conditions"]["clean"]["e_trans"]["mean"] == 0.0
+    assert att["e_trans"]["mean"] >= 0 and "vs_clean" in att
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["git_commit"] and run["config"]["eval"]["episodes"] == 3
+    report = (tmp_path / "report.md").read_text()
+    assert "McNemar" in report and "E_trans" in report and "70-90" in report and "69-80" in report
