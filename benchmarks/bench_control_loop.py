@@ -1,6 +1,6 @@
 """Latency from camera frame to arm command: SimCamera -> ONNX resnet18 policy (128x128) -> safety -> SimArm.
 
-Run: ``.venv/bin/python benchmarks/bench_control_loop.py [--onnx policy.onnx] [--steps 300] [--threads 2]``.
+Run: ``.venv/bin/python benchmarks/bench_control_loop.py [--onnx policy.onnx] [--stem small|standard] [--threads 1]``.
 
 Without ``--onnx`` a randomly initialised resnet18 policy from ``sim.policies`` is exported to a
 temporary ONNX file (weights do not change the cost). ``--stem small`` is the project's policy
@@ -50,7 +50,9 @@ def main() -> None:
     ap.add_argument("--config", type=Path, default=SIM_YAML, help="hardware YAML with sim camera + sim arm")
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--warmup", type=int, default=20)
-    ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
+    # 1 thread by default: on 2 shared cores a second (spin-waiting) onnxruntime thread slowed the
+    # sim render more than it sped up the policy (measured, see the module docstring).
+    ap.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     args = ap.parse_args()
 
     from robot_io.config import build_arm, build_camera, build_world, load_hardware_config
