@@ -314,9 +314,8 @@ def load_samples_yaml(path, min_board_corners: int = 8):
     Image samples are posed with the board and camera files; an image where the board is not found
     is skipped and listed in ``notes`` (it is not an error unless too few samples remain).
     """
-    import cv2
-
     from calibration.intrinsics import estimate_board_pose, load_board_yaml, load_camera_yaml, to_gray
+    from calibration.io import read_image
 
     path = Path(path)
     f = load_model(path, HandEyeSamplesFile)
@@ -330,10 +329,12 @@ def load_samples_yaml(path, min_board_corners: int = 8):
             B.append(s.T_cam_board.T)
             continue
         img_path = root / s.image
-        img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise CalibrationError(f"{path}: samples.{k}.image: cannot read image {img_path}")
-        gray = to_gray(img[..., ::-1] if img.ndim == 3 else img)
+        if not img_path.is_file():
+            raise CalibrationError(f"{path}: samples.{k}.image: no such file {img_path}")
+        gray = to_gray(read_image(img_path))
+        if gray.shape != (camera.height, camera.width):
+            raise CalibrationError(f"{path}: samples.{k}.image: {img_path} is {gray.shape[1]}x{gray.shape[0]}, "
+                                   f"the camera file is for {camera.width}x{camera.height}")
         pose = estimate_board_pose(gray, board, camera, min_board_corners)
         if pose is None:
             notes.append(f"samples.{k} ({s.image}): board not found (fewer than {min_board_corners} corners); skipped")

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from calibration.errors import CalibrationFileError
 from sim.geometry import make_T, so3_exp, so3_log
 
-__all__ = ["Strict", "PoseModel", "Vec3", "pose_to_T", "T_to_pose", "read_yaml", "load_model", "write_yaml", "check_T"]
+__all__ = ["Strict", "PoseModel", "Vec3", "pose_to_T", "T_to_pose", "read_yaml", "load_model", "write_yaml", "check_T", "read_image"]
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -134,3 +134,15 @@ def write_yaml(path, data: dict, header: str | None = None) -> Path:
         text = "".join(f"# {line}\n" for line in header.splitlines()) + text
     path.write_text(text)
     return path
+
+
+def read_image(path) -> np.ndarray:
+    """An image file as (H, W) grey or (H, W, 3|4) RGB(A) array; unreadable files raise :class:`CalibrationFileError`."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CalibrationFileError(path, "<image>", "cannot read as an image")
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return img

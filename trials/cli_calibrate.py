@@ -24,16 +24,9 @@ def _board(board: Optional[Path], squares_x: int, squares_y: int, square_mm: flo
 
 
 def _read_image(path: Path):
-    import cv2
+    from calibration.io import read_image
 
-    from calibration.errors import CalibrationError
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise CalibrationError(f"{path}: cannot read as an image")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
-    return img
+    return read_image(path)
 
 
 _SQX = typer.Option(8, "--squares-x", help="board squares across")

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration import synthetic as S
-from calibration.errors import CalibrationFileError, DegenerateDataError
+from calibration.errors import CalibrationError, CalibrationFileError, DegenerateDataError
 from calibration.handeye import (
     HandEyeOptions,
     check_motion_diversity,
@@ -170,3 +170,18 @@ def test_hand_eye_from_rendered_board_images(tmp_path, K, board):
     assert len(A2) == 10 and all("board at" in n for n in notes)
     dt, dr = _err(solve_hand_eye(A2, B2).T_tcp_cam)
     assert dt < 0.002 and dr < 0.5
+
+
+def test_samples_file_with_a_missing_or_wrong_size_image_names_the_sample(tmp_path, K, board):
+    import cv2
+
+    from calibration.intrinsics import CameraIntrinsics, save_board_yaml, save_camera_yaml
+
+    save_board_yaml(tmp_path / "board.yaml", board)
+    save_camera_yaml(tmp_path / "cam.yaml", CameraIntrinsics(K, np.zeros(5), 640, 480))
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((100, 120), np.uint8))
+    for image, msg in (("gone.png", "samples.0.image: no such file"), ("small.png", "samples.0.image: .*120x100")):
+        p = write_yaml(tmp_path / "s.yaml", {"board": "board.yaml", "camera": "cam.yaml",
+                                             "samples": [{"T_base_tcp": _pose(np.eye(4)), "image": image}]})
+        with pytest.raises(CalibrationError, match=msg):
+            load_samples_yaml(p)
