@@ -38,7 +38,6 @@ __all__ = ["SafetyLimits", "SafetyEvent", "StepResult", "SafeArm", "limit_comman
 log = logging.getLogger("robot_io.safety")
 
 Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-Vec3 = tuple[Annotated[float, Field(allow_inf_nan=False)], ...]
 
 
 class SafetyRefusal(RobotIOError, ValueError):
@@ -200,7 +199,7 @@ class SafeArm:
     def __exit__(self, exc_type, exc, tb):
         try:
             if exc_type is not None:
-                self._stop(f"{exc_type.__name__} in the control loop: {exc}" if exc else exc_type.__name__)
+                self._stop_quietly(f"{exc_type.__name__} in the control loop: {exc}" if exc else exc_type.__name__)
         finally:
             self.disconnect()
         return False
@@ -234,10 +233,18 @@ class SafeArm:
     def stop(self, reason: str = "requested") -> None:
         self._stop(reason)
 
+    def _stop_quietly(self, reason: str) -> None:
+        # On the error path: a failing stop (dead link) must not hide the error that got us here.
+        try:
+            self._stop(reason)
+        except Exception as err:  # noqa: BLE001
+            log.error("stopping the arm failed (%s: %s); the driver's own watchdog must stop it",
+                      type(err).__name__, err)
+
     def _require_no_fault(self) -> None:
         f = self.__arm.fault()
         if f is not None:
-            self._stop(f"arm fault: {f}")
+            self._stop_quietly(f"arm fault: {f}")
             raise ArmFaultError(f)
 
     # ------------------------------------------------------------------ commands
@@ -262,7 +269,7 @@ class SafeArm:
         try:
             self.__arm.move_to(np.asarray(T_base_tcp, dtype=np.float64), v)
         except BaseException as err:
-            self._stop(f"{type(err).__name__} during a positioning move: {err}")
+            self._stop_quietly(f"{type(err).__name__} during a positioning move: {err}")
             raise
         self._prev_step = np.zeros(3)
 
@@ -301,7 +308,7 @@ class SafeArm:
             return StepResult("refused", None, (r.reason,))
         except BaseException as err:
             if not isinstance(err, (ArmFaultError, SafetyStop)):  # those already stopped the arm
-                self._stop(f"{type(err).__name__} during a control step: {err}")
+                self._stop_quietly(f"{type(err).__name__} during a control step: {err}")
             raise
 
     def _step(self, target_fn, frame) -> StepResult:

@@ -15,7 +15,7 @@ from robot_io.cameras.depthai import DepthAICamera
 from robot_io.cameras.opencv import OpenCVCamera, resolve_device
 from robot_io.cameras.replay import ReplayCamera
 from robot_io.errors import CameraLostError, MissingExtraError, RobotIOError
-from tests.robot_io.fakes import FakeCaptureDevice, FakeOak, install_depthai, install_video_capture
+from tests.robot_io.fakes import FakeCaptureDevice, install_depthai, install_video_capture
 
 CALIB = CameraIntrinsics(np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.zeros(5), 640, 480)
 

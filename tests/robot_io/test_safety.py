@@ -149,6 +149,14 @@ def test_driver_error_during_a_step_stops_the_arm(rig):
     assert arm.stops == 1
 
 
+def test_a_failing_stop_does_not_hide_the_original_error(limits):
+    arm = RecordingArm()
+    arm.stop = lambda: (_ for _ in ()).throw(OSError("port vanished"))
+    with pytest.raises(RuntimeError, match="the real problem"):
+        with SafeArm(arm, limits):
+            raise RuntimeError("the real problem")
+
+
 def test_positioning_outside_workspace_is_refused_not_clipped(rig):
     safe, arm, _ = rig
     with pytest.raises(SafetyRefusal, match="outside the workspace"):
