@@ -15,7 +15,7 @@ from calibration.handeye import HandEyeOptions, solve_hand_eye
 from calibration.intrinsics import BoardSpec, CameraIntrinsics, calibrate_intrinsics
 from sim.geometry import make_T, rotation_angle, so3_exp
 
-__all__ = ["intrinsics_check", "tag_check", "handeye_check"]
+__all__ = ["intrinsics_check", "tag_check", "handeye_check", "handeye_images_check"]
 
 
 def _board_views(board: BoardSpec, n: int, seed: int):
@@ -100,4 +100,37 @@ def handeye_check(n_samples: int = 15, tcp_noise=(1e-4, 0.02), board_noise=(5e-4
         "methods_disagreement_deg": r.disagreement_deg,
         "residual_rms_mm": r.rms_position_m * 1000,
         "residual_rms_deg": r.rms_rotation_deg,
+    }
+
+
+def handeye_images_check(n_samples: int = 12, tcp_noise=(1e-4, 0.02), width: int = 640, height: int = 480, seed: int = 0,
+                         options: HandEyeOptions | None = None) -> dict:
+    """Hand-eye error when the board poses come from rendered, blurred, noisy board images (not assumed noise)."""
+    from calibration.intrinsics import estimate_board_pose, to_gray
+
+    rng = np.random.default_rng(seed)
+    board = BoardSpec()
+    K = S.default_K(width, height)
+    cam = CameraIntrinsics(K, np.zeros(5), width, height)
+    X = make_T(so3_exp(rng.normal(0, 0.2, 3) + [0.0, 0.0, np.pi / 2]), rng.uniform(-0.06, 0.06, 3) + [0.0, 0.0, 0.05])
+    T_base_board = make_T(so3_exp([np.pi, 0.0, rng.uniform(-np.pi, np.pi)]), [0.5, rng.uniform(-0.2, 0.2), 0.0])
+    centre = (board.squares_x * board.square_size_m / 2, board.squares_y * board.square_size_m / 2, 0.0)
+    A, B_true = S.hand_eye_poses(n_samples, X, T_base_board, centre, distance_range_m=(0.35, 0.45), lateral_m=0.12,
+                                 roll_rad=0.5, seed=seed)
+    A = S.perturb_poses(A, tcp_noise[0], np.radians(tcp_noise[1]), seed=seed + 1)
+    cb = board.cv_board()
+    keep_A, B = [], []
+    for i, (a, b) in enumerate(zip(A, B_true)):
+        img = S.degrade(S.render_planes([S.board_plane(cb, b)], K, width, height), 0.7, 2.0, seed=seed * 1000 + i)
+        pose = estimate_board_pose(to_gray(img), board, cam)
+        if pose is not None:
+            keep_A.append(a)
+            B.append(pose[0])
+    r = solve_hand_eye(np.stack(keep_A), np.stack(B), options)
+    return {
+        "n_used": len(B),
+        "position_mm": float(np.linalg.norm(r.T_tcp_cam[:3, 3] - X[:3, 3]) * 1000),
+        "rotation_deg": float(np.degrees(rotation_angle(r.T_tcp_cam[:3, :3], X[:3, :3]))),
+        "methods_disagreement_mm": r.disagreement_m * 1000,
+        "methods_disagreement_deg": r.disagreement_deg,
     }
