@@ -8,8 +8,11 @@ __all__ = ["attack_job", "feasible_pool_path"]
 
 
 def feasible_pool_path(policy_dir: Path) -> Path:
-    """Where ``advobj policy eval`` leaves the task-feasible pool of a policy."""
-    return Path(policy_dir) / "feasible_pool.json"
+    """The task-feasible pool of a policy: ``<dir>/feasible_pool.json`` (written by ``advobj policy
+    train``), else ``<dir>/eval/feasible_pool.json`` (written by ``advobj policy eval``)."""
+    own = Path(policy_dir) / "feasible_pool.json"
+    evaluated = Path(policy_dir) / "eval" / "feasible_pool.json"
+    return evaluated if not own.is_file() and evaluated.is_file() else own
 
 
 def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True) -> dict:

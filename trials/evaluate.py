@@ -186,7 +186,7 @@ def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True
 
     An explicit ``cfg.pool`` must match the scene. Otherwise the policy's own pool
     (:func:`trials.attack_job.feasible_pool_path`) is used if it was made for this scene and
-    episode length; otherwise one is built here by running the clean policy on candidate seeds
+    episode length and holds at least ``cfg.episodes`` configurations; otherwise one is built here by running the clean policy on candidate seeds
     ``cfg.seed, cfg.seed + 1, ...`` and keeping the configs where it reaches the goal (the
     definition of task-feasible), saved as ``out/feasible_pool.json``.
     """
@@ -199,9 +199,11 @@ def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True
     own = feasible_pool_path(Path(cfg.policy)) if Path(cfg.policy).is_dir() else None
     if own is not None and own.is_file():
         try:
-            return load_pool(own, spec), str(own)
+            pool = load_pool(own, spec)
         except PoolError:
-            pass  # made for another scene or episode length: build one for this evaluation
+            pool = []  # made for another scene or episode length: build one for this evaluation
+        if len(pool) >= cfg.episodes:
+            return pool, str(own)
     path = out / "feasible_pool.json"
     if path.is_file():
         return load_pool(path, spec), str(path)
