@@ -211,6 +211,15 @@ class SafeArm:
     def fault(self) -> Fault | None:
         return self.__arm.fault()
 
+    def recover(self) -> None:
+        """Clear a recoverable fault through the driver (UR: unlock the protective stop, re-upload the script)."""
+        recover = getattr(self.__arm, "recover", None)
+        if recover is None:
+            raise RobotIOError(f"the {self.name} arm has no remote recovery: follow the fault's instructions")
+        self._record("stopped", "recovery requested by the operator")
+        recover()
+        self._prev_step = np.zeros(3)
+
     def start_trial(self) -> None:
         """Start the trial clock (the first :meth:`step` does it too) and reset motion history."""
         self._trial_start = self.clock()

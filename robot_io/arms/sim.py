@@ -82,6 +82,8 @@ class SimArm(Arm):
 
     def move_to(self, T_base_tcp: np.ndarray, speed_mps: float) -> None:
         T = self._check(T_base_tcp)
+        if not speed_mps > 0:
+            raise ValueError(f"sim arm: speed_mps must be positive, got {speed_mps}")
         dp, dr = pose_step(self.world.T_world_tcp, T)
         v = min(float(speed_mps), self.max_speed_mps)
         duration = max(dp / v, dr / self.max_speed_radps)

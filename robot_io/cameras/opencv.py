@@ -76,6 +76,7 @@ class OpenCVCamera(Camera):
         self._latest: tuple[np.ndarray, float, int] | None = None
         self._last_read_seq = -1
         self._error: Exception | None = None
+        self._warned_rescale = False
 
     # ------------------------------------------------------------------ setup
     def _open(self) -> None:
@@ -173,7 +174,8 @@ class OpenCVCamera(Camera):
             raise RobotIOError(f"camera {self.device}: no intrinsics; set camera.intrinsics in the hardware config")
         if self.size is None:
             return self._calibration
-        if self.size != (self._calibration.width, self._calibration.height):
+        if self.size != (self._calibration.width, self._calibration.height) and not self._warned_rescale:
+            self._warned_rescale = True
             log.warning("intrinsics calibrated at %dx%d, camera delivers %dx%d: rescaling K",
                         self._calibration.width, self._calibration.height, *self.size)
         return scale_intrinsics(self._calibration, *self.size)

@@ -96,8 +96,7 @@ def test_protective_stop_becomes_a_clean_explained_error(monkeypatch):
 
 def test_recover_unlocks_through_the_dashboard_then_reuploads(monkeypatch):
     ctrl = install_ur(monkeypatch)
-    arm = URArm("10.0.0.2")
-    with arm:
+    with build_arm(ur_config()) as arm:
         ctrl.protective_stopped = True
         assert arm.fault().kind == "protective_stop"
         arm.recover()
