@@ -32,6 +32,8 @@ def train(
     scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
     seed: int = typer.Option(0),
     episodes: Optional[int] = typer.Option(None, help="final clean evaluation episodes (default: the preset's)"),
+    curve_episodes: int = typer.Option(0, min=0, help="clean episodes after each iteration/chunk, for a learning curve (time excluded from the budget)"),
+    stop_at: Optional[float] = typer.Option(None, help="stop once the learning-curve success reaches this (needs --curve-episodes)"),
     threads: int = typer.Option(1, help=_THREADS_HELP),
     device: str = typer.Option("cpu"),
 ) -> None:
@@ -41,6 +43,11 @@ def train(
     from trials.scene_tools import load_spec
 
     extra = {} if episodes is None else {"final_eval_episodes": episodes}
+    if stop_at is not None and not curve_episodes:
+        raise typer.BadParameter("--stop-at needs --curve-episodes > 0")
+    if curve_episodes:
+        curve = {"eval_episodes": curve_episodes, "stop_at_success": stop_at}
+        extra.update(dagger=curve, ppo=curve)
     try:
         cfg = resolve_preset(preset, arch=arch, method=method, seed=seed, **extra)
     except ValueError as err:

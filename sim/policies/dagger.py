@@ -188,9 +188,13 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
                   "policy_driven_success": float(np.mean(driven_success)) if driven_success else None,
                   "policy_driven_episodes": len(driven_success)}
         if cfg.eval_episodes:
+            te, ce = time.perf_counter(), time.process_time()
             set_randomization(env, clean)
             res = run_episodes(env, policy, range(cfg.eval_episodes))
             record["clean_success"] = res.success_rate.rate
+            # Evaluation is measurement, not training: its time is excluded from the budget.
+            t0 += time.perf_counter() - te
+            c0 += time.process_time() - ce
             if cfg.stop_at_success is not None and res.success_rate.rate >= cfg.stop_at_success:
                 prog["stopped_early"] = True
         prog["elapsed_s"] += time.perf_counter() - t0

@@ -225,12 +225,16 @@ def train_ppo(arch, env, cfg: PPOConfig, env_cfg: EnvConfig, out_dir: str | Path
         if model.ep_info_buffer:
             record["train_mean_return"] = float(np.mean([ep["r"] for ep in model.ep_info_buffer]))
         if cfg.eval_episodes:
+            te, ce = time.perf_counter(), time.process_time()
             set_randomization(env, clean)
             res = run_episodes(env, to_visuomotor(model), range(cfg.eval_episodes))
             set_randomization(env, env_cfg)
             vec.reset()  # evaluation used the envs; start fresh training episodes
             model._last_obs = vec._obs()
             record["clean_success"] = res.success_rate.rate
+            # Evaluation is measurement, not training: its time is excluded from the budget.
+            t0 += time.perf_counter() - te
+            c0 += time.process_time() - ce
             if cfg.stop_at_success is not None and res.success_rate.rate >= cfg.stop_at_success:
                 prog["stopped_early"] = True
         prog["elapsed_s"] += time.perf_counter() - t0

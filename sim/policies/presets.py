@@ -52,8 +52,14 @@ class TrainConfig(BaseModel):
         return self
 
     def fingerprint(self) -> str:
-        """Hash of the fields that shape the training trajectory (a resume must match it)."""
-        d = self.model_dump(mode="json", exclude={"final_eval_episodes", "target_success"})
+        """Hash of the fields that shape the training trajectory (a resume must match it).
+
+        The run length (``dagger.iterations``, ``ppo.total_timesteps``) and the learning-curve
+        settings are left out, so a finished run can also be extended or given a curve.
+        """
+        d = self.model_dump(mode="json", exclude={"final_eval_episodes": True, "target_success": True,
+                                                  "dagger": {"iterations", "eval_episodes", "stop_at_success"},
+                                                  "ppo": {"total_timesteps", "eval_episodes", "stop_at_success"}})
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -72,7 +78,7 @@ PRESETS: dict[str, dict] = {
     "quick": dict(
         policy=dict(arch="small_cnn", image_size=64),
         env=dict(image_size=64, **_DR),
-        dagger=dict(iterations=8, episodes_per_iter=48, num_envs=16, grad_steps_per_iter=200, batch_size=64, lr=1e-3),
+        dagger=dict(iterations=5, episodes_per_iter=48, num_envs=16, grad_steps_per_iter=200, batch_size=64, lr=1e-3),
         ppo=dict(total_timesteps=150_000, num_envs=8, n_steps=128, batch_size=128, n_epochs=4, chunk_timesteps=8192),
         final_eval_episodes=200,
         target_success=0.9,

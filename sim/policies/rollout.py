@@ -62,6 +62,7 @@ class EpisodeResults:
     success: np.ndarray  # (n,) bool reached the goal
     reached: np.ndarray  # (n,) int index of the reached object, -1 = none
     steps: np.ndarray  # (n,) int steps taken
+    min_goal_dist: np.ndarray  # (n,) m closest approach to the goal centre
     configs: list = field(default_factory=list)  # (n,) sim.configs.InitialConfig
 
     @property
@@ -69,7 +70,8 @@ class EpisodeResults:
         return proportion(int(self.success.sum()), len(self.success))
 
     def summary(self, object_names: list[str] | None = None) -> dict:
-        out = {"success": self.success_rate.to_dict(), "mean_steps": float(self.steps.mean()) if len(self.steps) else None}
+        out = {"success": self.success_rate.to_dict(), "mean_steps": float(self.steps.mean()) if len(self.steps) else None,
+               "mean_min_goal_dist_m": float(self.min_goal_dist.mean()) if len(self.steps) else None}
         if object_names is not None:
             counts = {name: int((self.reached == k).sum()) for k, name in enumerate(object_names)}
             counts["none"] = int((self.reached < 0).sum())
@@ -93,6 +95,7 @@ def run_episodes(env, policy, seeds, progress=None) -> EpisodeResults:
     success = np.zeros(n, bool)
     reached = np.full(n, -1, np.int64)
     steps = np.zeros(n, np.int64)
+    min_goal = np.zeros(n)
     configs = [None] * n
     for start in range(0, n, N):
         chunk = seeds[start : start + N]
@@ -106,10 +109,11 @@ def run_episodes(env, policy, seeds, progress=None) -> EpisodeResults:
         success[start : start + m] = (env.reached == env.goal_index)[:m]
         reached[start : start + m] = env.reached[:m]
         steps[start : start + m] = env.steps[:m]
+        min_goal[start : start + m] = env.min_dist[:m, env.goal_index]
         configs[start : start + m] = env.configs[:m]
         if progress is not None:
             progress(m)
-    return EpisodeResults(np.asarray(seeds, np.int64), success, reached, steps, configs)
+    return EpisodeResults(np.asarray(seeds, np.int64), success, reached, steps, min_goal, configs)
 
 
 def evaluate_policy(policy, spec, episodes: int, seed: int = EVAL_SEED_BASE, num_envs: int = 16, env_cfg: EnvConfig | None = None,
