@@ -109,6 +109,19 @@ def test_lost_ack_times_out_and_the_resend_is_answered_from_the_cache(link):
     assert [c for _, c in sim.executed].count("MOVE") == n_moves + 1
 
 
+def test_late_reply_is_accepted_once_and_its_duplicate_discarded_later(link):
+    sim, arm = link
+    before = [c for _, c in sim.executed].count("POSE")
+    sim.reply_delay_s = 0.3  # slower than the 250 ms timeout: the host resends
+    T = arm.tcp_pose()
+    sim.reply_delay_s = 0.0
+    for _ in range(3):
+        assert arm.status()["state"] == "IDLE"
+    assert np.isfinite(T).all() and arm.stats["timeouts"] >= 1
+    assert arm.stats["stale_replies"] >= 1  # the cached answer to the resend, seen later
+    assert [c for _, c in sim.executed].count("POSE") == before + 1
+
+
 def test_silent_device_becomes_a_connection_fault_after_the_retries(link):
     sim, arm = link
     sim.drop_replies = 100
