@@ -16,6 +16,7 @@ cache without executing it again, so a resend never doubles a motion.
 from __future__ import annotations
 
 import logging
+import random
 import threading
 import time
 
@@ -134,6 +135,9 @@ class SerialArm(Arm):
                                       "check the cable and the port name (ls /dev/serial/by-id/)")) from None
         self._buf.clear()
         self._link_lost = None
+        # A random first SEQ: a new session must not look like a resend of the previous session's
+        # last request, which the device would answer from its cache without executing.
+        self._seq = random.randrange(SEQ_MODULO - 1)
         self._fault_code = "NONE"
         self._last_status_s = -np.inf
         self._last_pose = None
@@ -194,8 +198,9 @@ class SerialArm(Arm):
         deadline = time.monotonic() + self.boot_timeout_ms / 1000.0
         while (line := self._readline(deadline)) is not None:
             # Bootloaders print noise before the firmware starts; only a '#BOOT' line counts.
-            if line.startswith(b"#BOOT"):
-                return line[1:].decode("ascii", "replace").strip()
+            at = line.find(b"#BOOT")  # noise may share the banner's line
+            if at >= 0:
+                return line[at + 1:].decode("ascii", "replace").strip()
         log.warning("serial arm %s: no boot banner within %.0f ms; sending HELLO", self.port, self.boot_timeout_ms)
         return None
 
@@ -210,8 +215,13 @@ class SerialArm(Arm):
             for attempt in range(self.retries + 1):
                 if attempt:
                     self.stats["resends"] += 1
-                self._ser.write(frame)
-                reply = self._await_reply(seq)
+                try:
+                    self._ser.write(frame)
+                    reply = self._await_reply(seq)
+                except OSError as err:  # pyserial's SerialException is an OSError: unplugged, port gone
+                    self._link_lost = f"serial I/O error ({err})"
+                    raise ArmFaultError(Fault("connection_lost", f"serial arm {self.port}: {self._link_lost}",
+                                              "check the cable and that the controller is powered, then reconnect")) from None
                 if reply is None:
                     continue
                 status, rest = reply[0], reply[1:]

@@ -172,7 +172,7 @@ def test_stop_byte_halts_a_move_immediately(link):
 
 def test_device_heartbeat_timeout_stops_and_faults(device):
     sim, path = device(heartbeat_timeout_ms=150)
-    with SerialArm(path, timeout_ms=80) as arm:
+    with SerialArm(path, timeout_ms=250) as arm:
         T = arm.tcp_pose()
         T[2, 3] -= 0.2
         arm._move(T, 0.05)
@@ -203,3 +203,22 @@ def test_emergency_stop_is_an_explained_fault(link):
 def test_missing_port_is_a_clear_connection_fault():
     with pytest.raises(ArmFaultError, match="cannot open serial port /nonexistent/ttyX"):
         SerialArm("/nonexistent/ttyX").connect()
+
+
+def test_banner_sharing_a_line_with_bootloader_noise_is_found(device):
+    sim, path = device(boot_delay_s=0.2, boot_noise=b"\xfe\x00garbage")
+    with SerialArm(path, boot_timeout_ms=2000) as arm:
+        assert arm.device_info["fw"].startswith("advobj-sim")
+    assert "HELLO" not in [c for _, c in sim.executed]
+
+
+def test_unplugged_port_during_a_command_is_a_connection_fault(link):
+    sim, arm = link
+
+    def unplugged(data):
+        raise OSError(5, "Input/output error")
+
+    arm._ser.write = unplugged
+    with pytest.raises(ArmFaultError, match="serial I/O error"):
+        arm.tcp_pose()
+    assert arm.fault().kind == "connection_lost"
