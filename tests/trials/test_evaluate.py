@@ -104,3 +104,27 @@ def test_eval_writes_rows_summary_report_and_provenance(tmp_path, tiny_policy_di
     assert run["git_commit"] and run["config"]["eval"]["episodes"] == 3
     report = (tmp_path / "report.md").read_text()
     assert "McNemar" in report and "E_trans" in report and "70-90" in report and "69-80" in report
+
+
+@pytest.mark.slow
+def test_end_to_end_cli_short_attack_then_20_paired_episodes(tmp_path, tiny_policy_dir, pool_file):
+    """CI-sized main job through the CLI: a short attack on a tiny policy, then 20 episodes per arm."""
+    import yaml
+    from typer.testing import CliRunner
+
+    from trials.cli import app
+
+    cfg = tmp_path / "attack.yaml"
+    cfg.write_text(yaml.safe_dump({"iterations": 3, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "pool_size": 8}))
+    runner = CliRunner()
+    res = runner.invoke(app, ["attack", "run", "--policy", str(tiny_policy_dir), "--config", str(cfg), "--out", str(tmp_path / "atk")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["eval", "--policy", str(tiny_policy_dir), "--attack", str(tmp_path / "atk"), "--episodes", "20",
+                              "--max-steps", str(MAX_STEPS), "--num-envs", "10", "--pool", str(pool_file), "--out", str(tmp_path / "ev")])
+    assert res.exit_code == 0, res.output
+    assert "T-ASR" in res.output and "95% CI" in res.output
+    summary = json.loads((tmp_path / "ev" / "summary.json").read_text())
+    assert summary["conditions"]["clean"]["n"] == summary["conditions"]["attack"]["n"] == 20
+    clean_seeds = [l.split(",")[1] for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:] if l.startswith("clean,")]
+    attack_seeds = [l.split(",")[1] for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:] if l.startswith("attack,")]
+    assert sorted(clean_seeds) == sorted(attack_seeds)  # paired: the same 20 configurations

@@ -1,0 +1,64 @@
+"""``advobj experiment``: the paper's tables as recipes (quick and paper presets)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
+
+
+def _run(name: str, preset: str, out: Optional[Path], policy: Optional[Path], target: List[str], episodes: Optional[int],
+         scene: Optional[Path], pool: Optional[Path]) -> None:
+    from trials.experiments import ExperimentError, resolve_experiment, run_experiment
+
+    targets = {}
+    for item in target:
+        arch, sep, d = item.partition("=")
+        if not sep or not arch or not d:
+            raise ExperimentError(f"--target: expected ARCH=PATH, got {item!r}")
+        targets[arch] = Path(d)
+    cfg = resolve_experiment(preset, episodes=episodes, pool=None if pool is None else str(pool))
+    path = run_experiment(name, cfg, out or Path("runs") / f"{name}-{preset}", policy, targets, scene, log=typer.echo)
+    typer.echo(path.read_text())
+    typer.echo(f"table: {path}")
+
+
+_PRESET = typer.Option("quick", help="quick (2 CPU cores) or paper (the paper's budget)")
+_OUT = typer.Option(None, help="output directory (default: runs/<experiment>-<preset>); re-running it resumes")
+_POLICY = typer.Option(None, help="reference (source) policy checkpoint; default: train one with the preset's policy preset")
+_EPISODES = typer.Option(None, min=1, help="override the preset's episodes per condition")
+_SCENE = typer.Option(None, help="scene YAML (default: the built-in paper scene)")
+_POOL = typer.Option(None, help="task-feasible pool JSON for every evaluation (default: each policy's own)")
+
+
+@app.command()
+def table1(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
+           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL) -> None:
+    """3D adversarial object vs 2D patch, by viewing angle (Table I)."""
+    _run("table1", preset, out, policy, [], episodes, scene, pool)
+
+
+@app.command()
+def table2(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
+           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL) -> None:
+    """C2F vs F2C vs NS and the targeted / pose / saliency ablations, by distance (Table II)."""
+    _run("table2", preset, out, policy, [], episodes, scene, pool)
+
+
+@app.command()
+def table3(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
+           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL) -> None:
+    """Shapes, stereo camera, lighting, noise and background (Table III)."""
+    _run("table3", preset, out, policy, [], episodes, scene, pool)
+
+
+@app.command()
+def transfer(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY,
+             target: List[str] = typer.Option([], help="ARCH=PATH target policy (resnet34, vgg16, inception_v3; checkpoint or .onnx); "
+                                                       "missing targets are trained"),
+             episodes: Optional[int] = _EPISODES, scene: Optional[Path] = _SCENE) -> None:
+    """Black-box transfer: source attack against ResNet34, VGG16 and Inception-v3 (Table V)."""
+    _run("transfer", preset, out, policy, target, episodes, scene, None)

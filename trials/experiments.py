@@ -1,0 +1,319 @@
+"""The paper's experiments as recipes: locate or train policies, run the attacks, evaluate, tabulate.
+
+Every recipe has a ``quick`` and a ``paper`` preset and writes ``<out>/table.md`` in the paper's
+layout with the paper's numbers beside ours. Work is cached under ``<out>``: a finished policy,
+attack or evaluation is reused, an interrupted one resumes, so a recipe can be re-run after a
+crash and continues where it stopped.
+
+``<out>/policies/<name>/``  trained policies (unless given with ``--policy`` / ``--target``)
+``<out>/attacks/<name>/``   attack runs (``advobj attack run`` layout)
+``<out>/evals/<name>/``     evaluations (``advobj eval`` layout, with report.md)
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from sim.errors import AdvobjError
+
+__all__ = ["ExperimentError", "ExperimentConfig", "PRESETS", "RECIPES", "resolve_experiment", "run_experiment", "PAPER"]
+
+
+class ExperimentError(AdvobjError, ValueError):
+    """Bad recipe name, preset or inputs."""
+
+
+class ExperimentConfig(BaseModel):
+    """The budget of a recipe run (a preset plus overrides)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    preset: str
+    policy_preset: str = Field(description="training preset of the reference (source) policy when none is given")
+    target_policy_preset: str = Field(description="training preset of the black-box target policies when none are given")
+    attack_preset: str
+    attack_overrides: dict = Field(default_factory=dict, description="AttackConfig fields applied to every attack")
+    episodes: int = Field(ge=1)
+    max_steps: int = Field(60, ge=1)
+    num_envs: int = Field(8, ge=1)
+    shapes: tuple[str, ...] = ("dog", "duck")
+    gifs: int = Field(2, ge=0)
+    pool: str | None = Field(None, description="task-feasible pool for every evaluation (default: each policy's)")
+    seed: int = 0
+
+
+PRESETS: dict[str, dict] = {
+    # Runnable on 2 CPU cores: the small-CNN reference policy (advobj policy train --preset quick),
+    # short attacks, 100 episodes per condition.
+    "quick": dict(policy_preset="quick", target_policy_preset="ci", attack_preset="quick", episodes=100, max_steps=60, num_envs=8,
+                  shapes=("dog", "duck")),
+    # The paper's budget: ResNet-18 at 128 px, 10k-iteration attacks, 500 episodes of 60 steps.
+    "paper": dict(policy_preset="paper", target_policy_preset="paper", attack_preset="paper", episodes=500, max_steps=60, num_envs=16,
+                  shapes=("dog", "duck", "cube", "cylinder")),
+}
+
+
+def resolve_experiment(preset: str, **overrides) -> ExperimentConfig:
+    if preset not in PRESETS:
+        raise ExperimentError(f"preset: unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    try:
+        return ExperimentConfig(preset=preset, **{**PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None}})
+    except ValidationError as err:
+        lines = ["invalid experiment config"] + [f"  {'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors()]
+        raise ExperimentError("\n".join(lines)) from None
+
+
+# ----------------------------------------------------------------------------- the paper's numbers
+PHI_LABELS = ["0-10", "10-20", "20-30", "30-40", "40-50", "50-60", "60-70", "70-90"]
+DIST_LABELS = ["25-36", "36-47", "47-58", "58-69", "69-80"]
+PAPER = {
+    # Table I: (T-ASR per phi bin, ASR per phi bin, T-ASR avg, ASR avg), %
+    "table1": {
+        "patch": ([73.00, 61.40, 54.80, 46.40, 31.00, 27.00, 15.00, 10.60], [77.00, 74.40, 66.80, 65.00, 56.60, 51.80, 48.80, 44.20], 39.90, 60.58),
+        "attack": ([78.00, 74.00, 62.00, 64.00, 60.00, 51.00, 40.00, 34.20], [79.00, 80.00, 77.00, 74.00, 70.00, 62.00, 55.00, 56.60], 57.90, 69.20),
+    },
+    # Table II: per distance bin then Avg: (T-ASR, ASR) pairs and (E_trans, E_rot) pairs
+    "table2": {
+        "ns": ([56.00, 59.60, 69.20, 70.40, 73.80, 75.20, 75.00, 76.80, 94.60, 95.20, 73.72, 75.44],
+               [0.33, 0.042, 0.34, 0.040, 0.31, 0.036, 0.29, 0.034, 0.26, 0.033, 0.31, 0.037]),
+        "f2c": ([54.40, 55.80, 59.20, 61.60, 67.40, 70.60, 64.80, 67.40, 89.40, 91.40, 67.04, 69.36],
+                [0.32, 0.034, 0.32, 0.034, 0.30, 0.032, 0.28, 0.030, 0.26, 0.029, 0.30, 0.032]),
+        "c2f_untargeted": ([0.20, 15.00, 0.00, 8.00, 0.00, 10.20, 0.00, 8.40, 0.00, 34.40, 0.04, 15.20],
+                           [0.05, 0.006, 0.04, 0.005, 0.03, 0.005, 0.03, 0.004, 0.02, 0.004, 0.04, 0.005]),
+        "c2f_no_pose": ([60.60, 63.80, 72.20, 73.60, 73.80, 75.60, 72.60, 73.60, 89.80, 91.40, 73.80, 75.60],
+                        [0.21, 0.030, 0.22, 0.032, 0.24, 0.035, 0.24, 0.035, 0.26, 0.038, 0.23, 0.034]),
+        "c2f_no_saliency": ([59.20, 62.60, 73.80, 74.20, 78.60, 79.80, 82.00, 82.80, 96.80, 97.40, 78.08, 79.36],
+                            [0.49, 0.061, 0.48, 0.057, 0.43, 0.050, 0.37, 0.045, 0.33, 0.041, 0.42, 0.051]),
+        "c2f": ([61.60, 65.60, 76.60, 77.00, 82.20, 83.40, 84.20, 85.20, 97.40, 97.60, 80.36, 81.76],
+                [0.53, 0.066, 0.51, 0.060, 0.45, 0.054, 0.40, 0.048, 0.35, 0.044, 0.45, 0.055]),
+    },
+    # Table III: (T-ASR, ASR) %; cube and cylinder are not in the paper's table
+    "table3": {"attack": (79.80, 81.12), "shape_dog": (60.04, 65.80), "shape_duck": (63.20, 68.32), "stereo": (63.28, 78.91),
+               "light_bright": (77.04, 84.70), "light_dim": (67.80, 72.20), "noise": (75.57, 80.41), "bkg_varied": (77.91, 85.64)},
+    # Table V: (T-ASR, ASR) %
+    "transfer": {"resnet18": (79.08, 81.12), "resnet34": (71.20, 78.32), "vgg16": (59.68, 70.08), "inception_v3": (56.68, 70.28)},
+}
+
+# Table II's rows: label, opt. strategy, (targeted, pose, saliency), AttackConfig overrides
+TABLE2_ROWS = [
+    ("ns", "(a)", "NS", (1, 1, 1), {"schedule": "ns"}),
+    ("f2c", "(b)", "F2C", (1, 1, 1), {"schedule": "f2c"}),
+    ("c2f_untargeted", "(c)", "C2F", (0, 1, 1), {"schedule": "c2f", "loss": "untargeted"}),
+    ("c2f_no_pose", "(d)", "C2F", (1, 0, 1), {"schedule": "c2f", "use_pose": False}),
+    ("c2f_no_saliency", "(e)", "C2F", (1, 1, 0), {"schedule": "c2f", "use_saliency": False}),
+    ("c2f", "(f)", "C2F", (1, 1, 1), {"schedule": "c2f"}),
+]
+TRANSFER_TARGETS = ("resnet34", "vgg16", "inception_v3")
+
+
+# ----------------------------------------------------------------------------- orchestration
+@dataclass
+class Context:
+    cfg: ExperimentConfig
+    out: Path
+    policy: Path | None = None
+    targets: dict = field(default_factory=dict)
+    scene: str | None = None
+    progress: bool = True
+    log: Callable[[str], None] = print
+
+    def spec(self):
+        from trials.scene_tools import load_spec
+
+        return load_spec(self.scene)
+
+
+def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None, preset: str | None = None) -> Path:
+    """A policy checkpoint: the one given, a cached one under ``out/policies``, or a trained one."""
+    if name == "reference" and ctx.policy is not None:
+        return ctx.policy
+    if name in ctx.targets:
+        return Path(ctx.targets[name])
+    d = ctx.out / "policies" / name
+    if (d / "policy.json").is_file():
+        ctx.log(f"policy {name}: reusing {d}")
+        return d
+    from sim.policies.presets import resolve_preset
+    from sim.policies.train import train_policy
+
+    preset = preset or ctx.cfg.policy_preset
+    ctx.log(f"policy {name}: training ({preset} preset{', ' + arch if arch else ''}) into {d}")
+    try:
+        tcfg = resolve_preset(preset, arch=arch, seed=ctx.cfg.seed)
+    except ValueError as err:
+        raise ExperimentError(str(err)) from None
+    train_policy(tcfg, d, ctx.spec(), progress=ctx.progress, log=ctx.log)
+    return d
+
+
+def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict) -> Path:
+    """An attack run directory: reused when finished with the same config, resumed if interrupted."""
+    import yaml
+
+    from attack.optimize import find_checkpoint, resolve_config
+    from trials.attack_job import attack_job
+
+    d = ctx.out / "attacks" / name
+    fields = {**ctx.cfg.attack_overrides, **overrides}
+    want = resolve_config(ctx.cfg.attack_preset, fields).model_dump()
+    if (d / "metrics.json").is_file() and (d / "texture.npy").is_file():
+        have = json.loads((d / "run.json").read_text())["config"]["attack"]
+        if have != json.loads(json.dumps(want)):
+            raise ExperimentError(f"{d}: holds an attack with a different config; use another --out")
+        ctx.log(f"attack {name}: reusing {d}")
+        return d
+    d.mkdir(parents=True, exist_ok=True)
+    cfg_path = d / "attack_config.yaml"
+    cfg_path.write_text(yaml.safe_dump(fields))
+    resume = find_checkpoint(d) is not None
+    ctx.log(f"attack {name}: {'resuming' if resume else 'running'} ({ctx.cfg.attack_preset} preset) into {d}")
+    attack_job(policy_dir, ctx.cfg.attack_preset, cfg_path, ctx.scene, None, d, resume, progress=ctx.progress)
+    return d
+
+
+def ensure_eval(ctx: Context, policy_dir: Path, name: str, conditions, attack=None, patch=None, shapes=None) -> dict:
+    from trials.evaluate import load_eval_config, run_eval
+
+    c = ctx.cfg
+    ecfg = load_eval_config(policy=str(policy_dir), conditions=tuple(conditions), episodes=c.episodes, max_steps=c.max_steps,
+                            num_envs=c.num_envs, seed=c.seed, pool=c.pool, scene=ctx.scene, gifs=c.gifs,
+                            attack=None if attack is None else str(attack), patch=None if patch is None else str(patch),
+                            shapes={k: str(v) for k, v in (shapes or {}).items()})
+    d = ctx.out / "evals" / name
+    ctx.log(f"eval {name}: {', '.join(conditions)} x {c.episodes} episodes into {d}")
+    return run_eval(ecfg, d, resume=(d / "manifest.json").is_file(), progress=ctx.progress)
+
+
+# ----------------------------------------------------------------------------- tables
+def _pct(p: dict) -> str:
+    return "n/a" if not p["n"] else f"{100 * p['rate']:.2f}"
+
+
+def _ci(p: dict) -> str:
+    return "" if not p["n"] else f" [{100 * p['lo']:.0f}, {100 * p['hi']:.0f}]"
+
+
+def _err(m: dict, d: int) -> str:
+    return "n/a" if not m["n"] or m["mean"] != m["mean"] else f"{m['mean']:.{d}f}"
+
+
+def _header(title: str, ctx: Context, note: str = "") -> list[str]:
+    c = ctx.cfg
+    return [f"# {title}", "", f"Preset `{c.preset}`: {c.episodes} episodes per condition (paper: 500), at most {c.max_steps} steps, "
+            f"attack preset `{c.attack_preset}`. Rates in %; `ours` cells are point estimates with 95% Wilson intervals in brackets "
+            "in the summary table; per-bin intervals are in each evaluation's report.md. " + note, ""]
+
+
+def table1(ctx: Context) -> str:
+    ref = ensure_policy(ctx)
+    att = ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"})
+    pat = ensure_attack(ctx, ref, "patch", {"schedule": "c2f", "adversarial_mesh": "patch"})
+    s = ensure_eval(ctx, ref, "table1", ["attack", "patch"], attack=att, patch=pat)
+    lines = _header("Table I: 3D object vs 2D patch by viewing angle phi (deg)", ctx)
+    lines += ["| attack type | source | " + " | ".join(f"{b} T-ASR | {b} ASR" for b in PHI_LABELS + ["Avg"]) + " |",
+              "|---|---|" + "---|---|" * (len(PHI_LABELS) + 1)]
+    for cond, label in (("patch", "2D Patch"), ("attack", "3D Object")):
+        cs = s["conditions"][cond]
+        ours = [f"{_pct(cs['by_phi'][b]['tasr'])} | {_pct(cs['by_phi'][b]['asr'])}" for b in PHI_LABELS]
+        ours.append(f"{_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])}")
+        t, a, ta, aa = PAPER["table1"][cond]
+        paper = [f"{x:.2f} | {y:.2f}" for x, y in zip(t, a)] + [f"{ta:.2f} | {aa:.2f}"]
+        lines += [f"| {label} | ours | " + " | ".join(ours) + " |", f"| {label} | paper | " + " | ".join(paper) + " |"]
+    lines += ["", f"Episodes per phi bin (ours): " + ", ".join(f"{b}: {s['conditions']['attack']['by_phi'][b]['n']}" for b in PHI_LABELS)]
+    return "\n".join(lines) + "\n"
+
+
+def table2(ctx: Context) -> str:
+    ref = ensure_policy(ctx)
+    lines = _header("Table II: optimisation strategies and loss ablations by initial distance (cm)", ctx,
+                    "Second line of each row: E_trans (normalised action units) and E_rot (rad), defined in docs/evaluation.md.")
+    lines += ["| row | strategy | targeted | pose | saliency | source | " + " | ".join(f"{b} T-ASR/E_trans | {b} ASR/E_rot" for b in DIST_LABELS + ["Avg"]) + " |",
+              "|---|---|---|---|---|---|" + "---|---|" * (len(DIST_LABELS) + 1)]
+    for key, row, strat, flags, overrides in TABLE2_ROWS:
+        run = ensure_attack(ctx, ref, key, overrides)
+        cs = ensure_eval(ctx, ref, f"table2_{key}", ["attack"], attack=run)["conditions"]["attack"]
+        chk = " | ".join("x" if f else "" for f in flags)
+        rates = [f"{_pct(cs['by_distance'][b]['tasr'])} | {_pct(cs['by_distance'][b]['asr'])}" for b in DIST_LABELS]
+        rates.append(f"{_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])}")
+        errs = [f"{_err(cs['by_distance'][b]['e_trans'], 2)} | {_err(cs['by_distance'][b]['e_rot'], 3)}" for b in DIST_LABELS]
+        errs.append(f"{_err(cs['e_trans'], 2)} | {_err(cs['e_rot'], 3)}")
+        pr, pe = PAPER["table2"][key]
+        fmt = lambda xs, d: " | ".join(f"{x:.{d}f}" for x in xs)  # noqa: E731
+        lines += [f"| {row} | {strat} | {chk} | ours | " + " | ".join(rates) + " |",
+                  f"| | | | | | ours | " + " | ".join(errs) + " |",
+                  f"| | | | | | paper | " + fmt(pr, 2) + " |",
+                  f"| | | | | | paper | " + " | ".join(f"{pe[i]:.2f} | {pe[i + 1]:.3f}" for i in range(0, len(pe), 2)) + " |"]
+    return "\n".join(lines) + "\n"
+
+
+def table3(ctx: Context) -> str:
+    ref = ensure_policy(ctx)
+    att = ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"})
+    shapes = {s: ensure_attack(ctx, ref, f"shape_{s}", {"schedule": "c2f", "adversarial_mesh": s}) for s in ctx.cfg.shapes}
+    conds = ["attack"] + [f"shape_{s}" for s in ctx.cfg.shapes] + ["stereo", "light_bright", "light_dim", "noise", "bkg_varied"]
+    s = ensure_eval(ctx, ref, "table3", conds, attack=att, shapes=shapes)
+    labels = {"attack": "Ours", "stereo": "Stereo Cam", "light_bright": "Light: Bright", "light_dim": "Light: Dim", "noise": "Add Noise",
+              "bkg_varied": "Bkg Varied", **{f"shape_{x}": f"Shape: {x.capitalize()}" for x in ctx.cfg.shapes}}
+    lines = _header("Table III: generalisation and robustness", ctx,
+                    "Stereo: the mono policy acts on both cameras of a 6 cm stereo pair and the two actions are averaged (docs/evaluation.md).")
+    lines += ["| condition | T-ASR (ours) | ASR (ours) | T-ASR (paper) | ASR (paper) | McNemar p vs clean (ASR) |", "|---|---|---|---|---|---|"]
+    for c in conds:
+        cs = s["conditions"][c]
+        pt, pa = PAPER["table3"].get(c, (None, None))
+        p = cs.get("vs_clean", {}).get("asr", {}).get("p_value")
+        lines.append(f"| {labels[c]} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])} | "
+                     f"{'-' if pt is None else f'{pt:.2f}'} | {'-' if pa is None else f'{pa:.2f}'} | {'-' if p is None else f'{p:.2g}'} |")
+    return "\n".join(lines) + "\n"
+
+
+def transfer(ctx: Context) -> str:
+    src = ensure_policy(ctx)
+    att = ensure_attack(ctx, src, "c2f", {"schedule": "c2f"})
+    rows = [("resnet18", src, "source (white-box)")]
+    for arch in TRANSFER_TARGETS:
+        rows.append((arch, ensure_policy(ctx, arch, arch=arch, preset=ctx.cfg.target_policy_preset), "black-box target"))
+    lines = _header("Table V: transfer from the source policy to other architectures", ctx,
+                    "Each target is evaluated on its own task-feasible configurations; the texture is the source policy's attack.")
+    lines += ["| policy | role | checkpoint arch | T-ASR (ours) | ASR (ours) | T-ASR (paper) | ASR (paper) |", "|---|---|---|---|---|---|---|"]
+    for name, pdir, role in rows:
+        s = ensure_eval(ctx, pdir, f"transfer_{name}", ["attack"], attack=att)
+        cs = s["conditions"]["attack"]
+        pt, pa = PAPER["transfer"][name]
+        lines.append(f"| {name} | {role} | {_arch(pdir)} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])} | {pt:.2f} | {pa:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _arch(pdir: Path) -> str:
+    try:
+        from sim.policies.checkpoint import load_card
+
+        return load_card(pdir).arch.arch
+    except Exception:
+        return "onnx" if str(pdir).endswith(".onnx") else "?"
+
+
+RECIPES: dict[str, Callable[[Context], str]] = {"table1": table1, "table2": table2, "table3": table3, "transfer": transfer}
+
+
+def run_experiment(name: str, cfg: ExperimentConfig, out: str | Path, policy=None, targets=None, scene=None, progress=True, log=print) -> Path:
+    """Run recipe ``name``; returns the path of its ``table.md``."""
+    from sim.runinfo import write_run_info
+
+    if name not in RECIPES:
+        raise ExperimentError(f"unknown experiment {name!r}; choose one of {', '.join(RECIPES)}")
+    unknown = set(targets or {}) - set(TRANSFER_TARGETS)
+    if unknown:
+        raise ExperimentError(f"--target: unknown target {sorted(unknown)[0]!r}; choose from {', '.join(TRANSFER_TARGETS)}")
+    out = Path(out)
+    ctx = Context(cfg, out, None if policy is None else Path(policy), dict(targets or {}), None if scene is None else str(scene), progress, log)
+    write_run_info(out, {"job": f"experiment {name}", "experiment": cfg.model_dump(mode="json"), "policy": None if policy is None else str(policy),
+                         "targets": {k: str(v) for k, v in (targets or {}).items()}, "scene": ctx.scene}, cfg.seed)
+    table = RECIPES[name](ctx)
+    path = out / "table.md"
+    path.write_text(table)
+    return path
