@@ -334,6 +334,9 @@ class SafeArm:
         if ts is None or not np.isfinite(ts):
             raise _Refuse("no camera frame timestamp given")
         age_ms = (now - ts) * 1000.0
+        if age_ms < -_FUTURE_TOLERANCE_MS:
+            # Usually a wall-clock (time.time) stamp: it would defeat the age check, so refuse.
+            raise _Refuse(f"camera frame timestamp is {-age_ms:.0f} ms in the future: stamp frames with time.monotonic()")
         if age_ms > lim.max_frame_age_ms:
             raise _Refuse(f"camera frame is {age_ms:.0f} ms old (limit {lim.max_frame_age_ms:.0f} ms)")
         self._require_no_fault()
@@ -347,6 +350,9 @@ class SafeArm:
         self.__arm.servo(T_cmd, lim.control_period_s)
         self._prev_step = dp
         return StepResult("clipped" if reasons else "ok", T_cmd, tuple(reasons))
+
+
+_FUTURE_TOLERANCE_MS = 50.0
 
 
 class _Refuse(Exception):

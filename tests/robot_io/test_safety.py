@@ -74,6 +74,15 @@ def test_stale_frame_stops_the_arm_instead_of_moving(rig, limits):
     assert safe.step_delta([0.01, 0, 0, 0, 0, 0], clock.t).status == "ok"
 
 
+def test_frame_stamped_on_another_clock_is_refused(rig):
+    safe, arm, clock = rig
+    import time
+
+    res = safe.step_delta(np.zeros(6), time.time())  # wall clock instead of the monotonic one
+    assert res.status == "refused" and "time.monotonic" in res.reasons[0]
+    assert arm.servos == []
+
+
 def test_missing_frame_timestamp_is_refused(rig):
     safe, arm, _ = rig
     assert safe.step_delta(np.zeros(6), None).status == "refused"
