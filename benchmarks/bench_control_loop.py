@@ -36,9 +36,12 @@ def export_resnet18(path: Path, size: int, small_stem: bool) -> Path:
     return export_onnx(VisuomotorPolicy(arch="resnet18", image_size=size, small_stem=small_stem), path)
 
 
-def stats(xs_s: list[float]) -> str:
+def stats(xs_s: list[float], cpu_s: list[float] | None = None) -> str:
     a = np.asarray(xs_s) * 1000.0
-    return f"median {np.median(a):6.2f} ms   p95 {np.percentile(a, 95):6.2f} ms"
+    text = f"median {np.median(a):6.2f} ms   p95 {np.percentile(a, 95):6.2f} ms"
+    if cpu_s is not None:
+        text += f"   (process CPU {np.median(np.asarray(cpu_s) * 1000.0):6.2f} ms median)"
+    return text
 
 
 def main() -> None:
@@ -70,6 +73,9 @@ def main() -> None:
         ep = world.spec.episode
         scale = np.array([ep.max_step_m] * 3 + [ep.max_step_rad] * 3)
         t_cam, t_pol, t_arm, t_total = [], [], [], []
+        # Process CPU time per stage (all threads): on a shared machine wall time includes waiting
+        # for other processes, CPU time does not, so the two bracket the unloaded latency.
+        c_cam, c_pol, c_arm = [], [], []
         clipped = refused = 0
         with camera, arm:
             arm.start_trial()
@@ -77,17 +83,20 @@ def main() -> None:
                 if i and i % 100 == 0:
                     world.reset()  # keep the random policy from parking the TCP at a wall
                     arm.start_trial()
-                t0 = time.monotonic()
+                c0, t0 = time.process_time(), time.monotonic()
                 frame = camera.read()
-                t1 = time.monotonic()
+                c1, t1 = time.process_time(), time.monotonic()
                 action = policy.act(frame.rgb[None])[0]
-                t2 = time.monotonic()
+                c2, t2 = time.process_time(), time.monotonic()
                 res = arm.step_delta(action.astype(np.float64) * scale, frame)
-                t3 = time.monotonic()
+                c3, t3 = time.process_time(), time.monotonic()
                 if i >= args.warmup:
                     t_cam.append(t1 - t0)
                     t_pol.append(t2 - t1)
                     t_arm.append(t3 - t2)
+                    c_cam.append(c1 - c0)
+                    c_pol.append(c2 - c1)
+                    c_arm.append(c3 - c2)
                     t_total.append(t3 - frame.timestamp_s)
                     clipped += res.status == "clipped"
                     refused += res.status == "refused"
@@ -95,9 +104,9 @@ def main() -> None:
     total_med = float(np.median(t_total)) * 1000.0
     print(f"control loop, {args.steps} steps, {S}x{S} px, policy {onnx_path.name}, onnxruntime threads={args.threads}, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
-    print(f"  camera read (sim render)   {stats(t_cam)}")
-    print(f"  policy (onnxruntime)       {stats(t_pol)}")
-    print(f"  safety + arm command       {stats(t_arm)}")
+    print(f"  camera read (sim render)   {stats(t_cam, c_cam)}")
+    print(f"  policy (onnxruntime)       {stats(t_pol, c_pol)}")
+    print(f"  safety + arm command       {stats(t_arm, c_arm)}")
     print(f"  frame -> arm command       {stats(t_total)}   (= {1000.0 / total_med:.1f} Hz at the median)")
     print(f"  commands clipped {clipped}, refused {refused}")
     print(f"  target <= 30 ms median: {'met' if total_med <= 30.0 else 'NOT met'}")
