@@ -156,6 +156,22 @@ def test_onnx_matches_torch_on_32_synthetic_scene_images(onnx_pair):
     assert np.abs(o.act(imgs) - p.act(imgs)).max() <= 1e-4
 
 
+def test_onnx_matches_torch_on_32_rendered_wrist_camera_images(onnx_pair):
+    from sim.spec import default_scene
+    from sim.variations import Randomization
+    from sim.world import SimWorld
+
+    p, o = onnx_pair
+    with SimWorld(default_scene(), image_size=64, randomization=Randomization(light="random", background="varied")) as world:
+        frames = []
+        for seed in range(32):
+            world.reset(seed)
+            frames.append(world.render(with_ids=False).rgb)
+    imgs = np.stack(frames)
+    assert imgs.std() > 10  # real scenes, not blank frames
+    assert np.abs(o.act(imgs) - p.act(imgs)).max() <= 1e-4
+
+
 def test_onnx_policy_carries_its_card_and_is_refused_by_the_attack(onnx_pair):
     p, o = onnx_pair
     assert o.image_size == 64 and o.card is not None and o.card.arch == p.config
