@@ -28,8 +28,11 @@ def demo(out: Path = typer.Option(Path("runs/demo"), help="output directory"), s
     """The main job on the built-in scene, with quick settings."""
     from trials.demo import run_demo
 
-    result = run_demo(out, seed)
-    typer.echo(f"demo: expert reached {result['reached']} in {result['steps']} steps; outputs in {out}/")
+    from trials.cli_eval import format_summary
+
+    result = run_demo(out, seed, log=typer.echo)
+    typer.echo(format_summary(result["summary"]))
+    typer.echo(f"demo: report in {result['report']}")
 
 
 from trials import cli_hw  # noqa: E402

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from sim.errors import AdvobjError
 
-__all__ = ["ExperimentError", "ExperimentConfig", "PRESETS", "RECIPES", "resolve_experiment", "run_experiment", "PAPER"]
+__all__ = ["ExperimentError", "ExperimentConfig", "PRESETS", "RECIPES", "resolve_experiment", "run_experiment", "PAPER", "table1_markdown"]
 
 
 class ExperimentError(AdvobjError, ValueError):
@@ -214,6 +214,11 @@ def table1(ctx: Context) -> str:
     att = ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"})
     pat = ensure_attack(ctx, ref, "patch", {"schedule": "c2f", "adversarial_mesh": "patch"})
     s = ensure_eval(ctx, ref, "table1", ["attack", "patch"], attack=att, patch=pat)
+    return table1_markdown(s, ctx)
+
+
+def table1_markdown(s: dict, ctx: Context) -> str:
+    """Table I's layout for an evaluation summary holding the ``attack`` and ``patch`` arms."""
     lines = _header("Table I: 3D object vs 2D patch by viewing angle phi (deg)", ctx)
     lines += ["| attack type | source | " + " | ".join(f"{b} T-ASR | {b} ASR" for b in PHI_LABELS + ["Avg"]) + " |",
               "|---|---|" + "---|---|" * (len(PHI_LABELS) + 1)]
