@@ -83,7 +83,10 @@ def evaluate(
 
     _set_threads(threads)
     pol = load_policy(policy, device=device)
-    env_cfg = EnvConfig(image_size=pol.image_size, light=light, background=background, noise_std=noise)
+    try:
+        env_cfg = EnvConfig(image_size=pol.image_size, light=light, background=background, noise_std=noise)
+    except ValueError as err:  # pydantic names the offending field
+        raise typer.BadParameter(str(err)) from None
     spec = load_spec(scene)
     out = out or (policy / "eval" if policy.is_dir() else policy.with_name(policy.stem + "-eval"))
     resolved = {"policy": str(policy), "episodes": episodes, "num_envs": num_envs, "env": env_cfg.model_dump(),
