@@ -205,8 +205,8 @@ def _err(m: dict, d: int) -> str:
 def _header(title: str, ctx: Context, note: str = "") -> list[str]:
     c = ctx.cfg
     return [f"# {title}", "", f"Preset `{c.preset}`: {c.episodes} episodes per condition (paper: 500), at most {c.max_steps} steps, "
-            f"attack preset `{c.attack_preset}`. Rates in %; `ours` cells are point estimates with 95% Wilson intervals in brackets "
-            "in the summary table; per-bin intervals are in each evaluation's report.md. " + note, ""]
+            f"attack preset `{c.attack_preset}`. Rates in %; overall (Avg) cells of ours carry 95% Wilson intervals in brackets; "
+            "per-bin intervals and episode counts are in each evaluation's report.md (`evals/`). " + note, ""]
 
 
 def table1(ctx: Context) -> str:
