@@ -128,3 +128,23 @@ def test_end_to_end_cli_short_attack_then_20_paired_episodes(tmp_path, tiny_poli
     clean_seeds = [l.split(",")[1] for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:] if l.startswith("clean,")]
     attack_seeds = [l.split(",")[1] for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:] if l.startswith("attack,")]
     assert sorted(clean_seeds) == sorted(attack_seeds)  # paired: the same 20 configurations
+
+
+def test_feasible_pool_keeps_only_configs_the_clean_policy_solves(tmp_path, monkeypatch, tiny_policy_dir, short_spec):
+    """Building the pool: candidates are rolled out clean and only goal-reaching ones are kept, in seed order."""
+    goal = short_spec.object_index("goal")
+
+    def fake_rollout(policy, spec, cond, configs, num_envs, on_done, on_frame=None):
+        assert cond.name == "clean" and cond.texture is None
+        for j, c in enumerate(configs):
+            on_done(j, {"reached": goal if c.seed % 3 == 0 else -1})
+
+    monkeypatch.setattr(ev, "rollout_condition", fake_rollout)
+    cfg = load_eval_config(policy=str(tiny_policy_dir), episodes=4, max_steps=MAX_STEPS, num_envs=2, seed=100)
+    pool, src = ev.resolve_pool(cfg, None, short_spec, tmp_path, progress=False)
+    assert [c.seed for c in pool] == [102, 105, 108, 111] and src == str(tmp_path / "feasible_pool.json")
+    assert [c.seed for c in load_pool(tmp_path / "feasible_pool.json", short_spec)] == [102, 105, 108, 111]
+
+    monkeypatch.setattr(ev, "rollout_condition", lambda p, s, c, configs, n, on_done, f=None: [on_done(j, {"reached": -1}) for j in range(len(configs))])
+    with pytest.raises(ev.EvalError, match="nothing is task-feasible"):
+        ev.resolve_pool(cfg, None, short_spec, tmp_path / "other", progress=False)
