@@ -24,9 +24,15 @@ def eval_command(
     gifs: int = typer.Option(2, min=0, help="configurations recorded as rollout GIFs"),
     out: Path = typer.Option(Path("runs/eval"), help="evaluation directory"),
     resume: bool = typer.Option(False, "--resume", help="continue an interrupted evaluation in OUT"),
+    threads: int = typer.Option(1, min=0, help="torch threads; 1 (default) avoids OpenMP spin-waits stealing the CPU renderer's cores, 0 = torch's default"),
 ) -> None:
     """Run E episodes per condition on the same task-feasible configurations; write rows, summary and report."""
     from trials.evaluate import EvalError, load_eval_config, run_eval
+
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
 
     shapes = {}
     for item in shape:
