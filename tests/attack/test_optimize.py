@@ -84,3 +84,25 @@ def test_texture_moves_and_stays_in_range_for_every_loss_variant(spec_pool):
         assert torch.isfinite(run.texture).all()
         assert run.texture.min() >= 0 and run.texture.max() <= 1
         assert not torch.equal(before, run.texture) or run.history.skipped == 2, extra
+
+
+def test_ctrl_c_leaves_a_usable_checkpoint(tmp_path, spec_pool):
+    spec, pool = spec_pool
+    cfg = resolve_config("quick", {**CFG, "checkpoint_every": 100})
+    run = AttackRun(_policy(), spec, cfg, pool=pool, out_dir=tmp_path)
+    real_step, calls = run.step, []
+
+    def step_then_interrupt():
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_step()
+
+    run.step = step_then_interrupt
+    with pytest.raises(KeyboardInterrupt):
+        run_attack(run, progress=False)
+    run.close()
+    again = AttackRun(_policy(), spec, cfg, pool=pool, out_dir=tmp_path)
+    again.load_checkpoint(find_checkpoint(tmp_path))
+    assert again.iteration == 1 and torch.equal(again.texture, run.texture)
+    again.close()
