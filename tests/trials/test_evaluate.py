@@ -148,3 +148,19 @@ def test_feasible_pool_keeps_only_configs_the_clean_policy_solves(tmp_path, monk
     monkeypatch.setattr(ev, "rollout_condition", lambda p, s, c, configs, n, on_done, f=None: [on_done(j, {"reached": -1}) for j in range(len(configs))])
     with pytest.raises(ev.EvalError, match="nothing is task-feasible"):
         ev.resolve_pool(cfg, None, short_spec, tmp_path / "other", progress=False)
+
+
+def test_black_box_onnx_target_is_evaluated_on_the_same_configs(tmp_path, tiny_policy_dir, pool_file, attack_dir):
+    """An ONNX file is a valid target (black-box transfer): same rows, same seeds as a checkpoint target."""
+    from sim.policies.checkpoint import load_checkpoint
+    from sim.policies.onnx_policy import export_onnx
+
+    pol, card = load_checkpoint(tiny_policy_dir)
+    onnx = tmp_path / "target.onnx"
+    export_onnx(pol, onnx, card=card)
+    cfg = load_eval_config(policy=str(onnx), conditions=("attack",), episodes=2, max_steps=MAX_STEPS, num_envs=2,
+                           pool=str(pool_file), attack=str(attack_dir), gifs=0)
+    summary = run_eval(cfg, tmp_path / "ev", progress=False, report=False)
+    assert summary["conditions"]["attack"]["n"] == 2 and summary["meta"]["policy"].endswith(".onnx")
+    seeds = sorted({l.split(",")[1] for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:]})
+    assert seeds == [str(c.seed) for c in load_pool(pool_file)[:2]]
