@@ -12,7 +12,13 @@ app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments 
 
 def _run(name: str, preset: str, out: Optional[Path], policy: Optional[Path], target: List[str], episodes: Optional[int],
          scene: Optional[Path], pool: Optional[Path]) -> None:
+    import torch
+
     from trials.experiments import ExperimentError, resolve_experiment, run_experiment
+
+    # One torch thread, as 'advobj policy train' and 'advobj eval' default to: OpenMP spin-waits
+    # otherwise steal the CPU renderer's cores on small machines.
+    torch.set_num_threads(1)
 
     targets = {}
     for item in target:
