@@ -99,6 +99,8 @@ class OnnxPolicy:
             from sim.policies.checkpoint import PolicyCard
 
             self.card = PolicyCard.model_validate(json.loads(meta[CARD_METADATA_KEY]))
+            if self.card.arch.image_size != self.image_size:
+                raise PolicyError(f"{self.path}: card says {self.card.arch.image_size} px but the graph takes {self.image_size} px")
 
     def act(self, images) -> np.ndarray:
         """Actions ``(B, 6)`` float32 for env images ``(B, S, S, 3)`` uint8 or ``(B, 3, S, S)`` floats."""
