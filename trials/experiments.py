@@ -230,6 +230,11 @@ def table1_markdown(s: dict, ctx: Context) -> str:
         paper = [f"{x:.2f} | {y:.2f}" for x, y in zip(t, a)] + [f"{ta:.2f} | {aa:.2f}"]
         lines += [f"| {label} | ours | " + " | ".join(ours) + " |", f"| {label} | paper | " + " | ".join(paper) + " |"]
     lines += ["", f"Episodes per phi bin (ours): " + ", ".join(f"{b}: {s['conditions']['attack']['by_phi'][b]['n']}" for b in PHI_LABELS)]
+    pair = s.get("paired", {}).get("attack vs patch")
+    if pair:
+        lines += ["", f"Paired McNemar exact test, 3D object vs 2D patch on the same configurations: T-ASR "
+                      f"{pair['tasr']['b']} configs only 3D / {pair['tasr']['c']} only patch, p = {pair['tasr']['p_value']:.2g}; "
+                      f"ASR {pair['asr']['b']} / {pair['asr']['c']}, p = {pair['asr']['p_value']:.2g}."]
     return "\n".join(lines) + "\n"
 
 

@@ -76,6 +76,25 @@ def summarize(rows: list[dict], spec, condition_names, meta: dict | None = None)
                 "tasr": mcnemar_from_outcomes([a["targeted"] for a, _ in paired], [b["targeted"] for _, b in paired]).to_dict(),
             }
         out["conditions"][c] = s
+    out["paired"] = _pairwise(by_cond)
+    return out
+
+
+def _pairwise(by_cond: dict) -> dict:
+    """McNemar's exact test for every pair of non-clean conditions, on their shared configs.
+
+    Keys ``"A vs B"``; ``b`` counts configs where only A has the event, ``c`` only B.
+    """
+    names = [c for c in by_cond if c != "clean"]
+    out = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            rb = {r["seed"]: r for r in by_cond[b]}
+            paired = [(r, rb[r["seed"]]) for r in by_cond[a] if r["seed"] in rb]
+            out[f"{a} vs {b}"] = {
+                "asr": mcnemar_from_outcomes([not x["success"] for x, _ in paired], [not y["success"] for _, y in paired]).to_dict(),
+                "tasr": mcnemar_from_outcomes([x["targeted"] for x, _ in paired], [y["targeted"] for _, y in paired]).to_dict(),
+            }
     return out
 
 
@@ -182,6 +201,12 @@ def write_report(out: str | Path, summary: dict, conds=()) -> Path:
             lines.append(f"| {c} | " + " | ".join(cells) + " |")
         png = _bar_plot(out / f"bars_{key}.png", summary, key, title, unit)
         lines += ["", f"![{title}]({png.name})"]
+    if summary.get("paired"):
+        lines += ["", "## Paired comparisons between conditions (McNemar exact, same configurations)", "",
+                  "| A vs B | T-ASR: only A / only B | p | ASR: only A / only B | p |", "|---|---|---|---|---|"]
+        for k, v in summary["paired"].items():
+            lines.append(f"| {k} | {v['tasr']['b']} / {v['tasr']['c']} | {_fmt_p(v['tasr']['p_value'])} | "
+                         f"{v['asr']['b']} / {v['asr']['c']} | {_fmt_p(v['asr']['p_value'])} |")
     gifs = _compare_gifs(out, names)
     if gifs:
         lines += ["", "## Rollouts (left: clean, right: condition; same initial configuration)", ""]

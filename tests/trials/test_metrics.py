@@ -100,3 +100,25 @@ def test_mcnemar_from_outcomes_pairs_edge_cases():
     assert (mixed.b, mixed.c) == (2, 1)
     with pytest.raises(ValueError, match="same length"):
         mcnemar_from_outcomes([True], [True, False])
+
+
+def test_summary_pairs_conditions_by_seed_for_mcnemar():
+    from sim.spec import default_scene
+    from trials.report import summarize
+
+    spec = default_scene()
+    goal, adv = spec.object_index("goal"), spec.object_index("adversarial")
+
+    def row(cond, seed, reached):
+        return {"condition": cond, "seed": seed, "r_m": 0.5, "phi_rad": 0.3, "reached": reached, "success": reached == goal,
+                "targeted": reached == adv, "steps": 10, "e_trans": 0.0, "e_rot": 0.0}
+
+    rows = [row("clean", s, goal) for s in range(6)]
+    rows += [row("attack", s, adv) for s in range(5)] + [row("attack", 5, goal)]
+    rows += [row("patch", s, adv if s < 2 else goal) for s in (5, 4, 3, 2, 1, 0)]  # order must not matter
+    s = summarize(rows, spec, ["clean", "attack", "patch"])
+    vs = s["conditions"]["attack"]["vs_clean"]["tasr"]
+    assert (vs["b"], vs["c"], vs["n_pairs"]) == (5, 0, 6) and vs["p_value"] == pytest.approx(2 / 32)
+    pair = s["paired"]["attack vs patch"]["tasr"]
+    assert (pair["b"], pair["c"]) == (3, 0) and pair["p_value"] == pytest.approx(2 / 8)
+    assert s["conditions"]["attack"]["by_distance"]["47-58"]["n"] == 6
