@@ -196,6 +196,9 @@ def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True
 
     if cfg.pool is not None:
         return load_pool(cfg.pool, spec), str(cfg.pool)
+    path = out / "feasible_pool.json"
+    if path.is_file():  # built by an earlier (interrupted) run of this evaluation: keep using it
+        return load_pool(path, spec), str(path)
     own = feasible_pool_path(Path(cfg.policy)) if Path(cfg.policy).is_dir() else None
     if own is not None and own.is_file():
         try:
@@ -204,9 +207,6 @@ def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True
             pool = []  # made for another scene or episode length: build one for this evaluation
         if len(pool) >= cfg.episodes:
             return pool, str(own)
-    path = out / "feasible_pool.json"
-    if path.is_file():
-        return load_pool(path, spec), str(path)
     from tqdm import tqdm
 
     n_cand = cfg.episodes * cfg.pool_factor
