@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from sim.errors import AdvobjError
+from sim.errors import AdvobjError, format_validation_error
 
 __all__ = ["AttackConfig", "AttackError", "PRESETS", "resolve_config", "AttackRun", "run_attack", "find_checkpoint"]
 
@@ -79,10 +79,7 @@ def resolve_config(preset: str, overrides: dict | None = None, source: str = "<o
     try:
         return AttackConfig(**{**PRESETS[preset], **(overrides or {})})
     except ValidationError as err:
-        lines = [f"{source}: invalid attack config"] + [
-            f"  {'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors()
-        ]
-        raise AttackError("\n".join(lines)) from None
+        raise AttackError(format_validation_error(err, "attack config", source)) from None
 
 
 # ---------------------------------------------------------------------------------------------

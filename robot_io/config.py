@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from sim.errors import format_validation_error
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
 
@@ -144,14 +145,6 @@ class HardwareConfig(_Strict):
 
 
 # ---------------------------------------------------------------------- loading
-def _format(err: ValidationError, source: str) -> str:
-    lines = [f"{source}: invalid hardware config"]
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
-        lines.append(f"  {loc}: {e['msg']}")
-    return "\n".join(lines)
-
-
 def _resolve(cfg: HardwareConfig, base: Path | None) -> HardwareConfig:
     if base is None:
         return cfg
@@ -173,7 +166,7 @@ def hardware_config_from_dict(data, source: str = "<dict>", base: Path | None = 
     try:
         cfg = HardwareConfig.model_validate(data)
     except ValidationError as err:
-        raise HardwareConfigError(_format(err, source)) from None
+        raise HardwareConfigError(format_validation_error(err, "hardware config", source)) from None
     return _resolve(cfg, base)
 
 

@@ -1,7 +1,21 @@
 """The base of every user-facing error: the CLI prints these as one clear message, no traceback."""
 
-__all__ = ["AdvobjError"]
+__all__ = ["AdvobjError", "format_validation_error"]
 
 
 class AdvobjError(Exception):
     """An error caused by input or environment the user can fix; its message says how."""
+
+
+def format_validation_error(err, what: str, source: str | None = None) -> str:
+    """One message for a pydantic ``ValidationError``: the source, then ``field.path: problem``.
+
+    ``what`` names the kind of input ("scene spec", "attack config"); ``source`` the file it
+    came from, when there is one.
+    """
+    head = f"{source}: invalid {what}" if source else f"invalid {what}"
+    lines = [head]
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        lines.append(f"  {loc}: {e['msg']}")
+    return "\n".join(lines)

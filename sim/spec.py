@@ -6,7 +6,7 @@ dotted path (``objects.1.pose.yaw_deg: ...``) and the file it came from.
 
 from __future__ import annotations
 
-from sim.errors import AdvobjError
+from sim.errors import AdvobjError, format_validation_error
 
 import math
 from importlib import resources
@@ -255,14 +255,6 @@ class SceneSpec(_Strict):
         return scene_from_dict({**self.model_dump(), **changes}, source="<update>")
 
 
-def _format_error(err: ValidationError, source: str) -> str:
-    lines = [f"{source}: invalid scene spec"]
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
-        lines.append(f"  {loc}: {e['msg']}")
-    return "\n".join(lines)
-
-
 def scene_from_dict(data: dict, source: str = "<dict>") -> SceneSpec:
     """Validate ``data`` into a :class:`SceneSpec`; errors name ``source`` and each field."""
     if not isinstance(data, dict):
@@ -270,7 +262,7 @@ def scene_from_dict(data: dict, source: str = "<dict>") -> SceneSpec:
     try:
         spec = SceneSpec.model_validate(data)
     except ValidationError as err:
-        raise SpecError(_format_error(err, source)) from None
+        raise SpecError(format_validation_error(err, "scene spec", source)) from None
     return _resolve_paths(spec, source)
 
 

@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from sim.errors import AdvobjError
+from sim.errors import AdvobjError, format_validation_error
 
 __all__ = ["EvalError", "EvalConfig", "rollout_condition", "resolve_pool", "run_eval", "load_eval_config"]
 
@@ -55,8 +55,7 @@ def load_eval_config(**fields) -> EvalConfig:
     try:
         return EvalConfig(**fields)
     except ValidationError as err:
-        lines = ["invalid evaluation config"] + [f"  {'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors()]
-        raise EvalError("\n".join(lines)) from None
+        raise EvalError(format_validation_error(err, "evaluation config")) from None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ from typing import Callable
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from sim.errors import AdvobjError
+from sim.errors import AdvobjError, format_validation_error
 
 __all__ = ["ExperimentError", "ExperimentConfig", "PRESETS", "RECIPES", "resolve_experiment", "run_experiment", "PAPER", "table1_markdown"]
 
@@ -64,8 +64,7 @@ def resolve_experiment(preset: str, **overrides) -> ExperimentConfig:
     try:
         return ExperimentConfig(preset=preset, **{**PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None}})
     except ValidationError as err:
-        lines = ["invalid experiment config"] + [f"  {'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors()]
-        raise ExperimentError("\n".join(lines)) from None
+        raise ExperimentError(format_validation_error(err, "experiment config")) from None
 
 
 # ----------------------------------------------------------------------------- the paper's numbers
