@@ -12,6 +12,8 @@ from typing import Literal
 
 import numpy as np
 
+from robot_io.device import Device
+
 __all__ = ["Fault", "Arm"]
 
 FaultKind = Literal["protective_stop", "emergency_stop", "connection_lost", "program_stopped",
@@ -31,7 +33,7 @@ class Fault:
         return f"{text}. To recover: {self.recovery}" if self.recovery else text
 
 
-class Arm(abc.ABC):
+class Arm(Device):
     """A robot arm moving a TCP in its base frame.
 
     Motion commands: :meth:`move_to` (blocking positioning move) and :meth:`servo` (one
@@ -40,37 +42,14 @@ class Arm(abc.ABC):
 
     name: str = "arm"
 
-    def __init__(self):
-        self._connected = False
-
-    @property
-    def connected(self) -> bool:
-        return self._connected
-
-    def connect(self) -> None:
-        if not self._connected:
-            self._open()
-            self._connected = True
-
-    def disconnect(self) -> None:
-        if self._connected:
-            self._connected = False
-            self._close()
-
-    def __enter__(self):
-        self.connect()
-        return self
-
     def __exit__(self, exc_type, exc, tb):
+        # An arm leaving a with-block on an exception is stopped before the link is released.
         try:
             if exc_type is not None and self._connected:
                 self.stop()
         finally:
             self.disconnect()
         return False
-
-    @abc.abstractmethod
-    def _open(self) -> None: ...
 
     @abc.abstractmethod
     def _close(self) -> None:

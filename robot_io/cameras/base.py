@@ -10,6 +10,7 @@ import numpy as np
 
 # The calibration package owns the intrinsics type and its YAML file; cameras only carry it.
 from calibration.intrinsics import CameraIntrinsics
+from robot_io.device import Device
 
 __all__ = ["Frame", "CameraIntrinsics", "Camera", "scale_intrinsics"]
 
@@ -47,27 +48,10 @@ def scale_intrinsics(intr: CameraIntrinsics, width: int, height: int) -> CameraI
     return CameraIntrinsics(K, intr.dist, int(width), int(height), intr.rms_px)
 
 
-class Camera(abc.ABC):
+class Camera(Device):
     """A wrist camera: ``connect()``/``disconnect()`` (or ``with camera:``), ``read()``, ``intrinsics``."""
 
     name: str = "camera"
-
-    def __init__(self):
-        self._connected = False
-
-    @property
-    def connected(self) -> bool:
-        return self._connected
-
-    def connect(self) -> None:
-        if not self._connected:
-            self._open()
-            self._connected = True
-
-    def disconnect(self) -> None:
-        if self._connected:
-            self._connected = False
-            self._close()
 
     def read(self) -> Frame:
         """The newest frame; never one older than the previous ``read()``'s."""
@@ -81,18 +65,4 @@ class Camera(abc.ABC):
         """Intrinsics at the resolution ``read()`` returns."""
 
     @abc.abstractmethod
-    def _open(self) -> None: ...
-
-    @abc.abstractmethod
-    def _close(self) -> None: ...
-
-    @abc.abstractmethod
     def _read(self) -> Frame: ...
-
-    def __enter__(self):
-        self.connect()
-        return self
-
-    def __exit__(self, *exc):
-        self.disconnect()
-        return False
