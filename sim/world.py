@@ -68,6 +68,37 @@ class SimWorld:
         self._noise_rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0x0015E]))
         return config
 
+    def place_objects(self, object_xy_yaw) -> None:
+        """Stand the objects at ``(K, 3)`` (x m, y m, yaw rad), spec order; the TCP and look stay.
+
+        For staged scenes (e.g. a real-trial plan's object layout replayed on sim hardware), where
+        the placement comes from outside rather than from a seeded :class:`InitialConfig`.
+        """
+        a = np.asarray(object_xy_yaw, dtype=np.float64)
+        if a.shape != (len(self.spec.objects), 3) or not np.isfinite(a).all():
+            raise ValueError(f"object_xy_yaw must be finite ({len(self.spec.objects)}, 3), got {a.shape}")
+        self.T_world_objects = object_poses_world(a)
+
+    def set_scene(self, spec, renderer: SceneRenderer | None = None) -> None:
+        """Swap the scene (e.g. another adversarial mesh) keeping the TCP pose and the object poses.
+
+        ``renderer``: a renderer already built for ``spec`` at this world's image size (callers
+        switching between a few scenes cache them: building one costs a GL context and mesh
+        uploads); ``None`` builds one that this world owns. A renderer this world owned is closed.
+        """
+        if len(spec.objects) != len(self.spec.objects):
+            raise ValueError(f"set_scene: the new scene has {len(spec.objects)} objects, this world {len(self.spec.objects)}")
+        new = renderer or SceneRenderer(spec, self.width, self.height)
+        if (new.height, new.width) != (self.height, self.width):
+            raise ValueError("set_scene: renderer has a different image size")
+        if self._owns_renderer and new is not self.renderer:
+            self.renderer.close()
+        self._owns_renderer = renderer is None
+        self.renderer = new
+        self.spec = spec
+        self._centers_local = object_local_centers(spec)
+        self.appearance = Appearance(spec.lighting)
+
     @property
     def T_world_tcp(self) -> np.ndarray:
         """(4, 4) current TCP pose in the world (table) frame."""
