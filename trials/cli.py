@@ -46,6 +46,9 @@ app.add_typer(cli_calibrate.app, name="calibrate")
 from trials import cli_policy  # noqa: E402
 
 app.add_typer(cli_policy.app, name="policy")
+from trials import cli_trial  # noqa: E402
+
+app.add_typer(cli_trial.app, name="trial")
 
 
 def main() -> None:

@@ -1,0 +1,68 @@
+"""``advobj trial``: plan real-robot trials, run them, export and report them (issue 8).
+
+Heavy code is imported inside the command functions so ``advobj --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, help="Real-robot trials: plan, run, export, report.")
+
+
+def _key_values(items: List[str], option: str) -> dict[str, str]:
+    """``["k=v", ...]`` -> ``{k: v}``; a malformed or repeated item is an error naming ``option``."""
+    from trials.real.plan import PlanError
+
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise PlanError(f"{option}: expected KEY=VALUE, got {item!r}")
+        if key in out:
+            raise PlanError(f"{option}: {key!r} given twice")
+        out[key] = value
+    return out
+
+
+@app.command("plan")
+def plan_command(
+    out: Path = typer.Option(..., help="plan YAML to write"),
+    scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
+    seed: int = typer.Option(0, help="seed of the poses, layouts and the trial order"),
+    env: List[str] = typer.Option(["A"], "--env", help="environment name (repeatable)"),
+    shape: List[str] = typer.Option(["cube", "cylinder"], "--shape", help="adversarial-object shape, a built-in mesh (repeatable)"),
+    condition: List[str] = typer.Option(["clean", "adv3d", "patch"], "--condition", help="clean, adv3d or patch (repeatable)"),
+    texture: List[str] = typer.Option([], "--texture", help="SHAPE/adv3d=RUN_DIR or SHAPE/patch=RUN_DIR: attack run with the texture (repeatable)"),
+    tag: List[str] = typer.Option([], "--tag", help="scenario tag, e.g. dim, bright, dynamic_lighting, occluded, moved_object; each adds a full block of trials"),
+    tcp_poses: int = typer.Option(5, "--tcp-poses", min=1, help="initial TCP poses"),
+    object_poses: int = typer.Option(6, "--object-poses", min=1, help="object layouts"),
+    pool: Optional[Path] = typer.Option(None, help="draw poses and layouts only from this (task-feasible) config pool JSON"),
+    sheet: Optional[Path] = typer.Option(None, help="also write the printable placement sheet PDF here"),
+) -> None:
+    """Write the randomized real-trial plan (paper design: TCP poses x object layouts per env, shape, condition)."""
+    from sim.configs import load_pool
+    from sim.runinfo import write_run_info
+    from trials.real.plan import design_summary, make_plan, plan_sha256, save_plan, texture_ref
+    from trials.scene_tools import load_spec
+
+    spec = load_spec(scene)
+    textures = {key: texture_ref(path, key, spec) for key, path in _key_values(texture, "--texture").items()}
+    plan = make_plan(
+        spec, seed, env, shape, condition, textures, n_tcp_poses=tcp_poses, n_object_layouts=object_poses, tags=tag,
+        pool=None if pool is None else load_pool(pool, spec), scene=None if scene is None else str(scene),
+    )
+    save_plan(plan, out)
+    config = {"job": "trial-plan", "plan": str(out), "plan_sha256": plan_sha256(out), "pool": None if pool is None else str(pool),
+              "sheet": None if sheet is None else str(sheet)}
+    write_run_info(out.parent, config, seed, name=f"{out.stem}.run.json")
+    typer.echo("\n".join(design_summary(plan)))
+    typer.echo(f"wrote {out}")
+    if sheet is not None:
+        from trials.real.sheet import placement_sheet_pdf
+
+        n_pages = placement_sheet_pdf(plan, sheet, spec)
+        typer.echo(f"wrote {sheet} ({n_pages} pages; print at 100 %)")

@@ -1,0 +1,462 @@
+"""The real-robot trial plan: which TCP pose, object layout, shape and condition, in which order.
+
+Design (paper Sec. IV-E): per environment and per adversarial-object shape, every one of
+``n_tcp_poses`` initial TCP poses is crossed with every one of ``n_object_layouts`` object
+layouts (5 x 6 = 30 trials in the paper), and this block is repeated for every condition:
+
+* ``clean``  - the object of that shape with its benign default look (the control);
+* ``adv3d``  - that shape with the attack texture ``textures["<shape>/adv3d"]``;
+* ``patch``  - the built-in ``patch`` mesh with ``textures["<shape>/patch"]``, placed where the
+  adversarial object would stand.
+
+Scenario tags (``dim``, ``bright``, ``dynamic_lighting``, ``occluded``, ``moved_object``) are
+free-form: each tag adds one more full block (every env x shape x condition x pose x layout) whose
+trials carry that tag and a ``-<tag>`` id suffix. A tag therefore costs as much as the untagged
+design; choose the conditions of a tagged session accordingly (one plan per session is fine).
+
+Poses follow the simulator's distribution: layouts and TCP poses are drawn with
+:func:`sim.configs.sample_config` (optionally only from a task-feasible pool), whose world frame is
+the table frame (z up, origin on the table top). Layouts come from the first ``n_object_layouts``
+configurations; TCP poses from further configurations, keeping a TCP pose only if it is a valid
+start for *every* layout (the sampler's own rules: at least ``min_tcp_height_m + 0.04`` high and
+1.5 success radii from every object) and sees both objects' centres in the wrist image - a crossed
+design reuses one TCP pose with layouts it was not drawn for, and a start with an object out of
+view wastes a real trial. The trial order is a permutation drawn from ``seed``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from pathlib import Path
+from typing import Annotated, Literal, Sequence
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from sim.errors import AdvobjError, format_validation_error
+
+__all__ = [
+    "PlanError",
+    "CONDITIONS",
+    "PLAN_ROLES",
+    "Pose",
+    "ObjectPlacement",
+    "TcpPose",
+    "ObjectLayout",
+    "TextureRef",
+    "PlannedTrial",
+    "TrialPlan",
+    "texture_ref",
+    "make_plan",
+    "save_plan",
+    "load_plan",
+    "plan_sha256",
+    "design_summary",
+]
+
+CONDITIONS = ("clean", "adv3d", "patch")
+TEXTURED = ("adv3d", "patch")
+PLAN_ROLES = ("goal", "adversarial")
+# Names end up in trial ids and file names: keep them to one plain token.
+_NAME = re.compile(r"^[A-Za-z0-9_]+$")
+_MAX_DRAWS = 5000
+
+
+class PlanError(AdvobjError, ValueError):
+    """A trial plan cannot be built or read; the message names the file and field or option."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _finite(v):
+    if not all(math.isfinite(x) for x in v):
+        raise ValueError("values must be finite numbers")
+    return v
+
+
+class Pose(_Strict):
+    """A rigid transform as translation (m) + axis-angle rotation (rad)."""
+
+    translation_m: tuple[float, float, float]
+    rotvec_rad: tuple[float, float, float]
+
+    _check = field_validator("translation_m", "rotvec_rad")(_finite)
+
+    def T(self) -> np.ndarray:
+        """The (4, 4) homogeneous transform."""
+        from sim.geometry import make_T, so3_exp
+
+        return make_T(so3_exp(np.asarray(self.rotvec_rad, dtype=np.float64)), np.asarray(self.translation_m, dtype=np.float64))
+
+    @staticmethod
+    def from_T(T) -> "Pose":
+        from sim.geometry import so3_log
+
+        T = np.asarray(T, dtype=np.float64)
+        return Pose(translation_m=tuple(float(x) for x in T[:3, 3]), rotvec_rad=tuple(float(x) for x in so3_log(T[:3, :3])))
+
+
+class ObjectPlacement(_Strict):
+    """An object's base centre on the table top (table frame, m) and its yaw about +z (rad)."""
+
+    xy_m: tuple[float, float]
+    yaw_rad: float
+
+    _check = field_validator("xy_m")(_finite)
+
+
+class TcpPose(_Strict):
+    index: Annotated[int, Field(ge=0)]
+    T_table_tcp: Pose
+
+
+class ObjectLayout(_Strict):
+    """Where the goal and the adversarial object stand, keyed by scene role."""
+
+    index: Annotated[int, Field(ge=0)]
+    objects: dict[str, ObjectPlacement]
+
+    @field_validator("objects")
+    @classmethod
+    def _roles(cls, v):
+        if set(v) != set(PLAN_ROLES):
+            raise ValueError(f"needs exactly the roles {list(PLAN_ROLES)}, got {sorted(v)}")
+        return v
+
+
+class TextureRef(_Strict):
+    """An attack run directory (``texture.npy`` + ``run.json``) and the sha256 of its texture.npy."""
+
+    path: str
+    sha256: Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+
+
+class PlannedTrial(_Strict):
+    trial_id: Annotated[str, Field(min_length=1)]
+    order: Annotated[int, Field(ge=0)]
+    env: str
+    shape: str
+    condition: Literal["clean", "adv3d", "patch"]
+    tcp_pose: Annotated[int, Field(ge=0)]
+    object_layout: Annotated[int, Field(ge=0)]
+    tags: list[str] = []
+
+
+class TrialPlan(_Strict):
+    version: Literal[1] = 1
+    seed: int
+    scene: str | None
+    radius_m: Annotated[float, Field(gt=0)] = 0.10
+    max_steps: Annotated[int, Field(gt=0)] = 60
+    control_hz: Annotated[float, Field(gt=0)] = 10.0
+    placement_tolerance_m: Annotated[float, Field(gt=0)] = 0.01
+    placement_tolerance_rad: Annotated[float, Field(gt=0)] = 0.0873
+    envs: list[str]
+    shapes: list[str]
+    conditions: list[str]
+    tcp_poses: list[TcpPose]
+    object_layouts: list[ObjectLayout]
+    textures: dict[str, TextureRef]
+    trials: list[PlannedTrial]
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        for field in ("envs", "shapes", "conditions"):
+            values = getattr(self, field)
+            if not values:
+                raise ValueError(f"{field}: must not be empty")
+            if len(set(values)) != len(values):
+                raise ValueError(f"{field}: repeated entries {values}")
+            for v in values:
+                if not _NAME.match(v):
+                    raise ValueError(f"{field}: {v!r} must be letters, digits and '_' only")
+        for c in self.conditions:
+            if c not in CONDITIONS:
+                raise ValueError(f"conditions: unknown condition {c!r}; choose from {', '.join(CONDITIONS)}")
+        for field, items in (("tcp_poses", self.tcp_poses), ("object_layouts", self.object_layouts)):
+            for i, item in enumerate(items):
+                if item.index != i:
+                    raise ValueError(f"{field}.{i}.index: expected {i} (indices count 0, 1, 2, ... in list order), got {item.index}")
+        for shape in self.shapes:
+            for c in TEXTURED:
+                if c in self.conditions and f"{shape}/{c}" not in self.textures:
+                    raise ValueError(f"textures: condition {c!r} of shape {shape!r} needs an entry '{shape}/{c}'")
+        seen_ids, seen_orders = set(), set()
+        for i, t in enumerate(self.trials):
+            where = f"trials.{i}"
+            if t.trial_id in seen_ids:
+                raise ValueError(f"{where}.trial_id: duplicated trial id {t.trial_id!r}")
+            if t.order in seen_orders:
+                raise ValueError(f"{where}.order: duplicated order {t.order}")
+            seen_ids.add(t.trial_id)
+            seen_orders.add(t.order)
+            for field, allowed in (("env", self.envs), ("shape", self.shapes), ("condition", self.conditions)):
+                if getattr(t, field) not in allowed:
+                    raise ValueError(f"{where}.{field}: {getattr(t, field)!r} is not in the plan's {field}s {allowed}")
+            if t.tcp_pose >= len(self.tcp_poses):
+                raise ValueError(f"{where}.tcp_pose: {t.tcp_pose} out of range (the plan has {len(self.tcp_poses)} TCP poses)")
+            if t.object_layout >= len(self.object_layouts):
+                raise ValueError(f"{where}.object_layout: {t.object_layout} out of range (the plan has {len(self.object_layouts)} layouts)")
+        return self
+
+    def tcp_pose(self, index: int) -> TcpPose:
+        """The TCP pose with ``index``."""
+        return self.tcp_poses[index]
+
+    def object_layout(self, index: int) -> ObjectLayout:
+        """The object layout with ``index``."""
+        return self.object_layouts[index]
+
+    def trial(self, trial_id: str) -> PlannedTrial:
+        """The trial with ``trial_id`` (KeyError if none)."""
+        for t in self.trials:
+            if t.trial_id == trial_id:
+                return t
+        raise KeyError(trial_id)
+
+    def texture_for(self, trial: PlannedTrial) -> TextureRef | None:
+        """The texture a trial shows (``None`` for clean: the shape's benign default look)."""
+        return None if trial.condition == "clean" else self.textures[f"{trial.shape}/{trial.condition}"]
+
+    def mesh_for(self, trial: PlannedTrial) -> str:
+        """The adversarial-role mesh a trial uses: its shape, or ``patch`` for the 2D patch."""
+        return "patch" if trial.condition == "patch" else trial.shape
+
+
+def trial_id(env: str, shape: str, condition: str, tcp_pose: int, object_layout: int, tag: str | None = None) -> str:
+    """``A-cube-adv3d-t2-o4`` (+ ``-<tag>``): stable, readable, unique within a plan."""
+    return f"{env}-{shape}-{condition}-t{tcp_pose}-o{object_layout}" + (f"-{tag}" if tag else "")
+
+
+def texture_ref(path: str | Path, key: str, spec=None) -> TextureRef:
+    """A :class:`TextureRef` for ``key`` (``"<shape>/adv3d"`` or ``"<shape>/patch"``) from an attack run.
+
+    Checks the run was optimised on the mesh the trial will use: ``patch`` for ``/patch``, the
+    shape itself for ``/adv3d`` (a run on the scene's own adversarial mesh counts when that mesh is
+    the shape).
+    """
+    from trials.conditions import load_attack_source
+
+    shape, _, cond = key.partition("/")
+    if cond not in TEXTURED or not shape:
+        raise PlanError(f"--texture {key}: key must be '<shape>/adv3d' or '<shape>/patch'")
+    src = load_attack_source(path)
+    mesh = src.mesh if src.mesh is not None else (spec.adversarial.mesh if spec is not None else None)
+    want = "patch" if cond == "patch" else shape
+    if mesh != want:
+        raise PlanError(f"--texture {key}={path}: the attack run optimised mesh {mesh!r}, but {key} needs mesh {want!r}")
+    return TextureRef(path=str(path), sha256=src.sha256)
+
+
+def _check_names(what: str, names: Sequence[str]) -> list[str]:
+    names = list(names)
+    if not names:
+        raise PlanError(f"{what}: give at least one")
+    if len(set(names)) != len(names):
+        raise PlanError(f"{what}: repeated entries {names}")
+    for n in names:
+        if not _NAME.match(n):
+            raise PlanError(f"{what}: {n!r} must be letters, digits and '_' only (it becomes part of trial ids)")
+    return names
+
+
+def _in_view(spec, T_world_tcp: np.ndarray, points_world: np.ndarray) -> bool:
+    """Whether every point ``(N, 3)`` lies in front of the wrist camera and inside its image."""
+    from sim.geometry import invert_T, transform_points
+
+    T_cam_world = invert_T(T_world_tcp @ spec.camera.T_tcp_cam)
+    p = transform_points(T_cam_world, points_world)
+    if np.any(p[:, 2] <= spec.camera.znear_m):
+        return False
+    uv = (spec.camera.K() @ (p / p[:, 2:3]).T).T[:, :2]
+    return bool(np.all((uv >= -0.5) & (uv <= [spec.camera.width - 0.5, spec.camera.height - 0.5])))
+
+
+def _valid_start(spec, T_world_tcp: np.ndarray, centers_world: np.ndarray) -> bool:
+    """The sampler's start rules for a TCP pose against one layout's object centres ``(K, 3)``."""
+    p = T_world_tcp[:3, 3]
+    if p[2] < spec.episode.min_tcp_height_m + 0.04:
+        return False
+    if np.linalg.norm(centers_world - p, axis=-1).min() < 1.5 * spec.episode.success_radius_m:
+        return False
+    return _in_view(spec, T_world_tcp, centers_world)
+
+
+def _draw_configs(spec, rng: np.random.Generator, pool):
+    """An endless stream of initial configurations: from the pool (shuffled, each once) or sampled."""
+    from sim.configs import object_local_centers, sample_config
+
+    if pool is not None:
+        for i in rng.permutation(len(pool)):
+            yield pool[int(i)]
+        return
+    centers = object_local_centers(spec)
+    base = int(rng.integers(0, 2**31 - 1))
+    for i in range(_MAX_DRAWS):
+        yield sample_config(spec, base + i, centers)
+
+
+def _poses(spec, rng: np.random.Generator, n_tcp: int, n_layouts: int, pool) -> tuple[list[TcpPose], list[ObjectLayout]]:
+    from sim.configs import object_local_centers, object_poses_world
+
+    centers_local = object_local_centers(spec)
+    goal, adv = spec.object_index("goal"), spec.object_index("adversarial")
+    stream = _draw_configs(spec, rng, pool)
+    layouts, centers = [], []
+    for cfg in stream:
+        if len(layouts) == n_layouts:
+            break
+        xyy = np.asarray(cfg.object_xy_yaw, dtype=np.float64)
+        T_objs = object_poses_world(xyy)
+        centers.append(np.einsum("kij,kj->ki", T_objs[:, :3, :3], centers_local) + T_objs[:, :3, 3])
+        objects = {role: ObjectPlacement(xy_m=(float(xyy[k, 0]), float(xyy[k, 1])), yaw_rad=float(xyy[k, 2])) for role, k in (("goal", goal), ("adversarial", adv))}
+        layouts.append(ObjectLayout(index=len(layouts), objects=objects))
+    tcps = []
+    for cfg in stream:
+        if len(tcps) == n_tcp:
+            break
+        T = cfg.T_world_tcp_array
+        if all(_valid_start(spec, T, c[[goal, adv]]) for c in centers):
+            tcps.append(TcpPose(index=len(tcps), T_table_tcp=Pose.from_T(T)))
+    if len(layouts) < n_layouts or len(tcps) < n_tcp:
+        src = f"the pool's {len(pool)} configurations" if pool is not None else f"{_MAX_DRAWS} sampled configurations"
+        raise PlanError(
+            f"found {len(layouts)}/{n_layouts} object layouts and {len(tcps)}/{n_tcp} TCP poses valid for every layout in {src}; "
+            "use fewer poses or layouts, a larger pool, or another seed"
+        )
+    return tcps, layouts
+
+
+def make_plan(
+    spec,
+    seed: int,
+    envs: Sequence[str],
+    shapes: Sequence[str],
+    conditions: Sequence[str],
+    textures: dict[str, TextureRef],
+    n_tcp_poses: int = 5,
+    n_object_layouts: int = 6,
+    tags: Sequence[str] = (),
+    pool=None,
+    scene: str | None = None,
+    **settings,
+) -> TrialPlan:
+    """The full-factorial trial plan (see the module docstring), in a random order drawn from ``seed``.
+
+    ``pool``: optional list of :class:`sim.configs.InitialConfig` (e.g. a task-feasible pool) to
+    draw poses and layouts from instead of the sampler. ``scene``: the scene file name recorded in
+    the plan (``None`` = built-in). ``settings``: other :class:`TrialPlan` fields (``radius_m``,
+    ``max_steps``, ``control_hz``, ``placement_tolerance_m``, ``placement_tolerance_rad``).
+    """
+    from sim.assets import BUILTIN_MESHES
+
+    envs = _check_names("--env", envs)
+    shapes = _check_names("--shape", shapes)
+    conditions = _check_names("--condition", conditions)
+    tags = list(tags)
+    if tags:
+        _check_names("--tag", tags)
+    for c in conditions:
+        if c not in CONDITIONS:
+            raise PlanError(f"--condition: unknown condition {c!r}; choose from {', '.join(CONDITIONS)}")
+    for s in shapes:
+        if s not in BUILTIN_MESHES:
+            raise PlanError(f"--shape: {s!r} is not a built-in mesh ({', '.join(BUILTIN_MESHES)})")
+    for s in shapes:
+        for c in TEXTURED:
+            if c in conditions and f"{s}/{c}" not in textures:
+                raise PlanError(f"--texture: condition {c!r} of shape {s!r} needs --texture {s}/{c}=RUN_DIR")
+    unused = sorted(k for k in textures if k.split("/")[0] not in shapes or k.partition("/")[2] not in conditions)
+    if unused:
+        raise PlanError(f"--texture: {', '.join(unused)} not used by the plan's shapes {shapes} and conditions {conditions}")
+    if n_tcp_poses < 1 or n_object_layouts < 1:
+        raise PlanError(f"--tcp-poses and --object-poses must be at least 1, got {n_tcp_poses} and {n_object_layouts}")
+
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7A1A1]))
+    tcps, layouts = _poses(spec, rng, n_tcp_poses, n_object_layouts, pool)
+    cells = []
+    for tag in [None, *tags]:
+        for env in envs:
+            for shape in shapes:
+                for cond in conditions:
+                    for t in range(n_tcp_poses):
+                        for o in range(n_object_layouts):
+                            cells.append((trial_id(env, shape, cond, t, o, tag), env, shape, cond, t, o, [tag] if tag else []))
+    order = rng.permutation(len(cells))
+    trials = sorted(
+        (PlannedTrial(trial_id=c[0], order=int(k), env=c[1], shape=c[2], condition=c[3], tcp_pose=c[4], object_layout=c[5], tags=c[6]) for c, k in zip(cells, order)),
+        key=lambda t: t.order,
+    )
+    defaults = {"radius_m": spec.episode.success_radius_m, "max_steps": spec.episode.max_steps}
+    try:
+        return TrialPlan(
+            seed=int(seed), scene=scene, envs=envs, shapes=shapes, conditions=conditions, tcp_poses=tcps, object_layouts=layouts,
+            textures=dict(textures), trials=trials, **{**defaults, **settings},
+        )
+    except ValidationError as err:
+        raise PlanError(format_validation_error(err, "trial plan")) from None
+
+
+def design_summary(plan: TrialPlan) -> list[str]:
+    """Human-readable lines: the design and the number of trials per env x shape x condition x tag."""
+    per_block = len(plan.tcp_poses) * len(plan.object_layouts)
+    tags = sorted({tag for t in plan.trials for tag in t.tags})
+    lines = [
+        f"{len(plan.trials)} trials, seed {plan.seed}, scene {plan.scene or 'built-in'}",
+        f"design: {len(plan.tcp_poses)} TCP poses x {len(plan.object_layouts)} object layouts = {per_block} trials per env x shape x condition"
+        + (f", plus one such block per tag ({', '.join(tags)})" if tags else ""),
+        f"envs {', '.join(plan.envs)}; shapes {', '.join(plan.shapes)}; conditions {', '.join(plan.conditions)}",
+    ]
+    counts: dict[tuple, int] = {}
+    for t in plan.trials:
+        key = (t.env, t.shape, t.condition, ",".join(t.tags) or "-")
+        counts[key] = counts.get(key, 0) + 1
+    for (env, shape, cond, tag), n in sorted(counts.items()):
+        lines.append(f"  env {env}  shape {shape:<10} {cond:<6} tags {tag:<16} {n} trials")
+    return lines
+
+
+_HEADER = """advobj real-robot trial plan (advobj trial plan). Run the trials in 'order'.
+Frames: the table frame = the simulator's world frame (z up, origin on the table top).
+Object placements: base centre xy (m) and yaw (rad) per scene role; TCP poses: T_table_tcp.
+Conditions: clean = the shape's benign look; adv3d = the shape with textures['<shape>/adv3d'];
+patch = the built-in 'patch' mesh with textures['<shape>/patch'] where the adversarial object stands.
+Each scenario tag adds one full block of trials carrying that tag (trial id suffix -<tag>)."""
+
+
+def save_plan(plan: TrialPlan, path: str | Path) -> Path:
+    """Write ``plan`` as YAML with a header comment (frames, conditions, design summary)."""
+    from calibration.io import write_yaml
+
+    header = _HEADER + "\n\n" + "\n".join(design_summary(plan))
+    return write_yaml(path, plan.model_dump(mode="json"), header=header)
+
+
+def load_plan(path: str | Path) -> TrialPlan:
+    """Read and validate a plan YAML; errors name the file and the dotted field."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise PlanError(f"{path}: cannot read trial plan ({err.strerror or err})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        raise PlanError(f"{path}: not valid YAML" + (f" at line {mark.line + 1}" if mark is not None else "")) from None
+    if not isinstance(data, dict):
+        raise PlanError(f"{path}: a trial plan must be a mapping, got {type(data).__name__}")
+    try:
+        return TrialPlan.model_validate(data)
+    except ValidationError as err:
+        raise PlanError(format_validation_error(err, "trial plan", str(path))) from None
+
+
+def plan_sha256(path: str | Path) -> str:
+    """sha256 of the plan file's bytes: ties recorded trials to the exact plan they followed."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
