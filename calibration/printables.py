@@ -18,7 +18,7 @@ import numpy as np
 from calibration.errors import CalibrationError
 from calibration.intrinsics import BoardSpec
 
-__all__ = ["A4_MM", "tag_sheet_pdf", "board_pdf", "parse_id_ranges"]
+__all__ = ["A4_MM", "MM_PER_INCH", "SCALE_BAR_MM", "page_figure", "scale_bar", "image_mm", "tag_sheet_pdf", "board_pdf", "parse_id_ranges"]
 
 A4_MM = (210.0, 297.0)
 MM_PER_INCH = 25.4
@@ -47,7 +47,8 @@ def parse_id_ranges(text: str) -> list[int]:
     return ids
 
 
-def _page(width_mm: float, height_mm: float):
+def page_figure(width_mm: float, height_mm: float):
+    """A blank page ``(fig, ax)``: figure sized in inches, axis in mm spanning it, y down."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -61,7 +62,8 @@ def _page(width_mm: float, height_mm: float):
     return fig, ax
 
 
-def _scale_bar(ax, x_mm: float, y_mm: float):
+def scale_bar(ax, x_mm: float, y_mm: float):
+    """A 50 mm bar with 10 mm ticks, its left end at ``(x_mm, y_mm)``, labelled on its right."""
     from matplotlib.patches import Rectangle
 
     ax.add_patch(Rectangle((x_mm, y_mm), SCALE_BAR_MM, 1.0, facecolor="black", edgecolor="none"))
@@ -71,7 +73,8 @@ def _scale_bar(ax, x_mm: float, y_mm: float):
             fontsize=7, va="center")
 
 
-def _image(ax, img: np.ndarray, x_mm: float, y_mm: float, w_mm: float, h_mm: float):
+def image_mm(ax, img: np.ndarray, x_mm: float, y_mm: float, w_mm: float, h_mm: float):
+    """Draw ``img`` (grey or RGB uint8, row 0 at the top) unresampled into a page rectangle in mm."""
     ax.imshow(img, cmap="gray", vmin=0, vmax=255, interpolation="none", extent=(x_mm, x_mm + w_mm, y_mm + h_mm, y_mm),
               aspect="auto")
 
@@ -105,16 +108,16 @@ def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_M
     path.parent.mkdir(parents=True, exist_ok=True)
     with PdfPages(path) as pdf:
         for start in range(0, len(tag_ids), per_page):
-            fig, ax = _page(W, H)
+            fig, ax = page_figure(W, H)
             for k, tag_id in enumerate(tag_ids[start : start + per_page]):
                 r, c = divmod(k, cols)
                 x = margin_mm + c * pitch_x + quiet_mm
                 y = margin_mm + r * pitch_y + quiet_mm
                 img = cv2.aruco.generateImageMarker(d, int(tag_id), cells, borderBits=1)  # 1 px per cell
-                _image(ax, img, x, y, tag_size_mm, tag_size_mm)
+                image_mm(ax, img, x, y, tag_size_mm, tag_size_mm)
                 ax.text(x + tag_size_mm / 2, y + tag_size_mm + quiet_mm + 1.0, f"tag36h11 id {tag_id}  {tag_size_mm:g} mm",
                         fontsize=6, ha="center", va="top")
-            _scale_bar(ax, margin_mm, H - margin_mm)
+            scale_bar(ax, margin_mm, H - margin_mm)
             pdf.savefig(fig)
     return path
 
@@ -131,13 +134,13 @@ def board_pdf(path, board: BoardSpec, margin_mm: float = 8.0, px_per_square: int
     else:
         W, H = math.ceil(need[0]), math.ceil(need[1])
     img = board.cv_board().generateImage((board.squares_x * px_per_square, board.squares_y * px_per_square), marginSize=0, borderBits=1)
-    fig, ax = _page(W, H)
+    fig, ax = page_figure(W, H)
     x, y = (W - w_mm) / 2, margin_mm
-    _image(ax, img, x, y, w_mm, h_mm)
+    image_mm(ax, img, x, y, w_mm, h_mm)
     ax.text(x, y + h_mm + 4.0, f"ChArUco {board.squares_x}x{board.squares_y}, square {board.square_size_m * 1000:g} mm, "
             f"marker {board.marker_size_m * 1000:g} mm, DICT_{board.dictionary}{', legacy pattern' if board.legacy_pattern else ''}",
             fontsize=7, va="top")
-    _scale_bar(ax, x, H - margin_mm)
+    scale_bar(ax, x, H - margin_mm)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, format="pdf")
