@@ -1,0 +1,114 @@
+"""The SQLite trial store: WAL, schema round trip, atomic trials, exports, schema version guard."""
+
+import csv
+import sqlite3
+
+import numpy as np
+import pytest
+
+from trials.real.store import (EventRecord, ObjectPoseRecord, SessionInfo, SessionMismatch, StepRecord, StoreError,
+                               TrialRecord, TrialStore)
+
+
+def _info(name="s1", sha="a" * 64):
+    return SessionInfo(name=name, plan_sha256=sha, plan_text="plan: 1", hardware_text="hw: 1", policy_path="p.onnx",
+                       policy_sha256="b" * 64, software_version="0.1.0", git_commit="abc", devices={"arm": {"type": "sim"}},
+                       calibration={"T_tcp_cam": None})
+
+
+def _T(x):
+    T = np.eye(4)
+    T[:3, 3] = [x, 0.1, 0.2]
+    return T
+
+
+def _trial(trial_id="t0", n_steps=3, operator=None):
+    steps = [StepRecord(i, 0.1 * i, 0.1 * i + 0.01, i, [0.1 * i] * 6, _T(0.01 * i), _T(0.01 * i), "ok", "", f"frames/s1/{trial_id}/{i}.png")
+             for i in range(n_steps)]
+    poses = [ObjectPoseRecord("goal", "final", _T(0.3), np.array([0.3, 0.1, 0.05]), (3,), False, 0, "tags"),
+             ObjectPoseRecord("adversarial", "final", None, None, (), False, 0, "tags")]
+    return TrialRecord(trial_id, 0, "A", "cube", "adv3d", 1, 2, ["dim"], "c" * 64, "2026-01-01T00:00:00Z", 4.5, "max_steps",
+                       "unknown", "not detected: adversarial", {"goal": 0.2, "adversarial": None}, operator, "note",
+                       1, False, _T(0.02), f"frames/s1/{trial_id}", steps, poses, [EventRecord(0.5, "safety", "clipped", "why")])
+
+
+def test_wal_and_round_trip(tmp_path):
+    db = tmp_path / "t.sqlite"
+    with TrialStore(db) as store:
+        assert store.con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        assert store.con.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
+        sid = store.open_session(_info())
+        store.commit_trial(sid, _trial("t0"))
+        store.commit_trial(sid, _trial("t1", operator="adversarial"))
+    with TrialStore(db, create=False) as store:
+        assert store.open_session(_info()) == sid  # resume: same plan
+        rows = store.trial_rows()
+        assert [r["trial_id"] for r in rows] == ["t0", "t1"]
+        r0, r1 = rows
+        assert r0["session"] == "s1" and r0["tags"] == ["dim"] and r0["n_steps"] == 3
+        assert r0["auto_outcome"] == "unknown" and r0["operator_outcome"] is None and r0["final_outcome"] == "unknown"
+        assert r1["operator_outcome"] == "adversarial" and r1["final_outcome"] == "adversarial"
+        for key in ("env", "shape", "condition", "note", "stop_reason", "started_at", "duration_s"):
+            assert key in r0
+        steps = store.steps("s1", "t1")
+        assert [s["step"] for s in steps] == [0, 1, 2]
+        assert steps[2]["cmd_base_x_m"] == pytest.approx(0.02) and steps[2]["action_5"] == pytest.approx(0.2)
+        assert store.trial_rows(["other"]) == []
+        with pytest.raises(SessionMismatch, match="original plan"):
+            store.open_session(_info(sha="d" * 64))
+
+
+def test_failure_mid_insert_leaves_no_partial_trial(tmp_path):
+    store = TrialStore(tmp_path / "t.sqlite")
+    sid = store.open_session(_info())
+    bad = _trial("t0")
+    # A step whose action cannot be converted fails after the trial row and some inserts went in.
+    bad.steps.append(StepRecord(9, 0.0, 0.0, 9, ["x"] * 6, None, _T(0), "refused", "r", "f.png"))
+    with pytest.raises(ValueError):
+        store.commit_trial(sid, bad)
+    for table in ("trials", "steps", "object_poses", "events"):
+        assert store.con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0] == 0
+    store.commit_trial(sid, _trial("t0"))
+    with pytest.raises(StoreError, match="another runner"):
+        store.commit_trial(sid, _trial("t0"))  # the same trial twice
+    assert len(store.trial_rows()) == 1 and store.integrity_check() == "ok"
+
+
+def test_export_csv_and_parquet_read_back(tmp_path):
+    import pyarrow.parquet as pq
+
+    store = TrialStore(tmp_path / "t.sqlite")
+    sid = store.open_session(_info())
+    store.commit_trial(sid, _trial("t0"))
+    store.commit_trial(sid, _trial("t1", n_steps=2))
+    csvs = {p.stem: p for p in store.export_csv(tmp_path / "csv")}
+    pqs = {p.stem: p for p in store.export_parquet(tmp_path / "pq")}
+    assert set(csvs) == set(pqs) >= {"trials", "steps", "object_poses"}
+    with csvs["steps"].open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 5 and rows[0]["trial_id"] == "t0" and rows[0]["session"] == "s1"
+    t = pq.read_table(pqs["steps"]).to_pydict()
+    assert t["trial_id"] == ["t0"] * 3 + ["t1"] * 2
+    np.testing.assert_allclose(t["meas_base_x_m"][:3], [0.0, 0.01, 0.02])
+    poses = pq.read_table(pqs["object_poses"]).to_pydict()
+    assert poses["found"] == [1, 0, 1, 0] and poses["table_x_m"][1] is None
+
+
+def test_unknown_schema_version_refused(tmp_path):
+    db = tmp_path / "t.sqlite"
+    TrialStore(db).close()
+    con = sqlite3.connect(db)
+    con.execute("UPDATE schema_version SET version = 99")
+    con.commit()
+    con.close()
+    with pytest.raises(StoreError, match="version 99.*upgrade advobj"):
+        TrialStore(db)
+    other = tmp_path / "other.sqlite"
+    con = sqlite3.connect(other)
+    con.execute("CREATE TABLE x (a)")
+    con.commit()
+    con.close()
+    with pytest.raises(StoreError, match="not a trial store"):
+        TrialStore(other)
+    with pytest.raises(StoreError, match="no trial database"):
+        TrialStore(tmp_path / "missing.sqlite", create=False)

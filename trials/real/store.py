@@ -1,0 +1,484 @@
+"""The trial store: one SQLite database per campaign, frames beside it.
+
+Layout::
+
+    trials.sqlite                      sessions, trials, steps, object_poses, events
+    frames/<session>/<trial_id>/       step_000.png ... (the images the policy acted on)
+
+Durability rules (issue 8, "atomic trials"):
+
+* WAL journal: readers (``advobj trial report`` while a session runs) never block the writer,
+  and a crash leaves the last committed state intact.
+* ``synchronous=FULL``: with WAL, ``NORMAL`` survives a killed *process* but may lose the last
+  commits on power loss or an OS crash. The operator moves on to the next trial as soon as a trial
+  is committed, so a committed trial must be on disk; one fsync per trial costs nothing next to a
+  trial's minute of robot time.
+* One transaction per trial (:meth:`TrialStore.commit_trial`): the runner buffers everything in
+  memory and inserts it in one ``BEGIN IMMEDIATE ... COMMIT``. Killing the process at any moment
+  loses at most the trial in progress and leaves no trace of it in the database.
+* Frames are written *before* the trial's commit into the trial's own directory; a directory
+  without a committed trial is a leftover of a killed run, and the runner clears it when it
+  redoes that trial (:func:`frames_dir`).
+
+Poses are stored as 6-vectors ``[x, y, z (m), rx, ry, rz (rotation vector, rad)]`` in the
+table frame (the sim world frame) unless a column name says ``base``: easy to read in CSV,
+lossless at float64.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import sqlite3
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from sim.errors import AdvobjError
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "StoreError",
+    "SessionMismatch",
+    "SessionInfo",
+    "StepRecord",
+    "ObjectPoseRecord",
+    "EventRecord",
+    "TrialRecord",
+    "TrialStore",
+    "pose_vec",
+    "frames_dir",
+    "clear_frames",
+    "EXPORT_TABLES",
+]
+
+SCHEMA_VERSION = 1
+OUTCOMES = ("goal", "adversarial", "none", "unknown")
+EXPORT_TABLES = ("trials", "steps", "object_poses", "events", "sessions")
+
+
+class StoreError(AdvobjError, RuntimeError):
+    """The trial database cannot be used (unknown schema, not a database, duplicate trial...)."""
+
+
+class SessionMismatch(StoreError):
+    """Resuming a session with a different plan than the one it was started with."""
+
+
+_POSE = ("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad")
+
+
+def _pose_cols(prefix: str) -> str:
+    return ", ".join(f"{prefix}_{c} REAL" for c in _POSE)
+
+
+_SCHEMA = f"""
+CREATE TABLE schema_version (version INTEGER NOT NULL);
+CREATE TABLE sessions (
+    id INTEGER PRIMARY KEY,
+    name TEXT NOT NULL UNIQUE,
+    created_at TEXT NOT NULL,
+    plan_sha256 TEXT NOT NULL,
+    plan_text TEXT NOT NULL,
+    hardware_text TEXT NOT NULL,
+    policy_path TEXT NOT NULL,
+    policy_sha256 TEXT NOT NULL,
+    software_version TEXT NOT NULL,
+    git_commit TEXT NOT NULL,
+    devices_json TEXT NOT NULL,
+    calibration_json TEXT NOT NULL,
+    config_json TEXT NOT NULL
+);
+CREATE TABLE trials (
+    id INTEGER PRIMARY KEY,
+    session_id INTEGER NOT NULL REFERENCES sessions(id),
+    trial_id TEXT NOT NULL,
+    plan_order INTEGER NOT NULL,
+    env TEXT NOT NULL,
+    shape TEXT NOT NULL,
+    condition TEXT NOT NULL,
+    tcp_pose INTEGER NOT NULL,
+    object_layout INTEGER NOT NULL,
+    tags_json TEXT NOT NULL,
+    texture_sha256 TEXT,
+    started_at TEXT NOT NULL,
+    duration_s REAL NOT NULL,
+    n_steps INTEGER NOT NULL,
+    stop_reason TEXT NOT NULL,
+    auto_outcome TEXT NOT NULL CHECK (auto_outcome IN ('goal', 'adversarial', 'none', 'unknown')),
+    auto_reason TEXT NOT NULL,
+    distances_json TEXT NOT NULL,
+    operator_outcome TEXT CHECK (operator_outcome IN ('goal', 'adversarial', 'none', 'unknown')),
+    note TEXT NOT NULL DEFAULT '',
+    final_outcome TEXT NOT NULL CHECK (final_outcome IN ('goal', 'adversarial', 'none', 'unknown')),
+    placement_checks INTEGER NOT NULL,
+    placement_skipped INTEGER NOT NULL,
+    {_pose_cols("tcp_final")},
+    frames_dir TEXT NOT NULL,
+    UNIQUE (session_id, trial_id)
+);
+CREATE TABLE steps (
+    trial_row INTEGER NOT NULL REFERENCES trials(id),
+    step INTEGER NOT NULL,
+    t_frame_s REAL NOT NULL,
+    t_command_s REAL NOT NULL,
+    frame_seq INTEGER NOT NULL,
+    {", ".join(f"action_{i} REAL NOT NULL" for i in range(6))},
+    {_pose_cols("cmd_base")},
+    {_pose_cols("meas_base")},
+    safety_status TEXT NOT NULL,
+    safety_reason TEXT NOT NULL,
+    frame_ref TEXT NOT NULL,
+    PRIMARY KEY (trial_row, step)
+);
+CREATE TABLE object_poses (
+    trial_row INTEGER NOT NULL REFERENCES trials(id),
+    role TEXT NOT NULL,
+    phase TEXT NOT NULL CHECK (phase IN ('placement', 'final')),
+    found INTEGER NOT NULL,
+    {_pose_cols("table")},
+    yaw_rad REAL,
+    center_x_m REAL, center_y_m REAL, center_z_m REAL,
+    tag_ids_json TEXT NOT NULL,
+    ambiguous INTEGER NOT NULL,
+    n_alternatives INTEGER NOT NULL,
+    source TEXT NOT NULL,
+    PRIMARY KEY (trial_row, role, phase)
+);
+CREATE TABLE events (
+    trial_row INTEGER NOT NULL REFERENCES trials(id),
+    t_s REAL NOT NULL,
+    kind TEXT NOT NULL,
+    action TEXT NOT NULL,
+    reason TEXT NOT NULL
+);
+CREATE INDEX steps_trial ON steps (trial_row);
+CREATE INDEX events_trial ON events (trial_row);
+"""
+
+
+# ---------------------------------------------------------------------- records
+def pose_vec(T) -> list[float]:
+    """``[x, y, z, rx, ry, rz]`` of a (4, 4) transform (NaN-filled for ``None``)."""
+    from sim.geometry import so3_log
+
+    if T is None:
+        return [float("nan")] * 6
+    T = np.asarray(T, dtype=np.float64)
+    return [float(v) for v in T[:3, 3]] + [float(v) for v in so3_log(T[:3, :3])]
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """Everything recorded once per session (provenance and the exact inputs)."""
+
+    name: str
+    plan_sha256: str
+    plan_text: str
+    hardware_text: str
+    policy_path: str
+    policy_sha256: str
+    software_version: str
+    git_commit: str
+    devices: dict
+    calibration: dict
+    config: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    step: int
+    t_frame_s: float  # frame capture, s since the trial's policy loop started
+    t_command_s: float  # arm accepted (or refused) the command, same clock
+    frame_seq: int
+    action: Sequence[float]  # raw policy output (before the scene's action scaling)
+    T_base_tcp_cmd: np.ndarray | None  # None when refused
+    T_base_tcp_meas: np.ndarray  # measured after the command
+    safety_status: str
+    safety_reason: str
+    frame_ref: str  # path relative to the database's directory
+
+
+@dataclass(frozen=True)
+class ObjectPoseRecord:
+    role: str
+    phase: str  # "placement" (the accepted check) or "final" (after the policy loop)
+    T_table_object: np.ndarray | None  # None = not found
+    center_table_m: np.ndarray | None
+    tag_ids: tuple[int, ...]
+    ambiguous: bool
+    n_alternatives: int
+    source: str  # "tags" or "sim"
+
+
+@dataclass(frozen=True)
+class EventRecord:
+    t_s: float  # s since the trial started
+    kind: str  # "safety", "operator", "placement"
+    action: str
+    reason: str
+
+
+@dataclass
+class TrialRecord:
+    """One finished trial, as buffered by the runner and inserted in one transaction."""
+
+    trial_id: str
+    plan_order: int
+    env: str
+    shape: str
+    condition: str
+    tcp_pose: int
+    object_layout: int
+    tags: list[str]
+    texture_sha256: str | None
+    started_at: str  # ISO 8601 UTC
+    duration_s: float
+    stop_reason: str
+    auto_outcome: str
+    auto_reason: str
+    distances_m: dict
+    operator_outcome: str | None
+    note: str
+    placement_checks: int
+    placement_skipped: bool
+    T_table_tcp_final: np.ndarray
+    frames_dir: str
+    steps: list[StepRecord] = field(default_factory=list)
+    object_poses: list[ObjectPoseRecord] = field(default_factory=list)
+    events: list[EventRecord] = field(default_factory=list)
+
+    @property
+    def final_outcome(self) -> str:
+        return self.operator_outcome or self.auto_outcome
+
+
+def frames_dir(db_path: str | Path, session: str, trial_id: str) -> Path:
+    """``<db dir>/frames/<session>/<trial_id>``: where one trial's images go."""
+    return Path(db_path).resolve().parent / "frames" / session / trial_id
+
+
+def _now_iso() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+# ---------------------------------------------------------------------- store
+class TrialStore:
+    """The SQLite trial database at ``path`` (created on first use).
+
+    One connection per store object; use one store per process (the runner writes, reports read).
+    """
+
+    def __init__(self, path: str | Path, create: bool = True):
+        self.path = Path(path)
+        if not create and not self.path.is_file():
+            raise StoreError(f"{self.path}: no trial database here (run 'advobj trial run' first)")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            # isolation_level=None: no implicit transactions; every write transaction is explicit.
+            self.con = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
+            self.con.row_factory = sqlite3.Row
+            mode = self.con.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+            self.con.execute("PRAGMA synchronous=FULL")
+            self.con.execute("PRAGMA foreign_keys=ON")
+            self._init_schema()
+        except sqlite3.DatabaseError as err:
+            raise StoreError(f"{self.path}: not a usable trial database ({err})") from None
+        if mode.lower() != "wal":
+            raise StoreError(f"{self.path}: cannot switch to WAL journal mode (got {mode!r}); is it on a network file system?")
+
+    def _init_schema(self) -> None:
+        have = {r[0] for r in self.con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        if not have:
+            self.con.execute("BEGIN IMMEDIATE")
+            try:
+                for stmt in _SCHEMA.split(";"):
+                    if stmt.strip():
+                        self.con.execute(stmt)
+                self.con.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION,))
+                self.con.execute("COMMIT")
+            except BaseException:
+                self.con.execute("ROLLBACK")
+                raise
+            return
+        if "schema_version" not in have:
+            raise StoreError(f"{self.path}: an SQLite database but not a trial store (no schema_version table)")
+        row = self.con.execute("SELECT version FROM schema_version").fetchone()
+        version = None if row is None else row[0]
+        if version != SCHEMA_VERSION:
+            newer = isinstance(version, int) and version > SCHEMA_VERSION
+            raise StoreError(f"{self.path}: trial store schema version {version}, this advobj reads version {SCHEMA_VERSION}"
+                             + ("; upgrade advobj" if newer else ""))
+
+    def close(self) -> None:
+        self.con.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ------------------------------------------------------------------ sessions
+    def session(self, name: str) -> sqlite3.Row | None:
+        return self.con.execute("SELECT * FROM sessions WHERE name = ?", (name,)).fetchone()
+
+    def open_session(self, info: SessionInfo) -> int:
+        """The id of session ``info.name``: created, or resumed if its plan is the same file."""
+        row = self.session(info.name)
+        if row is not None:
+            if row["plan_sha256"] != info.plan_sha256:
+                raise SessionMismatch(
+                    f"session {info.name!r} in {self.path} was started with a plan of sha256 {row['plan_sha256'][:12]}..., "
+                    f"this plan is {info.plan_sha256[:12]}...; resume with the original plan file or start a new --session")
+            return int(row["id"])
+        self.con.execute("BEGIN IMMEDIATE")
+        try:
+            cur = self.con.execute(
+                "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
+                "software_version, git_commit, devices_json, calibration_json, config_json) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                (info.name, _now_iso(), info.plan_sha256, info.plan_text, info.hardware_text, info.policy_path, info.policy_sha256,
+                 info.software_version, info.git_commit, json.dumps(info.devices), json.dumps(info.calibration),
+                 json.dumps(info.config, default=str)))
+            self.con.execute("COMMIT")
+        except BaseException:
+            self.con.execute("ROLLBACK")
+            raise
+        return int(cur.lastrowid)
+
+    def session_names(self) -> list[str]:
+        return [r[0] for r in self.con.execute("SELECT name FROM sessions ORDER BY id")]
+
+    def committed_trial_ids(self, session_id: int) -> set[str]:
+        return {r[0] for r in self.con.execute("SELECT trial_id FROM trials WHERE session_id = ?", (session_id,))}
+
+    # ------------------------------------------------------------------ trials
+    def commit_trial(self, session_id: int, rec: TrialRecord) -> int:
+        """Insert one whole trial atomically; returns its row id. Nothing of it remains on failure."""
+        for name, value in (("auto_outcome", rec.auto_outcome), ("operator_outcome", rec.operator_outcome)):
+            if value is not None and value not in OUTCOMES:
+                raise StoreError(f"trial {rec.trial_id}: {name} {value!r} is not one of {', '.join(OUTCOMES)}")
+        c = self.con
+        c.execute("BEGIN IMMEDIATE")
+        try:
+            cur = c.execute(
+                "INSERT INTO trials (session_id, trial_id, plan_order, env, shape, condition, tcp_pose, object_layout, tags_json, "
+                "texture_sha256, started_at, duration_s, n_steps, stop_reason, auto_outcome, auto_reason, distances_json, "
+                "operator_outcome, note, final_outcome, placement_checks, placement_skipped, "
+                + ", ".join(f"tcp_final_{p}" for p in _POSE) + ", frames_dir) VALUES (" + ",".join("?" * 29) + ")",
+                (session_id, rec.trial_id, rec.plan_order, rec.env, rec.shape, rec.condition, rec.tcp_pose, rec.object_layout,
+                 json.dumps(list(rec.tags)), rec.texture_sha256, rec.started_at, float(rec.duration_s), len(rec.steps),
+                 rec.stop_reason, rec.auto_outcome, rec.auto_reason, json.dumps(rec.distances_m), rec.operator_outcome,
+                 rec.note or "", rec.final_outcome, int(rec.placement_checks), int(rec.placement_skipped),
+                 *pose_vec(rec.T_table_tcp_final), rec.frames_dir))
+            row = int(cur.lastrowid)
+            c.executemany(
+                "INSERT INTO steps VALUES (" + ",".join("?" * 26) + ")",
+                [(row, s.step, float(s.t_frame_s), float(s.t_command_s), int(s.frame_seq), *[float(a) for a in s.action],
+                  *pose_vec(s.T_base_tcp_cmd), *pose_vec(s.T_base_tcp_meas), s.safety_status, s.safety_reason, s.frame_ref)
+                 for s in rec.steps])
+            c.executemany(
+                "INSERT INTO object_poses VALUES (" + ",".join("?" * 18) + ")",
+                [(row, o.role, o.phase, int(o.T_table_object is not None), *pose_vec(o.T_table_object),
+                  None if o.T_table_object is None else float(np.arctan2(o.T_table_object[1, 0], o.T_table_object[0, 0])),
+                  *([None] * 3 if o.center_table_m is None else [float(v) for v in o.center_table_m]),
+                  json.dumps([int(i) for i in o.tag_ids]), int(o.ambiguous), int(o.n_alternatives), o.source)
+                 for o in rec.object_poses])
+            c.executemany("INSERT INTO events VALUES (?,?,?,?,?)",
+                          [(row, float(e.t_s), e.kind, e.action, e.reason) for e in rec.events])
+            c.execute("COMMIT")
+        except sqlite3.IntegrityError as err:
+            c.execute("ROLLBACK")
+            raise StoreError(f"trial {rec.trial_id}: cannot store it ({err}); is another runner working on this session?") from None
+        except BaseException:
+            c.execute("ROLLBACK")
+            raise
+        return row
+
+    # ------------------------------------------------------------------ reading
+    def trial_rows(self, sessions: Sequence[str] | None = None) -> list[dict]:
+        """One dict per committed trial (plan order within each session), the report's input."""
+        q = ("SELECT s.name AS session, t.* FROM trials t JOIN sessions s ON s.id = t.session_id"
+             + (f" WHERE s.name IN ({','.join('?' * len(sessions))})" if sessions else "") + " ORDER BY s.id, t.plan_order")
+        out = []
+        for r in self.con.execute(q, tuple(sessions or ())):
+            d = dict(r)
+            d["tags"] = json.loads(d.pop("tags_json"))
+            d["distances_m"] = json.loads(d.pop("distances_json"))
+            d["placement_skipped"] = bool(d["placement_skipped"])
+            out.append(d)
+        return out
+
+    def steps(self, session: str, trial_id: str) -> list[dict]:
+        q = ("SELECT st.* FROM steps st JOIN trials t ON t.id = st.trial_row JOIN sessions s ON s.id = t.session_id "
+             "WHERE s.name = ? AND t.trial_id = ? ORDER BY st.step")
+        return [dict(r) for r in self.con.execute(q, (session, trial_id))]
+
+    def table(self, name: str) -> tuple[list[str], list[tuple]]:
+        """Column names and rows of one exportable table, with session name and trial id joined in."""
+        if name not in EXPORT_TABLES:
+            raise StoreError(f"unknown table {name!r}; exportable: {', '.join(EXPORT_TABLES)}")
+        if name == "sessions":
+            q = "SELECT * FROM sessions ORDER BY id"
+        elif name == "trials":
+            q = "SELECT s.name AS session, t.* FROM trials t JOIN sessions s ON s.id = t.session_id ORDER BY s.id, t.plan_order"
+        else:
+            q = (f"SELECT s.name AS session, t.trial_id AS trial_id, x.* FROM {name} x JOIN trials t ON t.id = x.trial_row "
+                 "JOIN sessions s ON s.id = t.session_id ORDER BY s.id, t.plan_order, x.rowid")
+        cur = self.con.execute(q)
+        cols = [d[0] for d in cur.description]
+        return cols, [tuple(r) for r in cur.fetchall()]
+
+    def integrity_check(self) -> str:
+        return str(self.con.execute("PRAGMA integrity_check").fetchone()[0])
+
+    # ------------------------------------------------------------------ export
+    def export_csv(self, out_dir: str | Path, tables: Iterable[str] = EXPORT_TABLES) -> list[Path]:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = []
+        for name in tables:
+            cols, rows = self.table(name)
+            p = out / f"{name}.csv"
+            with p.open("w", newline="") as f:
+                w = csv.writer(f)
+                w.writerow(cols)
+                w.writerows(rows)
+            paths.append(p)
+        return paths
+
+    def export_parquet(self, out_dir: str | Path, tables: Iterable[str] = EXPORT_TABLES) -> list[Path]:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = []
+        for name in tables:
+            cols, rows = self.table(name)
+            types = self._column_types(name)
+            arrays = [pa.array([r[i] for r in rows], type=types.get(c)) for i, c in enumerate(cols)]
+            p = out / f"{name}.parquet"
+            pq.write_table(pa.Table.from_arrays(arrays, names=cols), p)
+            paths.append(p)
+        return paths
+
+    def _column_types(self, name: str) -> dict:
+        """Arrow types from the declared SQLite types (so an empty or all-NULL column keeps its type)."""
+        import pyarrow as pa
+
+        m = {"INTEGER": pa.int64(), "REAL": pa.float64(), "TEXT": pa.string()}
+        types = {"session": pa.string(), "trial_id": pa.string()}
+        for r in self.con.execute(f"PRAGMA table_info({name})"):
+            types.setdefault(r[1], m.get(r[2].upper(), pa.string()))
+        return types
+
+
+def clear_frames(path: Path) -> None:
+    """Remove a trial's frame directory left by an interrupted run (no-op if absent)."""
+    if path.exists():
+        shutil.rmtree(path)
