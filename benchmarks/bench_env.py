@@ -1,6 +1,6 @@
 """ms per env-frame of the batched reach env (N=4) at 128x128 and 64x64, split render / rest.
 
-Run: ``.venv/bin/python benchmarks/bench_env.py [--steps 200] [--masks]``. Prints medians over
+Run: ``.venv/bin/python benchmarks/bench_env.py [--steps 200] [--no-fastpath]``. Prints medians over
 repeated blocks (the machine is noisy); the issue's target is <= 8 ms per env-frame at 128x128.
 """
 
@@ -62,10 +62,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--envs", type=int, default=4)
+    ap.add_argument("--no-fastpath", action="store_true", help="pyrender's own uniform uploads (sim/gl_fastpath.py off)")
     args = ap.parse_args()
+    if args.no_fastpath:
+        os.environ["ADVOBJ_GL_FASTPATH"] = "0"
     import torch
 
-    print(f"# cores={os.cpu_count()} torch={torch.__version__} threads={torch.get_num_threads()}")
+    print(f"# cores={os.cpu_count()} torch={torch.__version__} threads={torch.get_num_threads()} "
+          f"gl_fastpath={'off' if args.no_fastpath else 'on'} load={os.getloadavg()[0]:.1f}")
     print("| image | envs | id pass (masks) | ms / env-frame | render ms | rest ms |")
     print("|---|---|---|---|---|---|")
     for size in (128, 64):

@@ -274,6 +274,9 @@ class SceneRenderer:
         except Exception as err:
             raise RenderError(f"{_GL_HELP} (context creation failed: {type(err).__name__}: {err})") from None
         _single_sample_framebuffer(self._renderer._renderer)
+        from sim import gl_fastpath
+
+        gl_fastpath.install()  # bit-identical images, less Python per uniform (see the module)
 
         self.scene = pyrender.Scene(bg_color=(*spec.background, 1.0), ambient_light=spec.lighting.ambient)
         self._light_nodes = []

@@ -1,0 +1,138 @@
+"""A faster ``pyrender`` uniform upload: cached locations and direct ctypes calls.
+
+Why: at 128x128 the llvmpipe rasteriser is quick and pyrender's Python overhead dominates a
+frame. Profiling ``ReachEnv.step`` showed ~90 ``ShaderProgram.set_uniform`` calls per render,
+each doing a ``glGetUniformLocation`` round trip and going through PyOpenGL's array-converting,
+error-checking wrappers (~50 us per uniform): about a third of the frame time.
+
+:func:`install` replaces ``pyrender.shader_program.ShaderProgram.set_uniform`` with a version
+that
+
+* caches each uniform's location per program object (a location never changes while the linked
+  program lives; the cache is keyed by the GL program id, so a re-linked program starts afresh);
+* calls the GL entry points through plain ``ctypes`` prototypes (no per-call ``glGetError``)
+  for the value types pyrender actually sends (1-D float/int arrays, 2-D float matrices,
+  Python floats, ints and bools);
+* falls back to pyrender's own implementation for anything else, and keeps its semantics: an
+  unknown uniform name (location -1) is silently ignored, as pyrender does.
+
+The rendered images are bit-identical with and without it (``tests/sim/test_gl_fastpath.py``);
+``benchmarks/bench_env.py --no-fastpath`` measures the difference. Set ``ADVOBJ_GL_FASTPATH=0``
+to disable it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+
+import numpy as np
+
+__all__ = ["install", "uninstall", "installed"]
+
+_ORIGINAL = None
+_FUNCS: dict | None = None
+
+_c_int, _c_uint, _c_float, _c_ptr, _c_bool = ctypes.c_int, ctypes.c_uint, ctypes.c_float, ctypes.c_void_p, ctypes.c_ubyte
+
+
+def _load_funcs() -> dict:
+    """``name -> ctypes function`` bound to the GL library PyOpenGL itself uses."""
+    from OpenGL.platform import PLATFORM
+
+    lib = PLATFORM.GL
+    out = {}
+
+    def proto(name, *argtypes):
+        out[name] = ctypes.CFUNCTYPE(None, *argtypes)((name, lib))
+
+    proto("glUniform1f", _c_int, _c_float)
+    proto("glUniform1i", _c_int, _c_int)
+    proto("glUniform1ui", _c_int, _c_uint)
+    for n in (1, 2, 3, 4):
+        for suffix in ("fv", "iv", "uiv"):
+            proto(f"glUniform{n}{suffix}", _c_int, _c_int, _c_ptr)
+    for r in (2, 3, 4):
+        for c in (2, 3, 4):
+            name = f"glUniformMatrix{r}fv" if r == c else f"glUniformMatrix{r}x{c}fv"
+            proto(name, _c_int, _c_int, _c_bool, _c_ptr)
+    out["glGetUniformLocation"] = ctypes.CFUNCTYPE(_c_int, _c_uint, ctypes.c_char_p)(("glGetUniformLocation", lib))
+    return out
+
+
+_VEC_SUFFIX = {"f": ("fv", np.float32), "i": ("iv", np.int32), "u": ("uiv", np.uint32)}
+
+
+def _fast_set_uniform(self, name, value, unsigned=False):
+    f = _FUNCS
+    pid = self._program_id
+    cache = self.__dict__.get("_advobj_uniform_locs")
+    if cache is None or cache[0] != pid:
+        cache = (pid, {})
+        self._advobj_uniform_locs = cache
+    locs = cache[1]
+    loc = locs.get(name)
+    if loc is None:
+        loc = f["glGetUniformLocation"](pid, name.encode())
+        locs[name] = loc
+    if loc == -1:
+        return  # pyrender ignores unknown uniforms (its ValueError is swallowed)
+    if type(value) is np.ndarray:
+        if value.ndim == 1 and 1 <= value.shape[0] <= 4:
+            if np.issubdtype(value.dtype, np.unsignedinteger) or unsigned:
+                kind = "u"
+            elif np.issubdtype(value.dtype, np.integer):
+                kind = "i"
+            else:
+                kind = "f"
+            suffix, dtype = _VEC_SUFFIX[kind]
+            arr = np.ascontiguousarray(value, dtype=dtype)
+            f[f"glUniform{arr.shape[0]}{suffix}"](loc, 1, arr.ctypes.data)
+            return
+        if value.ndim == 2 and value.shape[0] in (2, 3, 4) and value.shape[1] in (2, 3, 4):
+            r, c = value.shape
+            name_fn = f"glUniformMatrix{r}fv" if r == c else f"glUniformMatrix{r}x{c}fv"
+            arr = np.ascontiguousarray(value, dtype=np.float32)
+            f[name_fn](loc, 1, 1, arr.ctypes.data)  # transpose = GL_TRUE, as pyrender passes
+            return
+    elif isinstance(value, float):
+        f["glUniform1f"](loc, value)
+        return
+    elif isinstance(value, int):  # bool is an int: pyrender's int branch handles it too
+        (f["glUniform1ui"] if unsigned else f["glUniform1i"])(loc, int(value))
+        return
+    _ORIGINAL(self, name, value, unsigned)
+
+
+def install() -> bool:
+    """Patch pyrender (idempotent). Returns whether the fast path is active."""
+    global _ORIGINAL, _FUNCS
+    if os.environ.get("ADVOBJ_GL_FASTPATH", "1") == "0":
+        return False
+    from pyrender.shader_program import ShaderProgram
+
+    if _ORIGINAL is not None:
+        return True
+    try:
+        funcs = _load_funcs()
+    except (AttributeError, OSError, TypeError):
+        return False  # unusual GL platform: keep pyrender's own path
+    _FUNCS = funcs
+    _ORIGINAL = ShaderProgram.set_uniform
+    ShaderProgram.set_uniform = _fast_set_uniform
+    return True
+
+
+def uninstall() -> None:
+    """Restore pyrender's own ``set_uniform`` (used by the equivalence test and the benchmark)."""
+    global _ORIGINAL
+    if _ORIGINAL is None:
+        return
+    from pyrender.shader_program import ShaderProgram
+
+    ShaderProgram.set_uniform = _ORIGINAL
+    _ORIGINAL = None
+
+
+def installed() -> bool:
+    return _ORIGINAL is not None
