@@ -116,7 +116,13 @@ def _edit(plan, tmp_path, fn):
     return str(err.value)
 
 
-def test_bad_yaml_errors_name_file_and_field(plan, tmp_path):
+@pytest.fixture(scope="module")
+def small_plan(spec):
+    return make_plan(spec, 0, ["A"], SHAPES, CONDS, _refs(), n_tcp_poses=2, n_object_layouts=3)
+
+
+def test_bad_yaml_errors_name_file_and_field(small_plan, tmp_path):
+    plan = small_plan
     msg = _edit(plan, tmp_path, lambda d: d["trials"][3].update(condition="stereo"))
     assert "bad.yaml" in msg and "trials.3.condition" in msg
     msg = _edit(plan, tmp_path, lambda d: d["tcp_poses"][1]["T_table_tcp"].update(rotvec_rad=[0, 0]))
@@ -160,3 +166,34 @@ def test_pool_restricts_poses(spec):
     assert all(tuple(np.round(lay.objects["goal"].xy_m, 9)) in layouts for lay in plan.object_layouts)
     with pytest.raises(PlanError, match="pool's 3 configurations"):
         make_plan(spec, 3, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=5, n_object_layouts=2, pool=pool[:3])
+
+
+def test_placement_sheet_pages(spec, tmp_path):
+    from trials.real.sheet import ROWS_PER_PAGE, placement_sheet_pdf, sheet_page_count
+
+    small = make_plan(spec, 0, ["A"], ["cube"], ["clean", "patch"], {"cube/patch": _refs(["cube"])["cube/patch"]},
+                      n_tcp_poses=2, n_object_layouts=3, tags=["occluded"])
+    assert len(small.trials) == 2 * 2 * 3 * 2 <= ROWS_PER_PAGE
+    path = tmp_path / "sheet.pdf"
+    n = placement_sheet_pdf(small, path, spec)
+    # 3 layout pages + 1 TCP page + 1 run-order page
+    assert n == sheet_page_count(small) == 5
+    assert len(re.findall(rb"/Type\s*/Page\b(?!s)", path.read_bytes())) == 5
+
+
+def test_cli_plan_writes_plan_sheet_and_run_info(tmp_path):
+    from typer.testing import CliRunner
+
+    from trials.cli import app
+
+    out = tmp_path / "plan.yaml"
+    res = CliRunner().invoke(app, ["trial", "plan", "--out", str(out), "--env", "A", "--env", "B", "--shape", "cube",
+                                   "--condition", "clean", "--tcp-poses", "2", "--object-poses", "2", "--seed", "4",
+                                   "--sheet", str(tmp_path / "sheet.pdf")])
+    assert res.exit_code == 0, res.output
+    assert "8 trials" in res.output and "env B  shape cube" in res.output
+    plan = load_plan(out)
+    assert plan.seed == 4 and len(plan.trials) == 8
+    assert (tmp_path / "plan.run.json").is_file() and (tmp_path / "sheet.pdf").stat().st_size > 0
+    res = CliRunner().invoke(app, ["trial", "plan", "--out", str(out), "--condition", "adv3d"])
+    assert res.exit_code != 0 and "--texture cube/adv3d=RUN_DIR" in str(res.exception)

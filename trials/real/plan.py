@@ -445,7 +445,8 @@ def load_plan(path: str | Path) -> TrialPlan:
     except OSError as err:
         raise PlanError(f"{path}: cannot read trial plan ({err.strerror or err})") from None
     try:
-        data = yaml.safe_load(text)
+        # the C loader when available: a 720-trial plan takes ~3 s with the pure-Python one
+        data = yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         raise PlanError(f"{path}: not valid YAML" + (f" at line {mark.line + 1}" if mark is not None else "")) from None
