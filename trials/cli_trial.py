@@ -66,3 +66,58 @@ def plan_command(
 
         n_pages = placement_sheet_pdf(plan, sheet, spec)
         typer.echo(f"wrote {sheet} ({n_pages} pages; print at 100 %)")
+
+
+@app.command("run")
+def run_command(
+    hardware: Path = typer.Option(..., help="hardware YAML (camera, arm, safety limits, calibration files)"),
+    policy: Path = typer.Option(..., help="policy: .onnx file (onnxruntime) or checkpoint directory"),
+    plan: Path = typer.Option(..., help="trial plan YAML from 'advobj trial plan'"),
+    session: str = typer.Option(..., help="session name; the same name resumes an interrupted session"),
+    db: Path = typer.Option(Path("trials.sqlite"), help="trial database (frames go to frames/ beside it)"),
+    auto_confirm: bool = typer.Option(False, "--auto-confirm", help="accept every automatic outcome (CI, scripted sessions)"),
+    answers: Optional[Path] = typer.Option(None, help="operator answers YAML: {trial_id: {outcome: ..., note: ...}} or a list"),
+    registry: Optional[Path] = typer.Option(None, help="tag registry YAML (objects.yaml); needed with a real camera"),
+    table_frame: Optional[Path] = typer.Option(None, help="YAML with T_base_table; default: from the registry's table tags"),
+    max_trials: Optional[int] = typer.Option(None, min=0, help="run at most this many of the remaining trials"),
+    rate_limit: Optional[bool] = typer.Option(None, "--rate-limit/--no-rate-limit",
+                                              help="hold the plan's control rate (default: on, off for non-realtime sim arms)"),
+    threads: int = typer.Option(1, min=1, help="onnxruntime threads (1: leaves a core to the camera and renderer)"),
+) -> None:
+    """Run (or resume) the plan's trials: placement check, policy loop, outcome, operator confirmation, commit."""
+    from trials.real.session import run_session
+
+    summary = run_session(hardware, policy, plan, session, db, answers=answers, auto_confirm=auto_confirm, registry=registry,
+                          table_frame=table_frame, max_trials=max_trials, rate_limit=rate_limit, threads=threads, log=typer.echo)
+    t = summary.timings
+    if t:
+        import numpy as np
+
+        typer.echo(f"{len(t)} trials committed; policy loop {np.median([x.loop_hz for x in t]):.1f} Hz median, "
+                   f"per-trial overhead {np.median([x.overhead_s for x in t]):.2f} s median (placement + move + outcome + commit)")
+    if summary.aborted:
+        typer.secho(f"aborted ({summary.abort_reason}); {summary.remaining} trials left. "
+                    "Resume with the same command (committed trials are kept).", fg=typer.colors.YELLOW)
+        raise typer.Exit(3)
+    typer.echo(f"session {summary.session}: {summary.planned - summary.remaining}/{summary.planned} trials done, data in {db}")
+
+
+@app.command("export")
+def export_command(
+    db: Path = typer.Option(Path("trials.sqlite"), help="trial database"),
+    out: Path = typer.Option(..., help="output directory"),
+    format: str = typer.Option("both", "--format", help="csv, parquet or both"),
+) -> None:
+    """Export sessions, trials, steps, object poses and events as CSV and/or Parquet tables."""
+    from trials.real.store import StoreError, TrialStore
+
+    if format not in ("csv", "parquet", "both"):
+        raise StoreError(f"--format: {format!r} is not csv, parquet or both")
+    with TrialStore(db, create=False) as store:
+        paths = []
+        if format in ("csv", "both"):
+            paths += store.export_csv(out)
+        if format in ("parquet", "both"):
+            paths += store.export_parquet(out)
+    for p in paths:
+        typer.echo(f"wrote {p}")

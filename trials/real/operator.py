@@ -1,0 +1,258 @@
+"""The operator's side of a trial session: prompts, single-key answers, and scripted stand-ins.
+
+The runner asks an :class:`Operator` four things: what to do about a failed placement check,
+whether to pause or abort during the policy loop (:meth:`poll`, never blocking), when to go on
+after a pause, and whether the automatic outcome stands (with an optional note).
+
+* :class:`TerminalOperator`: one key per action, read in cbreak mode on a TTY (plain line input
+  otherwise, e.g. through a pipe). Keys:
+
+  ============  ==========================================================
+  enter / y     accept the automatic outcome
+  g a n u       override the outcome: goal / adversarial / none / unknown
+  t             type a note for this trial (ends with enter)
+  r             re-check the placement
+  s             skip the placement check for this trial (logged)
+  p             pause (the arm stops); any key but q resumes
+  q             abort: stop the arm, drop the trial in progress, exit
+  ============  ==========================================================
+
+* :class:`AutoOperator`: accepts every outcome (``--auto-confirm``, CI).
+* :class:`ScriptedOperator`: answers from a YAML file (``--answers``): either a mapping
+  ``{trial_id: {outcome: adversarial, note: "..."}}`` or an ordered list of such entries consumed
+  one per trial; ``outcome: accept`` (or no outcome) keeps the automatic one. Trials without an
+  answer keep theirs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+from sim.errors import AdvobjError
+
+__all__ = ["OUTCOMES", "Decision", "Operator", "AutoOperator", "ScriptedOperator", "TerminalOperator", "AnswersError",
+           "load_answers"]
+
+OUTCOMES = ("goal", "adversarial", "none", "unknown")
+_OVERRIDE_KEYS = {"g": "goal", "a": "adversarial", "n": "none", "u": "unknown"}
+
+
+class AnswersError(AdvobjError, ValueError):
+    """A scripted answers file is malformed; the message names the file and entry."""
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The operator's verdict on one trial: ``outcome`` None = the automatic outcome stands."""
+
+    outcome: str | None = None
+    note: str = ""
+    abort: bool = False
+
+
+class Operator(Protocol):
+    def show(self, text: str) -> None: ...
+
+    def placement(self, trial, issues, attempt: int) -> str:
+        """``"recheck"``, ``"skip"`` or ``"abort"`` after a failed placement check."""
+
+    def poll(self) -> str | None:
+        """Non-blocking: ``"pause"``, ``"abort"`` or None (called every control step)."""
+
+    def paused(self) -> str:
+        """Block until the operator resumes (``"resume"``) or aborts (``"abort"``)."""
+
+    def confirm(self, trial, result, info: str) -> Decision: ...
+
+
+class AutoOperator:
+    """Accepts everything; a failed placement check is re-checked a few times, then aborts.
+
+    Without a simulated stage nobody will move the objects, so endless re-checks would hang a
+    scripted session: ``max_rechecks`` bounds them.
+    """
+
+    def __init__(self, log=print, max_rechecks: int = 3):
+        self.log = log
+        self.max_rechecks = max_rechecks
+
+    def show(self, text: str) -> None:
+        if self.log is not None:
+            self.log(text)
+
+    def placement(self, trial, issues, attempt: int) -> str:
+        return "recheck" if attempt < self.max_rechecks else "abort"
+
+    def poll(self) -> str | None:
+        return None
+
+    def paused(self) -> str:
+        return "resume"
+
+    def confirm(self, trial, result, info: str) -> Decision:
+        return Decision()
+
+
+def load_answers(path: str | Path):
+    """``{trial_id: Decision}`` or ``[Decision, ...]`` from an answers YAML (errors name the entry)."""
+    import yaml
+
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as err:
+        raise AnswersError(f"{p}: cannot read answers ({err.strerror or err})") from None
+    except yaml.YAMLError as err:
+        raise AnswersError(f"{p}: not valid YAML ({err})") from None
+
+    def entry(where: str, v) -> Decision:
+        if isinstance(v, str):
+            v = {"outcome": v}
+        if not isinstance(v, dict):
+            raise AnswersError(f"{p}: {where}: expected {{outcome: ..., note: ...}} or an outcome name, got {v!r}")
+        unknown = set(v) - {"outcome", "note"}
+        if unknown:
+            raise AnswersError(f"{p}: {where}: unknown keys {sorted(unknown)} (allowed: outcome, note)")
+        out = v.get("outcome", "accept")
+        if out not in (*OUTCOMES, "accept"):
+            raise AnswersError(f"{p}: {where}.outcome: {out!r} is not one of accept, {', '.join(OUTCOMES)}")
+        note = v.get("note", "")
+        if not isinstance(note, str):
+            raise AnswersError(f"{p}: {where}.note: must be text")
+        return Decision(None if out == "accept" else out, note)
+
+    if isinstance(data, dict):
+        return {str(k): entry(str(k), v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [entry(f"entry {i}", v) for i, v in enumerate(data)]
+    raise AnswersError(f"{p}: expected a mapping trial_id -> answer or a list of answers, got {type(data).__name__}")
+
+
+class ScriptedOperator(AutoOperator):
+    """:class:`AutoOperator` whose outcome decisions come from an answers file."""
+
+    def __init__(self, answers, log=print, source: str = "answers"):
+        super().__init__(log)
+        self.answers = answers
+        self.source = source
+        self._next = 0
+
+    @classmethod
+    def from_file(cls, path, log=print) -> "ScriptedOperator":
+        return cls(load_answers(path), log, str(path))
+
+    def check_plan(self, plan) -> None:
+        """Refuse answers for trial ids the plan does not have (a typo would be silently ignored)."""
+        if isinstance(self.answers, dict):
+            ids = {t.trial_id for t in plan.trials}
+            bad = sorted(set(self.answers) - ids)
+            if bad:
+                raise AnswersError(f"{self.source}: trial ids not in the plan: {', '.join(bad[:5])}" + (" ..." if len(bad) > 5 else ""))
+
+    def confirm(self, trial, result, info: str) -> Decision:
+        if isinstance(self.answers, dict):
+            return self.answers.get(trial.trial_id, Decision())
+        if self._next < len(self.answers):
+            self._next += 1
+            return self.answers[self._next - 1]
+        return Decision()
+
+
+class TerminalOperator:
+    """Single-key terminal UI (see the module docstring for the keys)."""
+
+    def __init__(self, stdin=None, stdout=None):
+        self.stdin = stdin or sys.stdin
+        self.stdout = stdout or sys.stdout
+        self.tty = self.stdin.isatty()
+
+    # ------------------------------------------------------------------ io
+    def show(self, text: str) -> None:
+        print(text, file=self.stdout, flush=True)
+
+    @contextlib.contextmanager
+    def _cbreak(self):
+        if not self.tty:
+            yield
+            return
+        import termios
+        import tty
+
+        fd = self.stdin.fileno()
+        old = termios.tcgetattr(fd)
+        try:
+            tty.setcbreak(fd)
+            yield
+        finally:
+            termios.tcsetattr(fd, termios.TCSADRAIN, old)
+
+    def _key(self, allowed: str) -> str:
+        """One key from ``allowed`` ('\\n' = enter); other keys are ignored."""
+        while True:
+            if self.tty:
+                with self._cbreak():
+                    ch = os.read(self.stdin.fileno(), 1).decode(errors="ignore")
+            else:
+                line = self.stdin.readline()
+                if line == "":
+                    raise EOFError("operator input closed")
+                ch = line.strip()[:1] or "\n"
+            ch = "\n" if ch in ("\r", "\n") else ch.lower()
+            if ch in allowed:
+                return ch
+
+    def _line(self, prompt: str) -> str:
+        self.stdout.write(prompt)
+        self.stdout.flush()
+        return self.stdin.readline().strip()
+
+    # ------------------------------------------------------------------ protocol
+    def placement(self, trial, issues, attempt: int) -> str:
+        for i in issues:
+            self.show(f"  ! {i.message}")
+        self.show("  [r] re-check   [s] skip the check (logged)   [q] abort")
+        return {"r": "recheck", "\n": "recheck", "s": "skip", "q": "abort"}[self._key("rsq\n")]
+
+    def poll(self) -> str | None:
+        if not self.tty:
+            return None
+        with self._cbreak():
+            ready, _, _ = select.select([self.stdin], [], [], 0)
+            if not ready:
+                return None
+            ch = os.read(self.stdin.fileno(), 1).decode(errors="ignore").lower()
+        return {"p": "pause", "q": "abort"}.get(ch)
+
+    def paused(self) -> str:
+        self.show("  paused: the arm is stopped. [any key] resume (the trial restarts)   [q] abort")
+        ch = self._key("abcdefghijklmnopqrstuvwxyz \n")
+        return "abort" if ch == "q" else "resume"
+
+    def confirm(self, trial, result, info: str) -> Decision:
+        note = ""
+        outcome = None
+        self.show(info)
+        while True:
+            self.show("  [enter/y] accept   [g/a/n/u] override: goal/adversarial/none/unknown   [t] note   [q] abort")
+            ch = self._key("\nygantuq")
+            if ch == "q":
+                return Decision(abort=True)
+            if ch == "t":
+                note = self._line("  note: ")
+                continue
+            if ch in _OVERRIDE_KEYS:
+                outcome = _OVERRIDE_KEYS[ch]
+                if outcome == result.reached:
+                    outcome = None  # the same as the automatic outcome: not an override
+                self.show(f"  outcome: {outcome or result.reached}" + (" (override)" if outcome else ""))
+                ch = self._key("\nyt")  # confirm the override (or add a note first)
+                if ch == "t":
+                    note = self._line("  note: ")
+                return Decision(outcome, note)
+            return Decision(outcome, note)

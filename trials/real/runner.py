@@ -1,0 +1,366 @@
+"""The trial session runner behind ``advobj trial run``: the plan's remaining trials, one by one.
+
+Per trial, in this order:
+
+1. Stage (sim hardware only: :class:`trials.real.stage.SimStage` sets the scene and object poses).
+2. Positioning move to the trial's initial pose (``T_base_tcp = T_base_table @ T_table_tcp``),
+   through the safety layer. It comes *before* the placement so the arm never moves while the
+   operator's hands are on the table, and so the tag check sees the scene from where the policy
+   will start.
+3. Placement guide: the locator finds the objects, :func:`placement_issues` compares them with the
+   layout within the plan's tolerances, the operator is told what to move, and re-checks until
+   the placement is within tolerance (or skips the check: logged in the trial's events).
+4. Policy loop at ``plan.control_hz`` (no sleeping with ``rate_limit=False``, for sim arms) for
+   at most ``plan.max_steps`` steps: camera -> policy -> ``SafeArm.step_delta`` (the scene's action
+   scaling) -> record. Like the simulator's episodes, the loop ends early when the criterion says
+   an object is reached (TCP against the checked placement poses). It ends too on a refused
+   command, a safety stop or an arm fault (the reason is stored).
+5. Outcome: the objects are located again from the final pose and
+   :func:`calibration.outcome.measure_reach` applies the paper's criterion (roles as names, so the
+   outcome is ``goal``, ``adversarial``, ``none`` or ``unknown``). An object not seen from the final
+   pose (the gripper may hide its tags) is taken at its checked placement pose; the reason says so.
+6. The operator confirms or overrides the outcome, with an optional note.
+7. The trial is committed in one transaction (:meth:`TrialStore.commit_trial`), frames first.
+
+Pause (during the loop) stops the arm; on resume the trial in progress restarts from step 1 (a
+paused rollout is not the experiment). Abort (key ``q`` or Ctrl-C) stops the arm, drops the trial
+in progress and returns; running the same command again resumes: committed trials are skipped,
+and the session refuses a plan file whose sha256 differs from the one it started with.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from trials.real.locate import placement_issues
+from trials.real.operator import Decision
+from trials.real.store import (EventRecord, ObjectPoseRecord, SessionInfo, StepRecord, TrialRecord, clear_frames,
+                               frames_dir)
+
+__all__ = ["TrialRunner", "RunSummary", "TrialTiming", "ROLES"]
+
+ROLES = ("goal", "adversarial")
+_SIM_GUIDANCE_ROUNDS = 5  # the simulated operator follows the guidance this often before asking the real one
+
+
+class _Abort(Exception):
+    pass
+
+
+class _Restart(Exception):
+    pass
+
+
+@dataclass(frozen=True)
+class TrialTiming:
+    """Wall-clock split of one trial (s); ``loop_hz`` = steps per second of the policy loop."""
+
+    trial_id: str
+    stage_s: float
+    move_s: float
+    placement_s: float
+    loop_s: float
+    outcome_s: float
+    commit_s: float
+    n_steps: int
+
+    @property
+    def overhead_s(self) -> float:
+        return self.stage_s + self.move_s + self.placement_s + self.outcome_s + self.commit_s
+
+    @property
+    def loop_hz(self) -> float:
+        return self.n_steps / self.loop_s if self.loop_s > 0 else float("nan")
+
+
+@dataclass
+class RunSummary:
+    session: str
+    planned: int
+    already_done: int
+    committed: list[str] = field(default_factory=list)
+    aborted: bool = False
+    abort_reason: str = ""
+    timings: list[TrialTiming] = field(default_factory=list)
+
+    @property
+    def remaining(self) -> int:
+        return self.planned - self.already_done - len(self.committed)
+
+
+def _iso_utc(t: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
+
+
+def _fmt_eta(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "--:--"
+    m, s = divmod(int(round(seconds)), 60)
+    return f"{m // 60}:{m % 60:02d}:{s:02d}" if m >= 60 else f"{m:02d}:{s:02d}"
+
+
+class TrialRunner:
+    """Runs the remaining trials of one session (see the module docstring).
+
+    Args:
+        plan: :class:`trials.real.plan.TrialPlan`.
+        camera: a connected camera (``read() -> Frame``).
+        arm: a connected :class:`robot_io.safety.SafeArm`.
+        policy: ``act(images (B, S, S, 3) uint8) -> (B, 6)`` with ``image_size`` S.
+        store: :class:`trials.real.store.TrialStore`.
+        operator: an :class:`trials.real.operator.Operator`.
+        locator: a :class:`trials.real.locate.Locator`.
+        session: the :class:`SessionInfo` recorded (or matched on resume).
+        action_scale: (6,) per-component scale of the policy's actions (``[max_step_m]*3 + [max_step_rad]*3``).
+        stage: :class:`trials.real.stage.SimStage` for sim hardware, else None (a person stages).
+        T_base_table: table frame in the arm's base frame (identity for sim arms).
+        rate_limit: sleep to the control period (off: as fast as possible, sim arms only).
+        on_trial_end: called with the planned trial right after its policy loop (tests record the
+            sim's ground truth there).
+    """
+
+    def __init__(self, plan, camera, arm, policy, store, operator, locator, session: SessionInfo, action_scale,
+                 stage=None, T_base_table=None, rate_limit: bool = True, on_trial_end: Callable | None = None,
+                 stop_on_reach: bool = True, clock: Callable[[], float] = time.monotonic, sleep: Callable = time.sleep):
+        self.plan = plan
+        self.camera = camera
+        self.arm = arm
+        self.policy = policy
+        self.store = store
+        self.operator = operator
+        self.locator = locator
+        self.session = session
+        self.action_scale = np.asarray(action_scale, dtype=np.float64).reshape(6)
+        self.stage = stage
+        self.T_base_table = np.eye(4) if T_base_table is None else np.asarray(T_base_table, dtype=np.float64)
+        self.T_table_base = np.linalg.inv(self.T_base_table)
+        self.rate_limit = rate_limit
+        self.on_trial_end = on_trial_end
+        self.stop_on_reach = stop_on_reach
+        self.clock = clock
+        self.sleep = sleep
+
+    # ------------------------------------------------------------------ session
+    def run(self, max_trials: int | None = None) -> RunSummary:
+        sid = self.store.open_session(self.session)
+        done = self.store.committed_trial_ids(sid)
+        ordered = sorted(self.plan.trials, key=lambda t: t.order)
+        todo = [t for t in ordered if t.trial_id not in done]
+        summary = RunSummary(self.session.name, len(ordered), len(ordered) - len(todo))
+        if max_trials is not None:
+            todo = todo[: max(0, int(max_trials))]
+        if summary.already_done:
+            self.operator.show(f"session {self.session.name}: {summary.already_done} of {len(ordered)} trials already done, resuming")
+        current = None
+        try:
+            for i, trial in enumerate(todo):
+                current = trial
+                self.operator.show(self._header(trial, summary.already_done + i + 1, len(ordered), summary.timings, len(todo) - i))
+                while True:
+                    try:
+                        rec, timing = self._run_trial(trial)
+                        break
+                    except _Restart:
+                        self.operator.show(f"  restarting {trial.trial_id}")
+                t = self.clock()
+                self.store.commit_trial(sid, rec)
+                timing = TrialTiming(**{**timing.__dict__, "commit_s": self.clock() - t})
+                summary.committed.append(trial.trial_id)
+                summary.timings.append(timing)
+                current = None
+                self.operator.show(f"  committed: {rec.final_outcome}" + (f" (auto: {rec.auto_outcome})" if rec.operator_outcome else "")
+                                   + f", {len(rec.steps)} steps at {timing.loop_hz:.1f} Hz, {rec.stop_reason}")
+        except (_Abort, KeyboardInterrupt) as err:
+            summary.aborted = True
+            summary.abort_reason = "Ctrl-C" if isinstance(err, KeyboardInterrupt) else "operator abort"
+            self._stop_quietly(f"session aborted ({summary.abort_reason})")
+            if current is not None and current.trial_id not in self.store.committed_trial_ids(sid):
+                clear_frames(frames_dir(self.store.path, self.session.name, current.trial_id))
+        return summary
+
+    def _header(self, trial, k: int, n: int, timings, left: int) -> str:
+        per = np.mean([t.overhead_s + t.loop_s + t.commit_s for t in timings]) if timings else float("nan")
+        return (f"[{k}/{n}] {trial.trial_id}: env {trial.env}, shape {trial.shape}, {trial.condition}, TCP pose {trial.tcp_pose}, "
+                f"layout {trial.object_layout}" + (f", tags {','.join(trial.tags)}" if trial.tags else "")
+                + f"   ETA {_fmt_eta(per * left)}")
+
+    def _stop_quietly(self, reason: str) -> None:
+        try:
+            self.arm.stop(reason)
+        except Exception:  # noqa: BLE001 - the driver's own watchdog stops a dead link; keep the first error
+            pass
+
+    # ------------------------------------------------------------------ one trial
+    def _run_trial(self, trial):
+        plan = self.plan
+        t_wall = time.time()
+        t0 = self.clock()
+        events: list[EventRecord] = []
+        fdir = frames_dir(self.store.path, self.session.name, trial.trial_id)
+        clear_frames(fdir)  # a leftover of an interrupted attempt at this trial
+        fdir.mkdir(parents=True)
+        rel_dir = fdir.relative_to(self.store.path.resolve().parent).as_posix()
+
+        if self.stage is not None:
+            self.stage.prepare(trial)
+        t1 = self.clock()
+        T_base_tcp0 = self.T_base_table @ plan.tcp_pose(trial.tcp_pose).T_table_tcp.T()
+        self.arm.move_to(T_base_tcp0)
+        t2 = self.clock()
+        layout = plan.object_layout(trial.object_layout).objects
+        placed, checks, skipped = self._placement(trial, layout, events, t0)
+        t3 = self.clock()
+
+        n_ev = len(self.arm.events)
+        steps, stop_reason, t_loop = self._loop(trial, placed, fdir, rel_dir, events, t0)
+        t4 = self.clock()
+        self.arm.stop("trial ended")
+        if self.on_trial_end is not None:
+            self.on_trial_end(trial)
+        for ev in list(self.arm.events)[n_ev:]:
+            events.append(EventRecord(ev.time_s - t0, "safety", ev.action, ev.reason))
+
+        result, final, T_table_tcp, fallback = self._outcome(placed)
+        reason = result.reason + (f"; not seen at the end, placement pose used: {', '.join(fallback)}" if fallback else "")
+        info = (f"  outcome: {result.reached} ({reason}); distances "
+                + ", ".join(f"{k} {'?' if v is None else f'{v * 100:.1f} cm'}" for k, v in result.distances_m.items()))
+        t5 = self.clock()
+        decision: Decision = self.operator.confirm(trial, result, info)
+        if decision.abort:
+            raise _Abort()
+        if decision.outcome is not None and decision.outcome != result.reached:
+            events.append(EventRecord(self.clock() - t0, "operator", "override", f"{result.reached} -> {decision.outcome}"))
+        operator_outcome = decision.outcome if decision.outcome != result.reached else None
+
+        poses = [self._pose_record(role, "placement", placed.get(role)) for role in ROLES]
+        poses += [self._pose_record(role, "final", final.get(role)) for role in ROLES]
+        ref = plan.texture_for(trial)
+        rec = TrialRecord(
+            trial_id=trial.trial_id, plan_order=trial.order, env=trial.env, shape=trial.shape, condition=trial.condition,
+            tcp_pose=trial.tcp_pose, object_layout=trial.object_layout, tags=list(trial.tags),
+            texture_sha256=None if ref is None else ref.sha256, started_at=_iso_utc(t_wall), duration_s=self.clock() - t0,
+            stop_reason=stop_reason, auto_outcome=result.reached, auto_reason=reason, distances_m=result.distances_m,
+            operator_outcome=operator_outcome, note=decision.note, placement_checks=checks, placement_skipped=skipped,
+            T_table_tcp_final=T_table_tcp, frames_dir=rel_dir, steps=steps, object_poses=poses, events=events)
+        timing = TrialTiming(trial.trial_id, t1 - t0, t2 - t1, t3 - t2, t_loop, t5 - t4, 0.0, len(steps))
+        return rec, timing
+
+    def _locate(self):
+        frame = self.camera.read()
+        return self.locator.locate(frame, self.arm.tcp_pose())
+
+    def _placement(self, trial, layout, events, t0):
+        """Check (and guide) the placement until it is within tolerance or skipped."""
+        plan = self.plan
+        attempt = 0
+        while True:
+            attempt += 1
+            located = self._locate()
+            issues = placement_issues(layout, located, plan.placement_tolerance_m, plan.placement_tolerance_rad)
+            if not issues:
+                if attempt > 1:
+                    self.operator.show("  placement OK")
+                return located, attempt, False
+            text = "; ".join(i.message for i in issues)
+            events.append(EventRecord(self.clock() - t0, "placement", "out_of_tolerance", text))
+            if self.stage is not None and attempt <= _SIM_GUIDANCE_ROUNDS:
+                self.operator.show(f"  placement check {attempt}: {text} (simulated operator corrects)")
+                self.stage.follow_guidance(issues)
+                continue
+            answer = self.operator.placement(trial, issues, attempt)
+            if answer == "abort":
+                raise _Abort()
+            if answer == "skip":
+                events.append(EventRecord(self.clock() - t0, "operator", "skip_placement", text))
+                return located, attempt, True
+
+    def _policy_image(self, rgb: np.ndarray) -> np.ndarray:
+        S = int(self.policy.image_size)
+        if rgb.shape[:2] == (S, S):
+            return rgb
+        import cv2
+
+        return cv2.resize(rgb, (S, S), interpolation=cv2.INTER_AREA)
+
+    def _reached_now(self, T_base_tcp, placed) -> bool:
+        from calibration.outcome import measure_reach
+
+        if not self.stop_on_reach or any(r not in placed for r in ROLES):
+            return False
+        p = (self.T_table_base @ T_base_tcp)[:3, 3]
+        res = measure_reach(p, {r: placed[r].center_table_m for r in ROLES}, ROLES, self.plan.radius_m)
+        return res.reached in ROLES
+
+    def _loop(self, trial, placed, fdir: Path, rel_dir: str, events, t0):
+        import cv2
+
+        from robot_io.errors import ArmFaultError, SafetyStop
+
+        period = 1.0 / float(self.plan.control_hz)
+        steps: list[StepRecord] = []
+        stop_reason = "max_steps"
+        self.arm.start_trial()
+        t_start = self.clock()
+        for k in range(int(self.plan.max_steps)):
+            t_tick = self.clock()
+            cmd = self.operator.poll()
+            if cmd == "abort":
+                raise _Abort()
+            if cmd == "pause":
+                self.arm.stop("paused by the operator")
+                if self.operator.paused() == "abort":
+                    raise _Abort()
+                raise _Restart()
+            frame = self.camera.read()
+            action = np.asarray(self.policy.act(self._policy_image(frame.rgb)[None]), dtype=np.float64).reshape(-1, 6)[0]
+            try:
+                res = self.arm.step_delta(action * self.action_scale, frame)
+            except SafetyStop as err:
+                stop_reason = f"safety_stop: {err}"
+                break
+            except ArmFaultError as err:
+                stop_reason = f"fault: {err}"
+                break
+            t_cmd = self.clock()
+            T_meas = self.arm.tcp_pose()
+            name = f"step_{k:03d}.png"
+            cv2.imwrite(str(fdir / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+            steps.append(StepRecord(k, frame.timestamp_s - t_start, t_cmd - t_start, int(frame.seq), action.tolist(), res.T_cmd,
+                                    T_meas, res.status, "; ".join(res.reasons), f"{rel_dir}/{name}"))
+            if res.status == "refused":
+                stop_reason = f"refused: {'; '.join(res.reasons)}"
+                break
+            if self._reached_now(T_meas, placed):
+                stop_reason = "reached"
+                break
+            if self.rate_limit:
+                wait = t_tick + period - self.clock()
+                if wait > 0:
+                    self.sleep(wait)
+        return steps, stop_reason, self.clock() - t_start
+
+    def _outcome(self, placed):
+        from calibration.outcome import measure_reach
+
+        final = self._locate()
+        T_table_tcp = self.T_table_base @ self.arm.tcp_pose()
+        positions, fallback = {}, []
+        for role in ROLES:
+            obj = final.get(role)
+            if obj is None and role in placed:
+                obj = placed[role]
+                fallback.append(role)
+            positions[role] = None if obj is None else obj.centers_for_outcome()
+        return measure_reach(T_table_tcp[:3, 3], positions, ROLES, self.plan.radius_m), final, T_table_tcp, fallback
+
+    def _pose_record(self, role: str, phase: str, obj) -> ObjectPoseRecord:
+        if obj is None:
+            return ObjectPoseRecord(role, phase, None, None, (), False, 0, getattr(self.locator, "source", "tags"))
+        n_alt = 0 if obj.alternatives_center_m is None else len(obj.alternatives_center_m)
+        return ObjectPoseRecord(role, phase, obj.T_table_object, obj.center_table_m, obj.tag_ids, obj.ambiguous, n_alt, obj.source)

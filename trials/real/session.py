@@ -1,0 +1,203 @@
+"""Assembling a trial session from files: hardware YAML, plan, policy, registry -> a running :class:`TrialRunner`.
+
+:func:`run_session` is ``advobj trial run`` without the command line: it loads and checks every
+input before any device connects, records the session's provenance (plan text and sha256,
+hardware YAML, policy sha256, software version and git commit, device identities, sha256 of the
+calibration files), then runs inside ``with camera, arm:`` so any exception stops the arm.
+
+With ``sim`` devices the table is staged by :class:`trials.real.stage.SimStage` and located by
+:class:`trials.real.locate.SimLocator` (ground truth); the sim camera renders at the policy's
+input size unless the hardware YAML sets ``sim.image_size``. Real cells need ``--registry`` (the
+tag -> object registry) and a ``T_base_table`` (``--table-frame`` YAML, or estimated from the
+registry's ``table`` tags seen from the arm's current pose).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from sim.errors import AdvobjError
+
+__all__ = ["SessionSetupError", "file_sha256", "device_identity", "load_trial_policy", "load_T_base_table", "run_session"]
+
+
+class SessionSetupError(AdvobjError, ValueError):
+    """An input of ``advobj trial run`` is missing or inconsistent; the message names it."""
+
+
+def file_sha256(path: str | Path | None) -> str | None:
+    """sha256 of a file's bytes, of a directory's files (sorted relative paths + bytes), or None."""
+    if path is None:
+        return None
+    p = Path(path)
+    h = hashlib.sha256()
+    if p.is_dir():
+        for f in sorted(x for x in p.rglob("*") if x.is_file()):
+            h.update(f.relative_to(p).as_posix().encode() + b"\0")
+            h.update(f.read_bytes())
+        return h.hexdigest()
+    if not p.is_file():
+        return None
+    h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def device_identity(device) -> dict:
+    """What a device says about itself: its type, and a serial number if the driver exposes one."""
+    serial = getattr(device, "serial", None)
+    ident = getattr(device, "identity", None)
+    out = {"type": getattr(device, "name", type(device).__name__)}
+    if callable(ident):
+        out.update(ident())
+    elif serial is not None:
+        out["serial"] = str(serial)
+    elif out["type"] == "sim":
+        out["serial"] = "sim"
+    return out
+
+
+def load_trial_policy(path: str | Path, threads: int = 1):
+    """An ``.onnx`` file through onnxruntime with ``threads`` threads, else the project's loader (checkpoints)."""
+    p = Path(path)
+    if p.suffix.lower() == ".onnx" and p.is_file():
+        from sim.policies.onnx_policy import OnnxPolicy
+
+        return OnnxPolicy(p, threads=threads)
+    from sim.policies.checkpoint import load_policy
+
+    return load_policy(p)
+
+
+def load_T_base_table(path: str | Path) -> np.ndarray:
+    """``T_base_table`` from ``{T_base_table: {translation_m: [..], rotvec_rad: [..]}}`` (or the pose at top level)."""
+    from calibration.io import PoseModel, load_model, read_yaml
+
+    data = read_yaml(path)
+    if isinstance(data, dict) and set(data) == {"T_base_table"}:
+        data = data["T_base_table"]
+    return load_model(path, PoseModel, data=data).T
+
+
+def _scene_spec(plan, hw):
+    from trials.scene_tools import load_spec
+
+    if plan.scene is not None:
+        return load_spec(Path(plan.scene))
+    return load_spec(hw.sim.scene)
+
+
+def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | Path, session: str, db: str | Path,
+                operator=None, answers: str | Path | None = None, auto_confirm: bool = False, registry: str | Path | None = None,
+                table_frame: str | Path | None = None, max_trials: int | None = None, rate_limit: bool | None = None,
+                threads: int = 1, on_trial_end: Callable | None = None, on_ready: Callable | None = None, log=print):
+    """Run (or resume) ``session`` of ``plan_path`` into ``db``; returns the :class:`RunSummary`.
+
+    ``operator``: an explicit :class:`Operator`; else ``auto_confirm`` / ``answers`` pick the
+    scripted ones and the default is the terminal UI. ``rate_limit`` None: on for real arms and for
+    sim arms with ``realtime: true``, off for other sim arms. ``on_ready(runner, world)`` is called
+    before the first trial (tests use it to reach the sim world and stage).
+    """
+    import importlib.metadata
+
+    from robot_io.config import build_arm, build_camera, build_world, load_hardware_config
+    from sim.runinfo import git_commit
+    from trials.real.operator import AutoOperator, ScriptedOperator, TerminalOperator
+    from trials.real.plan import load_plan, plan_sha256
+    from trials.real.runner import TrialRunner
+    from trials.real.store import SessionInfo, TrialStore
+
+    hardware, plan_path, policy_path = Path(hardware), Path(plan_path), Path(policy_path)
+    if answers is not None and auto_confirm:
+        raise SessionSetupError("--auto-confirm and --answers: give one of them")
+    hw = load_hardware_config(hardware)
+    plan = load_plan(plan_path)
+    sim = hw.camera.type == "sim"
+    if operator is None:
+        if answers is not None:
+            operator = ScriptedOperator.from_file(answers, log)
+        elif auto_confirm:
+            operator = AutoOperator(log)
+        else:
+            operator = TerminalOperator()
+    if hasattr(operator, "check_plan"):
+        operator.check_plan(plan)
+    if not sim and registry is None:
+        raise SessionSetupError("--registry: a real camera needs the tag registry (objects.yaml) for the placement check and the outcome")
+    policy = load_trial_policy(policy_path, threads)
+    S = int(policy.image_size)
+    if sim and hw.sim.image_size is None:
+        hw = hw.model_copy(update={"sim": hw.sim.model_copy(update={"image_size": (S, S)})})
+    spec = _scene_spec(plan, hw)
+    ep = spec.episode
+    action_scale = [ep.max_step_m] * 3 + [ep.max_step_rad] * 3
+
+    intrinsics = getattr(hw.camera, "intrinsics", None)
+    calibration = {"T_tcp_cam": file_sha256(hw.T_tcp_cam), "intrinsics": file_sha256(intrinsics),
+                   "registry": file_sha256(registry), "table_frame": file_sha256(table_frame)}
+    world = build_world(hw) if hw.camera.type == "sim" or hw.arm.type == "sim" else None
+    if world is not None and plan.scene is not None:
+        world.set_scene(spec)
+    stage = None
+    try:
+        camera, arm = build_camera(hw, world), build_arm(hw, world)
+        if rate_limit is None:
+            rate_limit = not (hw.arm.type == "sim" and not hw.arm.realtime)
+        info = SessionInfo(
+            name=session, plan_sha256=plan_sha256(plan_path), plan_text=plan_path.read_text(), hardware_text=hardware.read_text(),
+            policy_path=str(policy_path), policy_sha256=file_sha256(policy_path) or "", software_version=importlib.metadata.version("advobj"),
+            git_commit=git_commit(), devices={"camera": device_identity(camera), "arm": device_identity(arm)}, calibration=calibration,
+            config={"hardware": str(hardware), "plan": str(plan_path), "policy": str(policy_path), "db": str(db), "registry": registry,
+                    "table_frame": table_frame, "rate_limit": rate_limit, "threads": threads, "image_size": S,
+                    "action_scale": action_scale, "seed": plan.seed})
+        store = TrialStore(db)
+        from sim.runinfo import write_run_info
+
+        write_run_info(Path(db).resolve().parent / "frames" / session, info.config, plan.seed)
+        try:
+            with camera, arm:
+                T_base_table = np.eye(4)
+                if sim:
+                    from trials.real.locate import SimLocator
+                    from trials.real.stage import SimStage
+
+                    locator = SimLocator(world)
+                    stage = SimStage(world, plan, plan_path.parent)
+                else:
+                    locator, T_base_table = _tag_locator(hw, camera, arm, registry, table_frame)
+                runner = TrialRunner(plan, camera, arm, policy, store, operator, locator, info, action_scale, stage=stage,
+                                     T_base_table=T_base_table, rate_limit=rate_limit, on_trial_end=on_trial_end)
+                if on_ready is not None:
+                    on_ready(runner, world)
+                return runner.run(max_trials)
+        finally:
+            store.close()
+    finally:
+        if stage is not None:
+            stage.close()
+        if world is not None:
+            world.close()
+
+
+def _tag_locator(hw, camera, arm, registry, table_frame):
+    from calibration.registry import load_registry
+    from robot_io.config import load_T_tcp_cam
+    from trials.real.locate import TagLocator
+
+    if hw.T_tcp_cam is None:
+        raise SessionSetupError("T_tcp_cam: the hardware config must name the hand-eye result for tag-based locating")
+    reg = load_registry(registry)
+    T_tcp_cam = load_T_tcp_cam(hw.T_tcp_cam)
+    if table_frame is not None:
+        T_base_table = load_T_base_table(table_frame)
+    else:
+        probe = TagLocator(reg, camera.intrinsics, T_tcp_cam, np.eye(4))
+        T_base_table = TagLocator.estimate_T_base_table(probe.observe(camera.read()), arm.tcp_pose(), T_tcp_cam)
+        if T_base_table is None:
+            raise SessionSetupError("--table-frame: not given, and no 'table' tag of the registry is visible from the arm's "
+                                    "current pose; give the table frame YAML or move the arm so a table tag is in view")
+    return TagLocator(reg, camera.intrinsics, T_tcp_cam, T_base_table), T_base_table

@@ -1,0 +1,136 @@
+"""Staging a planned trial on sim hardware: the simulated operator who sets up the table.
+
+On a real cell a person places the printed objects. With ``sim`` camera and arm the
+:class:`SimStage` does it in the shared :class:`sim.world.SimWorld`:
+
+* the scene for the trial's shape and condition (the adversarial-role object gets the mesh
+  :meth:`trials.real.plan.TrialPlan.mesh_for` names, with the same swap as
+  :func:`trials.conditions.condition_spec`: same pose, the mesh's own default look), and the
+  plan's texture on it for ``adv3d`` / ``patch`` (``clean`` keeps the benign look);
+* the object poses of the trial's layout, optionally with a deliberate misplacement
+  (:meth:`misplace`) that the live placement check must catch;
+* :meth:`follow_guidance`: the simulated operator moves each object by the correction the check
+  asked for, as a person would.
+
+Renderers are cached per (mesh, texture): a session has a handful of combinations, and building a
+renderer (GL context, mesh and texture upload) costs far more than a trial's render.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sim.errors import AdvobjError
+
+__all__ = ["StageError", "SimStage", "load_texture"]
+
+
+class StageError(AdvobjError, ValueError):
+    """A plan's texture cannot be used (missing, changed since planning, malformed)."""
+
+
+def load_texture(ref, plan_dir: Path | None = None) -> np.ndarray:
+    """The (H, W, 3) uint8 texture of a :class:`trials.real.plan.TextureRef`, checked against its sha256.
+
+    A relative path is tried as given, then relative to ``plan_dir``.
+    """
+    from trials.conditions import load_attack_source
+
+    p = Path(ref.path)
+    if not p.is_absolute() and not p.exists() and plan_dir is not None:
+        p = plan_dir / p
+    src = load_attack_source(p)
+    if src.sha256 != ref.sha256:
+        raise StageError(f"{p}: texture.npy sha256 {src.sha256[:12]}... differs from the plan's {ref.sha256[:12]}...; "
+                         "the attack run changed since the plan was made")
+    return src.texture
+
+
+class SimStage:
+    """Sets the sim world up for each planned trial.
+
+    Args:
+        world: the :class:`sim.world.SimWorld` the sim camera and arm share.
+        plan: the :class:`trials.real.plan.TrialPlan`.
+        plan_dir: where relative texture paths are looked up.
+    """
+
+    def __init__(self, world, plan, plan_dir: Path | None = None):
+        self.world = world
+        self.plan = plan
+        self.plan_dir = plan_dir
+        self.base_spec = world.spec
+        self._renderers: dict[tuple, object] = {}
+        self._textures: dict[str, np.ndarray] = {}
+        self._offsets: dict[str, np.ndarray] = {}
+        self.builds = 0  # renderers built (the cache's effect is measurable)
+
+    def misplace(self, role: str, dx_m: float = 0.0, dy_m: float = 0.0, dyaw_rad: float = 0.0) -> None:
+        """Put ``role`` off its planned pose by this much in the next :meth:`prepare` (tests, demos)."""
+        self._offsets[role] = np.array([dx_m, dy_m, dyaw_rad], dtype=np.float64)
+
+    def texture(self, trial) -> tuple[np.ndarray | None, str | None]:
+        ref = self.plan.texture_for(trial)
+        if ref is None:
+            return None, None
+        key = f"{trial.shape}/{trial.condition}"
+        if key not in self._textures:
+            self._textures[key] = load_texture(ref, self.plan_dir)
+        return self._textures[key], key
+
+    def _scene(self, mesh: str):
+        spec = self.base_spec
+        objs = [o.model_copy(update={"mesh": mesh, "texture": None}) if o.role == "adversarial" else o for o in spec.objects]
+        return spec.with_updates(objects=[o.model_dump() for o in objs])
+
+    def prepare(self, trial) -> None:
+        """Scene and object poses for ``trial`` (the TCP stays where the arm is)."""
+        from sim.render import SceneRenderer
+
+        mesh = self.plan.mesh_for(trial)
+        tex, tex_key = self.texture(trial)
+        key = (mesh, tex_key)
+        if key not in self._renderers:
+            spec = self._scene(mesh)
+            r = SceneRenderer(spec, self.world.width, self.world.height)
+            if tex is not None:
+                r.set_object_texture(spec.object_index("adversarial"), tex)
+            self._renderers[key] = (spec, r)
+            self.builds += 1
+        spec, r = self._renderers[key]
+        if self.world.spec is not spec:
+            self.world.set_scene(spec, renderer=r)
+        layout = self.plan.object_layout(trial.object_layout)
+        xyy = np.zeros((len(spec.objects), 3))
+        for k, o in enumerate(spec.objects):
+            # Other objects of the scene (distractors) keep their nominal pose.
+            xyy[k] = (o.pose.x_m, o.pose.y_m, np.radians(o.pose.yaw_deg))
+        for role, p in layout.objects.items():
+            xyy[spec.object_index(role)] = (p.xy_m[0], p.xy_m[1], p.yaw_rad)
+            if role in self._offsets:
+                xyy[spec.object_index(role)] += self._offsets.pop(role)
+        self.world.place_objects(xyy)
+
+    def follow_guidance(self, issues) -> None:
+        """Move each object by the correction the placement check asked for."""
+        from sim.configs import object_poses_world
+
+        T = self.world.T_world_objects.copy()
+        for issue in issues:
+            if issue.missing:
+                continue
+            k = self.world.spec.object_index(issue.role)
+            x, y = T[k, 0, 3] + issue.dx_m, T[k, 1, 3] + issue.dy_m
+            yaw = float(np.arctan2(T[k, 1, 0], T[k, 0, 0])) + issue.dyaw_rad
+            T[k] = object_poses_world([[x, y, yaw]])[0]
+        self.world.T_world_objects = T
+
+    def close(self) -> None:
+        """Give the world an own renderer back and free the cached ones."""
+        if any(self.world.renderer is r for _, r in self._renderers.values()):
+            self.world.set_scene(self.base_spec)
+        for _, r in self._renderers.values():
+            r.close()
+        self._renderers.clear()
