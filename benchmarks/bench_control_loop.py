@@ -56,6 +56,7 @@ def main() -> None:
     # 1 thread by default: on 2 shared cores a second (spin-waiting) onnxruntime thread slowed the
     # sim render more than it sped up the policy (measured, see the module docstring).
     ap.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    ap.add_argument("--spin", action="store_true", help="let idle onnxruntime threads spin-wait (off by default)")
     args = ap.parse_args()
 
     from robot_io.config import build_arm, build_camera, build_world, load_hardware_config
@@ -64,7 +65,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         onnx_path = args.onnx or export_resnet18(Path(tmp) / f"resnet18_{args.stem}_stem.onnx", args.size,
                                                     args.stem == "small")
-        policy = OnnxPolicy(onnx_path, threads=args.threads)
+        policy = OnnxPolicy(onnx_path, threads=args.threads, spin=args.spin)
         S = policy.image_size
         cfg = load_hardware_config(args.config)
         cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"image_size": (S, S)})})
@@ -103,7 +104,7 @@ def main() -> None:
                     refused += res.status == "refused"
         world.close()
     total_med = float(np.median(t_total)) * 1000.0
-    print(f"control loop, {args.steps} steps, {S}x{S} px, policy {onnx_path.name}, onnxruntime threads={args.threads}, "
+    print(f"control loop, {args.steps} steps, {S}x{S} px, policy {onnx_path.name}, onnxruntime threads={args.threads} spin={args.spin}, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
     print(f"  camera read (sim render)   {stats(t_cam, c_cam)}")
     print(f"  policy (onnxruntime)       {stats(t_pol, c_pol)}")

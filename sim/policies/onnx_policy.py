@@ -68,11 +68,14 @@ class OnnxPolicy:
     Args:
         path: the ``.onnx`` file.
         threads: intra-op threads (0 = onnxruntime's default).
+        spin: let idle intra-op threads spin-wait for work. Off by default: on a few shared cores
+            spinning threads steal the CPU the (llvmpipe) renderer and the control loop need;
+            off costs a little wake-up latency per op (measured in ``benchmarks/bench_control_loop.py``).
     """
 
     white_box = False
 
-    def __init__(self, path: str | Path, threads: int = 0):
+    def __init__(self, path: str | Path, threads: int = 0, spin: bool = False):
         import onnxruntime as ort
 
         self.path = Path(path)
@@ -81,6 +84,9 @@ class OnnxPolicy:
         opts = ort.SessionOptions()
         if threads:
             opts.intra_op_num_threads = threads
+        if not spin:
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
         try:
             self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
         except Exception as err:  # onnxruntime raises its own exception types for bad files

@@ -183,3 +183,13 @@ def test_onnx_policy_carries_its_card_and_is_refused_by_the_attack(onnx_pair):
 def test_onnx_export_rejects_old_opsets(tmp_path):
     with pytest.raises(PolicyError, match="opset"):
         export_onnx(_policy(), tmp_path / "p.onnx", opset=13)
+
+
+def test_onnx_thread_and_spin_settings_change_speed_not_actions(onnx_pair):
+    from sim.policies.onnx_policy import OnnxPolicy
+
+    _, default = onnx_pair
+    x = np.random.default_rng(5).integers(0, 256, (4, default.image_size, default.image_size, 3), dtype=np.uint8)
+    ref = default.act(x)
+    for threads, spin in ((1, False), (2, False), (2, True)):
+        np.testing.assert_allclose(OnnxPolicy(default.path, threads=threads, spin=spin).act(x), ref, atol=1e-5)
