@@ -121,3 +121,39 @@ def export_command(
             paths += store.export_parquet(out)
     for p in paths:
         typer.echo(f"wrote {p}")
+
+
+@app.command("report")
+def report_command(
+    db: Path = typer.Option(Path("trials.sqlite"), help="trial database"),
+    session: List[str] = typer.Option([], "--session", help="session name (repeatable; default: all sessions)"),
+    sim: List[str] = typer.Option([], "--sim", help="SHAPE=EVAL_DIR or ENV/SHAPE=EVAL_DIR: 'advobj eval' directory of the same object (repeatable)"),
+    plan: Optional[Path] = typer.Option(None, help="plan YAML: its texture sha256s match sim conditions when trials did not record one"),
+    out: Path = typer.Option(Path("trial_report"), help="report directory (report.md, report.json)"),
+) -> None:
+    """ASR and T-ASR with Wilson intervals per session and pooled, and Table IV beside the sim evaluation."""
+    from sim.runinfo import write_run_info
+    from trials.real.report import ReportError, load_sim_eval, summarize_trials, table_iv, write_trial_report
+    from trials.real.store import TrialStore
+
+    sims = {key: load_sim_eval(d) for key, d in _key_values(sim, "--sim").items()}
+    plan_textures = {}
+    if plan is not None:
+        from trials.real.plan import load_plan
+
+        plan_textures = {k: t.sha256 for k, t in load_plan(plan).textures.items()}
+    with TrialStore(db, create=False) as store:
+        missing = sorted(set(session) - set(store.session_names()))
+        if missing:
+            raise ReportError(f"--session: no session {', '.join(missing)} in {db} (have: {', '.join(store.session_names()) or 'none'})")
+        rows = store.trial_rows(list(session) or None)
+    summary = summarize_trials(rows)
+    table = table_iv(rows, sims, plan_textures, summary["confidence"])
+    sources = {"db": str(db), "sessions": summary["sessions"], "sim": {k: v["path"] for k, v in sims.items()},
+               "plan": None if plan is None else str(plan)}
+    md, js = write_trial_report(out, summary, table, sources=sources)
+    write_run_info(out, {"job": "trial-report", **sources}, None)
+    from trials.real.report import table_iv_md
+
+    typer.echo("\n".join(table_iv_md(table)))
+    typer.echo(f"{summary['n_trials']} trials; report in {md} and {js}")

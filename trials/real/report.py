@@ -1,0 +1,337 @@
+"""Reports of real-robot trials: ASR and T-ASR with Wilson intervals, and the paper's Table IV.
+
+Outcomes (one per committed trial, ``final_outcome`` = the operator's call if given, else the
+automatic one): **T-ASR** = fraction of trials ending at the adversarial object; **ASR** =
+fraction not ending at the goal. Trials whose outcome is ``unknown`` (e.g. tracking lost, operator
+could not tell) are excluded from both rates and reported as a count, so ``n`` in every cell is
+the number of *rated* trials.
+
+Table IV (paper Sec. IV-E): one row per environment x shape, from that shape's untagged ``adv3d``
+trials (tagged scenario trials have their own rows in the by-tag table), beside the simulated
+evaluation of the same object. Sim numbers come from an evaluation directory given per shape
+(``--sim cube=DIR``, or per environment and shape ``--sim A/cube=DIR``, which wins) and are taken
+from one of its conditions by this rule:
+
+1. candidates are the eval's ``attack`` condition, then its ``shape_<shape>`` condition;
+2. when the real trials' texture sha256 is known (recorded per trial, else the plan's
+   ``<shape>/adv3d`` entry), the first candidate whose texture has the same sha256 is used
+   ("sha256 match"); if no candidate matches, the sim cells stay empty ("sim texture differs");
+3. when no sha256 is available on either side, ``shape_<shape>`` is used if present (its mesh is
+   the shape by construction), else ``attack`` if its run was optimised on the shape; the note
+   then says "not matched" (same shape, texture identity not verified);
+4. anything else leaves the sim cells as "–".
+
+Precision line: the number of trials for a +/- h interval at rate p uses the normal
+approximation ``n = ceil(z^2 p (1 - p) / h^2)`` (z = 1.96 for 95 %), 385 at the worst case
+p = 0.5 and h = 5 %; the current precision is reported both as the normal-approximation
+half-width ``z sqrt(p (1 - p) / n)`` (30 trials at p = 0.5: +/- 17.9 %) and as the half-width of
+the Wilson interval actually shown (15 of 30: +/- 16.8 %).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+from statistics import NormalDist
+
+from sim.errors import AdvobjError
+from sim.stats import proportion, wilson_interval
+
+__all__ = [
+    "ReportError",
+    "OUTCOMES",
+    "rate_cell",
+    "summarize_trials",
+    "trials_for_half_width",
+    "normal_half_width",
+    "wilson_half_width",
+    "precision",
+    "load_sim_eval",
+    "sim_match",
+    "table_iv",
+    "write_trial_report",
+]
+
+OUTCOMES = ("goal", "adversarial", "none", "unknown")
+UNTAGGED = "(untagged)"
+
+
+class ReportError(AdvobjError, ValueError):
+    """Trial rows or a sim evaluation directory cannot be reported; the message says which."""
+
+
+def _final(row: dict) -> str:
+    out = row.get("final_outcome")
+    if out is None:
+        out = row["operator_outcome"] if row.get("operator_outcome") is not None else row.get("auto_outcome")
+    if out not in OUTCOMES:
+        raise ReportError(f"trial {row.get('session')}/{row.get('trial_id')}: final_outcome {out!r} is not one of {', '.join(OUTCOMES)}")
+    return out
+
+
+def rate_cell(rows, confidence: float = 0.95) -> dict:
+    """``{n_trials, n, unknown, tasr, asr}`` of trial rows; rates over the ``n`` rated (not unknown) trials."""
+    outs = [_final(r) for r in rows]
+    rated = [o for o in outs if o != "unknown"]
+    n = len(rated)
+    return {
+        "n_trials": len(outs),
+        "n": n,
+        "unknown": len(outs) - n,
+        "tasr": proportion(sum(o == "adversarial" for o in rated), n, confidence).to_dict(),
+        "asr": proportion(sum(o != "goal" for o in rated), n, confidence).to_dict(),
+    }
+
+
+def _by(rows, key) -> dict:
+    groups: dict[str, list] = defaultdict(list)
+    for r in rows:
+        for k in key(r):
+            groups[k].append(r)
+    return dict(sorted(groups.items()))
+
+
+def _breakdown(rows, confidence: float) -> dict:
+    cell = lambda rs: rate_cell(rs, confidence)  # noqa: E731
+    return {
+        "overall": cell(rows),
+        "by_env": {k: cell(v) for k, v in _by(rows, lambda r: [r["env"]]).items()},
+        "by_shape": {k: cell(v) for k, v in _by(rows, lambda r: [r["shape"]]).items()},
+        "by_condition": {k: cell(v) for k, v in _by(rows, lambda r: [r["condition"]]).items()},
+        # a trial with several tags counts under each of them
+        "by_tag": {k: cell(v) for k, v in _by(rows, lambda r: list(r.get("tags") or []) or [UNTAGGED]).items()},
+        "cells": {k: cell(v) for k, v in _by(rows, lambda r: [f"{r['env']}/{r['shape']}/{r['condition']}/{'+'.join(r.get('tags') or []) or UNTAGGED}"]).items()},
+    }
+
+
+def summarize_trials(rows, confidence: float = 0.95) -> dict:
+    """Rates across all sessions and per session, each by env, shape, condition, tag and cell.
+
+    ``rows``: dicts as :meth:`trials.real.store.TrialStore.trial_rows` returns them (``session``,
+    ``trial_id``, ``env``, ``shape``, ``condition``, ``tags``, ``final_outcome`` or
+    ``auto_outcome``/``operator_outcome``).
+    """
+    rows = list(rows)
+    sessions = sorted({r["session"] for r in rows})
+    return {
+        "confidence": confidence,
+        "n_trials": len(rows),
+        "sessions": sessions,
+        "all": _breakdown(rows, confidence),
+        "by_session": {s: _breakdown([r for r in rows if r["session"] == s], confidence) for s in sessions},
+    }
+
+
+def _z(confidence: float) -> float:
+    return NormalDist().inv_cdf(0.5 + confidence / 2.0)
+
+
+def trials_for_half_width(p: float = 0.5, half_width: float = 0.05, confidence: float = 0.95) -> int:
+    """Trials for a ``+/- half_width`` interval at rate ``p``: ``ceil(z^2 p (1 - p) / h^2)`` (normal approximation).
+
+    p = 0.5, h = 0.05 (the worst case) gives 385. At p = 0 or 1 the formula gives 0; use the
+    worst case there.
+    """
+    if not (0.0 <= p <= 1.0) or not (0.0 < half_width < 1.0):
+        raise ValueError(f"need 0 <= p <= 1 and 0 < half_width < 1, got p={p}, half_width={half_width}")
+    # round before ceil: z^2 p (1-p) / h^2 can land a hair above an integer from float error
+    return int(math.ceil(round(_z(confidence) ** 2 * p * (1.0 - p) / half_width**2, 9)))
+
+
+def normal_half_width(p: float, n: int, confidence: float = 0.95) -> float:
+    """``z sqrt(p (1 - p) / n)``: the normal-approximation half-width (NaN for n = 0)."""
+    return _z(confidence) * math.sqrt(p * (1.0 - p) / n) if n > 0 else math.nan
+
+
+def wilson_half_width(k: int, n: int, confidence: float = 0.95) -> float:
+    """Half the width of the Wilson interval of ``k`` of ``n`` (0.5 for n = 0: the interval is [0, 1])."""
+    lo, hi = wilson_interval(k, n, confidence)
+    return (hi - lo) / 2.0
+
+
+def precision(k: int, n: int, half_width: float = 0.05, confidence: float = 0.95) -> dict:
+    """How precise ``k`` of ``n`` is, and how many trials a ``+/- half_width`` interval would need."""
+    p = k / n if n else math.nan
+    return {
+        "k": k,
+        "n": n,
+        "rate": p,
+        "half_width_target": half_width,
+        "trials_needed_observed": trials_for_half_width(p, half_width, confidence) if n and 0.0 < p < 1.0 else None,
+        "trials_needed_worst_case": trials_for_half_width(0.5, half_width, confidence),
+        "normal_half_width": normal_half_width(p, n, confidence) if n else math.nan,
+        "wilson_half_width": wilson_half_width(k, n, confidence),
+        "confidence": confidence,
+    }
+
+
+def precision_line(prec: dict) -> str:
+    """The report's one line on precision (see the module docstring for the formulas)."""
+    h, pct = 100 * prec["half_width_target"], int(round(100 * prec["confidence"]))
+    need = f"{prec['trials_needed_worst_case']} trials at the worst case p = 50 %"
+    if prec["trials_needed_observed"] is not None:
+        need = f"{prec['trials_needed_observed']} trials at the observed {100 * prec['rate']:.1f} % ({need})"
+    now = "no rated trials yet"
+    if prec["n"]:
+        now = (f"the {prec['n']} trials here give ±{100 * prec['normal_half_width']:.1f} % (normal approximation "
+               f"z·√(p(1−p)/n)) / ±{100 * prec['wilson_half_width']:.1f} % (Wilson half-width)")
+    return f"A ±{h:g} % {pct} % interval on T-ASR needs n = ⌈z²·p(1−p)/h²⌉ = {need}; {now}."
+
+
+# ----------------------------------------------------------------------------- sim side
+def load_sim_eval(eval_dir) -> dict:
+    """``{path, conditions: summary['conditions'], sources: {name: {sha256, mesh}}, adversarial_mesh}`` of an eval dir."""
+    d = Path(eval_dir)
+    try:
+        summary = json.loads((d / "summary.json").read_text())
+        conditions = summary["conditions"]
+    except OSError:
+        raise ReportError(f"{d / 'summary.json'}: missing; is {d} an 'advobj eval' directory?") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as err:
+        raise ReportError(f"{d / 'summary.json'}: not an eval summary ({type(err).__name__}: {err})") from None
+    sources, adv_mesh = {}, None
+    try:
+        cfg = json.loads((d / "run.json").read_text())["config"]
+        for c in cfg.get("conditions", []):
+            src = c.get("source") or {}
+            sources[c["name"]] = {"sha256": src.get("sha256"), "mesh": src.get("mesh")}
+        adv_mesh = next((o["mesh"] for o in (cfg.get("scene") or {}).get("objects", []) if o.get("role") == "adversarial"), None)
+    except (OSError, json.JSONDecodeError, KeyError, TypeError):
+        pass  # without run.json the texture identity is unknown: rule 3 of the module docstring
+    return {"path": str(d), "conditions": conditions, "sources": sources, "adversarial_mesh": adv_mesh}
+
+
+def sim_match(sim: dict, shape: str, real_sha256: str | None) -> dict:
+    """The sim condition standing for ``shape`` (rule in the module docstring): ``{condition, status, tasr, asr}``."""
+    cands = [c for c in ("attack", f"shape_{shape}") if c in sim["conditions"]]
+    none = lambda status: {"condition": None, "status": status, "tasr": None, "asr": None}  # noqa: E731
+    pick = lambda c, status: {"condition": c, "status": status, "tasr": sim["conditions"][c]["tasr"], "asr": sim["conditions"][c]["asr"]}  # noqa: E731
+    if not cands:
+        return none(f"no attack/shape_{shape} condition in sim eval")
+    shas = {c: (sim["sources"].get(c) or {}).get("sha256") for c in cands}
+    if real_sha256 and any(shas.values()):
+        for c in cands:
+            if shas[c] == real_sha256:
+                return pick(c, "sha256 match")
+        return none("sim texture differs (sha256)")
+
+    def mesh(c):
+        m = (sim["sources"].get(c) or {}).get("mesh")
+        return m if m is not None else sim.get("adversarial_mesh")
+
+    for c in sorted(cands, key=lambda c: c != f"shape_{shape}"):
+        if c == f"shape_{shape}" or mesh(c) == shape:
+            return pick(c, "not matched (no sha256)")
+    return none(f"sim 'attack' is not on a {shape}")
+
+
+def table_iv(rows, sims: dict | None = None, plan_textures: dict | None = None, confidence: float = 0.95) -> list[dict]:
+    """Paper Table IV rows: env x shape, sim (T-ASR, ASR) beside real (T-ASR, ASR) of untagged adv3d trials.
+
+    ``sims``: ``{"cube": sim_eval, "A/cube": sim_eval}`` from :func:`load_sim_eval` (the
+    env-specific key wins). ``plan_textures``: ``{"cube/adv3d": sha256}`` used when the rows do not
+    record a texture sha256.
+    """
+    sims, plan_textures = sims or {}, plan_textures or {}
+    adv = [r for r in rows if r["condition"] == "adv3d" and not r.get("tags")]
+    out = []
+    for (env, shape), rs in sorted(_by(adv, lambda r: [(r["env"], r["shape"])]).items()):
+        real = rate_cell(rs, confidence)
+        shas = {r.get("texture_sha256") for r in rs} - {None}
+        notes = []
+        if len(shas) > 1:
+            notes.append(f"{len(shas)} different textures")
+        sha = next(iter(shas)) if len(shas) == 1 else (None if shas else plan_textures.get(f"{shape}/adv3d"))
+        sim_eval = sims.get(f"{env}/{shape}", sims.get(shape))
+        if sim_eval is None:
+            sim = {"condition": None, "status": "no sim eval given", "tasr": None, "asr": None}
+        else:
+            sim = sim_match(sim_eval, shape, sha)
+            if sim["condition"]:
+                notes.append(f"sim: {sim['condition']} ({sim['status']})")
+        if sim["condition"] is None:
+            notes.append(f"sim: {sim['status']}")
+        if real["unknown"]:
+            notes.append(f"{real['unknown']} unknown excluded")
+        out.append({"env": env, "shape": shape, "sim": sim, "sim_dir": None if sim_eval is None else sim_eval["path"],
+                    "real": real, "n": real["n"], "note": "; ".join(notes)})
+    return out
+
+
+# ----------------------------------------------------------------------------- writing
+def _pct(p: dict | None, ci: bool = True) -> str:
+    if not p or not p["n"]:
+        return "–"
+    s = f"{100 * p['rate']:.2f}"
+    return s + (f" [{100 * p['lo']:.1f}, {100 * p['hi']:.1f}]" if ci else "")
+
+
+def _cells_md(title: str, cells: dict, key: str) -> list[str]:
+    lines = [f"### {title}", "", f"| {key} | n | T-ASR % [95% CI] | ASR % [95% CI] | unknown |", "|---|---:|---|---|---:|"]
+    for k, c in cells.items():
+        lines.append(f"| {k} | {c['n']} | {_pct(c['tasr'])} | {_pct(c['asr'])} | {c['unknown']} |")
+    return lines + [""]
+
+
+def _breakdown_md(b: dict) -> list[str]:
+    o = b["overall"]
+    lines = [f"All trials: n = {o['n']} rated ({o['unknown']} unknown), T-ASR {_pct(o['tasr'])} %, ASR {_pct(o['asr'])} %", ""]
+    for key, title in (("by_env", "env"), ("by_shape", "shape"), ("by_condition", "condition"), ("by_tag", "tag")):
+        lines += _cells_md(f"By {title}", b[key], title)
+    lines += _cells_md("By env / shape / condition / tag", b["cells"], "cell")
+    return lines
+
+
+def table_iv_md(table: list[dict]) -> list[str]:
+    lines = ["| Env | Shape | Sim T-ASR | Sim ASR | Real T-ASR | Real ASR | n | Note |", "|---|---|---:|---:|---:|---:|---:|---|"]
+    for r in table:
+        lines.append(f"| {r['env']} | {r['shape']} | {_pct(r['sim']['tasr'], False)} | {_pct(r['sim']['asr'], False)} | "
+                     f"{_pct(r['real']['tasr'])} | {_pct(r['real']['asr'])} | {r['n']} | {r['note']} |")
+    if not table:
+        lines.append("| – | – | – | – | – | – | 0 | no untagged adv3d trials |")
+    return lines
+
+
+def table_precision(table: list[dict], summary: dict, half_width: float = 0.05) -> dict:
+    """Precision of the least precise Table IV row (its T-ASR; the smallest n), naming the row."""
+    rated = [r for r in table if r["n"]]
+    if not rated:
+        return precision(0, 0, half_width, summary["confidence"]) | {"row": None}
+    r = min(rated, key=lambda r: r["n"])
+    return precision(r["real"]["tasr"]["k"], r["n"], half_width, summary["confidence"]) | {"row": f"{r['env']}/{r['shape']}"}
+
+
+def _json_safe(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    return x
+
+
+def write_trial_report(out_dir, summary: dict, table: list[dict] | None = None, half_width: float = 0.05,
+                       sources: dict | None = None) -> tuple[Path, Path]:
+    """Write ``report.md`` (Table IV, the precision line, per-session and pooled tables) and ``report.json``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    table = table or []
+    prec = table_precision(table, summary, half_width)
+    prec_text = (f"Precision ({prec['row']}, the Table IV row with the fewest trials): " if prec["row"] else "Precision: ") + precision_line(prec)
+    md = ["# Real-robot trial report", "",
+          f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): {', '.join(summary['sessions']) or '–'}.",
+          "T-ASR = ended at the adversarial object; ASR = did not end at the goal; trials with an unknown outcome are "
+          "excluded from the rates (n = rated trials). Intervals: 95 % Wilson.", "",
+          "## Table IV: sim-to-real transferability (%)", "",
+          "Real: untagged adv3d trials. Sim: the matching condition of the given eval (see the note).", "",
+          *table_iv_md(table), "", prec_text, "", "## All sessions", "", *_breakdown_md(summary["all"])]
+    for s, b in summary["by_session"].items():
+        md += [f"## Session {s}", "", *_breakdown_md(b)]
+    md_path, json_path = out / "report.md", out / "report.json"
+    md_path.write_text("\n".join(md) + "\n")
+    doc = {"summary": summary, "table_iv": table, "precision": prec, "precision_line": prec_text, "sources": sources or {}}
+    json_path.write_text(json.dumps(_json_safe(doc), indent=2))
+    return md_path, json_path
