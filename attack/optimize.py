@@ -11,6 +11,11 @@ Each iteration (paper Sec. III-B/C):
 
 A run is resumable bit-for-bit: a checkpoint holds the texture, the iteration (which fixes the
 schedule stage), the loss history and every RNG state.
+
+Anytime quality: every checkpoint holds the evaluation-ready ``texture.npy``; with
+``validation_every > 0`` a held-out validation pool (disjoint from the EOT configurations) is
+rolled out with the standard renderer every ``validation_every`` iterations, and ``best/`` keeps
+the texture with the highest validation T-ASR so far (a valid ``advobj eval --attack`` source).
 """
 
 from __future__ import annotations
@@ -28,7 +33,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from sim.errors import AdvobjError, format_validation_error
 
-__all__ = ["AttackConfig", "AttackError", "PRESETS", "resolve_config", "AttackRun", "run_attack", "find_checkpoint"]
+__all__ = ["AttackConfig", "AttackError", "PRESETS", "resolve_config", "AttackRun", "run_attack", "find_checkpoint",
+           "split_validation", "better_score"]
 
 
 class AttackError(AdvobjError, ValueError):
@@ -59,6 +65,9 @@ class AttackConfig(BaseModel):
     print_aware: bool = False
     pool_size: int = Field(200, ge=1, description="configurations generated when the policy has no task-feasible pool")
     checkpoint_every: int = Field(50, ge=1)
+    validation_every: int = Field(0, ge=0, description="iterations between held-out validations (0 = off)")
+    validation_episodes: int = Field(16, ge=1, description="held-out configurations per validation")
+    validation_max_steps: int | None = Field(None, ge=1, description="episode length of a validation rollout (None: the scene's max_steps)")
     seed: int = 0
     device: str = "cpu"
 
@@ -94,6 +103,11 @@ class History:
     stage: list[int] = field(default_factory=list)
     skipped: int = 0
     seconds: float = 0.0
+    # Held-out validation (empty when validation_every = 0); val_iteration counts iterations done.
+    val_iteration: list[int] = field(default_factory=list)
+    val_t_asr: list[float] = field(default_factory=list)
+    val_dist_m: list[float] = field(default_factory=list)
+    val_seconds: list[float] = field(default_factory=list)
 
 
 def _benign_texture(mesh, size: int) -> np.ndarray:
@@ -150,6 +164,9 @@ class AttackRun:
         self.pool = list(pool) if pool is not None else sample_pool(spec, cfg.pool_size, seed=cfg.seed)
         if not self.pool:
             raise AttackError("pool: no task-feasible configurations to attack from")
+        self.val_pool: list = []
+        if cfg.validation_every > 0:
+            self.pool, self.val_pool = split_validation(self.pool, cfg.validation_episodes, cfg.seed)
         self.pool_r = np.array([c.r_m for c in self.pool])
         randomization = Randomization(light="random") if cfg.light_randomization else None
         self.env = ReachEnv(spec, num_envs=cfg.num_envs, image_size=self.image_size, seed=cfg.seed,
@@ -162,6 +179,86 @@ class AttackRun:
         self.rng = np.random.default_rng(cfg.seed)
         self.torch_gen = torch.Generator().manual_seed(cfg.seed)
         self.out_dir = None if out_dir is None else Path(out_dir)
+        self._val_env = None
+        # Best validated texture so far: {"iteration", "t_asr", "dist_m"} and its (3, S, S) tensor.
+        self.best: dict | None = None
+        self.best_texture: torch.Tensor | None = None
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> dict:
+        """Roll the policy out on the held-out configurations with the current texture.
+
+        Same semantics as the evaluation's ``attack`` condition: the standard pyrender renderer
+        with the texture (rounded to 8 bits, as ``texture.npy`` is loaded) on the adversarial
+        mesh, no appearance variation or sensor noise, up to ``validation_max_steps`` (default the
+        scene's ``max_steps``) steps. Uses no training RNG, so it never perturbs the run.
+
+        Returns ``{"t_asr", "dist_m", "episodes", "seconds"}``: the fraction of episodes that reach
+        the adversarial object first, and the mean TCP-to-adversarial-object distance (m) at the
+        end of the episodes (the tie-breaker: lower is better).
+        """
+        from attack.outputs import texture_to_uint8
+        from sim.env import ReachEnv
+        from sim.outcome import object_distances
+
+        if not self.val_pool:
+            raise AttackError("validation_every: validation is off (no held-out configurations)")
+        t0 = time.perf_counter()
+        configs = self.val_pool
+        if self._val_env is None:
+            spec = self.spec
+            if self.cfg.validation_max_steps is not None:
+                spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": self.cfg.validation_max_steps})
+            # Batches of equal size (the largest divisor of the pool size up to 8): no idle slots.
+            n = max(d for d in range(1, min(8, len(configs)) + 1) if len(configs) % d == 0)
+            self._val_env = ReachEnv(spec, num_envs=n, image_size=self.image_size, seed=self.cfg.seed)
+        env = self._val_env
+        env.renderer.set_object_texture(self.adv, texture_to_uint8(self.texture))
+        targeted, dist = [], []
+        for start in range(0, len(configs), env.num_envs):
+            obs, _ = env.reset(configs=configs[start:start + env.num_envs])
+            while not env.done.all():
+                obs, *_ = env.step(self.policy.act(obs))
+            targeted += list(env.reached == self.adv)
+            dist += list(object_distances(env.T_world_tcp[:, :3, 3], env.object_centers)[:, self.adv])
+        return {"t_asr": float(np.mean(targeted)), "dist_m": float(np.mean(dist)), "episodes": len(configs),
+                "seconds": time.perf_counter() - t0}
+
+    def validate_and_keep_best(self) -> bool:
+        """Validate, log it in the history and, if the score improved, write ``best/``; returns
+        whether it improved."""
+        res = self.validate()
+        h = self.history
+        h.val_iteration.append(self.iteration)
+        h.val_t_asr.append(res["t_asr"])
+        h.val_dist_m.append(res["dist_m"])
+        h.val_seconds.append(res["seconds"])
+        if not better_score(res, self.best):
+            return False
+        self.best = {"iteration": self.iteration, "t_asr": res["t_asr"], "dist_m": res["dist_m"], "episodes": res["episodes"]}
+        self.best_texture = self.texture.detach().clone()
+        if self.out_dir is not None:
+            self._write_best()
+        return True
+
+    def _write_best(self) -> Path:
+        tmp = self.out_dir / "best.tmp"
+        tmp.mkdir(parents=True, exist_ok=True)
+        self._write_attack_source(tmp, self.best_texture, {"best_of": "held-out validation T-ASR", **self.best})
+        (tmp / "best.json").write_text(json.dumps({**self.best, "score": "t_asr (higher), then dist_m (lower)"}, indent=2))
+        return _swap_in(tmp, self.out_dir / "best")
+
+    def _write_attack_source(self, d: Path, texture: torch.Tensor, extra: dict) -> None:
+        """``texture.npy`` (H, W, 3) float32, ``texture.png`` and a ``run.json`` naming the mesh:
+        what ``advobj eval --attack DIR`` reads."""
+        from attack.outputs import write_texture_png
+
+        np.save(d / "texture.npy", texture.detach().cpu().permute(1, 2, 0).numpy().astype(np.float32))
+        write_texture_png(d / "texture.png", texture)
+        # Only the attack config (the mesh the texture belongs to): the run directory's own
+        # run.json has the provenance, and asking git for it at every checkpoint costs seconds.
+        doc = {"config": {"job": "attack", "attack": self.cfg.model_dump(), **extra}, "seed": self.cfg.seed}
+        (d / "run.json").write_text(json.dumps(doc, indent=2))
 
     # ------------------------------------------------------------------ one iteration
     def _color_transform(self):
@@ -267,8 +364,6 @@ class AttackRun:
         """Atomically write ``out_dir/checkpoint`` (texture, RNG states, history, iteration)."""
         from safetensors.torch import save_file
 
-        from attack.outputs import write_texture_png
-
         if self.out_dir is None:
             raise AttackError("out_dir is needed for checkpoints")
         ckpt = self.out_dir / "checkpoint"
@@ -280,20 +375,16 @@ class AttackRun:
             "config": self.cfg.model_dump(),
             "numpy_rng": self.rng.bit_generator.state,
             "history": self.history.__dict__,
+            "best": self.best,
         }
         (tmp / "state.json").write_text(json.dumps(state))
-        # The evaluation-ready texture of this checkpoint (a user can stop here and use it).
-        write_texture_png(tmp / "texture.png", self.texture)
-        import shutil
-
-        # Swap in by renames: at every instant either checkpoint/ or checkpoint.old/ is complete.
-        old = self.out_dir / "checkpoint.old"
-        if ckpt.exists():
-            shutil.rmtree(old, ignore_errors=True)
-            ckpt.replace(old)
-        tmp.replace(ckpt)
-        shutil.rmtree(old, ignore_errors=True)
-        return ckpt
+        # The evaluation-ready texture of this checkpoint (a user can stop here and use it):
+        # checkpoint/ is itself a valid ``advobj eval --attack`` source.
+        self._write_attack_source(tmp, self.texture, {"checkpoint_iteration": self.iteration})
+        if self.best_texture is not None:
+            # Resume restores the best texture from here even if best/ was deleted meanwhile.
+            save_file({"texture": self.best_texture.cpu().contiguous()}, str(tmp / "best.safetensors"))
+        return _swap_in(tmp, ckpt)
 
     def load_checkpoint(self, ckpt: str | Path) -> None:
         """Restore a checkpoint written by :meth:`save_checkpoint` (same config required)."""
@@ -305,18 +396,89 @@ class AttackRun:
             tensors = load_file(str(ckpt / "state.safetensors"))
         except (OSError, json.JSONDecodeError) as err:
             raise AttackError(f"{ckpt}: unreadable checkpoint ({err})") from None
+        # A checkpoint written before a config field existed holds that field's default.
         saved = AttackConfig(**state["config"])
         if saved != self.cfg:
             diff = sorted(k for k in AttackConfig.model_fields if getattr(saved, k) != getattr(self.cfg, k))
-            raise AttackError(f"{ckpt}: checkpoint was made with a different config (fields: {', '.join(diff)})")
+            hint = "; ".join(f"{k}: checkpoint {getattr(saved, k)!r}, now {getattr(self.cfg, k)!r}" for k in diff)
+            raise AttackError(f"{ckpt}: checkpoint was made with a different config (fields: {', '.join(diff)}; {hint}); "
+                              "resume with the checkpoint's values or start a new run directory")
         self.texture = tensors["texture"].to(self.device)
         self.torch_gen.set_state(tensors["torch_rng"])
         self.rng.bit_generator.state = state["numpy_rng"]
         self.iteration = int(state["iteration"])
         self.history = History(**state["history"])
+        self.best, self.best_texture = state.get("best"), None
+        if self.best is not None and (ckpt / "best.safetensors").is_file():
+            self.best_texture = load_file(str(ckpt / "best.safetensors"))["texture"].to(self.device)
+        # best/ may be newer than the checkpoint (a crash between the two writes); it is the
+        # larger score, and replaying the iterations in between reproduces it exactly.
+        disk = _read_best(ckpt.parent / "best")
+        if disk is not None and better_score(disk[0], self.best):
+            self.best, self.best_texture = disk[0], disk[1].to(self.device)
 
     def close(self) -> None:
         self.env.close()
+        if self._val_env is not None:
+            self._val_env.close()
+            self._val_env = None
+
+
+def split_validation(pool: list, n_val: int, seed: int) -> tuple[list, list]:
+    """Deterministic held-out split ``(train, val)`` of a configuration pool.
+
+    ``val`` holds ``n_val`` configurations drawn by a permutation seeded with ``seed``; ``train``
+    holds the rest minus any configuration whose seed is also in ``val`` (duplicates), so the two
+    are disjoint. Validation may take at most half the pool: a smaller pool is refused.
+    """
+    if len(pool) < 2 * n_val:
+        raise AttackError(
+            f"validation_episodes: the pool holds {len(pool)} configurations, too few to hold out {n_val} for validation "
+            f"(at most half the pool is held out: need >= {2 * n_val}); lower validation_episodes or give a larger pool"
+        )
+    order = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7A1])).permutation(len(pool))
+    val = [pool[i] for i in order[:n_val]]
+    held = {c.seed for c in val}
+    train = [pool[i] for i in sorted(order[n_val:]) if pool[i].seed not in held]
+    if not train:
+        raise AttackError("validation_episodes: no training configurations left after holding out the validation pool")
+    return train, val
+
+
+def better_score(new: dict, best: dict | None) -> bool:
+    """Is validation result ``new`` strictly better than ``best``: higher T-ASR, ties broken by the
+    lower mean final distance to the adversarial object (equal on both: not better)."""
+    if best is None:
+        return True
+    if new["t_asr"] != best["t_asr"]:
+        return new["t_asr"] > best["t_asr"]
+    return new["dist_m"] < best["dist_m"]
+
+
+def _swap_in(tmp: Path, final: Path) -> Path:
+    """Replace directory ``final`` by ``tmp`` by renames: at every instant ``final/`` or
+    ``final.old/`` (see :func:`find_checkpoint`) is complete."""
+    import shutil
+
+    old = final.with_name(final.name + ".old")
+    if final.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        final.replace(old)
+    tmp.replace(final)
+    shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def _read_best(best_dir: Path) -> tuple[dict, torch.Tensor] | None:
+    """``(best.json, texture (3, S, S))`` of a ``best/`` directory (or its crash-left ``.old``)."""
+    for d in (best_dir, best_dir.with_name(best_dir.name + ".old")):
+        try:
+            info = json.loads((d / "best.json").read_text())
+            tex = np.load(d / "texture.npy", allow_pickle=False)
+        except (OSError, ValueError):
+            continue
+        return info, torch.from_numpy(np.ascontiguousarray(tex.transpose(2, 0, 1))).to(torch.float32)
+    return None
 
 
 def find_checkpoint(out_dir: str | Path) -> Path | None:
@@ -336,13 +498,22 @@ def run_attack(run: AttackRun, progress: bool = True) -> AttackRun:
     bar = tqdm(total=cfg.iterations, initial=run.iteration, desc="attack", disable=not progress, dynamic_ncols=True)
     t0 = time.perf_counter()
     start_seconds = run.history.seconds
+    validating = cfg.validation_every > 0
     try:
+        if validating and not run.history.val_iteration:
+            run.validate_and_keep_best()  # the starting texture is the first "best so far"
         while run.iteration < cfg.iterations:
             info = run.step()
+            last = run.iteration == cfg.iterations
+            if validating and (run.iteration % cfg.validation_every == 0 or last):
+                run.validate_and_keep_best()
             run.history.seconds = start_seconds + time.perf_counter() - t0
-            bar.set_postfix(pose=f"{info['pose']:.3f}", sal=f"{info['sal']:.4f}", refresh=False)
+            post = {"pose": f"{info['pose']:.3f}", "sal": f"{info['sal']:.4f}"}
+            if run.history.val_t_asr:
+                post["val_t_asr"] = f"{run.history.val_t_asr[-1]:.2f}"
+            bar.set_postfix(post, refresh=False)
             bar.update(1)
-            if run.out_dir is not None and (run.iteration % cfg.checkpoint_every == 0 or run.iteration == cfg.iterations):
+            if run.out_dir is not None and (run.iteration % cfg.checkpoint_every == 0 or last):
                 run.save_checkpoint()
     except KeyboardInterrupt:
         if run.out_dir is not None:

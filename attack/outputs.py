@@ -55,7 +55,8 @@ def plot_losses(path: str | Path, history) -> Path:
     import matplotlib.pyplot as plt
 
     h = history
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
+    val = bool(getattr(h, "val_iteration", None))
+    fig, axes = plt.subplots(1, 4 if val else 3, figsize=(16 if val else 12, 3.2))
     axes[0].plot(h.iteration, h.loss_pose, label="pose")
     axes[0].plot(h.iteration, h.loss_ori, label="ori", alpha=0.7)
     axes[0].set_title("pose loss (mean per pair)")
@@ -64,6 +65,10 @@ def plot_losses(path: str | Path, history) -> Path:
     axes[1].set_title("lambda_sal * saliency loss")
     axes[2].semilogy(h.iteration, np.maximum(np.asarray(h.grad_norm), 1e-12))
     axes[2].set_title("|g| (after PCGrad)")
+    if val:
+        axes[3].plot(h.val_iteration, h.val_t_asr, marker="o")
+        axes[3].set_ylim(-0.02, 1.02)
+        axes[3].set_title("held-out validation T-ASR")
     for ax in axes:
         ax.set_xlabel("iteration")
     fig.tight_layout()
@@ -133,6 +138,14 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         "initial_loss_pose": float(np.mean(h.loss_pose[:tail])) if h.loss_pose else None,
         "final_loss_saliency": float(np.mean(h.loss_saliency[-tail:])) if h.loss_saliency else None,
         "skipped_updates": h.skipped,
+        "validation": None if not getattr(h, "val_iteration", None) else {
+            "iteration": h.val_iteration,
+            "t_asr": h.val_t_asr,
+            "dist_m": h.val_dist_m,
+            "seconds_per_call": float(np.median(h.val_seconds)),
+            "seconds_total": float(np.sum(h.val_seconds)),
+            "best": run.best,
+        },
         "texture_change_l2": float(torch.linalg.vector_norm(tex - texture_before.cpu())),
         "meshes": {k: str(v.relative_to(out)) for k, v in paths.items()},
     }
