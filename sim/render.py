@@ -296,7 +296,9 @@ class SceneRenderer:
         self._tcp_node = pyrender.Node(name="tcp", matrix=np.eye(4))
         self.scene.add_node(self._tcp_node)
         self._gripper_nodes = []
-        for part in gripper_meshes(spec.gripper):
+        # One merged mesh (one draw call per pass instead of three): the parts share one colour
+        # and one id code, and pyrender's per-draw overhead dominates small frames.
+        for part in [trimesh.util.concatenate(gripper_meshes(spec.gripper))]:
             c = pyrender.Node(mesh=textured_pyrender_mesh(part, None, spec.gripper.color))
             i = pyrender.Node(mesh=id_pyrender_mesh(part, GRIPPER_ID))
             self.scene.add_node(c, parent_node=self._tcp_node)
