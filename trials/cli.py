@@ -18,6 +18,9 @@ app.add_typer(cli_attack.app, name="attack")
 from trials import cli_eval  # noqa: E402
 
 app.command("eval")(cli_eval.eval_command)
+from trials import cli_fabricate  # noqa: E402
+
+app.command("fabricate")(cli_fabricate.fabricate_command)
 from trials import cli_experiment  # noqa: E402
 
 app.add_typer(cli_experiment.app, name="experiment")

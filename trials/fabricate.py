@@ -894,6 +894,7 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
     if sheet_shape is None:
         log(f"fabricate: {src.mesh!r} has no flat net; wrote {paths['glb'].name} and {paths['obj'].parent.name}/ for colour 3D printing "
             f"(sheets exist for {', '.join(SHEET_SHAPES)})")
+        summary["seconds"] = time.perf_counter() - t0
         return summary
     if np.any(np.asarray(src.scale, float) != 1.0):
         raise FabricationError(f"{Path(run_dir) / 'run.json'}: the adversarial object is scaled by {src.scale}; "
