@@ -215,7 +215,7 @@ def model_rows(model: type[BaseModel]) -> list[tuple[str, str, str, str, str]]:
     for name, info in model.model_fields.items():
         key = info.alias or name
         cons = ", ".join(_constraint_text(info.metadata))
-        desc = info.description or comments.get(name, "")
+        desc = info.description or comments.get(name, "") or FIELD_NOTES.get(model.__name__, {}).get(name, "")
         rows.append((f"`{key}`", type_name(info.annotation), default_text(info), cons, desc))
     return rows
 
@@ -227,6 +227,43 @@ MODEL_NOTES = {
                     "(a bare `{translation_m, rotvec_rad}` mapping is accepted too).",
     "TagEntry": "One registered tag: the object it sits on, its printed size and its pose relative to the object.",
     "HardwareConfig": "The hardware YAML (`--config` of `advobj hw check`).",
+}
+
+
+# Descriptions for fields whose model gives none (a note for a field that does not exist fails the test).
+FIELD_NOTES = {
+    "AttackConfig": {
+        "iterations": "optimisation steps (one EOT batch each)",
+        "rollout_steps": "policy steps per rollout; each step's view is one image-action pair",
+        "lambda_dist": "weight of the distance term in L_pose = L_ori + lambda_dist * L_dist",
+        "lambda_sal": "weight of the saliency term (Grad-CAM attention on the goal)",
+        "loss": "targeted: pull the policy toward the adversarial object; untargeted: push its action away from the clean one",
+        "use_pose": "include the pose loss (ablation switch)",
+        "use_saliency": "include the saliency loss (ablation switch)",
+        "pcgrad": "combine the pose and saliency gradients with PCGrad",
+        "schedule": "camera-distance curriculum: c2f (coarse to fine), f2c, ns (no schedule), or a single stage",
+        "sampler": "texture sampler of the differentiable renderer (trilinear = mip-mapped)",
+        "texture_size": "side of the optimised texture, px",
+        "init_texture": "starting texture: the object's own look, flat grey, or noise",
+        "light_randomization": "randomise the lights during optimisation (EOT over lighting)",
+        "print_aware": "EOT over print colour shifts: a random per-channel gain (0.85-1.15) and bias (+-0.05) each iteration",
+        "checkpoint_every": "iterations between resumable checkpoints",
+        "seed": "seeds the configuration draws and every RNG of the run",
+        "device": "torch device (cpu, cuda)",
+    },
+    "SafetyLimits": {
+        "workspace_min_m": "lower corner of the box (base frame) the TCP must stay in",
+        "workspace_max_m": "upper corner of that box; policy steps are clipped into it, positioning moves outside it refused",
+        "max_step_m": "translation per control step, cap",
+        "max_step_rad": "rotation per control step, cap",
+        "max_speed_mps": "translation speed cap; step cap = min(max_step_m, max_speed_mps * control_period_s)",
+        "max_speed_radps": "rotation speed cap",
+        "max_accel_mps2": "soft cap on the change of the step between consecutive steps",
+        "control_period_s": "the control-loop period actually achieved; the speed caps assume it",
+        "max_frame_age_ms": "a step computed from an older camera frame is refused and the arm stops",
+        "max_trial_s": "a trial running longer stops the arm",
+        "positioning_speed_mps": "default speed of positioning moves (homing, hw check --jog); <= max_speed_mps",
+    },
 }
 
 
@@ -355,6 +392,12 @@ def _calibration():
     return [BoardSpec, _CameraFile, ObjectRegistry, HandEyeSamplesFile, _HandEyeFile]
 
 
+def _plan():
+    from trials.real.plan import TrialPlan
+
+    return [TrialPlan]
+
+
 SECTIONS: list[Section] = [
     Section(
         "Scene (`--scene scene.yaml`)",
@@ -401,6 +444,14 @@ SECTIONS: list[Section] = [
         "result `T_tcp_cam.yaml` (the hardware config's `T_tcp_cam`). Examples: `examples/calibration/`; "
         "method: [calibration.md](calibration.md).",
         _calibration,
+    ),
+    Section(
+        "Real-trial plan (`advobj trial plan --out plan.yaml`)",
+        "Written by `advobj trial plan` and read by the other `advobj trial` commands: the randomized design "
+        "(every TCP pose x object layout per environment, shape and condition), the poses in the table frame, "
+        "the attack textures with their SHA-256, and the trial order. Generated, not hand-written; how to run "
+        "it: [real-trials.md](real-trials.md).",
+        _plan,
     ),
 ]
 

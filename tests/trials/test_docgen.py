@@ -56,3 +56,12 @@ def test_check_mode_reports_stale_file_and_the_command(tmp_path, capsys):
     assert docgen.REGENERATE in capsys.readouterr().err
     assert docgen.main(["--write", str(stale)]) == 0
     assert docgen.main(["--check", str(stale)]) == 0
+
+
+def test_field_notes_name_existing_fields():
+    import importlib
+
+    models = {"AttackConfig": "attack.optimize", "SafetyLimits": "robot_io.safety"}
+    for model_name, notes in docgen.FIELD_NOTES.items():
+        model = getattr(importlib.import_module(models[model_name]), model_name)
+        assert set(notes) <= set(model.model_fields), f"{model_name}: notes for unknown fields {set(notes) - set(model.model_fields)}"
