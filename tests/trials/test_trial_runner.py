@@ -1,0 +1,173 @@
+"""The trial runner on sim hardware: placement check, operator override, abort/resume, pause, plan guard."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.trials.trial_session_helpers import sim_hardware, small_plan, tiny_onnx
+from trials.real.locate import LocatedObject, TagLocator, placement_issues
+from trials.real.operator import AnswersError, AutoOperator, ScriptedOperator, load_answers
+from trials.real.plan import ObjectPlacement, load_plan
+from trials.real.session import run_session
+from trials.real.store import SessionMismatch, TrialStore
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("trial_runner")
+    return {"policy": tiny_onnx(d / "p.onnx"), "plan": small_plan(d / "plan.yaml", d), "hw": sim_hardware(d / "hw.yaml")}
+
+
+def _run(files, db, session="s", **kw):
+    kw.setdefault("operator", AutoOperator(log=None))
+    return run_session(files["hw"], files["policy"], files["plan"], session, db, rate_limit=False, **kw)
+
+
+def test_placement_check_catches_a_misplaced_object_and_passes_after_correction(files, tmp_path):
+    db = tmp_path / "t.sqlite"
+
+    def misplace(runner, world):
+        runner.stage.misplace("adversarial", dx_m=0.03, dyaw_rad=0.3)
+
+    summary = _run(files, db, max_trials=1, on_ready=misplace)
+    assert len(summary.committed) == 1
+    store = TrialStore(db)
+    row = store.trial_rows()[0]
+    assert row["placement_checks"] == 2 and not row["placement_skipped"]
+    ev = store.con.execute("SELECT kind, action, reason FROM events WHERE kind = 'placement'").fetchall()
+    assert len(ev) == 1 and "adversarial: move 3.0 cm toward -x" in ev[0]["reason"] and "rotate -17 deg" in ev[0]["reason"]
+    plan = load_plan(files["plan"])
+    layout = plan.object_layout(plan.trial(row["trial_id"]).object_layout).objects
+    placed = {r["role"]: r for r in store.con.execute("SELECT * FROM object_poses WHERE phase = 'placement'")}
+    for role in ("goal", "adversarial"):
+        assert math.hypot(placed[role]["table_x_m"] - layout[role].xy_m[0], placed[role]["table_y_m"] - layout[role].xy_m[1]) < 1e-9
+        assert placed[role]["source"] == "sim"
+
+
+def test_operator_override_and_note_are_stored(files, tmp_path):
+    db = tmp_path / "t.sqlite"
+    first = sorted(load_plan(files["plan"]).trials, key=lambda t: t.order)[0].trial_id
+    # The sim locator sees every object, so the automatic outcome is never 'unknown': a real override.
+    op = ScriptedOperator({first: load_answers_entry("unknown", "tag fell off")}, log=None)
+    _run(files, db, operator=op, max_trials=1)
+    row = TrialStore(db).trial_rows()[0]
+    assert row["trial_id"] == first and row["operator_outcome"] == "unknown" and row["final_outcome"] == "unknown"
+    assert row["auto_outcome"] != "unknown" and row["note"] == "tag fell off"
+
+
+def load_answers_entry(outcome, note):
+    from trials.real.operator import Decision
+
+    return Decision(outcome, note)
+
+
+class _AbortAt(AutoOperator):
+    """Aborts (like the q key) at the ``at``-th poll, i.e. in the middle of a policy loop."""
+
+    def __init__(self, at: int, pause_at: int | None = None):
+        super().__init__(log=None)
+        self.at, self.pause_at, self.n = at, pause_at, 0
+
+    def poll(self):
+        self.n += 1
+        if self.n == self.pause_at:
+            return "pause"
+        return "abort" if self.n == self.at else None
+
+
+def test_abort_discards_the_trial_in_progress_and_resume_skips_done_trials(files, tmp_path):
+    db = tmp_path / "t.sqlite"
+    plan = load_plan(files["plan"])
+    ordered = [t.trial_id for t in sorted(plan.trials, key=lambda t: t.order)]
+    # Trial 1 ends after at most max_steps polls (or earlier on reach), so poll max_steps + 2 is inside trial 2.
+    summary = _run(files, db, operator=_AbortAt(plan.max_steps + 2), on_ready=lambda r, w: setattr(r, "stop_on_reach", False))
+    assert summary.aborted and summary.committed == ordered[:1]
+    store = TrialStore(db)
+    assert [r["trial_id"] for r in store.trial_rows()] == ordered[:1]
+    frames = db.parent / "frames" / "s"
+    assert (frames / ordered[0]).is_dir() and not (frames / ordered[1]).exists()
+    summary = _run(files, db, max_trials=2)
+    assert summary.already_done == 1 and summary.committed == ordered[1:3]
+    assert [r["trial_id"] for r in TrialStore(db).trial_rows()] == ordered[:3]
+
+
+def test_pause_restarts_the_trial(files, tmp_path):
+    db = tmp_path / "t.sqlite"
+    summary = _run(files, db, operator=_AbortAt(at=-1, pause_at=3), max_trials=1,
+                   on_ready=lambda r, w: setattr(r, "stop_on_reach", False))
+    assert not summary.aborted and len(summary.committed) == 1
+    store = TrialStore(db)
+    row = store.trial_rows()[0]
+    steps = store.steps("s", row["trial_id"])
+    assert row["n_steps"] == len(steps) == load_plan(files["plan"]).max_steps
+    assert [s["step"] for s in steps] == list(range(len(steps)))
+
+
+def test_a_changed_plan_is_refused_on_resume(files, tmp_path):
+    db = tmp_path / "t.sqlite"
+    _run(files, db, max_trials=1)
+    changed = tmp_path / "plan.yaml"
+    changed.write_text(files["plan"].read_text() + "\n# edited\n")
+    with pytest.raises(SessionMismatch, match="original plan"):
+        run_session(files["hw"], files["policy"], changed, "s", db, operator=AutoOperator(log=None), rate_limit=False)
+
+
+# ---------------------------------------------------------------------- pure pieces
+def _obj(role, x, y, yaw):
+    from sim.configs import object_poses_world
+
+    T = object_poses_world([[x, y, yaw]])[0]
+    return LocatedObject(role, T, T[:3, 3] + [0, 0, 0.05])
+
+
+def test_placement_issues_words_the_correction():
+    planned = {"goal": ObjectPlacement(xy_m=(0.1, 0.0), yaw_rad=0.0), "adversarial": ObjectPlacement(xy_m=(0.0, 0.2), yaw_rad=0.5)}
+    located = {"goal": _obj("goal", 0.105, 0.0, 0.01), "adversarial": _obj("adversarial", 0.0, 0.223, 0.5 + math.radians(12))}
+    issues = placement_issues(planned, located, 0.01, math.radians(5))
+    assert [i.role for i in issues] == ["adversarial"]
+    assert issues[0].message.startswith("adversarial: move 2.3 cm toward -y, rotate -12 deg")
+    missing = placement_issues(planned, {"goal": located["goal"]}, 0.01, 0.1)
+    assert missing[0].missing and "not seen" in missing[0].message
+
+
+def test_tag_locator_maps_camera_observations_to_the_table_frame():
+    from calibration.registry import ObjectObservation
+    from sim.geometry import invert_T, make_T, rot_z
+
+    T_base_table = make_T(rot_z(0.3), np.array([0.5, -0.2, 0.01]))
+    T_base_tcp = make_T(rot_z(-1.0), np.array([0.4, 0.1, 0.4]))
+    T_tcp_cam = make_T(rot_z(0.1), np.array([0.0, -0.04, -0.06]))
+    T_table_obj = make_T(rot_z(0.7), np.array([0.05, 0.1, 0.03]))
+    T_cam_obj = invert_T(T_base_tcp @ T_tcp_cam) @ T_base_table @ T_table_obj
+    alt = T_cam_obj.copy()
+    alt[:3, 3] += 0.01
+    obs = {"goal": ObjectObservation("goal", T_cam_obj, (3, 4), 0.2, True, (alt,))}
+    loc = TagLocator(None, None, T_tcp_cam, T_base_table).from_observations(obs, T_base_tcp)
+    assert set(loc) == {"goal"}
+    np.testing.assert_allclose(loc["goal"].T_table_object, T_table_obj, atol=1e-12)
+    assert loc["goal"].tag_ids == (3, 4) and loc["goal"].ambiguous and loc["goal"].centers_for_outcome().shape == (2, 3)
+    np.testing.assert_allclose(TagLocator.estimate_T_base_table(
+        {"table": ObjectObservation("table", invert_T(T_base_tcp @ T_tcp_cam) @ T_base_table, (0,), 0.1, False)},
+        T_base_tcp, T_tcp_cam), T_base_table, atol=1e-12)
+
+
+def test_answers_file_validation(tmp_path):
+    p = tmp_path / "a.yaml"
+    p.write_text("t1: {outcome: adversarial, note: hit}\nt2: accept\n")
+    a = load_answers(p)
+    assert a["t1"].outcome == "adversarial" and a["t1"].note == "hit" and a["t2"].outcome is None
+    p.write_text("- {outcome: goal}\n- {outcome: sideways}\n")
+    with pytest.raises(AnswersError, match=r"entry 1\.outcome: 'sideways'"):
+        load_answers(p)
+    p.write_text("t1: {outcome: goal, nose: x}\n")
+    with pytest.raises(AnswersError, match="unknown keys"):
+        load_answers(p)
+
+    class _Plan:
+        trials = []
+
+    with pytest.raises(AnswersError, match="not in the plan: t9"):
+        ScriptedOperator({"t9": None}, log=None).check_plan(_Plan())

@@ -1,0 +1,56 @@
+"""Building blocks for the real-trial tests: a tiny ONNX policy, attack textures, a small plan, sim hardware."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[2]
+SIM_HW = REPO / "examples" / "hardware" / "sim.yaml"
+
+
+def tiny_onnx(path: Path, size: int = 32) -> Path:
+    """An untrained small-CNN policy exported without a card (the runner then never imports torch for it)."""
+    import torch
+
+    from sim.policies.onnx_policy import export_onnx
+    from sim.policies.policy import VisuomotorPolicy
+
+    torch.manual_seed(0)
+    return export_onnx(VisuomotorPolicy(arch="small_cnn", image_size=size), path)
+
+
+def attack_dir(path: Path, mesh: str, seed: int = 0) -> Path:
+    path.mkdir(parents=True, exist_ok=True)
+    np.save(path / "texture.npy", np.random.default_rng(seed).random((16, 16, 3)).astype(np.float32))
+    (path / "run.json").write_text(json.dumps({"config": {"attack": {"adversarial_mesh": mesh}}}))
+    return path
+
+
+def small_plan(out: Path, textures_dir: Path, n_tcp: int = 2, n_layouts: int = 1, max_steps: int = 6, seed: int = 0,
+               conditions=("clean", "adv3d", "patch")) -> Path:
+    """A cube plan (clean/adv3d/patch x poses x layouts) with short trials, written to ``out``."""
+    from sim.spec import default_scene
+    from trials.real.plan import make_plan, save_plan, texture_ref
+
+    spec = default_scene()
+    textures = {}
+    if "adv3d" in conditions:
+        textures["cube/adv3d"] = texture_ref(attack_dir(textures_dir / "adv_cube", "cube"), "cube/adv3d", spec)
+    if "patch" in conditions:
+        textures["cube/patch"] = texture_ref(attack_dir(textures_dir / "patch_cube", "patch", 1), "cube/patch", spec)
+    plan = make_plan(spec, seed, ["A"], ["cube"], list(conditions), textures, n_tcp_poses=n_tcp, n_object_layouts=n_layouts,
+                     max_steps=max_steps)
+    save_plan(plan, out)
+    return out
+
+
+def sim_hardware(out: Path, image_size: int = 32) -> Path:
+    """The example sim hardware YAML with a small camera image (speed)."""
+    data = yaml.safe_load(SIM_HW.read_text())
+    data["sim"]["image_size"] = [image_size, image_size]
+    out.write_text(yaml.safe_dump(data))
+    return out
