@@ -16,6 +16,12 @@ that
 * falls back to pyrender's own implementation for anything else, and keeps its semantics: an
   unknown uniform name (location -1) is silently ignored, as pyrender does.
 
+It also wraps ``Renderer._bind_lighting``, which pyrender calls for every primitive although the
+light uniforms of a program are the same for all primitives of one pass (uniform values are
+program state and persist between draws): the second and later calls for the same program in the
+same pass are skipped. Only when that is exact: no shadow maps, and no more lights than pyrender's
+per-type maximum (beyond it pyrender sorts lights by distance to each node).
+
 The rendered images are bit-identical with and without it (``tests/sim/test_gl_fastpath.py``);
 ``benchmarks/bench_env.py --no-fastpath`` measures the difference. Set ``ADVOBJ_GL_FASTPATH=0``
 to disable it.
@@ -31,6 +37,8 @@ import numpy as np
 __all__ = ["install", "uninstall", "installed"]
 
 _ORIGINAL = None
+_ORIGINAL_LIGHTING = None
+_ORIGINAL_FORWARD = None
 _FUNCS: dict | None = None
 
 _c_int, _c_uint, _c_float, _c_ptr, _c_bool = ctypes.c_int, ctypes.c_uint, ctypes.c_float, ctypes.c_void_p, ctypes.c_ubyte
@@ -104,11 +112,37 @@ def _fast_set_uniform(self, name, value, unsigned=False):
     _ORIGINAL(self, name, value, unsigned)
 
 
+def _counting_forward_pass(self, scene, flags, seg_node_map=None):
+    self._advobj_pass = getattr(self, "_advobj_pass", 0) + 1
+    self._advobj_lit = set()
+    return _ORIGINAL_FORWARD(self, scene, flags, seg_node_map)
+
+
+def _lighting_once_per_pass(self, scene, program, node, flags):
+    from pyrender.constants import MAX_N_LIGHTS, RenderFlags
+
+    lit = getattr(self, "_advobj_lit", None)
+    exact = (
+        lit is not None
+        and not flags & (RenderFlags.SHADOWS_DIRECTIONAL | RenderFlags.SHADOWS_SPOT | RenderFlags.SHADOWS_POINT)
+        and len(scene.directional_light_nodes) <= MAX_N_LIGHTS
+        and len(scene.spot_light_nodes) <= MAX_N_LIGHTS
+        and len(scene.point_light_nodes) <= MAX_N_LIGHTS
+    )
+    if exact:
+        key = (id(program), program._program_id)
+        if key in lit:
+            return
+        lit.add(key)
+    _ORIGINAL_LIGHTING(self, scene, program, node, flags)
+
+
 def install() -> bool:
     """Patch pyrender (idempotent). Returns whether the fast path is active."""
-    global _ORIGINAL, _FUNCS
+    global _ORIGINAL, _ORIGINAL_LIGHTING, _ORIGINAL_FORWARD, _FUNCS
     if os.environ.get("ADVOBJ_GL_FASTPATH", "1") == "0":
         return False
+    from pyrender.renderer import Renderer
     from pyrender.shader_program import ShaderProgram
 
     if _ORIGINAL is not None:
@@ -120,18 +154,23 @@ def install() -> bool:
     _FUNCS = funcs
     _ORIGINAL = ShaderProgram.set_uniform
     ShaderProgram.set_uniform = _fast_set_uniform
+    _ORIGINAL_LIGHTING, _ORIGINAL_FORWARD = Renderer._bind_lighting, Renderer._forward_pass
+    Renderer._bind_lighting = _lighting_once_per_pass
+    Renderer._forward_pass = _counting_forward_pass
     return True
 
 
 def uninstall() -> None:
-    """Restore pyrender's own ``set_uniform`` (used by the equivalence test and the benchmark)."""
-    global _ORIGINAL
+    """Restore pyrender's own ``set_uniform`` and lighting binding (used by the equivalence test and the benchmark)."""
+    global _ORIGINAL, _ORIGINAL_LIGHTING, _ORIGINAL_FORWARD
     if _ORIGINAL is None:
         return
+    from pyrender.renderer import Renderer
     from pyrender.shader_program import ShaderProgram
 
     ShaderProgram.set_uniform = _ORIGINAL
-    _ORIGINAL = None
+    Renderer._bind_lighting, Renderer._forward_pass = _ORIGINAL_LIGHTING, _ORIGINAL_FORWARD
+    _ORIGINAL = _ORIGINAL_LIGHTING = _ORIGINAL_FORWARD = None
 
 
 def installed() -> bool:

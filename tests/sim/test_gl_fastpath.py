@@ -6,7 +6,7 @@ import pytest
 from sim import gl_fastpath
 from sim.geometry import look_at
 from sim.render import SceneRenderer
-from sim.spec import default_scene
+from sim.spec import LightingSpec, LightSpec, default_scene
 
 
 def _views():
@@ -16,24 +16,35 @@ def _views():
         yield look_at(eye, np.array([0.0, 0.0, 0.05]))
 
 
-def _render_all(fast: bool):
+def _render_all(fast: bool, monkeypatch):
     if fast:
+        monkeypatch.delenv("ADVOBJ_GL_FASTPATH", raising=False)
         assert gl_fastpath.install()
     else:
         gl_fastpath.uninstall()
+        monkeypatch.setenv("ADVOBJ_GL_FASTPATH", "0")  # SceneRenderer() must not re-install it
     # A fresh renderer per mode: its shader programs (and location caches) start empty.
     with SceneRenderer(default_scene(), 96, 96) as r:
         T = np.stack([np.eye(4)] * len(r.object_names))
         T[:, 0, 3] = np.linspace(-0.15, 0.15, len(T))  # side by side, all in view
         r.set_state(T, np.eye(4) @ look_at(np.array([0.0, -0.2, 0.3]), np.zeros(3)))
-        return [r.render(T, with_ids=True) for T in _views()]
+        assert gl_fastpath.installed() == fast
+        outs = []
+        for i, T in enumerate(_views()):
+            # Lights change between renders: a light binding wrongly skipped would show.
+            lights = [LightSpec(intensity=1.0 + i, direction=(0.3 - 0.2 * i, 0.2, -1.0)),
+                      LightSpec(type="point", intensity=2.0 * i, color=(1.0, 0.8, 0.6), position_m=(0.2, -0.1, 0.8))]
+            r.set_lights(LightingSpec(ambient=(0.1 * i, 0.2, 0.3), lights=lights[: 1 + i % 2]))
+            outs.append(r.render(T, with_ids=True))
+        return outs
 
 
-def test_fast_uniform_path_renders_bit_identical_color_ids_and_depth():
+def test_fast_uniform_path_renders_bit_identical_color_ids_and_depth(monkeypatch):
     try:
-        slow = _render_all(False)
-        fast = _render_all(True)
+        slow = _render_all(False, monkeypatch)
+        fast = _render_all(True, monkeypatch)
     finally:
+        monkeypatch.delenv("ADVOBJ_GL_FASTPATH", raising=False)
         gl_fastpath.install()
     assert gl_fastpath.installed()
     for a, b in zip(slow, fast):
