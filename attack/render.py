@@ -269,11 +269,15 @@ class HybridRenderer:
     """Wraps a :class:`sim.render.SceneRenderer` to capture :class:`Capture` records.
 
     Registers white- and black-albedo looks of the adversarial object (for the shading passes)
-    and renders four passes per frame: color, ids, white, black.
+    and renders four passes per frame: color, ids, white, black. The white and black passes are
+    read only under the id pass's mask of the adversarial object, so with ``isolate_shading`` they
+    draw that object alone (the rest of the scene is the color pass's; pixel-exact, see
+    :meth:`sim.render.SceneRenderer.render`).
     """
 
-    def __init__(self, renderer, face_filter: np.ndarray | None = None):
+    def __init__(self, renderer, face_filter: np.ndarray | None = None, isolate_shading: bool = True):
         self.renderer = renderer
+        self.isolate_shading = bool(isolate_shading)
         self.adv = renderer.face_coded
         self.goal = renderer.spec.object_index("goal")
         mesh = renderer.object_mesh(self.adv)
@@ -299,8 +303,9 @@ class HybridRenderer:
         out = r.render(T_world_cam, with_ids=True)
         adv_mask = out.object_mask(self.adv)
         if adv_mask.any():
-            white = r.render(T_world_cam, with_ids=False, variants={self.adv: "white"}).rgb
-            black = r.render(T_world_cam, with_ids=False, variants={self.adv: "black"}).rgb
+            iso = self.adv if self.isolate_shading else None
+            white = r.render(T_world_cam, with_ids=False, variants={self.adv: "white"}, isolate=iso).rgb
+            black = r.render(T_world_cam, with_ids=False, variants={self.adv: "black"}, isolate=iso).rgb
         else:  # nothing to shade: skip two passes
             white = black = out.rgb
         T_cam_obj = invert_T(T_world_cam) @ world.T_world_objects[self.adv]

@@ -9,6 +9,15 @@ needs (see ``attack/render.py``).
 Multisampling is disabled: resolved MSAA samples blend neighbouring codes at silhouettes and would
 corrupt the ids; it also makes the color pass and the id pass cover exactly the same pixels.
 
+Shortcuts that keep every pixel exact (measured in ``benchmarks/bench_render_shortcuts.py``):
+
+* frustum culling: an object whose bounding sphere lies entirely outside the view frustum is left
+  out of every pass of that render (``frustum_cull=True``);
+* ``render(..., isolate=k)`` draws object ``k`` alone. There are no shadows, so the shading of a
+  surface point does not depend on other geometry: at the pixels where ``k`` is visible in the
+  full scene (its id-pass mask) the isolated render is identical to the full one. The attack's
+  white/black shading passes read only those pixels.
+
 Id codes (24-bit, ``r << 16 | g << 8 | b``):
   0                      nothing (background)
   1                      table
@@ -42,6 +51,7 @@ __all__ = [
     "FACE_BASE",
     "gl_from_cv",
     "gripper_meshes",
+    "spheres_outside_frustum",
 ]
 
 BACKGROUND_ID = 0
@@ -57,6 +67,33 @@ _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 def gl_from_cv(T_world_cvcam: np.ndarray) -> np.ndarray:
     """pyrender camera pose from an OpenCV-convention camera pose."""
     return np.asarray(T_world_cvcam) @ _CV_TO_GL
+
+
+def spheres_outside_frustum(centers_cam: np.ndarray, radii: np.ndarray, K: np.ndarray, width: int, height: int,
+                            znear: float, zfar: float, margin_px: float = 2.0) -> np.ndarray:
+    """Which spheres lie entirely outside the camera's view frustum: ``(N,)`` bool.
+
+    centers_cam: (N, 3) m sphere centres in the OpenCV camera frame; radii: (N,) m; K: (3, 3)
+    intrinsics at ``width x height`` px; znear, zfar: clip distances (m) along the optical axis.
+    The side planes pass through the pixel grid's outer edges widened by ``margin_px`` (culling
+    stays conservative: a sphere is reported outside only if no pixel can see any of it).
+    """
+    c = np.asarray(centers_cam, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(radii, dtype=np.float64).reshape(-1)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    m = float(margin_px)
+    # A point projects to edge coordinate u = fx x / z + cx + 0.5 (pixel k spans [k, k + 1]);
+    # 'inside' is -m <= u <= W + m, i.e. n . p >= 0 for these inward plane normals (all through
+    # the optical centre).
+    normals = np.array([
+        [fx, 0.0, cx + 0.5 + m],
+        [-fx, 0.0, width + m - cx - 0.5],
+        [0.0, fy, cy + 0.5 + m],
+        [0.0, -fy, height + m - cy - 0.5],
+    ])
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    side = (c @ normals.T < -r[:, None]).any(-1)
+    return side | (c[:, 2] + r < znear) | (c[:, 2] - r > zfar)
 
 
 class RenderError(AdvobjError, RuntimeError):
@@ -254,9 +291,12 @@ class SceneRenderer:
         width, height: image size in px (defaults to the spec camera's).
         meshes: optional pre-built trimesh per object (default: built from the spec).
         face_coded: index of the object whose faces are id-coded (default: the adversarial one).
+        frustum_cull: leave objects entirely outside the view out of each render (exact: the
+            images are pixel-identical; :attr:`culled` lists the objects skipped last render).
     """
 
-    def __init__(self, spec, width: int | None = None, height: int | None = None, meshes=None, face_coded=None):
+    def __init__(self, spec, width: int | None = None, height: int | None = None, meshes=None, face_coded=None,
+                 frustum_cull: bool = True):
         try:
             import pyrender
         except Exception as err:  # ImportError, or PyOpenGL failing to find the platform library
@@ -316,6 +356,13 @@ class SceneRenderer:
             self._objects.append(_ObjectNodes(cnode, inode, mesh, tex, color))
         self._hidden: set[int] = set()
         self._gripper_visible = True
+        self.frustum_cull = bool(frustum_cull)
+        self.culled: tuple[int, ...] = ()
+        # Bounding spheres in the object frames: bounding-box centre, farthest vertex.
+        self._sphere_c = np.array([(o.mesh.bounds[0] + o.mesh.bounds[1]) / 2.0 for o in self._objects]).reshape(-1, 3)
+        self._sphere_r = np.array([np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=-1).max()
+                                   for o, c in zip(self._objects, self._sphere_c)])
+        self._T_world_objects = np.tile(np.eye(4), (len(self._objects), 1, 1))
 
     # ------------------------------------------------------------------ building
     @staticmethod
@@ -412,6 +459,7 @@ class SceneRenderer:
     # ------------------------------------------------------------------ state
     def set_state(self, T_world_objects: np.ndarray, T_world_tcp: np.ndarray | None) -> None:
         """Place objects (``T_world_objects: (K, 4, 4)``) and the gripper (``None`` hides it)."""
+        self._T_world_objects = np.array(T_world_objects, dtype=np.float64).reshape(-1, 4, 4)
         for obj, T in zip(self._objects, T_world_objects):
             self.scene.set_pose(obj.color, T)
             self.scene.set_pose(obj.ids, T)
@@ -426,26 +474,45 @@ class SceneRenderer:
         (self._hidden.discard if visible else self._hidden.add)(k)
 
     # ------------------------------------------------------------------ rendering
-    def _set_pass(self, color_pass: bool, variants: dict) -> None:
+    def _culled(self, T_world_cam: np.ndarray) -> tuple[int, ...]:
+        """Objects whose bounding sphere is entirely outside the view from ``T_world_cam``."""
+        if not self.frustum_cull or not self._objects:
+            return ()
+        from sim.geometry import invert_T
+
+        T = self._T_world_objects
+        centers_world = np.einsum("kij,kj->ki", T[:, :3, :3], self._sphere_c) + T[:, :3, 3]
+        T_cam_world = invert_T(np.asarray(T_world_cam, dtype=np.float64))
+        centers_cam = centers_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        cam = self.spec.camera
+        out = spheres_outside_frustum(centers_cam, self._sphere_r, self.K, self.width, self.height, cam.znear_m, cam.zfar_m)
+        return tuple(int(k) for k in np.flatnonzero(out))
+
+    def _set_pass(self, color_pass: bool, variants: dict, isolate: int | None = None) -> None:
         """Node visibility for one pass: color meshes (with variants swapped in) or id meshes."""
-        self._table[0].mesh.is_visible = color_pass
-        self._table[1].mesh.is_visible = not color_pass
+        scene = isolate is None
+        self._table[0].mesh.is_visible = color_pass and scene
+        self._table[1].mesh.is_visible = (not color_pass) and scene
         for c, i in self._gripper_nodes:
-            c.mesh.is_visible = color_pass and self._gripper_visible
-            i.mesh.is_visible = (not color_pass) and self._gripper_visible
+            c.mesh.is_visible = color_pass and self._gripper_visible and scene
+            i.mesh.is_visible = (not color_pass) and self._gripper_visible and scene
         for k, obj in enumerate(self._objects):
-            shown = k not in self._hidden
+            shown = k not in self._hidden and k not in self.culled and (scene or k == isolate)
             chosen = variants.get(k)
             obj.color.mesh.is_visible = color_pass and shown and chosen is None
             obj.ids.mesh.is_visible = (not color_pass) and shown
             for name, node in obj.variants.items():
                 node.mesh.is_visible = color_pass and shown and chosen == name
 
-    def render(self, T_world_cam: np.ndarray, with_ids: bool = True, with_color: bool = True, variants=None) -> RenderOutput:
+    def render(self, T_world_cam: np.ndarray, with_ids: bool = True, with_color: bool = True, variants=None,
+               isolate: int | None = None) -> RenderOutput:
         """Render from an OpenCV camera pose ``T_world_cam: (4, 4)``.
 
         ``variants``: ``{object index: variant name}`` swaps in looks registered with
         :meth:`add_variant` for this color pass only.
+        ``isolate``: draw only object ``isolate`` (no table, gripper or other objects). Its pixels
+        equal the full render's only where it is visible in the full scene (use them under its
+        id-pass mask); elsewhere they show what the other geometry would have hidden.
         """
         import pyrender
 
@@ -453,13 +520,16 @@ class SceneRenderer:
         for k, name in variants.items():
             if name not in self._objects[k].variants:
                 raise RenderError(f"object {self.object_names[k]} has no variant {name!r}")
+        if isolate is not None and not 0 <= isolate < len(self._objects):
+            raise RenderError(f"isolate: no object {isolate} (the scene has {len(self._objects)})")
         self.scene.set_pose(self._camera_node, gl_from_cv(T_world_cam))
+        self.culled = self._culled(T_world_cam)
         rgb = depth = ids = None
         if with_color:
-            self._set_pass(True, variants)
+            self._set_pass(True, variants, isolate)
             rgb, depth = self._renderer.render(self.scene)
         if with_ids:
-            self._set_pass(False, {})
+            self._set_pass(False, {}, isolate)
             bg = self.scene.bg_color.copy()
             self.scene.bg_color = np.array([0.0, 0.0, 0.0, 1.0])  # code 0 = nothing hit
             try:
