@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -33,12 +34,16 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from sim.errors import AdvobjError, format_validation_error
 
-__all__ = ["AttackConfig", "AttackError", "PRESETS", "resolve_config", "AttackRun", "run_attack", "find_checkpoint",
+__all__ = ["AttackConfig", "AttackError", "AttackWarning", "PRESETS", "resolve_config", "AttackRun", "run_attack", "find_checkpoint",
            "split_validation", "better_score"]
 
 
 class AttackError(AdvobjError, ValueError):
     """Bad attack configuration or inputs."""
+
+
+class AttackWarning(UserWarning):
+    """A setting the attack had to adapt (e.g. a validation pool cut to what the pool allows)."""
 
 
 class AttackConfig(BaseModel):
@@ -75,7 +80,10 @@ class AttackConfig(BaseModel):
 PRESETS: dict[str, dict] = {
     # A few minutes on 2 CPU cores. The paper's eta = 0.1 moves a 256^2 texture too little in a
     # few hundred steps; a smaller texture and a larger step make the short run count.
-    "quick": {"iterations": 120, "num_envs": 4, "rollout_steps": 6, "texture_size": 64, "lr": 1.0, "checkpoint_every": 20},
+    # Validation every 20 iterations on 16 held-out configurations costs ~10 s a call at 64 px
+    # (~20% of the run's wall time; benchmarks/bench_render_shortcuts.py --validation).
+    "quick": {"iterations": 120, "num_envs": 4, "rollout_steps": 6, "texture_size": 64, "lr": 1.0, "checkpoint_every": 20,
+              "validation_every": 20, "validation_episodes": 16},
     # The paper's run: 10k iterations, 4 envs x 10 steps (policy at 128x128).
     "paper": {"iterations": 10_000, "num_envs": 4, "rollout_steps": 10, "texture_size": 256, "lr": 0.1, "checkpoint_every": 200},
 }
@@ -166,7 +174,13 @@ class AttackRun:
             raise AttackError("pool: no task-feasible configurations to attack from")
         self.val_pool: list = []
         if cfg.validation_every > 0:
-            self.pool, self.val_pool = split_validation(self.pool, cfg.validation_episodes, cfg.seed)
+            n_val = min(cfg.validation_episodes, len(self.pool) // 2)
+            if n_val < cfg.validation_episodes:
+                warnings.warn(
+                    f"validation_episodes: the pool holds only {len(self.pool)} configurations; holding out {n_val} "
+                    f"(half the pool) for validation instead of {cfg.validation_episodes}. Give a larger pool "
+                    "(--pool, pool_size) for a steadier validation score, or set validation_every: 0", AttackWarning, stacklevel=2)
+            self.pool, self.val_pool = split_validation(self.pool, n_val, cfg.seed)
         self.pool_r = np.array([c.r_m for c in self.pool])
         randomization = Randomization(light="random") if cfg.light_randomization else None
         self.env = ReachEnv(spec, num_envs=cfg.num_envs, image_size=self.image_size, seed=cfg.seed,
@@ -431,10 +445,10 @@ def split_validation(pool: list, n_val: int, seed: int) -> tuple[list, list]:
     holds the rest minus any configuration whose seed is also in ``val`` (duplicates), so the two
     are disjoint. Validation may take at most half the pool: a smaller pool is refused.
     """
-    if len(pool) < 2 * n_val:
+    if n_val < 1 or len(pool) < 2 * n_val:
         raise AttackError(
             f"validation_episodes: the pool holds {len(pool)} configurations, too few to hold out {n_val} for validation "
-            f"(at most half the pool is held out: need >= {2 * n_val}); lower validation_episodes or give a larger pool"
+            f"(at most half the pool is held out: need >= {max(2, 2 * n_val)}); give a larger pool or set validation_every: 0"
         )
     order = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7A1])).permutation(len(pool))
     val = [pool[i] for i in order[:n_val]]

@@ -134,6 +134,8 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         "iterations": run.iteration,
         "seconds": h.seconds,
         "seconds_per_iteration": h.seconds / max(1, len(h.iteration)),
+        # The same without the held-out validation rollouts (comparable with validation off).
+        "seconds_per_iteration_training": (h.seconds - float(np.sum(getattr(h, "val_seconds", []) or [0.0]))) / max(1, len(h.iteration)),
         "final_loss_pose": float(np.mean(h.loss_pose[-tail:])) if h.loss_pose else None,
         "initial_loss_pose": float(np.mean(h.loss_pose[:tail])) if h.loss_pose else None,
         "final_loss_saliency": float(np.mean(h.loss_saliency[-tail:])) if h.loss_saliency else None,

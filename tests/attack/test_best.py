@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from attack.optimize import AttackError, AttackRun, better_score, find_checkpoint, resolve_config, run_attack, split_validation
+from attack.optimize import AttackError, AttackRun, AttackWarning, better_score, find_checkpoint, resolve_config, run_attack, split_validation
 from sim.configs import sample_pool
 from sim.policies.policy import VisuomotorPolicy
 from sim.spec import default_scene
@@ -52,6 +52,18 @@ def test_split_is_deterministic_disjoint_and_refuses_small_pools(spec_pool):
     assert not {c.seed for c in tr} & {c.seed for c in va}
     with pytest.raises(AttackError, match="validation_episodes.*too few"):
         split_validation(pool, 5, seed=0)
+    with pytest.raises(AttackError, match="validation_every: 0"):
+        split_validation(pool[:1], 0, seed=0)
+
+
+def test_a_small_pool_holds_out_half_and_says_so(spec_pool):
+    spec, pool = spec_pool
+    with pytest.warns(AttackWarning, match="only 8 configurations; holding out 4"):
+        run = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "validation_episodes": 16}), pool=pool)
+    assert len(run.val_pool) == 4 and len(run.pool) == 4
+    run.close()
+    with pytest.raises(AttackError, match="validation_episodes"), pytest.warns(AttackWarning):
+        AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=pool[:1])
 
 
 def test_run_trains_only_on_configurations_outside_the_validation_pool(spec_pool):
@@ -159,6 +171,7 @@ def test_real_validation_is_deterministic_and_leaves_the_training_rng_alone(spec
 def test_validation_off_keeps_the_whole_pool_and_writes_no_best(tmp_path, spec_pool):
     spec, pool = spec_pool
     run = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "validation_every": 0, "iterations": 2}), pool=pool, out_dir=tmp_path)
+    assert resolve_config("quick").validation_every > 0 and resolve_config("paper").validation_every == 0
     run_attack(run, progress=False)
     run.close()
     assert len(run.pool) == 8 and not run.history.val_iteration and not (tmp_path / "best").exists()
