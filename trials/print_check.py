@@ -19,10 +19,11 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["CheckResult", "reconstruct_texture", "scale_errors", "check_print", "write_check", "MAX_MEAN_ERROR", "MAX_VIEW_ERROR",
-           "MAX_SCALE_ERROR_MM"]
+           "MAX_REGION_ERROR", "MAX_SCALE_ERROR_MM"]
 
 MAX_MEAN_ERROR = 0.03  # mean abs error / 255 over object pixels, all views
 MAX_VIEW_ERROR = 0.05  # the worst single view
+MAX_REGION_ERROR = 0.08  # mean abs error / 255 of the texels read back from one printed region
 MAX_SCALE_ERROR_MM = 0.3  # printed piece size vs the mesh's physical size
 UNREAD_RGB = (255, 0, 255)  # texels no piece prints: loud magenta in the printed-back renders
 RENDER_PX = 256
@@ -42,6 +43,7 @@ class CheckResult:
     renders: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(repr=False, default_factory=list)  # (optimised, printed, mask)
     max_mean: float = MAX_MEAN_ERROR
     max_view: float = MAX_VIEW_ERROR
+    max_region: float = MAX_REGION_ERROR
     max_scale_mm: float = MAX_SCALE_ERROR_MM
 
     @property
@@ -52,6 +54,8 @@ class CheckResult:
     def failures(self) -> list[str]:
         out = [f"piece {s['piece']}: {s['measure']} printed {s['printed_mm']:.2f} mm, the object needs {s['expected_mm']:.2f} mm"
                for s in self.scale if abs(s["error_mm"]) > self.max_scale_mm]
+        out += [f"{name}: printed-back texels differ from the texture by {err:.3f} (max {self.max_region}); "
+                "mirrored, rotated or swapped?" for name, err in self.piece_mae.items() if err > self.max_region]
         if self.mean_mae > self.max_mean or max(self.view_mae) > self.max_view:
             worst = max(self.piece_mae, key=self.piece_mae.get) if self.piece_mae else "?"
             out.append(f"printed-back renders differ: mean abs error {self.mean_mae:.4f} (max {self.max_mean}), worst view "
@@ -75,19 +79,21 @@ class CheckResult:
         return {"passed": self.passed, "mean_abs_error": self.mean_mae, "max_view_abs_error": max(self.view_mae),
                 "view_abs_error": self.view_mae, "texture_abs_error": self.texture_mae, "piece_texture_abs_error": self.piece_mae,
                 "unread_texels": self.unread_texels, "scale": self.scale,
-                "thresholds": {"mean_abs_error": self.max_mean, "max_view_abs_error": self.max_view, "scale_mm": self.max_scale_mm},
+                "thresholds": {"mean_abs_error": self.max_mean, "max_view_abs_error": self.max_view,
+                               "piece_texture_abs_error": self.max_region, "scale_mm": self.max_scale_mm},
                 "failures": self.failures, "views_deg": [list(v) for v in VIEWS_DEG]}
 
 
-def reconstruct_texture(layout, rasters: list[np.ndarray], mesh, size: int) -> tuple[np.ndarray, dict, np.ndarray]:
+def reconstruct_texture(layout, rasters: list[np.ndarray], mesh, size: int) -> tuple[np.ndarray, dict, np.ndarray, np.ndarray]:
     """The texture as the printed sheet would put it on the object.
 
     Args:
         layout: :class:`trials.fabricate.SheetLayout`; rasters: its page images (H_px, W_px, 3).
         mesh: the object (m); size: texture side S in px.
     Returns:
-        texture (S, S, 3) uint8 (gutters dilated, unread texels magenta), owner (piece name ->
-        (S, S) bool texels read from it), covered (S, S) bool texels some face maps to.
+        texture (S, S, 3) uint8 (gutters dilated, unread texels magenta), owner (piece or
+        ``"piece tile name"`` -> (S, S) bool texels read from that printed region), covered (S, S)
+        bool texels some face maps to, unread (S, S) bool covered texels no piece prints.
     """
     from sim import textures as tx
 
@@ -112,13 +118,19 @@ def reconstruct_texture(layout, rasters: list[np.ndarray], mesh, size: int) -> t
         px = (paper[ok] + [at.x_mm, at.y_mm]) * [page.shape[1] / W_mm, page.shape[0] / H_mm]
         rgb[ok] = tx_sample(page, px)
         read |= ok
-        m = np.zeros(covered.shape, bool)
-        m[covered] = ok
-        owner[piece.name] = m
+        # Attribute texels to the printed region they were read from, so a failure names it.
+        for reg in piece.regions:
+            x, y, w, h = reg.rect_mm
+            inside = ok & (paper[:, 0] >= x) & (paper[:, 0] <= x + w) & (paper[:, 1] >= y) & (paper[:, 1] <= y + h)
+            m = np.zeros(covered.shape, bool)
+            m[covered] = inside
+            owner[piece.name if len(piece.regions) == 1 else f"{piece.name} tile {reg.name}"] = m
     rgb[~read] = np.asarray(UNREAD_RGB, float)
     full = np.zeros((size, size, 3))
     full[covered] = rgb / 255.0
-    return tx.finish_bake(full, covered), owner, covered
+    unread = np.zeros(covered.shape, bool)
+    unread[covered] = ~read
+    return tx.finish_bake(full, covered), owner, covered, unread
 
 
 def tx_sample(page: np.ndarray, xy_px: np.ndarray) -> np.ndarray:
@@ -199,13 +211,10 @@ def check_print(layout, rasters, mesh, texture: np.ndarray, progress: bool = Fal
     h, w = texture.shape[:2]
     if h != w:
         raise FabricationError(f"texture: the check needs a square texture, got {h} x {w}")
-    recon, owner, covered = reconstruct_texture(layout, rasters, mesh, h)
+    recon, owner, covered, unread_mask = reconstruct_texture(layout, rasters, mesh, h)
     diff = np.abs(recon.astype(float) - texture.astype(float)).mean(-1) / 255.0
     piece_mae = {name: float(diff[m].mean()) for name, m in owner.items() if m.any()}
-    read = np.zeros_like(covered)
-    for m in owner.values():
-        read |= m
-    unread = int((covered & ~read).sum())
+    unread = int(unread_mask.sum())
     views = _render_views(mesh.metadata.get("source", mesh.metadata["name"]), [texture, recon])
     view_mae, renders = [], []
     for (a, mask), (b, _) in zip(*views):
