@@ -183,8 +183,8 @@ class AttackRun:
             self.pool, self.val_pool = split_validation(self.pool, n_val, cfg.seed)
         self.pool_r = np.array([c.r_m for c in self.pool])
         randomization = Randomization(light="random") if cfg.light_randomization else None
-        self.env = ReachEnv(spec, num_envs=cfg.num_envs, image_size=self.image_size, seed=cfg.seed,
-                            randomization=randomization, render_obs=False)
+        self.env = ReachEnv(spec, num_envs=cfg.num_envs, seed=cfg.seed, randomization=randomization, render_obs=False,
+                            policy_image_size=self.image_size)
         self.hybrid = HybridRenderer(self.env.renderer)
         self.adv = self.hybrid.adv
         self.texture = initial_texture(cfg, self.env.renderer.object_mesh(self.adv))
@@ -225,7 +225,7 @@ class AttackRun:
                 spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": self.cfg.validation_max_steps})
             # Batches of equal size (the largest divisor of the pool size up to 8): no idle slots.
             n = max(d for d in range(1, min(8, len(configs)) + 1) if len(configs) % d == 0)
-            self._val_env = ReachEnv(spec, num_envs=n, image_size=self.image_size, seed=self.cfg.seed)
+            self._val_env = ReachEnv(spec, num_envs=n, seed=self.cfg.seed, policy_image_size=self.image_size)
         env = self._val_env
         env.renderer.set_object_texture(self.adv, texture_to_uint8(self.texture))
         targeted, dist = [], []

@@ -15,11 +15,16 @@ from sim.action import check_actions, next_tcp_pose
 from sim.configs import InitialConfig
 from sim.expert import expert_actions
 from sim.outcome import NONE, object_distances, reach_outcome
+from sim.errors import AdvobjError
 from sim.render import SceneRenderer
 from sim.variations import Randomization
 from sim.world import SimWorld, _image_size
 
-__all__ = ["ReachEnv"]
+__all__ = ["ReachEnv", "EnvError"]
+
+
+class EnvError(AdvobjError, ValueError):
+    """An env set up inconsistently with the policy that will read it."""
 
 
 class ReachEnv:
@@ -36,17 +41,29 @@ class ReachEnv:
         stereo: also render the right camera of the stereo pair (``info["rgb_right"]``).
         render_obs: render observations at all; callers that render their own views (the attack)
             turn it off to skip a color pass per step.
+        policy_image_size: the square input size (px) of the policy that reads the observations.
+            With it, ``image_size=None`` renders at that size (the spec camera's intrinsics are
+            rescaled, so the field of view is kept), and any other size is refused: a larger
+            render would only be downsampled (wasted render time), a smaller one upsampled.
 
     Observations are ``(N, H, W, 3)`` uint8.
     """
 
     def __init__(self, spec, num_envs: int = 1, image_size=None, seed: int = 0,
                  randomization: Randomization | None = None, render_masks: bool = False, stereo: bool = False,
-                 render_obs: bool = True):
+                 render_obs: bool = True, policy_image_size: int | None = None):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.spec = spec
         self.num_envs = int(num_envs)
+        if policy_image_size is not None:
+            S = int(policy_image_size)
+            if image_size is None:
+                image_size = S
+            if _image_size(spec, image_size) != (S, S):
+                h, w = _image_size(spec, image_size)
+                raise EnvError(f"image_size: the env would render {h}x{w} px but the policy reads {S}x{S} px; render at the "
+                               f"policy's size (image_size={S} or None) instead of resizing the observation")
         self.height, self.width = _image_size(spec, image_size)
         self.render_masks = render_masks
         self.render_obs = render_obs

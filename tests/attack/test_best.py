@@ -176,3 +176,16 @@ def test_validation_off_keeps_the_whole_pool_and_writes_no_best(tmp_path, spec_p
     run.close()
     assert len(run.pool) == 8 and not run.history.val_iteration and not (tmp_path / "best").exists()
     assert (tmp_path / "checkpoint" / "texture.npy").is_file()
+
+
+def test_attack_and_validation_render_at_the_policy_size(spec_pool):
+    spec, pool = spec_pool
+    run = AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=pool)
+    try:
+        assert spec.camera.width == 128 and run.image_size == 32
+        cap = run.hybrid.capture(run.env.worlds[0])
+        assert cap.i_sim.shape == (32, 32, 3) and (cap.fragments.height, cap.fragments.width) == (32, 32)
+        run.validate()
+        assert (run._val_env.height, run._val_env.width) == (32, 32)
+    finally:
+        run.close()
