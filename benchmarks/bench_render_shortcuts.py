@@ -1,0 +1,294 @@
+"""Speed and accuracy of the rendering shortcuts, and the cost of the attack's validation.
+
+Run: ``.venv/bin/python benchmarks/bench_render_shortcuts.py [--policy DIR] [--attack DIR]
+[--episodes 16] [--size 64] [--validation]``.
+
+Per shortcut it prints ms per frame with and without, their ratio, and the accuracy effect:
+
+* frustum culling (``SceneRenderer(frustum_cull=...)``) on wrist-camera reach trajectories: how
+  often an object is culled, the max-abs pixel difference of color and id images, and the
+  episode outcomes (success, reached-adversarial = T-ASR) of the same episodes with and without;
+* isolated shading passes (``HybridRenderer(isolate_shading=...)``: the attack's white/black
+  passes draw the adversarial object alone and reuse the color pass for everything else): ms
+  per capture, max-abs difference of the shading passes under the object's mask and of ``I_adv``;
+* reusing the previous step's frame as the background (NOT shipped): the wrist camera moves
+  every step, so the measured difference shows it is not exact;
+* rendering at the policy's size vs rendering at the camera's size and downsampling;
+* ``--validation``: seconds per held-out validation call and per quick-preset attack run.
+
+Trajectories come from ``--policy`` (a checkpoint directory) or, without it, the scripted expert.
+Medians over alternating blocks (the machine is shared and noisy); the load average is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import numpy as np
+
+
+def _act(policy, env, obs):
+    return env.expert_actions() if policy is None else policy.act(obs)
+
+
+def rollouts(spec, configs, size: int, policy, texture, cull: bool):
+    """Run every config to the end; returns per-episode outcomes and every rendered state."""
+    from sim.env import ReachEnv
+
+    n = len(configs)
+    env = ReachEnv(spec, num_envs=n, seed=0, policy_image_size=size)
+    env.renderer.frustum_cull = cull
+    if texture is not None:
+        env.renderer.set_object_texture(env.adv_index, texture)
+    states, culled = [], []
+    obs, _ = env.reset(configs=configs)
+    while not env.done.all():
+        for i in np.flatnonzero(~env.done):
+            w = env.worlds[i]
+            states.append((w.T_world_objects.copy(), w.T_world_tcp, w.camera_pose()))
+        obs, *_ = env.step(_act(policy, env, obs))
+    out = {"reached": env.reached.copy(), "steps": env.steps.copy(), "tcp": env.T_world_tcp}
+    env.close()
+    return out, states
+
+
+def time_renders(renderer, states, with_ids: bool, blocks: int = 5) -> tuple[float, list]:
+    """Median ms per frame over ``blocks`` passes through ``states``; also the frames of the last."""
+    ms, frames = [], []
+    for b in range(blocks):
+        frames = []
+        t0 = time.perf_counter()
+        for T_objs, T_tcp, T_cam in states:
+            renderer.set_state(T_objs, T_tcp)
+            frames.append(renderer.render(T_cam, with_ids=with_ids))
+        ms.append(1000 * (time.perf_counter() - t0) / len(states))
+    return statistics.median(ms), frames
+
+
+def bench_frustum(spec, configs, size, policy, texture) -> None:
+    from sim.render import SceneRenderer
+
+    on, states = rollouts(spec, configs, size, policy, texture, cull=True)
+    off, _ = rollouts(spec, configs, size, policy, texture, cull=False)
+    adv, goal = spec.object_index("adversarial"), spec.object_index("goal")
+    same = np.array_equal(on["reached"], off["reached"]) and np.array_equal(on["steps"], off["steps"]) and np.array_equal(on["tcp"], off["tcp"])
+    r = SceneRenderer(spec, size, size)
+    if texture is not None:
+        r.set_object_texture(adv, texture)
+    per_object = np.zeros(len(spec.objects))
+    any_culled = 0
+    for T_objs, T_tcp, T_cam in states:
+        r.set_state(T_objs, T_tcp)
+        r.render(T_cam, with_ids=False)
+        for k in r.culled:
+            per_object[k] += 1
+        any_culled += bool(r.culled)
+    results = {}
+    time_renders(r, states, True, blocks=1)  # warm-up: first-use GL uploads land in neither arm
+    for with_ids in (False, True):
+        # Alternate on/off blocks so load changes hit both alike.
+        ms = {True: [], False: []}
+        frames = {}
+        for _ in range(3):
+            for cull in (True, False):
+                r.frustum_cull = cull
+                t, frames[cull] = time_renders(r, states, with_ids, blocks=1)
+                ms[cull].append(t)
+        diff_rgb = max(int(np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max()) for a, b in zip(frames[True], frames[False]))
+        diff_ids = max(int((a.ids != b.ids).sum()) for a, b in zip(frames[True], frames[False])) if with_ids else 0
+        results[with_ids] = (statistics.median(ms[True]), statistics.median(ms[False]), diff_rgb, diff_ids)
+    r.close()
+    n = len(states)
+    print(f"[frustum cull] {len(configs)} episodes, {n} wrist-camera frames at {size}x{size} "
+          f"({'policy' if policy is not None else 'expert'} trajectories)")
+    print(f"  frames with an object culled: {any_culled}/{n} = {any_culled / n:.1%}; per object: "
+          + ", ".join(f"{o.name} {c / n:.1%}" for o, c in zip(spec.objects, per_object)))
+    for with_ids, (t_on, t_off, d_rgb, d_ids) in results.items():
+        print(f"  {'color+id' if with_ids else 'color   '} pass: {t_on:.2f} ms/frame with, {t_off:.2f} without, "
+              f"ratio {t_off / t_on:.3f}x; max |rgb diff| {d_rgb}, differing id pixels {d_ids}")
+    print(f"  outcomes with/without identical: {same}; success {np.mean(on['reached'] == goal):.3f} / "
+          f"{np.mean(off['reached'] == goal):.3f}; reached adversarial (T-ASR) {np.mean(on['reached'] == adv):.3f} / "
+          f"{np.mean(off['reached'] == adv):.3f}")
+    return states
+
+
+def bench_isolated_shading(spec, states, size) -> None:
+    import torch
+
+    from attack.render import HybridRenderer, render_adversarial
+    from sim.world import SimWorld
+
+    torch.set_num_threads(1)
+    world = SimWorld(spec, size, seed=0)
+    hyb = HybridRenderer(world.renderer)
+    tex = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(0))
+    # Only frames showing the adversarial object exercise the shading passes.
+    frames = []
+    for T_objs, T_tcp, T_cam in states:
+        world.T_world_objects = T_objs
+        world.set_tcp_pose(T_tcp)
+        world.prepare()
+        if world.renderer.render(T_cam, with_ids=True).object_mask(hyb.adv).any():
+            frames.append((T_objs, T_tcp, T_cam))
+    frames = frames[:: max(1, len(frames) // 150)]
+
+    def captures():
+        out = []
+        for T_objs, T_tcp, T_cam in frames:
+            world.T_world_objects = T_objs
+            world.set_tcp_pose(T_tcp)
+            out.append(hyb.capture(world, T_cam))
+        return out
+
+    ms = {True: [], False: []}
+    caps = {}
+    captures()  # warm-up
+    for _ in range(3):
+        for iso in (True, False):
+            hyb.isolate_shading = iso
+            t0 = time.perf_counter()
+            caps[iso] = captures()
+            ms[iso].append(1000 * (time.perf_counter() - t0) / len(frames))
+    d_shade = max(float(max(np.abs(a.fragments.diffuse - b.fragments.diffuse).max(initial=0), np.abs(a.fragments.specular - b.fragments.specular).max(initial=0)))
+                  for a, b in zip(caps[True], caps[False]))
+    d_img = max(float((render_adversarial(a, tex) - render_adversarial(b, tex)).abs().max()) for a, b in zip(caps[True], caps[False]))
+    t_on, t_off = statistics.median(ms[True]), statistics.median(ms[False])
+    world.close()
+    print(f"[isolated shading passes] {len(frames)} attack captures (color + ids + white + black) at {size}x{size}")
+    print(f"  {t_on:.2f} ms/capture with, {t_off:.2f} without, ratio {t_off / t_on:.3f}x; "
+          f"max |diffuse/specular diff| {d_shade:g}, max |I_adv diff| {d_img:g}")
+
+
+def bench_previous_frame(spec, states, size) -> None:
+    """Reusing the previous step's render as the background: how far from exact it is."""
+    from sim.render import SceneRenderer
+
+    r = SceneRenderer(spec, size, size)
+    prev, diffs, fracs = None, [], []
+    for T_objs, T_tcp, T_cam in states[:200]:
+        r.set_state(T_objs, T_tcp)
+        out = r.render(T_cam, with_ids=True)
+        if prev is not None:
+            bg = (out.ids != 2) & (prev.ids != 2)  # not the gripper in either frame
+            d = np.abs(out.rgb.astype(int) - prev.rgb.astype(int)).max(-1)[bg]
+            diffs.append(int(d.max(initial=0)))
+            fracs.append(float((d > 0).mean()) if d.size else 0.0)
+        prev = out
+    r.close()
+    print(f"[previous-frame background, not shipped] consecutive wrist frames (gripper excluded): max |rgb diff| "
+          f"median {statistics.median(diffs)}, max {max(diffs)}; pixels changed: median {statistics.median(fracs):.1%}")
+
+
+def bench_resolution(spec, states, size) -> None:
+    from PIL import Image
+
+    from sim.render import SceneRenderer
+
+    big = 2 * size
+    r_small, r_big = SceneRenderer(spec, size, size), SceneRenderer(spec, big, big)
+    ms_small, ms_big, diffs = [], [], []
+    sub = states[:150]
+    time_renders(r_small, sub[:10], False, blocks=1)
+    time_renders(r_big, sub[:10], False, blocks=1)
+    for _ in range(3):
+        t, small = time_renders(r_small, sub, False, blocks=1)
+        ms_small.append(t)
+        t0 = time.perf_counter()
+        down = []
+        for T_objs, T_tcp, T_cam in sub:
+            r_big.set_state(T_objs, T_tcp)
+            img = r_big.render(T_cam, with_ids=False).rgb
+            down.append(np.asarray(Image.fromarray(img).resize((size, size), Image.BOX)))
+        ms_big.append(1000 * (time.perf_counter() - t0) / len(sub))
+    diffs = [np.abs(a.rgb.astype(int) - b.astype(int)) for a, b in zip(small, down)]
+    r_small.close()
+    r_big.close()
+    t_s, t_b = statistics.median(ms_small), statistics.median(ms_big)
+    print(f"[resolution] render at the policy's {size}px: {t_s:.2f} ms/frame; render {big}px + box downsample: {t_b:.2f} "
+          f"ms/frame; ratio {t_b / t_s:.3f}x; the two images differ (max |diff| {max(int(d.max()) for d in diffs)}, "
+          f"mean {np.mean([d.mean() for d in diffs]):.2f}/255): the env renders at the policy's size only")
+
+
+def bench_validation(spec, policy_dir, size) -> None:
+    import torch
+
+    from attack.optimize import AttackRun, resolve_config
+    from sim.configs import load_pool
+    from sim.policies.policy import VisuomotorPolicy
+
+    torch.set_num_threads(1)
+    cfg = resolve_config("quick")
+    pool = None
+    if policy_dir is not None:
+        from sim.policies.checkpoint import load_policy
+        from trials.attack_job import feasible_pool_path
+
+        policy = load_policy(policy_dir)
+        pool_file = feasible_pool_path(policy_dir)
+        pool = load_pool(pool_file, spec) if pool_file.is_file() else None
+    else:
+        torch.manual_seed(0)
+        policy = VisuomotorPolicy(arch="small_cnn", image_size=size)  # untrained: episodes run to max_steps
+    run = AttackRun(policy, spec, cfg, pool=pool)
+    val = [run.validate()["seconds"] for _ in range(3)]
+    steps = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        run.step()
+        steps.append(time.perf_counter() - t0)
+    run.close()
+    v, s = statistics.median(val), statistics.median(steps)
+    calls = 1 + cfg.iterations // cfg.validation_every + (cfg.iterations % cfg.validation_every > 0)
+    print(f"[validation] quick preset ({cfg.validation_episodes} held-out episodes, <= {spec.episode.max_steps} steps, "
+          f"{run.image_size}px): {v:.2f} s/call; attack step {s:.2f} s/iteration; per quick run {calls} calls = "
+          f"{calls * v:.0f} s on top of {cfg.iterations} x {s:.2f} = {cfg.iterations * s:.0f} s (+{calls * v / (cfg.iterations * s):.0%})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--policy", default=None, help="policy checkpoint directory (default: the scripted expert)")
+    ap.add_argument("--attack", default=None, help="attack run directory whose texture.npy is put on the object")
+    ap.add_argument("--episodes", type=int, default=16)
+    ap.add_argument("--size", type=int, default=64, help="render size without --policy (else the policy's)")
+    ap.add_argument("--validation", action="store_true", help="also time the attack's held-out validation")
+    args = ap.parse_args()
+
+    import torch
+
+    from sim.configs import load_pool, sample_pool
+    from sim.spec import default_scene
+
+    torch.set_num_threads(1)
+    spec = default_scene()
+    policy, size = None, args.size
+    configs = sample_pool(spec, args.episodes, seed=1000)
+    if args.policy is not None:
+        from sim.policies.checkpoint import load_policy
+        from trials.attack_job import feasible_pool_path
+
+        policy = load_policy(args.policy)
+        size = int(policy.image_size)
+        pool_file = feasible_pool_path(args.policy)
+        if pool_file.is_file():  # task-feasible starts: the episodes the evaluation runs
+            configs = load_pool(pool_file, spec)[: args.episodes]
+    texture = None
+    if args.attack is not None:
+        tex = np.load(os.path.join(args.attack, "texture.npy"))
+        texture = np.clip(np.rint(tex * 255.0), 0, 255).astype(np.uint8)
+    print(f"load average {os.getloadavg()[0]:.2f}, torch threads {torch.get_num_threads()}")
+    states = bench_frustum(spec, configs, size, policy, texture)
+    bench_isolated_shading(spec, states, size)
+    bench_previous_frame(spec, states, size)
+    bench_resolution(spec, states, size)
+    if args.validation:
+        bench_validation(spec, args.policy, size)
+    print(f"load average {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
