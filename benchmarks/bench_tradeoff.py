@@ -31,6 +31,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", required=True, help="sweep directory (resumable)")
     ap.add_argument("--res-policy", action="append", default=[], metavar="SIZE=DIR", help="policy for a policy_resolution row (repeatable)")
     ap.add_argument("--train-missing", action="store_true", help="train missing policy_resolution policies (quick preset) into OUT/policies")
+    ap.add_argument("--train-iterations", type=int, default=None, help="DAgger iterations for --train-missing (default: the quick preset's 5)")
     ap.add_argument("--rows", action="append", default=[], help="knob or row key to run (repeatable; default: all)")
     ap.add_argument("--episodes", type=int, default=None, help="paired episodes per row (default 100)")
     ap.add_argument("--big-episodes", type=int, default=None, help="episodes of the eval_episodes row (default 500)")
@@ -40,46 +41,9 @@ def main(argv=None) -> None:
     ap.add_argument("--plot", default=None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and plot from OUT/rows.jsonl")
     args = ap.parse_args(argv)
-    run(**vars(args))
+    from trials.tradeoff import run_tradeoff
 
-
-def run(policy, out, res_policy=(), train_missing=False, rows=(), episodes=None, big_episodes=None, pool=None, scene=None,
-        quick_check=False, plot=None, report_only=False, log=print) -> Path:
-    import torch
-
-    from trials.tradeoff import QUICK_CHECK, TradeoffError, build_rows, load_tradeoff_config, run_sweep, select_rows, train_resolution_policy
-
-    torch.set_num_threads(1)
-    out = Path(out)
-    res = {}
-    for item in res_policy:
-        size, sep, d = item.partition("=")
-        if not sep or not size.isdigit() or not d:
-            raise TradeoffError(f"--res-policy: expected SIZE=DIR, got {item!r}")
-        res[int(size)] = d
-    fields = dict(QUICK_CHECK) if quick_check else {}
-    fields.update({k: v for k, v in dict(episodes=episodes, big_episodes=big_episodes, pool=pool, scene=scene).items() if v is not None})
-    cfg = load_tradeoff_config(policy=str(policy), resolution_policies=res, **fields)
-    if not report_only:
-        wanted = [r for item in rows for r in item.split(",") if r] or None
-        selected = select_rows(build_rows(cfg), wanted)
-        missing = sorted({int(r.value) for r in selected if r.knob == "policy_resolution"} - set(res))
-        first = wanted
-        if train_missing:  # everything else first, then train, then the rows of the new policies
-            first = [r.key for r in selected if not (r.knob == "policy_resolution" and int(r.value) in missing)]
-        if first is None or first:
-            run_sweep(cfg, out, first, log=log)
-        if train_missing and missing:
-            for s in missing:
-                res[s] = str(train_resolution_policy(s, out / "policies" / f"px{s}", scene, log=log))
-            cfg = load_tradeoff_config(**{**cfg.model_dump(), "resolution_policies": res})
-            run_sweep(cfg, out, [f"policy_resolution={s}" for s in missing], log=log)
-    from trials.tradeoff_report import write_report
-
-    report = write_report(out, plot=Path(plot) if plot else None)
-    log(report.read_text())
-    log(f"report: {report}")
-    return report
+    run_tradeoff(**vars(args))
 
 
 if __name__ == "__main__":

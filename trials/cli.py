@@ -49,6 +49,9 @@ app.add_typer(cli_calibrate.app, name="calibrate")
 from trials import cli_policy  # noqa: E402
 
 app.add_typer(cli_policy.app, name="policy")
+from trials import cli_bench  # noqa: E402
+
+app.add_typer(cli_bench.app, name="bench")
 from trials import cli_trial  # noqa: E402
 
 app.add_typer(cli_trial.app, name="trial")

@@ -56,6 +56,7 @@ __all__ = [
     "read_results",
     "machine_info",
     "train_resolution_policy",
+    "run_tradeoff",
 ]
 
 #: Every knob of the sweep, in table order (issue 9).
@@ -695,8 +696,12 @@ def _deployment(cfg: TradeoffConfig, row: Row, out: Path, spec) -> dict:
 
 # ----------------------------------------------------------------------------- policies per resolution
 def train_resolution_policy(size: int, out_dir: str | Path, scene: str | None = None, preset: str = "quick", progress: bool = True,
-                            log: Callable[[str], None] = print) -> Path:
-    """A ``preset`` policy retrained at ``size`` px (reused when ``out_dir`` already holds one)."""
+                            log: Callable[[str], None] = print, dagger_iterations: int | None = None) -> Path:
+    """A ``preset`` policy retrained at ``size`` px (reused when ``out_dir`` already holds one).
+
+    ``dagger_iterations`` shortens (or lengthens) the preset's DAgger run; the run length is not
+    part of the training fingerprint, so an interrupted longer run in ``out_dir`` resumes.
+    """
     from sim.policies.presets import resolve_preset
     from sim.policies.train import train_policy
     from trials.scene_tools import load_spec
@@ -705,10 +710,51 @@ def train_resolution_policy(size: int, out_dir: str | Path, scene: str | None = 
     if (d / "policy.json").is_file():
         log(f"{size} px policy: reusing {d}")
         return d
-    cfg = resolve_preset(preset, policy={"image_size": int(size)}, env={"image_size": int(size)})
+    extra = {} if dagger_iterations is None else {"dagger": {"iterations": int(dagger_iterations)}}
+    cfg = resolve_preset(preset, policy={"image_size": int(size)}, env={"image_size": int(size)}, **extra)
     log(f"{size} px policy: training ({preset} preset) into {d}")
     train_policy(cfg, d, load_spec(scene), progress=progress, log=log)
     return d
+
+
+# ----------------------------------------------------------------------------- the benchmark
+def run_tradeoff(policy, out, res_policy=(), train_missing=False, train_iterations=None, rows=(), episodes=None, big_episodes=None,
+                 pool=None, scene=None, quick_check=False, plot=None, report_only=False, log=print, progress=True) -> Path:
+    """The whole benchmark behind ``advobj bench tradeoff`` and ``benchmarks/bench_tradeoff.py``: sweep
+    (resumable), optionally train the missing per-resolution policies, then the report; returns its path."""
+    import torch
+
+    torch.set_num_threads(1)
+    out = Path(out)
+    res = {}
+    for item in res_policy:
+        size, sep, d = item.partition("=")
+        if not sep or not size.isdigit() or not d:
+            raise TradeoffError(f"--res-policy: expected SIZE=DIR, got {item!r}")
+        res[int(size)] = d
+    fields = dict(QUICK_CHECK) if quick_check else {}
+    fields.update({k: v for k, v in dict(episodes=episodes, big_episodes=big_episodes, pool=pool, scene=scene).items() if v is not None})
+    cfg = load_tradeoff_config(policy=str(policy), resolution_policies=res, **fields)
+    if not report_only:
+        wanted = [r for item in rows for r in item.split(",") if r] or None
+        selected = select_rows(build_rows(cfg), wanted)
+        missing = sorted({int(r.value) for r in selected if r.knob == "policy_resolution"} - set(res))
+        first = wanted
+        if train_missing:  # everything else first, then train, then the rows of the new policies
+            first = [r.key for r in selected if not (r.knob == "policy_resolution" and int(r.value) in missing)]
+        if first is None or first:
+            run_sweep(cfg, out, first, progress=progress, log=log)
+        if train_missing and missing:
+            for s in missing:
+                res[s] = str(train_resolution_policy(s, out / "policies" / f"px{s}", scene, progress=progress, log=log, dagger_iterations=train_iterations))
+            cfg = load_tradeoff_config(**{**cfg.model_dump(), "resolution_policies": res})
+            run_sweep(cfg, out, [f"policy_resolution={s}" for s in missing], progress=progress, log=log)
+    from trials.tradeoff_report import write_report
+
+    report = write_report(out, plot=Path(plot) if plot else None)
+    log(report.read_text())
+    log(f"report: {report}")
+    return report
 
 
 # ----------------------------------------------------------------------------- child entry point

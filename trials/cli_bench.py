@@ -1,0 +1,33 @@
+"""``advobj bench``: measured trade-offs (thin wrappers over :mod:`trials.tradeoff`, as ``benchmarks/bench_tradeoff.py``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, help="Benchmarks that answer 'what does this knob buy and what does it cost'.")
+
+
+@app.command()
+def tradeoff(
+    policy: Path = typer.Option(..., help="baseline policy checkpoint directory (its task-feasible pool is the evaluation set)"),
+    out: Path = typer.Option(Path("runs/tradeoff"), help="sweep directory; a re-run skips finished rows"),
+    res_policy: List[str] = typer.Option([], "--res-policy", help="SIZE=DIR: policy for a policy_resolution row (repeatable)"),
+    train_missing: bool = typer.Option(False, "--train-missing", help="train missing policy_resolution policies (quick preset) into OUT/policies, after the other rows"),
+    train_iterations: Optional[int] = typer.Option(None, min=1, help="DAgger iterations for --train-missing (default: the quick preset's)"),
+    rows: List[str] = typer.Option([], "--rows", help="knob or row key to run, e.g. eot_envs or eot_envs=1 (repeatable; default: all)"),
+    episodes: Optional[int] = typer.Option(None, min=1, help="paired episodes per row (default 100)"),
+    big_episodes: Optional[int] = typer.Option(None, min=1, help="episodes of the eval_episodes row (default 500)"),
+    pool: Optional[Path] = typer.Option(None, help="task-feasible pool of the baseline policy (default: its own)"),
+    scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
+    quick_check: bool = typer.Option(False, "--quick-check", help="tiny settings: checks the machinery, measures nothing"),
+    plot: Optional[Path] = typer.Option(None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)"),
+    report_only: bool = typer.Option(False, "--report-only", help="only rebuild the report and plot from OUT/rows.jsonl"),
+) -> None:
+    """Sweep attack, evaluation and deployment knobs one at a time; table, Pareto plot and report in OUT."""
+    from trials.tradeoff import run_tradeoff
+
+    run_tradeoff(policy, out, res_policy, train_missing, train_iterations, rows, episodes, big_episodes,
+                 None if pool is None else str(pool), None if scene is None else str(scene), quick_check, plot, report_only, log=typer.echo)
