@@ -478,7 +478,7 @@ def cylinder_pieces(mesh, tweak: LayoutTweak = LayoutTweak()) -> list[Piece]:
     cut.append(_tab((L, y0), (L, y1), (1, 0), TAB_MM))
     cut.append(((0.0, y0), (0.0, y1)))
     labels = [("seam: glue under the left edge", L + TAB_MM / 2, (y0 + y1) / 2, 4, 90),
-              ("top", L / 2, y0 - TAB_MM * 0.4, 4, 0)]
+              ("top", (n_teeth // 2 + 0.5) * L / n_teeth, y0 - TAB_MM * 0.35, 3.5, 0)]
     wrap = Piece("side", "wrap", (L + TAB_MM, H + 2 * TAB_MM), (side_region,), tuple(cut), tuple(folds),
                  ((0.0, 0.0, L + TAB_MM, H + 2 * TAB_MM),), tuple(labels),
                  {"ring_mm": ring, "origin_mm": (0.0, y0), "top_z_mm": height, "length_mm": L, "height_mm": H})
@@ -568,14 +568,21 @@ def texture_swatches(texture: np.ndarray, n: int = 4) -> list[tuple[int, int, in
     return out
 
 
+_ASSEMBLY = {
+    "cube": "net: middle row -x, -y (front), +x, +y; +z (top) above -y, -z below; printed side out",
+    "cylinder": "wrap: left edge is the seam (+x), 'top' edge up; caps: the triangles point at the seam",
+}
+
+
 def furniture(src: RunSource, shape: str, texture: np.ndarray) -> tuple[list[Item], list[Item]]:
     """(per-page items: title, scale; once-only items: colour check)."""
     swatches = [*_FIXED_SWATCHES, *texture_swatches(texture)]
-    title = Item("title", "title", (100.0, 14.0), {"lines": [
+    title = Item("title", "title", (100.0, 17.0), {"lines": [
         f"advobj fabricate: {shape}  |  PRINT AT 100 % (actual size, no fit-to-page)",
         f"source: {Path(src.run_dir).name}  mesh: {src.mesh}",
         f"texture sha256: {src.sha256[:32]}",
-        f"date: {time.strftime('%Y-%m-%d')}  cut solid lines, fold dashed, glue the tabs"]})
+        f"date: {time.strftime('%Y-%m-%d')}  cut solid lines, fold dashed, glue the tabs",
+        _ASSEMBLY[shape]]})
     scale = Item("scale", "scale", (108.0, 15.0), {"check_line_mm": CHECK_LINE_MM})
     cols = 6
     rows = math.ceil(len(swatches) / cols)
@@ -879,7 +886,7 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
         mesh = build_mesh(src.mesh, src.scale)
     except AssetError as err:
         raise FabricationError(f"{Path(run_dir) / 'run.json'}: mesh {src.mesh!r} of the run cannot be built ({err})") from None
-    sheet_shape = shape if shape is not None else (Path(src.mesh).stem if src.mesh in SHEET_SHAPES else None)
+    sheet_shape = shape if shape is not None else (src.mesh if src.mesh in SHEET_SHAPES else None)
     if shape is not None and shape not in SHEET_SHAPES:
         raise FabricationError(f"--shape {shape}: no flat net for this shape; sheets exist for {', '.join(SHEET_SHAPES)}")
     if shape is not None and shape != src.mesh:
@@ -911,11 +918,13 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
         rasters = draw_pages(layout, src.texture, out / "sheet.pdf", raster=check, progress=bar.update)
     summary.update(pdf=str(out / "sheet.pdf"), pages=layout.n_pages, page_mm=list(layout.page_mm), sheet_seconds=time.perf_counter() - t0)
     log(f"fabricate: wrote {out / 'sheet.pdf'} ({layout.n_pages} page(s), {layout.page_mm[0]:g} x {layout.page_mm[1]:g} mm, "
-        f"{dpi} dpi): print at 100 % and check the {CHECK_LINE_MM:g} mm line")
+        f"{dpi} dpi, {summary['sheet_seconds']:.1f} s): print at 100 % and check the {CHECK_LINE_MM:g} mm line")
     if check:
         from trials.print_check import check_print, write_check
 
+        t1 = time.perf_counter()
         result = check_print(layout, rasters, mesh, src.texture, progress=progress)
+        summary["check_seconds"] = time.perf_counter() - t1
         write_check(out, result)
         summary["check"] = result.summary()
         log(f"fabricate: pre-print check {'PASSED' if result.passed else 'FAILED'}: {result.message()}")

@@ -27,7 +27,7 @@ MAX_REGION_ERROR = 0.08  # mean abs error / 255 of the texels read back from one
 MAX_SCALE_ERROR_MM = 0.3  # printed piece size vs the mesh's physical size
 UNREAD_RGB = (255, 0, 255)  # texels no piece prints: loud magenta in the printed-back renders
 RENDER_PX = 256
-VIEW_DISTANCE_M = 0.3
+FILL = 0.6  # the object's bounding sphere spans this fraction of the view's field
 LIFT_M = 0.5  # object lifted above the table so views from below see it against the backdrop
 # (azimuth, elevation) in degrees around the object; two from below for the bottom face.
 VIEWS_DEG = ((30, 35), (120, 35), (210, 35), (300, 35), (75, 80), (255, 10), (45, -60), (225, -60))
@@ -169,8 +169,10 @@ def scale_errors(layout, mesh) -> list[dict]:
     return rows
 
 
-def _render_views(mesh_name: str, textures: list[np.ndarray]) -> list[list[tuple[np.ndarray, np.ndarray]]]:
+def _render_views(mesh_name: str, textures: list[np.ndarray], progress: bool = False) -> list[list[tuple[np.ndarray, np.ndarray]]]:
     """Render the mesh with each texture from :data:`VIEWS_DEG`: per texture, per view (rgb, mask)."""
+    from tqdm import tqdm
+
     from sim.geometry import look_at, make_T
     from sim.render import SceneRenderer
     from sim.spec import default_scene
@@ -190,9 +192,11 @@ def _render_views(mesh_name: str, textures: list[np.ndarray]) -> list[list[tuple
         r.set_state(T, None)
         lo, hi = np.asarray(r.object_mesh(k).bounds)
         centre = np.array([0.0, 0.0, LIFT_M]) + (lo + hi) / 2
-        for az, el in VIEWS_DEG:
+        half_fov = np.arctan(RENDER_PX / 2 / r.K[1, 1])
+        distance = np.linalg.norm(hi - lo) / 2 / np.sin(FILL * half_fov)
+        for az, el in tqdm(VIEWS_DEG, desc="print check", unit="view", disable=not progress):
             a, e = np.radians(az), np.radians(el)
-            eye = centre + VIEW_DISTANCE_M * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+            eye = centre + distance * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
             T_cam = look_at(eye, centre)
             mask = None
             for t, tex in enumerate(textures):
@@ -215,7 +219,7 @@ def check_print(layout, rasters, mesh, texture: np.ndarray, progress: bool = Fal
     diff = np.abs(recon.astype(float) - texture.astype(float)).mean(-1) / 255.0
     piece_mae = {name: float(diff[m].mean()) for name, m in owner.items() if m.any()}
     unread = int(unread_mask.sum())
-    views = _render_views(mesh.metadata.get("source", mesh.metadata["name"]), [texture, recon])
+    views = _render_views(mesh.metadata.get("source", mesh.metadata["name"]), [texture, recon], progress)
     view_mae, renders = [], []
     for (a, mask), (b, _) in zip(*views):
         d = np.abs(a.astype(float) - b.astype(float)).mean(-1)[mask] / 255.0
