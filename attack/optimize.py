@@ -309,9 +309,53 @@ class AttackRun:
             l1, l2 = dev.sum(), sal.sum()
         return l1, l2, a.detach(), parts
 
+    def pair_gradients(self, caps, T_world_tcp: torch.Tensor, p_adv: torch.Tensor) -> dict:
+        """Texture gradients of the two objectives over one batch of image-action pairs.
+
+        caps: B :class:`attack.render.Capture`; T_world_tcp: (B, 4, 4); p_adv: (B, 3) m.
+        Returns ``g_pose``, ``g_sal`` (each (3, S, S), sums over the batch; zeros where a term
+        has no path to the texture, e.g. the object is not visible in any image), the scalar
+        terms ``pose`` and ``sal``, the loss ``parts``, ``actions (B, 6)`` (detached) and the
+        rendered ``images (B, 3, H, W)`` (detached).
+        """
+        from attack.render import render_adversarial
+
+        cfg = self.cfg
+        tex = self.texture.detach().clone().requires_grad_(True)
+        ct = self._color_transform()
+        imgs = torch.stack([render_adversarial(c, tex, cfg.sampler, ct) for c in caps])
+        imgs_clean = None
+        if cfg.loss == "untargeted":
+            imgs_clean = torch.stack([torch.from_numpy(c.i_sim).permute(2, 0, 1) for c in caps]).to(self.device, torch.float32) / 255.0
+        # No image shows an optimisable pixel of the object (out of view, occluded, too far):
+        # nothing reaches the texture. The losses are still logged, and Grad-CAM needs a graph
+        # from the images to the feature map (the frozen weights give it none), hence a leaf.
+        reaches = imgs.requires_grad
+        x = imgs if reaches else imgs.detach().requires_grad_(True)
+        l1, l2, a, parts = self._losses(x, caps, T_world_tcp, p_adv, imgs_clean)
+        g_pose = torch.zeros_like(self.texture)
+        g_sal = torch.zeros_like(self.texture)
+        if reaches and l1.requires_grad:
+            g_pose = torch.autograd.grad(l1, tex, retain_graph=l2.requires_grad)[0]
+        if reaches and l2.requires_grad:
+            g_sal = torch.autograd.grad(l2, tex)[0]
+        return {"g_pose": g_pose, "g_sal": g_sal, "pose": float(l1.detach()), "sal": float(l2.detach()),
+                "parts": parts, "actions": a, "images": imgs.detach()}
+
+    def apply_update(self, g_pose: torch.Tensor, g_sal: torch.Tensor) -> tuple[torch.Tensor, bool]:
+        """Combine the two gradients (PCGrad or sum) and take the normalised step.
+
+        Returns ``(g, updated)``; a zero or non-finite combined gradient leaves the texture
+        unchanged and ``updated`` False.
+        """
+        from attack.pcgrad import normalized_step, pcgrad
+
+        g = pcgrad(g_pose, g_sal) if self.cfg.pcgrad else g_pose + g_sal
+        self.texture, updated = normalized_step(self.texture, g, self.cfg.lr)
+        return g, updated
+
     def step(self) -> dict:
         """Run one iteration; returns its logged figures."""
-        from attack.render import render_adversarial
         from attack.schedule import sample_configs, stage_index, stage_params
         from sim.variations import Randomization, sample_appearance
 
@@ -331,36 +375,25 @@ class AttackRun:
             if active.size == 0:
                 break
             caps = [self.hybrid.capture(env.worlds[i]) for i in active]
-            tex = self.texture.detach().clone().requires_grad_(True)
-            ct = self._color_transform()
-            imgs = torch.stack([render_adversarial(c, tex, cfg.sampler, ct) for c in caps])
-            imgs_clean = None
-            if cfg.loss == "untargeted":
-                imgs_clean = torch.stack([torch.from_numpy(c.i_sim).permute(2, 0, 1) for c in caps]).to(self.device, torch.float32) / 255.0
             T = torch.from_numpy(env.T_world_tcp[active]).to(self.device, torch.float32)
             p_adv = torch.from_numpy(env.object_centers[active, self.adv]).to(self.device, torch.float32)
-            l1, l2, a, parts = self._losses(imgs, caps, T, p_adv, imgs_clean)
-            if l1.requires_grad:
-                g_pose += torch.autograd.grad(l1, tex, retain_graph=l2.requires_grad)[0]
-            if l2.requires_grad:
-                g_sal += torch.autograd.grad(l2, tex)[0]
-            sums["pose"] += float(l1.detach())
-            sums["sal"] += float(l2.detach())
+            out = self.pair_gradients(caps, T, p_adv)
+            g_pose += out["g_pose"]
+            g_sal += out["g_sal"]
+            sums["pose"] += out["pose"]
+            sums["sal"] += out["sal"]
             for k in ("ori", "dist"):
-                if k in parts:
-                    sums[k] += float(parts[k].sum())
+                if k in out["parts"]:
+                    sums[k] += float(out["parts"][k].sum())
             pairs += len(active)
             actions = np.zeros((cfg.num_envs, 6))
-            actions[active] = a.cpu().numpy()
+            actions[active] = out["actions"].cpu().numpy()
             env.step(actions)
-        from attack.pcgrad import normalized_step, pcgrad
-
         # Mean over image-action pairs (the normalised step makes the scale moot, but the
         # logged gradient norm is comparable across runs).
         g_pose /= max(pairs, 1)
         g_sal /= max(pairs, 1)
-        g = pcgrad(g_pose, g_sal) if cfg.pcgrad else g_pose + g_sal
-        self.texture, updated = normalized_step(self.texture, g, cfg.lr)
+        g, updated = self.apply_update(g_pose, g_sal)
         h = self.history
         h.iteration.append(self.iteration)
         h.loss_pose.append(sums["pose"] / max(pairs, 1))
