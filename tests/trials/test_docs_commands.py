@@ -1,0 +1,596 @@
+"""Every command in the docs exists, takes the options shown, and runs on tiny settings.
+
+Commands are read from README.md and docs/*.md: ``$ ...`` lines of ``console`` blocks, and lines
+starting with ``advobj`` or ``make`` in ``bash``/``sh``/``shell`` and untagged blocks (comments
+stripped, ``\\`` continuations joined). For each one:
+
+* the parse test (default suite, cheap): the command path exists and ``--help`` exits 0, every
+  option is one of the command's parameters (read from the click command typer builds, not from
+  help text), and click parses the documented argument list; ``make`` targets dry-run
+  (``make -n``) and their ``advobj`` recipe lines pass the same checks;
+* the run test: ``TINY`` maps the documented line to a real invocation on tiny settings (same
+  command, every documented option kept unless the entry says why not, values swapped for tiny
+  budgets and temporary paths) that must exit 0 and write the documented outputs. Commands that
+  need more than ~30 s even then are marked ``slow``.
+
+A documented command without a ``TINY`` entry fails ``test_every_documented_command_has_a_tiny_run``.
+Shared artifacts (a tiny policy, tiny attack runs, synthetic calibration photos) are built once per
+module; identical invocations run once.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+MAX_STEPS = 3
+TINY_ATTACK = "iterations: 2\nnum_envs: 1\nrollout_steps: 2\ntexture_size: 16\npool_size: 4\ncheckpoint_every: 1\nvalidation_every: 0\n"
+
+
+# ============================================================================ reading the docs
+@dataclass(frozen=True)
+class DocCommand:
+    file: str
+    line: int
+    text: str  # normalised: tokens joined by one space, comment stripped
+
+    @property
+    def argv(self) -> list[str]:
+        return shlex.split(self.text)
+
+    @property
+    def id(self) -> str:
+        return f"{self.file}:{self.line}:{self.text[:60]}"
+
+
+_FENCE = re.compile(r"^\s*```\s*([\w+-]*)")
+
+
+def parse_commands(path: Path, root: Path = ROOT) -> list[DocCommand]:
+    rel = path.relative_to(root).as_posix()
+    out: list[DocCommand] = []
+    lang, pending, start = None, "", 0
+    for no, raw in enumerate(path.read_text().splitlines(), 1):
+        m = _FENCE.match(raw)
+        if m:
+            lang = None if lang is not None else (m.group(1) or "").lower()
+            continue
+        if lang is None or lang not in ("console", "bash", "sh", "shell", ""):
+            continue
+        line = raw.strip()
+        if pending:
+            line = pending + " " + line
+        elif lang == "console":
+            if not line.startswith("$ "):
+                continue
+            line, start = line[2:], no
+        elif line.startswith("$ "):
+            line, start = line[2:], no
+        elif line.startswith(("advobj ", "make ")):
+            start = no
+        else:
+            continue
+        if line.endswith("\\"):
+            pending = line[:-1].strip()
+            continue
+        pending = ""
+        tokens = shlex.split(line, comments=True)
+        if tokens and tokens[0] in ("advobj", "make"):
+            out.append(DocCommand(rel, start, " ".join(t if "*" in t else shlex.quote(t) for t in tokens)))
+    return out
+
+
+DOC_COMMANDS = [c for f in DOC_FILES for c in parse_commands(f)]
+
+
+# ============================================================================ the CLI as click sees it
+def _root_command():
+    import typer.main
+
+    from trials.cli import app
+
+    return typer.main.get_command(app)
+
+
+def resolve(argv: list[str]):
+    """``(command, path, rest)`` for ``argv`` without the leading ``advobj``."""
+    cmd, path, rest = _root_command(), [], list(argv)
+    while rest and hasattr(cmd, "commands") and rest[0] in cmd.commands:
+        cmd = cmd.commands[rest[0]]
+        path.append(rest.pop(0))
+    return cmd, path, rest
+
+
+def option_params(cmd) -> dict[str, str]:
+    """Every option string of ``cmd`` -> its parameter name."""
+    out = {}
+    for p in cmd.params:
+        for o in [*getattr(p, "opts", []), *getattr(p, "secondary_opts", [])]:
+            if o.startswith("-"):
+                out[o] = p.name
+    return out
+
+
+def used_options(cmd, rest: list[str]) -> set[str]:
+    """Parameter names of the options in ``rest`` (unknown options keep their spelling)."""
+    known = option_params(cmd)
+    names = set()
+    for tok in rest:
+        if tok.startswith("-") and len(tok) > 1 and not re.match(r"^-\d", tok):
+            opt = tok.split("=", 1)[0]
+            names.add(known.get(opt, opt))
+    return names
+
+
+def check_advobj_line(argv: list[str], where: str) -> None:
+    from typer.testing import CliRunner
+
+    from trials.cli import app
+
+    assert argv and argv[0].endswith("advobj"), where
+    cmd, path, rest = resolve(argv[1:])
+    assert path and not hasattr(cmd, "commands"), f"{where}: 'advobj {' '.join(argv[1:])}' does not name a command"
+    res = CliRunner().invoke(app, [*path, "--help"])
+    assert res.exit_code == 0, f"{where}: 'advobj {' '.join(path)} --help' exited {res.exit_code}: {res.output}"
+    known = option_params(cmd)
+    for tok in rest:
+        if tok.startswith("-") and not re.match(r"^-\d", tok):
+            assert tok.split("=", 1)[0] in known, (
+                f"{where}: option {tok.split('=', 1)[0]} is not accepted by 'advobj {' '.join(path)}' (it takes {sorted(known)})")
+    ctx = cmd.make_context("advobj " + " ".join(path), list(rest))  # types, counts, choices
+    ctx.close()
+
+
+# ============================================================================ tiny invocations
+@dataclass
+class Tiny:
+    """A real run standing in for a documented command (``argv`` after ``advobj``, a template)."""
+
+    argv: str | None
+    outputs: tuple[str, ...] = ()
+    slow: bool = False
+    dropped: dict[str, str] = field(default_factory=dict)  # documented option -> why the tiny run leaves it out
+    setup: Callable | None = None  # (monkeypatch, artifacts) -> None, before the run
+    expect: str = ""  # text the command prints
+    reason: str = ""  # why there is no run (argv None)
+
+
+class Artifacts:
+    """Lazily built inputs for the tiny runs; ``{name}`` in a template is ``self.<name>``."""
+
+    def __init__(self, tmp: Path):
+        self.tmp = tmp
+        self.root = ROOT
+        self.runs: dict[tuple, object] = {}
+
+    def __getitem__(self, key):  # for str.format_map
+        value = getattr(self, key)
+        return " ".join(str(v) for v in value) if isinstance(value, list) else str(value)
+
+    def fmt(self, template: str) -> list[str]:
+        return shlex.split(template.format_map(self))
+
+    def invoke(self, argv: list[str]):
+        """Run ``advobj argv`` in-process once; a repeated identical invocation reuses the result."""
+        from typer.testing import CliRunner
+
+        from trials.cli import app
+
+        key = tuple(argv)
+        if key not in self.runs:
+            res = CliRunner().invoke(app, argv)
+            if res.exit_code != 0:
+                import traceback
+
+                tb = "".join(traceback.format_exception(res.exception)) if res.exception else ""
+                raise AssertionError(f"'advobj {' '.join(argv)}' exited {res.exit_code}:\n{res.output[-3000:]}\n{tb}")
+            self.runs[key] = res
+        return self.runs[key]
+
+    def _once(self, name, build):
+        cache = self.__dict__.setdefault("_cache", {})
+        if name not in cache:
+            cache[name] = build()
+        return cache[name]
+
+    # ---- policies and attacks
+    @property
+    def policy(self) -> Path:
+        def build():
+            import torch
+
+            from sim.policies.checkpoint import ActionScaling, PolicyCard, save_checkpoint
+            from sim.policies.policy import VisuomotorPolicy
+
+            torch.manual_seed(0)
+            p = VisuomotorPolicy(arch="small_cnn", image_size=32)
+            d = self.tmp / "policy"
+            save_checkpoint(d, p, PolicyCard(arch=p.config, action=ActionScaling(max_step_m=0.02, max_step_rad=0.1)))
+            return d
+
+        return self._once("policy", build)
+
+    @property
+    def policy_copy(self) -> Path:
+        """A copy of the tiny policy for 'policy eval', whose pool (empty for an untrained policy) lands beside it."""
+        import shutil
+
+        dst = self.tmp / "policy-copy"
+        if not dst.exists():
+            shutil.copytree(self.policy, dst)
+        return dst
+
+    @property
+    def pool(self) -> Path:
+        """Initial configurations of the built-in scene with MAX_STEPS-step episodes (eval --pool)."""
+
+        def build():
+            from sim.configs import sample_pool, save_pool
+            from sim.spec import default_scene
+
+            spec = default_scene()
+            spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": MAX_STEPS})
+            path = self.tmp / "pool.json"
+            save_pool(path, spec, sample_pool(spec, 8, seed=0))
+            return path
+
+        return self._once("pool", build)
+
+    @property
+    def tiny_attack(self) -> Path:
+        path = self.tmp / "tiny_attack.yaml"
+        path.write_text(TINY_ATTACK)
+        return path
+
+    @property
+    def tiny_patch(self) -> Path:
+        path = self.tmp / "patch.yaml"
+        path.write_text(TINY_ATTACK + "adversarial_mesh: patch\n")
+        return path
+
+    @property
+    def tiny_cube(self) -> Path:
+        path = self.tmp / "cube.yaml"
+        path.write_text(TINY_ATTACK + "adversarial_mesh: cube\n")
+        return path
+
+    @property
+    def attack(self) -> Path:
+        self.invoke(self.fmt(TINY[ATTACK_LINE].argv))
+        return self.tmp / "attack"
+
+    @property
+    def patch(self) -> Path:
+        self.invoke(self.fmt(TINY[PATCH_LINE].argv))
+        return self.tmp / "patch"
+
+    @property
+    def attack_cube(self) -> Path:
+        self.invoke(self.fmt("attack run --policy {policy} --config {tiny_cube} --out {tmp}/attack-cube"))
+        return self.tmp / "attack-cube"
+
+    @property
+    def eval(self) -> Path:
+        self.invoke(self.fmt(EVAL_MAIN.argv))
+        return self.tmp / "eval"
+
+    @property
+    def plan(self) -> Path:
+        self.invoke(self.fmt(TINY[PLAN_LINE].argv))
+        return self.tmp / "trials" / "plan.yaml"
+
+    @property
+    def trial_db(self) -> Path:
+        self.invoke(self.fmt(TINY[RUN_LINE].argv))
+        return self.tmp / "trials" / "trials.sqlite"
+
+    @property
+    def onnx(self) -> Path:
+        self.invoke(self.fmt("policy export {policy} --onnx {tmp}/policy.onnx"))
+        return self.tmp / "policy.onnx"
+
+    @property
+    def onnx_copy(self) -> Path:
+        """A second ONNX file (the workflow's 'my_policy.onnx')."""
+        import shutil
+
+        dst = self.tmp / "my_policy.onnx"
+        if not dst.exists():
+            shutil.copy(self.onnx, dst)
+        return dst
+
+    # ---- your own mesh
+    @property
+    def my_scene(self) -> Path:
+        def build():
+            import trimesh
+
+            d = self.tmp / "my_scene"
+            (d / "meshes").mkdir(parents=True)
+            box = trimesh.creation.box(extents=(0.06, 0.06, 0.1))
+            box.apply_translation((0, 0, 0.05))  # origin at the base centre
+            box.export(d / "meshes" / "my_object.obj")  # no UVs: exercises the automatic atlas
+            (d / "my_scene.yaml").write_text(
+                "name: my-reach\n"
+                "camera: {width: 32, height: 32}\n"
+                "objects:\n"
+                "  - {name: tomato_soup_can, mesh: tomato_soup_can, role: goal, pose: {x_m: 0.12, y_m: 0.0}}\n"
+                "  - {name: my_object, mesh: meshes/my_object.obj, role: adversarial, pose: {x_m: -0.12, y_m: 0.0}}\n")
+            return d / "my_scene.yaml"
+
+        return self._once("my_scene", build)
+
+    # ---- calibration inputs (synthetic renders with the example camera)
+    @property
+    def calib(self) -> Path:
+        d = self.tmp / "calib"
+        d.mkdir(exist_ok=True)
+        return d
+
+    @property
+    def board_yaml(self) -> Path:
+        self.invoke(self.fmt("calibrate board --out {calib}/board.pdf"))
+        return self.calib / "board.yaml"
+
+    @property
+    def shots(self) -> list[Path]:
+        def build():
+            import imageio.v3 as iio
+
+            from calibration import synthetic as S
+            from calibration.intrinsics import BoardSpec
+            from calibration.selfcheck import _board_views
+
+            board = BoardSpec()
+            K = S.default_K(640, 480)
+            cb = board.cv_board()
+            (self.calib / "shots").mkdir(exist_ok=True)
+            paths = []
+            for i, T in enumerate(_board_views(board, 8, seed=1)):
+                img = S.degrade(S.render_planes([S.board_plane(cb, T)], K, 640, 480), 0.5, 1.0, seed=i)
+                paths.append(self.calib / "shots" / f"shot_{i:02d}.png")
+                iio.imwrite(paths[-1], img)
+            return paths
+
+        return self._once("shots", build)
+
+    @property
+    def photo(self) -> Path:
+        def build():
+            import imageio.v3 as iio
+
+            from calibration import synthetic as S
+
+            K = S.default_K(640, 480)  # the camera of examples/calibration/cam.yaml
+            planes = [S.tag_plane(0, 0.04, S.camera_facing(0.4, offset_m=(-0.05, 0.0))),
+                      S.tag_plane(2, 0.04, S.camera_facing(0.4, offset_m=(0.05, 0.0)))]
+            path = self.calib / "photo.png"
+            iio.imwrite(path, S.render_planes(planes, K, 640, 480))
+            return path
+
+        return self._once("photo", build)
+
+
+def _tiny_demo(monkeypatch, art: Artifacts):
+    import trials.demo as demo
+    import trials.experiments as ex
+
+    monkeypatch.setattr(demo, "DEMO_BUDGET", dict(attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8},
+                                                  episodes=2, max_steps=MAX_STEPS, num_envs=2, gifs=1, pool=str(art.pool)))
+    monkeypatch.setattr(ex, "ensure_policy", lambda ctx, name="reference", **kw: art.policy)
+
+
+def _tiny_experiments(monkeypatch, art: Artifacts):
+    import trials.experiments as ex
+
+    tiny = dict(policy_preset="ci", target_policy_preset="ci", attack_preset="quick",
+                attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "pool_size": 4},
+                episodes=2, max_steps=MAX_STEPS, num_envs=2, gifs=0, pool=str(art.pool), shapes=("dog",))
+    for preset in ("quick", "paper"):
+        monkeypatch.setitem(ex.PRESETS, preset, tiny)
+
+
+TRANSFER_TARGETS = "--target resnet34={policy} --target vgg16={policy} --target inception_v3={onnx}"
+EVAL_TINY = "--episodes 2 --max-steps 3 --num-envs 2 --gifs 1 --pool {pool}"
+CALIB = {
+    "advobj calibrate board --out board.pdf": Tiny("calibrate board --out {calib}/board.pdf", ("{calib}/board.pdf", "{calib}/board.yaml")),
+    "advobj calibrate intrinsics shots/*.png --board board.yaml --out cam.yaml":
+        Tiny("calibrate intrinsics {shots} --board {board_yaml} --out {calib}/cam.yaml", ("{calib}/cam.yaml",), expect="RMS"),
+    "advobj calibrate tags --ids 0-7 --size-mm 40 --out tags.pdf": Tiny("calibrate tags --ids 0-7 --size-mm 40 --out {calib}/tags.pdf", ("{calib}/tags.pdf",)),
+    "advobj calibrate detect photo.png --camera cam.yaml --registry objects.yaml --json":
+        Tiny("calibrate detect {photo} --camera {root}/examples/calibration/cam.yaml --registry {root}/examples/calibration/objects.yaml --json",
+             expect="goal"),
+    "advobj calibrate handeye samples.yaml --out T_tcp_cam.yaml":
+        Tiny("calibrate handeye {root}/examples/calibration/handeye_samples.yaml --out {calib}/T_tcp_cam.yaml", ("{calib}/T_tcp_cam.yaml",)),
+    "advobj calibrate selfcheck": Tiny("calibrate selfcheck", expect="hand-eye"),
+}
+
+PLAN_LINE = ("advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml "
+             "--sheet runs/plan.pdf")
+RUN_LINE = ("advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session day1 "
+            "--registry objects.yaml --db runs/trials.sqlite")
+ATTACK_LINE = "advobj attack run --policy runs/policy-quick --preset quick --out runs/attack"
+PATCH_LINE = "advobj attack run --policy runs/policy-quick --config patch.yaml --out runs/patch"
+ATTACK_OUT = ("{tmp}/attack/texture.png", "{tmp}/attack/texture.npy", "{tmp}/attack/adversarial.glb", "{tmp}/attack/metrics.json",
+              "{tmp}/attack/loss_curves.png", "{tmp}/attack/run.json")
+EVAL_MAIN = Tiny("eval --policy {policy} --attack {attack} --patch {patch} -c attack -c patch -c light_dim " + EVAL_TINY + " --out {tmp}/eval",
+                 ("{tmp}/eval/episodes.csv", "{tmp}/eval/summary.json", "{tmp}/eval/report.md", "{tmp}/eval/manifest.json"))
+
+# documented line (as normalised by parse_commands) -> tiny run
+TINY: dict[str, Tiny] = {
+    # ---- README / workflow step 0
+    "make demo": Tiny("demo --out {tmp}/demo", ("{tmp}/demo/report.md",), slow=True, setup=_tiny_demo),
+    "make test": Tiny(None, reason="runs this very suite; the parse test dry-runs the target"),
+    # ---- README: reference policies
+    "advobj policy train --preset quick --out runs/policy-quick":
+        Tiny("policy train --preset ci --out {tmp}/train-ci --episodes 2", ("{tmp}/train-ci/policy.json", "{tmp}/train-ci/feasible_pool.json"), slow=True),
+    "advobj policy train --arch resnet18 --preset paper --out runs/policy-r18":
+        Tiny("policy train --arch small_cnn --preset ci --out {tmp}/train-ci --episodes 2", ("{tmp}/train-ci/policy.json",), slow=True),
+    "advobj policy eval runs/policy-quick --episodes 200": Tiny("policy eval {policy_copy} --episodes 2 --num-envs 2", ("{policy_copy}/eval/feasible_pool.json",), expect="clean success"),
+    "advobj policy export runs/policy-quick --onnx policy.onnx": Tiny("policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)),
+    "advobj policy export runs/policy-quick --onnx runs/policy-quick.onnx": Tiny("policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)),
+    # ---- workflow: your mesh
+    "advobj scene render my_scene.yaml --seed 0 --size 256 --out runs/scene/my_scene.png":
+        Tiny("scene render {my_scene} --seed 0 --size 32 --out {tmp}/scene/my_scene.png", ("{tmp}/scene/my_scene.png",)),
+    "advobj scene rollout my_scene.yaml --seed 0 --out runs/scene/my_scene_rollout.gif":
+        Tiny("scene rollout {my_scene} --seed 0 --size 32 --out {tmp}/scene/rollout.gif", ("{tmp}/scene/rollout.gif",), expect="reached"),
+    "advobj scene pool my_scene.yaml --n 100 --seed 0 --out runs/scene/pool.json":
+        Tiny("scene pool {my_scene} --n 4 --seed 0 --out {tmp}/scene/pool.json", ("{tmp}/scene/pool.json",)),
+    # ---- workflow: policies
+    "advobj policy eval my_policy.onnx --episodes 200 --out runs/my_policy-eval":
+        Tiny("policy eval {onnx_copy} --episodes 2 --num-envs 2 --out {tmp}/my_policy-eval", ("{tmp}/my_policy-eval/feasible_pool.json",)),
+    # ---- workflow: attack
+    ATTACK_LINE: Tiny("attack run --policy {policy} --preset quick --config {tiny_attack} --out {tmp}/attack", ATTACK_OUT),
+    PATCH_LINE: Tiny("attack run --policy {policy} --config {tiny_patch} --out {tmp}/patch", ("{tmp}/patch/texture.npy", "{tmp}/patch/run.json")),
+    # ---- evaluation
+    "advobj eval --policy runs/policy-quick --attack runs/attack --patch runs/patch -c attack -c patch -c light_dim --episodes 500 --max-steps 60 --out runs/eval": EVAL_MAIN,
+    "advobj eval --policy runs/policy --attack runs/attack --patch runs/patch -c attack -c patch -c light_dim --episodes 500 --max-steps 60 --out runs/eval": EVAL_MAIN,
+    "advobj eval --policy runs/policy-quick.onnx --attack runs/attack --episodes 200 --out runs/eval-transfer":
+        Tiny("eval --policy {onnx} --attack {attack} " + EVAL_TINY + " --out {tmp}/eval-transfer", ("{tmp}/eval-transfer/summary.json",)),
+    "advobj experiment table1 --preset quick --out runs/table1-quick":
+        Tiny("experiment table1 --preset quick --policy {policy} --out {tmp}/table1", ("{tmp}/table1/table.md",), slow=True, setup=_tiny_experiments),
+    "advobj experiment table1 --preset quick --policy runs/policy-quick --out runs/table1-quick":
+        Tiny("experiment table1 --preset quick --policy {policy} --out {tmp}/table1", ("{tmp}/table1/table.md",), slow=True, setup=_tiny_experiments),
+    "advobj experiment table2 --preset quick":
+        Tiny("experiment table2 --preset quick --policy {policy} --out {tmp}/table2", ("{tmp}/table2/table.md",), slow=True, setup=_tiny_experiments),
+    "advobj experiment table3 --preset paper":
+        Tiny("experiment table3 --preset paper --policy {policy} --out {tmp}/table3", ("{tmp}/table3/table.md",), slow=True, setup=_tiny_experiments),
+    "advobj experiment transfer --preset quick --target resnet34=runs/policy-r34":
+        Tiny("experiment transfer --preset quick --policy {policy} " + TRANSFER_TARGETS + " --out {tmp}/transfer", ("{tmp}/transfer/table.md",),
+             slow=True, setup=_tiny_experiments),
+    # ---- calibration (workflow step 7 and calibration.md)
+    **CALIB,
+    # ---- real trials (the sim hardware config stands in for the cell)
+    "advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml --sheet runs/plan.pdf":
+        Tiny("trial plan --shape cube --texture cube/adv3d={attack_cube} --texture cube/patch={patch} --tcp-poses 1 --object-poses 1 "
+             "--out {tmp}/trials/plan.yaml --sheet {tmp}/trials/plan.pdf", ("{tmp}/trials/plan.yaml", "{tmp}/trials/plan.pdf")),
+    "advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session day1 --registry objects.yaml --db runs/trials.sqlite":
+        Tiny("trial run --hardware {root}/examples/hardware/sim.yaml --policy {onnx} --plan {plan} --session day1 "
+             "--registry {root}/examples/calibration/objects.yaml --db {tmp}/trials/trials.sqlite --auto-confirm",
+             ("{tmp}/trials/trials.sqlite",), expect="trials done"),
+    "advobj trial report --db runs/trials.sqlite --sim cube=runs/eval-cube --out runs/trial-report":
+        Tiny("trial report --db {trial_db} --sim cube={eval} --out {tmp}/trials/report", ("{tmp}/trials/report/report.md", "{tmp}/trials/report/report.json")),
+    "advobj trial export --db runs/trials.sqlite --out runs/trial-tables --format csv":
+        Tiny("trial export --db {trial_db} --out {tmp}/trials/tables --format csv", ("{tmp}/trials/tables/trials.csv", "{tmp}/trials/tables/steps.csv")),
+    # ---- hardware
+    "advobj hw check --config examples/hardware/sim.yaml":
+        Tiny("hw check --config {root}/examples/hardware/sim.yaml --frames 2", expect="nothing moved"),
+    "advobj hw check --config examples/hardware/sim.yaml --jog --jog-mm 10":
+        Tiny("hw check --config {root}/examples/hardware/sim.yaml --frames 2 --jog --jog-mm 10", expect="back to"),
+}
+
+
+def _tiny_params():
+    seen, params = set(), []
+    for c in DOC_COMMANDS:
+        t = TINY.get(c.text)
+        if c.text in seen or t is None or t.argv is None:
+            continue
+        seen.add(c.text)
+        params.append(pytest.param(c, t, id=c.id, marks=[pytest.mark.slow] if t.slow else []))
+    return params
+
+
+@pytest.fixture(scope="module")
+def art(tmp_path_factory):
+    return Artifacts(tmp_path_factory.mktemp("docs"))
+
+
+# ============================================================================ tests
+def test_the_docs_have_commands_to_check():
+    files = {c.file for c in DOC_COMMANDS}
+    assert {"README.md", "docs/workflow.md", "docs/calibration.md", "docs/evaluation.md"} <= files
+    assert any(c.text == "make demo" for c in DOC_COMMANDS) and any(c.text.startswith("advobj attack run") for c in DOC_COMMANDS)
+
+
+def test_parser_reads_console_bash_and_plain_blocks(tmp_path):
+    md = tmp_path / "x.md"
+    md.write_text("text\n```console\n$ advobj eval --policy p \\\n    --episodes 2   # note\nout line\n```\n"
+                  "```bash\nmake demo  # c\necho hi\n```\n```python\nadvobj = 1\n```\n```\nadvobj scene pool --n 3\n```\n")
+    cmds = parse_commands(md, root=tmp_path)
+    assert [(c.line, c.text) for c in cmds] == [(3, "advobj eval --policy p --episodes 2"), (8, "make demo"), (15, "advobj scene pool --n 3")]
+
+
+def test_every_documented_command_has_a_tiny_run():
+    missing = sorted({f"{c.file}:{c.line}: {c.text}" for c in DOC_COMMANDS if c.text not in TINY})
+    assert not missing, ("documented commands without an entry in TINY (tests/trials/test_docs_commands.py); add a tiny-settings "
+                         "invocation for each:\n" + "\n".join(missing))
+    stale = sorted(set(TINY) - {c.text for c in DOC_COMMANDS})
+    assert not stale, "TINY entries for commands no longer in the docs (remove them):\n" + "\n".join(stale)
+
+
+@pytest.mark.parametrize("doc", [pytest.param(c, id=c.id) for c in DOC_COMMANDS])
+def test_documented_command_exists_and_takes_its_options(doc):
+    where = f"{doc.file}:{doc.line}"
+    argv = doc.argv
+    if argv[0] == "make":
+        res = subprocess.run(["make", "-n", *argv[1:]], cwd=ROOT, capture_output=True, text=True, timeout=60)
+        assert res.returncode == 0, f"{where}: 'make -n {' '.join(argv[1:])}' failed: {res.stderr}"
+        for line in res.stdout.splitlines():
+            toks = shlex.split(line)
+            if toks and toks[0].endswith("/advobj"):
+                check_advobj_line(toks, f"{where} (make recipe)")
+        return
+    check_advobj_line(argv, where)
+
+
+@pytest.mark.parametrize("doc,tiny", _tiny_params())
+def test_documented_command_runs_on_tiny_settings(doc, tiny, art, monkeypatch):
+    cmd, path, rest = resolve(doc.argv[1:]) if doc.argv[0] == "advobj" else (None, None, None)
+    argv = art.fmt(tiny.argv)
+    tcmd, tpath, trest = resolve(argv)
+    if cmd is not None:
+        assert tpath == path, f"TINY entry for '{doc.text}' runs 'advobj {' '.join(tpath)}'"
+        missing = used_options(cmd, rest) - used_options(tcmd, trest) - {option_params(cmd).get(o, o) for o in tiny.dropped}
+        assert not missing, f"TINY entry for '{doc.text}' leaves out documented options {sorted(missing)} (keep them or say why in dropped)"
+    if tiny.setup is not None:
+        tiny.setup(monkeypatch, art)
+    res = art.invoke(argv)
+    for out in tiny.outputs:
+        p = Path(out.format_map(art))
+        assert p.exists(), f"'advobj {' '.join(argv)}' did not write {p}"
+    assert tiny.expect in res.output, f"'advobj {' '.join(argv)}' printed no {tiny.expect!r}:\n{res.output[-2000:]}"
+
+
+def test_workflow_python_block_attacks_a_wrapped_torch_model(art):
+    """The 'bring your own torch model' snippet of docs/workflow.md, with a tiny network and budget."""
+    import torch
+    from torch import nn
+
+    text = (ROOT / "docs" / "workflow.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert len(blocks) == 1, "docs/workflow.md should hold exactly one python block (the white-box wrapper)"
+    code = blocks[0]
+    out = art.tmp / "attack-mine"
+    subs = {
+        'image_size=128': 'image_size=32',
+        'resolve_config("quick", {"iterations": 300})': 'resolve_config("quick", TINY_OVERRIDES)',
+        'load_scene("my_scene.yaml")': 'load_scene(MY_SCENE)',
+        '"runs/attack-mine"': repr(str(out)),
+    }
+    for old, new in subs.items():
+        assert old in code, f"docs/workflow.md python block changed: {old!r} not found; update this test"
+        code = code.replace(old, new)
+    torch.manual_seed(0)
+    import yaml
+
+    ns = {
+        "my_encoder": nn.Sequential(nn.Conv2d(3, 8, 3, stride=2, padding=1), nn.ReLU()),
+        "my_decoder": nn.Sequential(nn.Flatten(), nn.Linear(8 * 16 * 16, 6)),
+        "TINY_OVERRIDES": yaml.safe_load(TINY_ATTACK),
+        "MY_SCENE": str(art.my_scene),
+        "__name__": "workflow_snippet",
+    }
+    exec(compile(code, "docs/workflow.md", "exec"), ns)
+    for name in ("texture.png", "texture.npy", "adversarial.glb", "metrics.json"):
+        assert (out / name).is_file(), f"the workflow snippet did not write {name}"
