@@ -650,17 +650,17 @@ def _pack(pieces, per_page, once, W, H) -> list[Placed]:
         pages[k].take(p.footprint_mm, *at)
         placed.append(Placed(p.name, k, float(at[0]), float(at[1])))
 
-    def put(item, k):
+    def put(item, k, name=None):
         at = pages[k].find(item.footprint_mm)
         if at is None:
             return False
         pages[k].take(item.footprint_mm, *at)
-        placed.append(Placed(item.name if k == 0 else f"{item.name}@{k}", k, float(at[0]), float(at[1])))
+        placed.append(Placed(name or item.name, k, float(at[0]), float(at[1])))
         return True
 
     def furnish(k):
         for it in per_page:
-            if not put(it, k):
+            if not put(it, k, it.name if k == 0 else f"{it.name}@{k}"):
                 raise FabricationError(f"page {k + 1}: no room for the {it.name} block ({it.size_mm[0]:g} x {it.size_mm[1]:g} mm) "
                                        f"beside the pieces on a {W:g} x {H:g} mm page; use a larger --page")
 
@@ -674,8 +674,7 @@ def _pack(pieces, per_page, once, W, H) -> list[Placed]:
             furnish(k)
             if not put(it, k):
                 raise FabricationError(f"{it.name} ({it.size_mm[0]:.1f} x {it.size_mm[1]:.1f} mm) does not fit a {W:g} x {H:g} mm page")
-    # Once-only items went in under their own names; per-page copies beyond page 1 carry '@k'.
-    return placed
+    return placed  # per-page furniture beyond page 1 is named 'name@k'; the rest keep their names
 
 
 def build_layout(src: RunSource, mesh, shape: str, page: str = "a4", dpi: int = 300, tag: tuple[int, float] | None = None,
@@ -881,7 +880,6 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
     t0 = time.perf_counter()
     src = load_run(run_dir)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     try:
         mesh = build_mesh(src.mesh, src.scale)
     except AssetError as err:
