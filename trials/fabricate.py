@@ -263,14 +263,16 @@ class SheetLayout:
 
         def piece(p: Piece):
             at = self.where(p.name)
-            return {"name": p.name, "kind": p.kind, "page": at.page, "origin_mm": [at.x_mm, at.y_mm], "size_mm": list(p.size_mm),
-                    "regions": [{"name": r.name, "uv_box": list(r.uv_box), "rect_mm": list(r.rect_mm), "transform": r.transform}
-                                for r in p.regions]}
+            d = {"name": p.name, "kind": p.kind, "page": at.page, "origin_mm": [at.x_mm, at.y_mm], "size_mm": list(p.size_mm),
+                 "regions": [{"name": r.name, "uv_box": list(r.uv_box), "rect_mm": list(r.rect_mm), "transform": r.transform}
+                             for r in p.regions]}
+            if p.kind == "card":
+                d.update({k: p.fold[k] for k in ("tag_id", "tag_size_mm", "tag_centre_mm", "object_centre_mm")})
+            return d
 
         def item(i: Item):
             at = self.where(i.name)
-            d = {k: v for k, v in i.data.items() if k not in ("tag_image",)}
-            return {"name": i.name, "kind": i.kind, "page": at.page, "origin_mm": [at.x_mm, at.y_mm], "size_mm": list(i.size_mm), **d}
+            return {"name": i.name, "kind": i.kind, "page": at.page, "origin_mm": [at.x_mm, at.y_mm], "size_mm": list(i.size_mm), **i.data}
 
         return {"shape": self.shape, "page_mm": list(self.page_mm), "pages": self.n_pages, "dpi": self.dpi,
                 "uv_side_m": self.uv_side_m, "mm_per_uv": self.uv_side_m * 1000.0, "check_line_mm": CHECK_LINE_MM,
