@@ -468,6 +468,17 @@ TINY: dict[str, Tiny] = {
     "advobj experiment transfer --preset quick --target resnet34=runs/policy-r34":
         Tiny("experiment transfer --preset quick --policy {policy} " + TRANSFER_TARGETS + " --out {tmp}/transfer", ("{tmp}/transfer/table.md",),
              slow=True, setup=_tiny_experiments),
+    # ---- fabrication (a cube run: it has a flat net and a tag card footprint)
+    "advobj fabricate runs/attack-cube --out runs/fab-cube --tag-id 3":
+        Tiny("fabricate {attack_cube} --out {tmp}/fab-cube --tag-id 3 --dpi 60",
+             ("{tmp}/fab-cube/sheet.pdf", "{tmp}/fab-cube/layout.json", "{tmp}/fab-cube/adversarial.glb", "{tmp}/fab-cube/print_check.json",
+              "{tmp}/fab-cube/objects.yaml"), expect="PASSED"),
+    "advobj fabricate RUN --out fab": Tiny("fabricate {attack_cube} --out {tmp}/fab --dpi 60 --no-check", ("{tmp}/fab/sheet.pdf",)),
+    "advobj fabricate RUN --out fab --page letter --dpi 300":
+        Tiny("fabricate {attack_cube} --out {tmp}/fab-letter --page letter --dpi 300", ("{tmp}/fab-letter/sheet.pdf", "{tmp}/fab-letter/print_check.png"),
+             slow=True),
+    "advobj fabricate RUN --out fab --tag-id 3 --tag-size-mm 30":
+        Tiny("fabricate {attack_cube} --out {tmp}/fab-tag --tag-id 3 --tag-size-mm 30 --dpi 60 --no-check", ("{tmp}/fab-tag/objects.yaml",)),
     # ---- calibration (workflow step 7 and calibration.md)
     **CALIB,
     # ---- real trials (the sim hardware config stands in for the cell)
