@@ -37,6 +37,7 @@ def main(argv=None) -> None:
     ap.add_argument("--big-episodes", type=int, default=None, help="episodes of the eval_episodes row (default 500)")
     ap.add_argument("--pool", default=None, help="task-feasible pool of the baseline policy (default: its own)")
     ap.add_argument("--scene", default=None)
+    ap.add_argument("--max-steps", type=int, default=None, help="steps per episode (default 60; the pool must be made for it)")
     ap.add_argument("--quick-check", action="store_true", help="tiny settings: checks the machinery in a few minutes")
     ap.add_argument("--plot", default=None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and plot from OUT/rows.jsonl")

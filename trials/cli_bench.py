@@ -22,6 +22,7 @@ def tradeoff(
     big_episodes: Optional[int] = typer.Option(None, min=1, help="episodes of the eval_episodes row (default 500)"),
     pool: Optional[Path] = typer.Option(None, help="task-feasible pool of the baseline policy (default: its own)"),
     scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
+    max_steps: Optional[int] = typer.Option(None, min=1, help="steps per episode (default 60; the pool must be made for it)"),
     quick_check: bool = typer.Option(False, "--quick-check", help="tiny settings: checks the machinery, measures nothing"),
     plot: Optional[Path] = typer.Option(None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)"),
     report_only: bool = typer.Option(False, "--report-only", help="only rebuild the report and plot from OUT/rows.jsonl"),
@@ -30,4 +31,5 @@ def tradeoff(
     from trials.tradeoff import run_tradeoff
 
     run_tradeoff(policy, out, res_policy, train_missing, train_iterations, rows, episodes, big_episodes,
-                 None if pool is None else str(pool), None if scene is None else str(scene), quick_check, plot, report_only, log=typer.echo)
+                 None if pool is None else str(pool), None if scene is None else str(scene), quick_check, plot, report_only, log=typer.echo,
+                 max_steps=max_steps)

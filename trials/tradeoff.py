@@ -79,7 +79,10 @@ class TradeoffConfig(BaseModel):
     policy: str = Field(description="the baseline (reference) policy checkpoint directory")
     resolution_policies: dict[int, str] = Field(default_factory=dict, description="image size -> checkpoint, for policy_resolution rows")
     attack_preset: str = "quick"
-    attack_overrides: dict = Field(default_factory=dict, description="AttackConfig fields applied under every row's own knob")
+    # The sweep judges the final texture on its own held-out evaluation set, so the attack's in-run
+    # validation (quick preset: every 20 iterations) is off; it would only shrink the EOT pool.
+    attack_overrides: dict = Field(default_factory=lambda: {"validation_every": 0},
+                                   description="AttackConfig fields applied under every row's own knob")
     values: dict[str, list] = Field(default_factory=dict, description="knob -> values to sweep (default: DEFAULT_VALUES)")
     snapshots: tuple[int, ...] = Field((30, 60), description="baseline iterations evaluated as the 'iterations' rows")
     episodes: int = Field(100, ge=1, description="paired episodes per row (the fixed evaluation set)")
@@ -109,17 +112,18 @@ DEFAULT_VALUES: dict[str, list] = {
 }
 
 # knob -> (AttackConfig field, value mapping)
-_ATTACK_FIELD = {
+_ATTACK_FIELD = {  # in run order
     "eot_envs": ("num_envs", int),
     "rollout_steps": ("rollout_steps", int),
-    "sampler": ("sampler", str),
-    "texture_size": ("texture_size", int),
     "saliency": ("use_saliency", lambda v: {"on": True, "off": False}[str(v)]),
     "pcgrad": ("pcgrad", lambda v: {"on": True, "off": False}[str(v)]),
+    "sampler": ("sampler", str),
+    "texture_size": ("texture_size", int),
 }
 
 #: Tiny settings for a smoke run (``--quick-check``): minutes become seconds.
-QUICK_CHECK = dict(attack_overrides={"iterations": 4, "num_envs": 1, "rollout_steps": 2, "texture_size": 16, "checkpoint_every": 1000},
+QUICK_CHECK = dict(attack_overrides={"iterations": 4, "num_envs": 1, "rollout_steps": 2, "texture_size": 16, "checkpoint_every": 1000,
+                                     "validation_every": 0},
                    snapshots=(2,), episodes=4, big_episodes=8, eval_num_envs=4, deploy_episodes=4, latency_reps=5,
                    values={"eot_envs": [2], "rollout_steps": [3], "texture_size": [8]})
 
@@ -719,7 +723,7 @@ def train_resolution_policy(size: int, out_dir: str | Path, scene: str | None = 
 
 # ----------------------------------------------------------------------------- the benchmark
 def run_tradeoff(policy, out, res_policy=(), train_missing=False, train_iterations=None, rows=(), episodes=None, big_episodes=None,
-                 pool=None, scene=None, quick_check=False, plot=None, report_only=False, log=print, progress=True) -> Path:
+                 pool=None, scene=None, quick_check=False, plot=None, report_only=False, log=print, progress=True, max_steps=None) -> Path:
     """The whole benchmark behind ``advobj bench tradeoff`` and ``benchmarks/bench_tradeoff.py``: sweep
     (resumable), optionally train the missing per-resolution policies, then the report; returns its path."""
     import torch
@@ -733,7 +737,7 @@ def run_tradeoff(policy, out, res_policy=(), train_missing=False, train_iteratio
             raise TradeoffError(f"--res-policy: expected SIZE=DIR, got {item!r}")
         res[int(size)] = d
     fields = dict(QUICK_CHECK) if quick_check else {}
-    fields.update({k: v for k, v in dict(episodes=episodes, big_episodes=big_episodes, pool=pool, scene=scene).items() if v is not None})
+    fields.update({k: v for k, v in dict(episodes=episodes, big_episodes=big_episodes, pool=pool, scene=scene, max_steps=max_steps).items() if v is not None})
     cfg = load_tradeoff_config(policy=str(policy), resolution_policies=res, **fields)
     if not report_only:
         wanted = [r for item in rows for r in item.split(",") if r] or None

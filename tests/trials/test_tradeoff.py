@@ -1,0 +1,177 @@
+"""The speed-vs-accuracy sweep: rows as data, one real row end to end, resume, report and CLI."""
+
+import json
+
+import pytest
+
+from trials.tradeoff import (
+    BASELINE_KEY,
+    DEPLOYMENTS,
+    KNOBS,
+    TradeoffError,
+    build_rows,
+    load_tradeoff_config,
+    read_results,
+    run_sweep,
+    select_rows,
+)
+from trials.tradeoff_report import pareto_front, write_report
+
+from .conftest import MAX_STEPS
+
+TINY_ATTACK = {"iterations": 2, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "checkpoint_every": 1000, "validation_every": 0}
+
+
+def _tiny(policy, pool, **kw):
+    return load_tradeoff_config(policy=str(policy), pool=str(pool), attack_overrides=TINY_ATTACK, snapshots=(1,), episodes=4,
+                                max_steps=MAX_STEPS, eval_num_envs=2, deploy_episodes=2, latency_reps=2, **kw)
+
+
+def test_every_knob_of_the_issue_has_rows_with_the_issue_values():
+    cfg = load_tradeoff_config(policy="ref")
+    assert cfg.attack_overrides == {"validation_every": 0}  # the sweep evaluates the final texture itself
+    rows = build_rows(cfg)
+    assert {r.knob for r in rows} == set(KNOBS)
+    by = {}
+    for r in rows:
+        by.setdefault(r.knob, []).append(r)
+    # the quick preset is the baseline (4 envs, 6 steps, texture 64, trilinear, saliency and PCGrad on)
+    assert [r.key for r in by["baseline"]] == [BASELINE_KEY] and rows[0].key == BASELINE_KEY
+    assert {r.overrides["num_envs"] for r in by["eot_envs"]} == {1, 2}
+    assert {r.overrides["rollout_steps"] for r in by["rollout_steps"]} == {5, 10}
+    assert [r.overrides for r in by["sampler"]] == [{"sampler": "bilinear"}]
+    assert [r.overrides for r in by["saliency"]] == [{"use_saliency": False}]
+    assert [r.overrides for r in by["pcgrad"]] == [{"pcgrad": False}]
+    assert all(r.overrides["texture_size"] != 64 for r in by["texture_size"])
+    assert {r.value for r in by["policy_resolution"]} == {"96", "128"} and {r.policy for r in by["policy_resolution"]} == {"px96", "px128"}
+    # iterations are snapshots of the baseline run, eval_episodes re-evaluates its texture: both depend on it
+    assert [(r.value, r.kind, r.depends) for r in by["iterations"]] == [("30", "snapshot", BASELINE_KEY), ("60", "snapshot", BASELINE_KEY)]
+    assert [(r.value, r.depends) for r in by["eval_episodes"]] == [("500", BASELINE_KEY)]
+    assert [r.value for r in by["deployment"]] == list(DEPLOYMENTS)
+    assert len({r.key for r in rows}) == len(rows)
+
+
+def test_unknown_knobs_rows_and_bad_settings_are_clear_errors():
+    cfg = load_tradeoff_config(policy="ref")
+    rows = build_rows(cfg)
+    with pytest.raises(TradeoffError, match="unknown knob 'colour'"):
+        select_rows(rows, ["colour"])
+    with pytest.raises(TradeoffError, match="no row 'eot_envs=3'.*eot_envs=1"):
+        select_rows(rows, ["eot_envs=3"])
+    with pytest.raises(TradeoffError, match="unknown knob"):
+        load_tradeoff_config(policy="ref", values={"colour": [1]})
+    with pytest.raises(TradeoffError, match="snapshots"):
+        build_rows(load_tradeoff_config(policy="ref", snapshots=(200,)))
+    with pytest.raises(TradeoffError, match="deployment"):
+        build_rows(load_tradeoff_config(policy="ref", values={"deployment": ["tensorrt"]}))
+    with pytest.raises(TradeoffError, match="episodes"):
+        load_tradeoff_config(policy="ref", episodes=0)
+    # a dependent row brings its dependency along
+    assert [r.key for r in select_rows(rows, ["iterations=30"])] == [BASELINE_KEY, "iterations=30"]
+
+
+def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, tiny_policy_dir, pool_file):
+    cfg = _tiny(tiny_policy_dir, pool_file)
+    log = []
+    run_sweep(cfg, tmp_path, ["eot_envs=2"], progress=False, log=log.append)
+    lines = (tmp_path / "rows.jsonl").read_text().splitlines()
+    assert len(lines) == 1
+    rec = json.loads(lines[0])
+    assert rec["status"] == "ok", rec.get("traceback")
+    assert rec["key"] == "eot_envs=2" and rec["attack_config"]["num_envs"] == 2 and rec["attack_config"]["iterations"] == 2
+    assert rec["episodes"] == 4 and rec["tasr"]["n"] == 4 and 0 <= rec["tasr"]["lo"] <= rec["tasr"]["rate"] <= rec["tasr"]["hi"] <= 1
+    assert rec["e_trans"]["n"] == 4 and rec["attack_wall_s"] > 0 and rec["eval_cpu_s"] > 0 and rec["peak_rss_mb"] > 50
+    assert len(rec["load_start"]) == 3 and rec["git_commit"] and rec["image_size"] == 32
+    run_info = json.loads((tmp_path / "attacks" / "eot_envs_2" / "run.json").read_text())
+    assert run_info["config"]["attack"]["num_envs"] == 2 and "git_commit" in run_info
+    # the fixed evaluation set: the pool's first 4 configurations; the attack sampled from the rest
+    eval_seeds = json.loads((tmp_path / "evals" / "eot_envs_2" / "run.json").read_text())["config"]["seeds"]
+    assert len(eval_seeds) == 4 and (tmp_path / "eval_sets" / "ref.json").is_file()
+    assert json.loads((tmp_path / "machine.json").read_text())["runs"][0]["start"]["cpu_count"] >= 1
+    # resume: the finished row is skipped, nothing appended
+    log.clear()
+    run_sweep(cfg, tmp_path, ["eot_envs=2"], progress=False, log=log.append)
+    assert "eot_envs=2: done, skipped" in log and len((tmp_path / "rows.jsonl").read_text().splitlines()) == 1
+    # other settings in the same directory are refused
+    with pytest.raises(TradeoffError, match="other settings.*episodes"):
+        run_sweep(_tiny(tiny_policy_dir, pool_file).model_copy(update={"episodes": 3}), tmp_path, ["eot_envs=2"], progress=False)
+
+
+def test_iteration_rows_evaluate_snapshots_of_the_baseline_run(tmp_path, tiny_policy_dir, pool_file):
+    cfg = _tiny(tiny_policy_dir, pool_file)
+    res = {r["key"]: r for r in run_sweep(cfg, tmp_path, ["iterations"], progress=False, log=lambda m: None, isolate=False)}
+    base, snap = res[BASELINE_KEY], res["iterations=1"]
+    assert base["status"] == "ok" and snap["status"] == "ok", (base.get("traceback"), snap.get("traceback"))
+    assert snap["attack_dir"].endswith("iter00001") and 0 < snap["attack_wall_s"] <= base["attack_wall_s"]
+    assert snap["attack_config"] == base["attack_config"] and snap["episodes"] == base["episodes"] == 4
+    assert "in-process" in snap["note"]
+
+
+def test_pareto_front_on_a_hand_made_set():
+    pts = [(10, 0.5), (20, 0.4), (20, 0.6), (5, 0.1), (30, 0.6), (40, 0.9)]
+    # (20, .4) is beaten by (10, .5); (30, .6) by (20, .6)
+    assert pareto_front(pts) == [3, 0, 2, 5]
+    assert pareto_front([(1, 0.5), (1, 0.5)]) == [0, 1]  # ties dominate nothing
+    assert pareto_front([]) == []
+
+
+def _synthetic(key, knob, value, kind, wall, rate, policy="ref", **kw):
+    p = {"k": round(rate * 100), "n": 100, "rate": rate, "lo": max(0, rate - 0.1), "hi": min(1, rate + 0.1), "confidence": 0.95}
+    m = {"mean": 0.2, "lo": 0.15, "hi": 0.25, "n": 100, "confidence": 0.95}
+    rec = {"key": key, "knob": knob, "value": value, "kind": kind, "policy": policy, "status": "ok", "note": "", "image_size": 64,
+           "attack_wall_s": wall, "attack_cpu_s": wall / 2, "eval_wall_s": 60.0, "eval_cpu_s": 30.0, "peak_rss_mb": 700.0, "episodes": 100,
+           "tasr": p, "asr": p, "e_trans": m, "e_rot": m, "load_start": [1.0, 1.0, 1.0], "load_end": [2.0, 1.0, 1.0]}
+    rec.update(kw)
+    return rec
+
+
+def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
+    lat = {"b1": {"median": 1.5, "p90": 2.0}, "b8": {"median": 0.5, "p90": 0.6}}
+    rows = [
+        _synthetic(BASELINE_KEY, "baseline", "quick", "attack", 100.0, 0.6),
+        _synthetic("iterations=30", "iterations", "30", "snapshot", 25.0, 0.2),
+        _synthetic("eot_envs=1", "eot_envs", "1", "attack", 30.0, 0.1),
+        _synthetic("policy_resolution=96", "policy_resolution", "96", "attack", 300.0, 0.7, policy="px96"),
+        _synthetic("eval_episodes=500", "eval_episodes", "500", "episodes", 100.0, 0.55, episodes=500,
+                   subset={"episodes": 100, "tasr": {"k": 60, "n": 100, "rate": 0.6, "lo": 0.5, "hi": 0.7},
+                           "asr": {"k": 60, "n": 100, "rate": 0.6, "lo": 0.5, "hi": 0.7}, "e_trans": {"mean": 0.2, "lo": 0.1, "hi": 0.3, "n": 100},
+                           "e_rot": {"mean": 0.2, "lo": 0.1, "hi": 0.3, "n": 100}}),
+        {"key": "deployment=onnx-int8", "knob": "deployment", "value": "onnx-int8", "kind": "deployment", "policy": "ref", "status": "ok",
+         "latency_ms": lat, "action_err_max": 0.02, "action_err_mean": 0.003, "clean_success": {"k": 49, "n": 50, "rate": 0.98, "lo": 0.9, "hi": 1.0},
+         "model_bytes": 2048, "frames": 300, "peak_rss_mb": 500.0, "load_start": [1, 1, 1], "load_end": [1, 1, 1]},
+        {"key": "sampler=bilinear", "knob": "sampler", "value": "bilinear", "kind": "attack", "policy": "ref", "status": "error",
+         "error": "RuntimeError: boom"},
+    ]
+    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"torn')
+    (tmp_path / "machine.json").write_text(json.dumps({"runs": [{"start": {"cpu_model": "Test CPU", "cpu_count": 2, "cpus_usable": 2, "mem_total_gb": 4,
+                                                                            "torch": "2.x", "torch_threads": 1, "onnxruntime": "1.x", "numpy": "2.x",
+                                                                            "python": "3.11", "platform": "linux", "loadavg": [0.5, 0.4, 0.3]}}]}))
+    assert len(read_results(tmp_path)) == len(rows)  # the torn last line is ignored
+    text = write_report(tmp_path).read_text()
+    assert "Test CPU; 2 logical cores" in text and "torch 2.x with 1 intra-op thread" in text
+    assert "| baseline | quick | 64 | 100 | 50 | 60 | 30 | 700 | 100 | 60 [50, 70] |" in text
+    assert "| sampler | bilinear |" in text and "failed: RuntimeError: boom" in text
+    assert "| eval_episodes=500, first 100 configs | 100 | 60 [50, 70] | 20.0 |" in text
+    assert "| onnx-int8 | 1.50 (2.00) | 0.50 | 2.00e-02 | 3.00e-03 | 49/50 = 98 [90, 100] | 2 |" in text
+    # table order follows the knob order of the issue
+    assert text.index("| baseline | quick") < text.index("| iterations | 30") < text.index("| eot_envs | 1") < text.index("| policy_resolution | 96")
+    png = tmp_path / "tradeoff_pareto.png"
+    assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_cli_help_and_a_tiny_deployment_run(tmp_path, tiny_policy_dir, pool_file):
+    from typer.testing import CliRunner
+
+    from trials.cli import app
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["bench", "tradeoff", "--help"])
+    assert res.exit_code == 0 and "--quick-check" in res.output and "--rows" in res.output
+    out = tmp_path / "sweep"
+    res = runner.invoke(app, ["bench", "tradeoff", "--quick-check", "--policy", str(tiny_policy_dir), "--pool", str(pool_file), "--out", str(out),
+                              "--max-steps", str(MAX_STEPS), "--rows", "deployment=onnx-fp32", "--plot", str(tmp_path / "p.png")])
+    assert res.exit_code == 0, res.output
+    (rec,) = read_results(out)
+    assert rec["status"] == "ok", rec.get("traceback")
+    assert rec["action_err_max"] < 1e-4 and rec["latency_ms"]["b1"]["median"] > 0 and rec["frames"] > 0
+    assert "| onnx-fp32 |" in (out / "report.md").read_text() and (tmp_path / "p.png").is_file()
