@@ -479,6 +479,9 @@ TINY: dict[str, Tiny] = {
              slow=True),
     "advobj fabricate RUN --out fab --tag-id 3 --tag-size-mm 30":
         Tiny("fabricate {attack_cube} --out {tmp}/fab-tag --tag-id 3 --tag-size-mm 30 --dpi 60 --no-check", ("{tmp}/fab-tag/objects.yaml",)),
+    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff":
+        Tiny("bench tradeoff --policy {policy} --out {tmp}/tradeoff --quick-check --pool {pool} --max-steps 3 --rows eot_envs",
+             ("{tmp}/tradeoff/report.md", "{tmp}/tradeoff/rows.jsonl"), slow=True),
     # ---- calibration (workflow step 7 and calibration.md)
     **CALIB,
     # ---- real trials (the sim hardware config stands in for the cell)
