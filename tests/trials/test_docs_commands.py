@@ -20,7 +20,6 @@ module; identical invocations run once.
 
 from __future__ import annotations
 
-import os
 import re
 import shlex
 import subprocess
@@ -28,7 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
