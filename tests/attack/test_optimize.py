@@ -11,7 +11,8 @@ from sim.policies.interface import WhiteBoxRequired
 from sim.policies.policy import VisuomotorPolicy
 from sim.spec import default_scene
 
-CFG = {"iterations": 4, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "checkpoint_every": 2, "pool_size": 8, "lr": 0.5}
+CFG = {"iterations": 4, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "checkpoint_every": 2, "pool_size": 8, "lr": 0.5,
+       "validation_every": 0}  # validation: tests/attack/test_best.py
 
 
 def _policy():
