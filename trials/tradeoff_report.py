@@ -104,18 +104,20 @@ def episodes_table(rows: list[dict]) -> str:
 
 
 def deployment_table(rows: list[dict]) -> str:
-    lines = ["| variant | latency ms/image, batch 1 (median, p90) | latency ms/image, batch 8 (median) | max abs action error vs torch fp32 | "
+    lines = ["| variant | wall ms/image, batch 1 (median, p90) | CPU ms/image, batch 1 (mean) | wall ms/image, batch 8 (median) | "
+             "CPU ms/image, batch 8 (mean) | max abs action error vs torch fp32 | "
              "mean abs action error | clean success on the eval set [95% CI] | model KB | peak MB | load 1-min |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in _order([r for r in rows if r["kind"] == "deployment"]):
         if r.get("status") != "ok":
-            lines.append(f"| {r['value']} | failed: {r.get('error', '')} | | | | | | | |")
+            lines.append(f"| {r['value']} | failed: {r.get('error', '')} | | | | | | | | | |")
             continue
         lat = r["latency_ms"]
         cs = r.get("clean_success")
         succ = "n/a" if not cs else f"{cs['k']}/{cs['n']} = {_rate(cs)}"
         kb = "n/a" if r.get("model_bytes") is None else f"{r['model_bytes'] / 1024:.0f}"
-        lines.append(f"| {r['value']} | {lat['b1']['median']:.2f} ({lat['b1']['p90']:.2f}) | {lat['b8']['median']:.2f} | "
+        lines.append(f"| {r['value']} | {lat['b1']['median']:.2f} ({lat['b1']['p90']:.2f}) | {_num(lat['b1'].get('cpu_mean'), 2)} | "
+                     f"{lat['b8']['median']:.2f} | {_num(lat['b8'].get('cpu_mean'), 2)} | "
                      f"{r['action_err_max']:.2e} | {r['action_err_mean']:.2e} | {succ} | {kb} | {_num(r.get('peak_rss_mb'))} | {_load(r)} |")
     n = next((r["frames"] for r in rows if r["kind"] == "deployment" and r.get("status") == "ok"), None)
     if n:
@@ -176,7 +178,10 @@ def plot_pareto(rows: list[dict], path: str | Path) -> Path:
     ax.set_ylabel("T-ASR, % (95% Wilson interval)")
     ax.set_title("Speed vs accuracy of the attack knobs")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8, loc="best")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8, loc="best")
+    else:
+        ax.text(0.5, 0.5, "no finished attack rows yet", transform=ax.transAxes, ha="center")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

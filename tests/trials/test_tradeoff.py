@@ -126,7 +126,7 @@ def _synthetic(key, knob, value, kind, wall, rate, policy="ref", **kw):
 
 
 def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
-    lat = {"b1": {"median": 1.5, "p90": 2.0}, "b8": {"median": 0.5, "p90": 0.6}}
+    lat = {"b1": {"median": 1.5, "p90": 2.0, "cpu_mean": 1.25}, "b8": {"median": 0.5, "p90": 0.6}}
     rows = [
         _synthetic(BASELINE_KEY, "baseline", "quick", "attack", 100.0, 0.6),
         _synthetic("iterations=30", "iterations", "30", "snapshot", 25.0, 0.2),
@@ -152,7 +152,7 @@ def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
     assert "| baseline | quick | 64 | 100 | 50 | 60 | 30 | 700 | 100 | 60 [50, 70] |" in text
     assert "| sampler | bilinear |" in text and "failed: RuntimeError: boom" in text
     assert "| eval_episodes=500, first 100 configs | 100 | 60 [50, 70] | 20.0 |" in text
-    assert "| onnx-int8 | 1.50 (2.00) | 0.50 | 2.00e-02 | 3.00e-03 | 49/50 = 98 [90, 100] | 2 |" in text
+    assert "| onnx-int8 | 1.50 (2.00) | 1.25 | 0.50 | n/a | 2.00e-02 | 3.00e-03 | 49/50 = 98 [90, 100] | 2 |" in text
     # table order follows the knob order of the issue
     assert text.index("| baseline | quick") < text.index("| iterations | 30") < text.index("| eot_envs | 1") < text.index("| policy_resolution | 96")
     png = tmp_path / "tradeoff_pareto.png"
@@ -173,5 +173,5 @@ def test_cli_help_and_a_tiny_deployment_run(tmp_path, tiny_policy_dir, pool_file
     assert res.exit_code == 0, res.output
     (rec,) = read_results(out)
     assert rec["status"] == "ok", rec.get("traceback")
-    assert rec["action_err_max"] < 1e-4 and rec["latency_ms"]["b1"]["median"] > 0 and rec["frames"] > 0
+    assert rec["action_err_max"] < 1e-4 and rec["latency_ms"]["b1"]["median"] > 0 and rec["latency_ms"]["b8"]["cpu_mean"] > 0 and rec["frames"] > 0
     assert "| onnx-fp32 |" in (out / "report.md").read_text() and (tmp_path / "p.png").is_file()
