@@ -27,9 +27,17 @@ def git_commit() -> str:
 
 def write_run_info(out_dir: str | Path, config: dict, seed: int | None, name: str = "run.json") -> Path:
     """Write ``out_dir/run.json`` with the resolved ``config`` (JSON-able), seed and provenance."""
-    import numpy
-    import torch
+    import importlib.metadata
 
+    import numpy
+
+    # Torch's version from the package metadata: importing torch costs seconds in jobs that never
+    # use it (trial plans, reports); its thread count only when the job already imported it.
+    torch = sys.modules.get("torch")
+    try:
+        torch_version = torch.__version__ if torch is not None else importlib.metadata.version("torch")
+    except importlib.metadata.PackageNotFoundError:
+        torch_version = None
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     doc = {
@@ -39,9 +47,9 @@ def write_run_info(out_dir: str | Path, config: dict, seed: int | None, name: st
         "argv": sys.argv,
         "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "python": platform.python_version(),
-        "torch": torch.__version__,
+        "torch": torch_version,
         "numpy": numpy.__version__,
-        "torch_threads": torch.get_num_threads(),
+        "torch_threads": torch.get_num_threads() if torch is not None else None,
         "machine": platform.machine(),
     }
     path = out / name
