@@ -383,7 +383,8 @@ def _tiny_demo(monkeypatch, art: Artifacts):
     import trials.demo as demo
     import trials.experiments as ex
 
-    monkeypatch.setattr(demo, "DEMO_BUDGET", dict(attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8},
+    monkeypatch.setattr(demo, "DEMO_BUDGET", dict(attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8,
+                                                                                    "validation_every": 0},
                                                   episodes=2, max_steps=MAX_STEPS, num_envs=2, gifs=1, pool=str(art.pool)))
     monkeypatch.setattr(ex, "ensure_policy", lambda ctx, name="reference", **kw: art.policy)
 
@@ -392,7 +393,8 @@ def _tiny_experiments(monkeypatch, art: Artifacts):
     import trials.experiments as ex
 
     tiny = dict(policy_preset="ci", target_policy_preset="ci", attack_preset="quick",
-                attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "pool_size": 4},
+                attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "pool_size": 4,
+                                  "validation_every": 0},
                 episodes=2, max_steps=MAX_STEPS, num_envs=2, gifs=0, pool=str(art.pool), shapes=("dog",))
     for preset in ("quick", "paper"):
         monkeypatch.setitem(ex.PRESETS, preset, tiny)
@@ -433,7 +435,7 @@ TINY: dict[str, Tiny] = {
     "advobj policy train --preset quick --out runs/policy-quick":
         Tiny("policy train --preset ci --out {tmp}/train-ci --episodes 2", ("{tmp}/train-ci/policy.json", "{tmp}/train-ci/feasible_pool.json"), slow=True),
     "advobj policy train --arch resnet18 --preset paper --out runs/policy-r18":
-        Tiny("policy train --arch small_cnn --preset ci --out {tmp}/train-ci --episodes 2", ("{tmp}/train-ci/policy.json",), slow=True),
+        Tiny("policy train --arch small_cnn --preset ci --out {tmp}/train-arch --episodes 2", ("{tmp}/train-arch/policy.json",), slow=True),
     "advobj policy eval runs/policy-quick --episodes 200": Tiny("policy eval {policy_copy} --episodes 2 --num-envs 2", ("{policy_copy}/eval/feasible_pool.json",), expect="clean success"),
     "advobj policy export runs/policy-quick --onnx policy.onnx": Tiny("policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)),
     "advobj policy export runs/policy-quick --onnx runs/policy-quick.onnx": Tiny("policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)),
