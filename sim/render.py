@@ -52,6 +52,7 @@ __all__ = [
     "gl_from_cv",
     "gripper_meshes",
     "spheres_outside_frustum",
+    "frustum_normals",
 ]
 
 BACKGROUND_ID = 0
@@ -69,30 +70,38 @@ def gl_from_cv(T_world_cvcam: np.ndarray) -> np.ndarray:
     return np.asarray(T_world_cvcam) @ _CV_TO_GL
 
 
+def frustum_normals(K: np.ndarray, width: int, height: int, margin_px: float = 2.0) -> np.ndarray:
+    """Unit inward normals ``(4, 3)`` of the side planes of the view frustum (OpenCV camera frame).
+
+    A point projects to edge coordinate u = fx x / z + cx + 0.5 (pixel k spans [k, k + 1]);
+    'inside' is -m <= u <= W + m (same for v), i.e. n . p >= 0 for each normal n (the planes pass
+    through the optical centre).
+    """
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    m = float(margin_px)
+    n = np.array([
+        [fx, 0.0, cx + 0.5 + m],
+        [-fx, 0.0, width + m - cx - 0.5],
+        [0.0, fy, cy + 0.5 + m],
+        [0.0, -fy, height + m - cy - 0.5],
+    ])
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
 def spheres_outside_frustum(centers_cam: np.ndarray, radii: np.ndarray, K: np.ndarray, width: int, height: int,
-                            znear: float, zfar: float, margin_px: float = 2.0) -> np.ndarray:
+                            znear: float, zfar: float, margin_px: float = 2.0, normals: np.ndarray | None = None) -> np.ndarray:
     """Which spheres lie entirely outside the camera's view frustum: ``(N,)`` bool.
 
     centers_cam: (N, 3) m sphere centres in the OpenCV camera frame; radii: (N,) m; K: (3, 3)
     intrinsics at ``width x height`` px; znear, zfar: clip distances (m) along the optical axis.
     The side planes pass through the pixel grid's outer edges widened by ``margin_px`` (culling
     stays conservative: a sphere is reported outside only if no pixel can see any of it).
+    ``normals``: :func:`frustum_normals` of these arguments, precomputed (per-frame callers).
     """
     c = np.asarray(centers_cam, dtype=np.float64).reshape(-1, 3)
     r = np.asarray(radii, dtype=np.float64).reshape(-1)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    m = float(margin_px)
-    # A point projects to edge coordinate u = fx x / z + cx + 0.5 (pixel k spans [k, k + 1]);
-    # 'inside' is -m <= u <= W + m, i.e. n . p >= 0 for these inward plane normals (all through
-    # the optical centre).
-    normals = np.array([
-        [fx, 0.0, cx + 0.5 + m],
-        [-fx, 0.0, width + m - cx - 0.5],
-        [0.0, fy, cy + 0.5 + m],
-        [0.0, -fy, height + m - cy - 0.5],
-    ])
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    side = (c @ normals.T < -r[:, None]).any(-1)
+    n = frustum_normals(K, width, height, margin_px) if normals is None else normals
+    side = (c @ n.T < -r[:, None]).any(-1)
     return side | (c[:, 2] + r < znear) | (c[:, 2] - r > zfar)
 
 
@@ -363,6 +372,7 @@ class SceneRenderer:
         self._sphere_r = np.array([np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=-1).max()
                                    for o, c in zip(self._objects, self._sphere_c)])
         self._T_world_objects = np.tile(np.eye(4), (len(self._objects), 1, 1))
+        self._frustum_normals = frustum_normals(self.K, self.width, self.height)
 
     # ------------------------------------------------------------------ building
     @staticmethod
@@ -478,14 +488,14 @@ class SceneRenderer:
         """Objects whose bounding sphere is entirely outside the view from ``T_world_cam``."""
         if not self.frustum_cull or not self._objects:
             return ()
-        from sim.geometry import invert_T
-
         T = self._T_world_objects
         centers_world = np.einsum("kij,kj->ki", T[:, :3, :3], self._sphere_c) + T[:, :3, 3]
-        T_cam_world = invert_T(np.asarray(T_world_cam, dtype=np.float64))
-        centers_cam = centers_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
+        R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        centers_cam = (centers_world - t) @ R  # R^T (p - t), row-wise
         cam = self.spec.camera
-        out = spheres_outside_frustum(centers_cam, self._sphere_r, self.K, self.width, self.height, cam.znear_m, cam.zfar_m)
+        out = spheres_outside_frustum(centers_cam, self._sphere_r, self.K, self.width, self.height, cam.znear_m, cam.zfar_m,
+                                      normals=self._frustum_normals)
         return tuple(int(k) for k in np.flatnonzero(out))
 
     def _set_pass(self, color_pass: bool, variants: dict, isolate: int | None = None) -> None:
