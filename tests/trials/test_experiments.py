@@ -8,7 +8,8 @@ from trials.experiments import PAPER, ExperimentError, resolve_experiment, run_e
 
 from .conftest import MAX_STEPS
 
-TINY_ATTACK = {"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "pool_size": 4, "checkpoint_every": 1}
+TINY_ATTACK = {"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "pool_size": 4, "checkpoint_every": 1,
+               "validation_every": 0}  # held-out validation is covered in tests/attack/test_best.py
 
 
 def _cfg(pool_file, **kw):
