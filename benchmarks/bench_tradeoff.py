@@ -40,6 +40,7 @@ def main(argv=None) -> None:
     ap.add_argument("--max-steps", type=int, default=None, help="steps per episode (default 60; the pool must be made for it)")
     ap.add_argument("--quick-check", action="store_true", help="tiny settings: checks the machinery in a few minutes")
     ap.add_argument("--plot", default=None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)")
+    ap.add_argument("--redo", action="store_true", help="measure the selected --rows again even if done (the newest record is reported)")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the table and plot from OUT/rows.jsonl")
     args = ap.parse_args(argv)
     from trials.tradeoff import run_tradeoff

@@ -26,10 +26,11 @@ def tradeoff(
     quick_check: bool = typer.Option(False, "--quick-check", help="tiny settings: checks the machinery, measures nothing"),
     plot: Optional[Path] = typer.Option(None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)"),
     report_only: bool = typer.Option(False, "--report-only", help="only rebuild the report and plot from OUT/rows.jsonl"),
+    redo: bool = typer.Option(False, "--redo", help="measure the selected --rows again even if done (the newest record is reported)"),
 ) -> None:
     """Sweep attack, evaluation and deployment knobs one at a time; table, Pareto plot and report in OUT."""
     from trials.tradeoff import run_tradeoff
 
     run_tradeoff(policy, out, res_policy, train_missing, train_iterations, rows, episodes, big_episodes,
                  None if pool is None else str(pool), None if scene is None else str(scene), quick_check, plot, report_only, log=typer.echo,
-                 max_steps=max_steps)
+                 max_steps=max_steps, redo=redo)

@@ -309,8 +309,11 @@ def _settings_hash(cfg: TradeoffConfig) -> str:
 
 # ----------------------------------------------------------------------------- the sweep driver
 def run_sweep(cfg: TradeoffConfig, out: str | Path, rows: list[str] | None = None, progress: bool = True,
-              log: Callable[[str], None] = print, isolate: bool = True) -> list[dict]:
+              log: Callable[[str], None] = print, isolate: bool = True, redo: bool = False) -> list[dict]:
     """Run the selected rows not yet done into ``out``; returns all result records.
+
+    ``redo``: measure the selected rows again even if done (the new record supersedes the old one
+    in :func:`read_results`; the old line stays in the JSONL).
 
     ``isolate``: run each row in a child process (peak RSS per row, crash isolation); ``False``
     runs in-process (peak RSS is then the process's so far, noted in the row).
@@ -335,7 +338,7 @@ def run_sweep(cfg: TradeoffConfig, out: str | Path, rows: list[str] | None = Non
     done = {r["key"] for r in read_results(out) if r.get("status") == "ok"}
     todo = []
     for r in selected:
-        if r.key in done:
+        if r.key in done and not redo:
             log(f"{r.key}: done, skipped")
         elif _policy_dir(cfg, r.policy) is None:
             if rows and (r.key in rows or r.knob in rows):
@@ -440,6 +443,10 @@ def _eval_set(cfg: TradeoffConfig, label: str, out: Path, spec) -> tuple[Path, l
     path = out / "eval_sets" / f"{label}.json"
     if path.is_file():
         eval_cfgs = load_pool(path, spec)
+        stale = {c.seed for c in eval_cfgs} - {c.seed for c in pool}
+        if stale:
+            raise TradeoffError(f"{path}: evaluation set not task-feasible for {src} ({len(stale)} configurations are not in its pool; "
+                                "was the policy replaced?); move the file away to rebuild it")
     else:
         eval_cfgs = pool[: cfg.episodes]
         save_pool(path, spec, eval_cfgs, meta={"kind": "task-feasible", "source": src, "first": len(eval_cfgs),
@@ -726,7 +733,8 @@ def train_resolution_policy(size: int, out_dir: str | Path, scene: str | None = 
 
 # ----------------------------------------------------------------------------- the benchmark
 def run_tradeoff(policy, out, res_policy=(), train_missing=False, train_iterations=None, rows=(), episodes=None, big_episodes=None,
-                 pool=None, scene=None, quick_check=False, plot=None, report_only=False, log=print, progress=True, max_steps=None) -> Path:
+                 pool=None, scene=None, quick_check=False, plot=None, report_only=False, log=print, progress=True, max_steps=None,
+                 redo=False) -> Path:
     """The whole benchmark behind ``advobj bench tradeoff`` and ``benchmarks/bench_tradeoff.py``: sweep
     (resumable), optionally train the missing per-resolution policies, then the report; returns its path."""
     import torch
@@ -750,12 +758,12 @@ def run_tradeoff(policy, out, res_policy=(), train_missing=False, train_iteratio
         if train_missing:  # everything else first, then train, then the rows of the new policies
             first = [r.key for r in selected if not (r.knob == "policy_resolution" and int(r.value) in missing)]
         if first is None or first:
-            run_sweep(cfg, out, first, progress=progress, log=log)
+            run_sweep(cfg, out, first, progress=progress, log=log, redo=redo)
         if train_missing and missing:
             for s in missing:
                 res[s] = str(train_resolution_policy(s, out / "policies" / f"px{s}", scene, progress=progress, log=log, dagger_iterations=train_iterations))
             cfg = load_tradeoff_config(**{**cfg.model_dump(), "resolution_policies": res})
-            run_sweep(cfg, out, [f"policy_resolution={s}" for s in missing], progress=progress, log=log)
+            run_sweep(cfg, out, [f"policy_resolution={s}" for s in missing], progress=progress, log=log, redo=redo)
     from trials.tradeoff_report import write_report
 
     report = write_report(out, plot=Path(plot) if plot else None)

@@ -92,6 +92,19 @@ def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, ti
     log.clear()
     run_sweep(cfg, tmp_path, ["eot_envs=2"], progress=False, log=log.append)
     assert "eot_envs=2: done, skipped" in log and len((tmp_path / "rows.jsonl").read_text().splitlines()) == 1
+    # --redo measures it again; the newest record is the one reported
+    run_sweep(cfg, tmp_path, ["eot_envs=2"], progress=False, log=log.append, redo=True)
+    assert len((tmp_path / "rows.jsonl").read_text().splitlines()) == 2
+    (latest,) = read_results(tmp_path)
+    assert latest["time_utc"] >= rec["time_utc"] and latest["status"] == "ok"
+    # an evaluation set that is no longer task-feasible for the policy's pool is refused
+    sets = tmp_path / "eval_sets" / "ref.json"
+    doc = json.loads(sets.read_text())
+    doc["configs"][0]["seed"] = 10**6
+    sets.write_text(json.dumps(doc))
+    res = run_sweep(cfg, tmp_path, ["eot_envs=2"], progress=False, log=log.append, redo=True, isolate=False)
+    bad = next(r for r in res if r["key"] == "eot_envs=2")
+    assert bad["status"] == "error" and "not task-feasible" in bad["error"]
     # other settings in the same directory are refused
     with pytest.raises(TradeoffError, match="other settings.*episodes"):
         run_sweep(_tiny(tiny_policy_dir, pool_file).model_copy(update={"episodes": 3}), tmp_path, ["eot_envs=2"], progress=False)
