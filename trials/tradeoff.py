@@ -189,7 +189,8 @@ def build_rows(cfg: TradeoffConfig) -> list[Row]:
                 raise TradeoffError(f"values.{knob}: bad value {v!r}") from None
             if value == getattr(base, fname):
                 continue  # that is the baseline itself
-            rows.append(Row(knob, str(v), "attack", "ref", {fname: value}, note=f"baseline: {getattr(base, fname)}"))
+            was = getattr(base, fname)
+            rows.append(Row(knob, str(v), "attack", "ref", {fname: value}, note=f"baseline: {({True: 'on', False: 'off'}.get(was, was))}"))
     for s in vals["deployment"]:
         if s not in DEPLOYMENTS:
             raise TradeoffError(f"values.deployment: unknown variant {s!r}; choose from {', '.join(DEPLOYMENTS)}")

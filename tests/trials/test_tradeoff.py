@@ -40,7 +40,7 @@ def test_every_knob_of_the_issue_has_rows_with_the_issue_values():
     assert {r.overrides["num_envs"] for r in by["eot_envs"]} == {1, 2}
     assert {r.overrides["rollout_steps"] for r in by["rollout_steps"]} == {5, 10}
     assert [r.overrides for r in by["sampler"]] == [{"sampler": "bilinear"}]
-    assert [r.overrides for r in by["saliency"]] == [{"use_saliency": False}]
+    assert [(r.overrides, r.note) for r in by["saliency"]] == [({"use_saliency": False}, "baseline: on")]
     assert [r.overrides for r in by["pcgrad"]] == [{"pcgrad": False}]
     assert all(r.overrides["texture_size"] != 64 for r in by["texture_size"])
     assert {r.value for r in by["policy_resolution"]} == {"96", "128"} and {r.policy for r in by["policy_resolution"]} == {"px96", "px128"}
@@ -168,8 +168,8 @@ def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
     assert "| onnx-int8 | 1.50 (2.00) | 1.25 | 0.50 | n/a | 2.00e-02 | 3.00e-03 | 49/50 = 98 [90, 100] | 2 |" in text
     # table order follows the knob order of the issue
     assert text.index("| baseline | quick") < text.index("| iterations | 30") < text.index("| eot_envs | 1") < text.index("| policy_resolution | 96")
-    png = tmp_path / "tradeoff_pareto.png"
-    assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
+    for name in ("tradeoff_pareto.png", "tradeoff_pareto_cpu.png"):
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
 
 
 def test_cli_help_and_a_tiny_deployment_run(tmp_path, tiny_policy_dir, pool_file):
