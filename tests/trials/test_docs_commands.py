@@ -482,11 +482,10 @@ TINY: dict[str, Tiny] = {
     "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff":
         Tiny("bench tradeoff --policy {policy} --out {tmp}/tradeoff --quick-check --pool {pool} --max-steps 3 --rows eot_envs",
              ("{tmp}/tradeoff/report.md", "{tmp}/tradeoff/rows.jsonl"), slow=True),
-    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff --train-missing --train-iterations 3 --plot docs/img/tradeoff_pareto.png":
+    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff --train-missing --plot docs/img/tradeoff_pareto.png":
         Tiny("bench tradeoff --policy {policy} --out {tmp}/tradeoff-doc --quick-check --pool {pool} --max-steps 3 --rows deployment=onnx-fp32 "
              "--plot {tmp}/tradeoff-doc/pareto.png", ("{tmp}/tradeoff-doc/report.md", "{tmp}/tradeoff-doc/pareto.png"), slow=True,
-             dropped={"--train-missing": "trains two quick-preset policies at 96 and 128 px (minutes each)",
-                      "--train-iterations": "only used with --train-missing"}),
+             dropped={"--train-missing": "trains two quick-preset policies at 96 and 128 px (minutes each)"}),
     # ---- calibration (workflow step 7 and calibration.md)
     **CALIB,
     # ---- real trials (the sim hardware config stands in for the cell)
