@@ -627,13 +627,7 @@ def _anchors(path: Path) -> set[str]:
     return out
 
 
-# Docs a teammate is writing right now: a link to one of them warns instead of failing until it lands.
-PENDING_DOCS = {"docs/speed-vs-accuracy.md"}
-
-
 def test_local_links_and_anchors_resolve():
-    import warnings
-
     broken = []
     for f in DOC_FILES:
         for m in re.finditer(r"\]\(([^)\s]+)\)", f.read_text()):
@@ -642,9 +636,7 @@ def test_local_links_and_anchors_resolve():
                 continue
             path, _, frag = link.partition("#")
             target = (f.parent / path).resolve() if path else f
-            if not target.exists() and target.resolve().relative_to(ROOT).as_posix() in PENDING_DOCS:
-                warnings.warn(f"{f.relative_to(ROOT)} links to {link}, which is not written yet", stacklevel=1)
-            elif not target.exists():
+            if not target.exists():
                 broken.append(f"{f.relative_to(ROOT)}: {link} (no such file)")
             elif frag and target.suffix == ".md" and frag not in _anchors(target):
                 broken.append(f"{f.relative_to(ROOT)}: {link} (no heading with that anchor)")
