@@ -37,7 +37,11 @@ def _act(policy, env, obs):
 
 
 def rollouts(spec, configs, size: int, policy, texture, cull: bool):
-    """Run every config to the end; returns per-episode outcomes and every rendered state."""
+    """Run every config to the end; returns per-episode outcomes and every rendered state.
+
+    ``states`` lists ``(T_world_objects, T_world_tcp, T_world_cam)`` step by step across the batch
+    (env 0 step 0, env 1 step 0, ...); ``episodes[j]`` is the env index of ``states[j]``.
+    """
     from sim.env import ReachEnv
 
     n = len(configs)
@@ -45,14 +49,15 @@ def rollouts(spec, configs, size: int, policy, texture, cull: bool):
     env.renderer.frustum_cull = cull
     if texture is not None:
         env.renderer.set_object_texture(env.adv_index, texture)
-    states, culled = [], []
+    states, episodes = [], []
     obs, _ = env.reset(configs=configs)
     while not env.done.all():
         for i in np.flatnonzero(~env.done):
             w = env.worlds[i]
             states.append((w.T_world_objects.copy(), w.T_world_tcp, w.camera_pose()))
+            episodes.append(int(i))
         obs, *_ = env.step(_act(policy, env, obs))
-    out = {"reached": env.reached.copy(), "steps": env.steps.copy(), "tcp": env.T_world_tcp}
+    out = {"reached": env.reached.copy(), "steps": env.steps.copy(), "tcp": env.T_world_tcp, "episodes": episodes}
     env.close()
     return out, states
 
@@ -114,7 +119,7 @@ def bench_frustum(spec, configs, size, policy, texture) -> None:
     print(f"  outcomes with/without identical: {same}; success {np.mean(on['reached'] == goal):.3f} / "
           f"{np.mean(off['reached'] == goal):.3f}; reached adversarial (T-ASR) {np.mean(on['reached'] == adv):.3f} / "
           f"{np.mean(off['reached'] == adv):.3f}")
-    return states
+    return states, on["episodes"]
 
 
 def bench_isolated_shading(spec, states, size) -> None:
@@ -164,24 +169,38 @@ def bench_isolated_shading(spec, states, size) -> None:
           f"max |diffuse/specular diff| {d_shade:g}, max |I_adv diff| {d_img:g}")
 
 
-def bench_previous_frame(spec, states, size) -> None:
-    """Reusing the previous step's render as the background: how far from exact it is."""
-    from sim.render import SceneRenderer
+def bench_previous_frame(spec, states, episodes, size, max_pairs: int = 300) -> None:
+    """Reusing the previous step's render as the background: how far from exact it is.
 
+    Compares step t with step t+1 *of the same episode* (``episodes[j]`` names the episode of
+    ``states[j]``), outside the gripper in both frames: the part a reused background would supply.
+    """
+    from sim.render import GRIPPER_ID, SceneRenderer
+
+    by_episode: dict[int, list] = {}
+    for e, s in zip(episodes, states):
+        by_episode.setdefault(e, []).append(s)
     r = SceneRenderer(spec, size, size)
-    prev, diffs, fracs = None, [], []
-    for T_objs, T_tcp, T_cam in states[:200]:
-        r.set_state(T_objs, T_tcp)
-        out = r.render(T_cam, with_ids=True)
-        if prev is not None:
-            bg = (out.ids != 2) & (prev.ids != 2)  # not the gripper in either frame
-            d = np.abs(out.rgb.astype(int) - prev.rgb.astype(int)).max(-1)[bg]
-            diffs.append(int(d.max(initial=0)))
-            fracs.append(float((d > 0).mean()) if d.size else 0.0)
-        prev = out
+    diffs, fracs, means = [], [], []
+    for seq in by_episode.values():
+        prev = None
+        for T_objs, T_tcp, T_cam in seq:
+            if len(diffs) >= max_pairs:
+                break
+            r.set_state(T_objs, T_tcp)
+            out = r.render(T_cam, with_ids=True)
+            if prev is not None:
+                bg = (out.ids != GRIPPER_ID) & (prev.ids != GRIPPER_ID)
+                d = np.abs(out.rgb.astype(int) - prev.rgb.astype(int)).max(-1)[bg]
+                diffs.append(int(d.max(initial=0)))
+                fracs.append(float((d > 0).mean()) if d.size else 0.0)
+                means.append(float(d.mean()) if d.size else 0.0)
+            prev = out
     r.close()
-    print(f"[previous-frame background, not shipped] consecutive wrist frames (gripper excluded): max |rgb diff| "
-          f"median {statistics.median(diffs)}, max {max(diffs)}; pixels changed: median {statistics.median(fracs):.1%}")
+    print(f"[previous-frame background, not shipped] {len(diffs)} pairs of consecutive frames of one episode "
+          f"(gripper excluded): max |rgb diff| median {statistics.median(diffs)}, max {max(diffs)}; "
+          f"mean |diff| median {statistics.median(means):.2f}/255; pixels changed: median {statistics.median(fracs):.1%}, "
+          f"min {min(fracs):.1%}")
 
 
 def bench_resolution(spec, states, size) -> None:
@@ -281,9 +300,9 @@ def main() -> None:
         tex = np.load(os.path.join(args.attack, "texture.npy"))
         texture = np.clip(np.rint(tex * 255.0), 0, 255).astype(np.uint8)
     print(f"load average {os.getloadavg()[0]:.2f}, torch threads {torch.get_num_threads()}")
-    states = bench_frustum(spec, configs, size, policy, texture)
+    states, episodes = bench_frustum(spec, configs, size, policy, texture)
     bench_isolated_shading(spec, states, size)
-    bench_previous_frame(spec, states, size)
+    bench_previous_frame(spec, states, episodes, size)
     bench_resolution(spec, states, size)
     if args.validation:
         bench_validation(spec, args.policy, size)
