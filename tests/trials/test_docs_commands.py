@@ -641,3 +641,65 @@ def test_local_links_and_anchors_resolve():
             elif frag and target.suffix == ".md" and frag not in _anchors(target):
                 broken.append(f"{f.relative_to(ROOT)}: {link} (no heading with that anchor)")
     assert not broken, "broken links in the docs:\n" + "\n".join(broken)
+
+
+# ============================================================================ benchmark scripts named in the docs
+_VAR = re.compile(r'^([A-Z_]+)="(.*)"$')
+
+
+def benchmark_lines(path: Path) -> list[tuple[int, list[str]]]:
+    """``(line, argv)`` of every ``python benchmarks/...`` line in a shell block of ``path``.
+
+    ``NAME="python benchmarks/x.py ..."`` assignments are expanded where a later line of the same
+    block starts with ``$NAME``.
+    """
+    out, lang, env, pending, start = [], None, {}, "", 0
+    for no, raw in enumerate(path.read_text().splitlines(), 1):
+        if _FENCE.match(raw):
+            lang, env = (None, {}) if lang is not None else ((_FENCE.match(raw).group(1) or "").lower(), {})
+            continue
+        if lang not in ("bash", "sh", "shell", "console", ""):
+            continue
+        line = raw.strip().removeprefix("$ ")
+        if not pending:
+            start = no
+        line = (pending + " " + line).strip()
+        if line.endswith("\\"):
+            pending = line[:-1]
+            continue
+        pending = ""
+        if not line.startswith(("python", "$")) and not _VAR.match(line):
+            continue
+        m = _VAR.match(line)
+        if m:
+            env[m.group(1)] = m.group(2)
+            continue
+        head = line.split(" ", 1)[0]
+        if head.startswith("$") and head[1:] in env:
+            line = env[head[1:]] + line[len(head):]
+        tokens = shlex.split(line, comments=True)
+        if len(tokens) >= 2 and tokens[0] in ("python", "python3") and tokens[1].startswith("benchmarks/"):
+            out.append((start, tokens[1:]))
+    return out
+
+
+BENCH_LINES = [(f.relative_to(ROOT).as_posix(), no, argv) for f in DOC_FILES for no, argv in benchmark_lines(f)]
+
+
+def test_the_docs_name_benchmark_commands_to_check():
+    assert any(argv[0] == "benchmarks/bench_tradeoff.py" for _, _, argv in BENCH_LINES)
+
+
+@pytest.mark.parametrize("where,argv", [(f"{f}:{no}", argv) for f, no, argv in BENCH_LINES],
+                         ids=[f"{f}:{no}" for f, no, _ in BENCH_LINES])
+def test_documented_benchmark_command_exists_and_takes_its_options(where, argv, _bench_help={}):
+    import sys
+
+    script = ROOT / argv[0]
+    assert script.is_file(), f"{where}: {argv[0]} does not exist"
+    if argv[0] not in _bench_help:  # one --help per script
+        r = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+        assert r.returncode == 0, f"{where}: {argv[0]} --help failed: {r.stderr[-500:]}"
+        _bench_help[argv[0]] = set(re.findall(r"(--[\w-]+)", r.stdout))
+    unknown = {t.split("=", 1)[0] for t in argv[1:] if t.startswith("--")} - _bench_help[argv[0]]
+    assert not unknown, f"{where}: {argv[0]} has no option(s) {sorted(unknown)}"
