@@ -8,8 +8,17 @@ Every command passes, in this order:
 4. NaN / Inf / non-rigid targets (refused: stop);
 5. the arm's fault state (protective stop, e-stop, lost link: :class:`ArmFaultError`);
 6. :func:`limit_command`: the target is clipped into the workspace box, the per-step translation
-   and rotation are capped at ``min(max_step, max_speed * control_period_s)``, and the change of
+   and rotation are capped at ``min(max_step, max_speed * period)``, and the change of
    translation step is capped by ``max_accel_mps2`` (a soft limit: the workspace wins at the wall).
+
+The ``period`` a command may cover is ``min(control_period_s, time since the last motion
+command)``, so calling :meth:`SafeArm.step` faster than the loop period cannot add up to more
+than the speed caps. The time is measured on the arm's clock: wall-clock time (``clock``) for
+every arm that executes commands in real time (UR, serial, a ``realtime`` sim arm), and the
+simulated time for a sim arm that runs faster than real time (:meth:`Arm.simulated_time_s`
+returns it; each of its commands advances it by one control period), so trial sessions on the
+sim can run as fast as the machine allows. After a completed positioning move the arm is at
+rest and the next step may cover a full period again.
 
 Refused commands stop the arm; clipped ones are sent clipped. Both are logged with their reason
 (logger ``robot_io.safety``) and kept in :attr:`SafeArm.events`. Leaving ``with safe_arm:`` on any
@@ -74,11 +83,22 @@ class SafetyLimits(BaseModel):
 
     @property
     def step_cap_m(self) -> float:
-        return min(self.max_step_m, self.max_speed_mps * self.control_period_s)
+        return self.step_caps()[0]
 
     @property
     def step_cap_rad(self) -> float:
-        return min(self.max_step_rad, self.max_speed_radps * self.control_period_s)
+        return self.step_caps()[1]
+
+    def step_caps(self, period_s: float | None = None) -> tuple[float, float]:
+        """``(m, rad)`` one command may move when it covers ``period_s`` (default and at most ``control_period_s``)."""
+        dt = self.command_period_s(period_s)
+        return min(self.max_step_m, self.max_speed_mps * dt), min(self.max_step_rad, self.max_speed_radps * dt)
+
+    def command_period_s(self, period_s: float | None = None) -> float:
+        """``period_s`` clamped to ``[0, control_period_s]`` (``None``: the nominal period)."""
+        if period_s is None:
+            return self.control_period_s
+        return max(0.0, min(float(period_s), self.control_period_s))
 
     def contains(self, p, tol: float = 0.0) -> bool:
         p = np.asarray(p, dtype=np.float64)
@@ -102,13 +122,18 @@ class StepResult:
 
 
 def limit_command(T_now: np.ndarray, T_target: np.ndarray, prev_step_m: np.ndarray,
-                  limits: SafetyLimits) -> tuple[np.ndarray, np.ndarray, list[str]]:
+                  limits: SafetyLimits, period_s: float | None = None) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Pure math: the command actually sent for ``T_target`` from ``T_now``.
 
-    Returns ``(T_cmd, step_m, reasons)`` where ``step_m`` is the commanded translation (the next
-    call's ``prev_step_m``) and ``reasons`` lists every clip applied. Both poses must be valid.
+    ``period_s`` is the time this command may cover (the caller measures it since its last
+    command; ``None``: ``limits.control_period_s``, which is also its upper bound). Returns
+    ``(T_cmd, step_m, reasons)`` where ``step_m`` is the commanded translation (the next call's
+    ``prev_step_m``) and ``reasons`` lists every clip applied. Both poses must be valid.
     """
     lo, hi = np.asarray(limits.workspace_min_m), np.asarray(limits.workspace_max_m)
+    dt = limits.command_period_s(period_s)
+    cap, rcap = limits.step_caps(dt)
+    early = "" if dt >= limits.control_period_s else f" ({dt * 1000:.1f} ms since the last command)"
     reasons: list[str] = []
     p_now, R_now = T_now[:3, 3], T_now[:3, :3]
     p_tgt = T_target[:3, 3]
@@ -116,17 +141,20 @@ def limit_command(T_now: np.ndarray, T_target: np.ndarray, prev_step_m: np.ndarr
     if not np.array_equal(p_box, p_tgt):
         reasons.append(f"target {_vec(p_tgt)} m outside the workspace: clipped to {_vec(p_box)}")
     dp = p_box - p_now
-    cap = limits.step_cap_m
     n = float(np.linalg.norm(dp))
     if n > cap:
-        reasons.append(f"translation step {n * 1000:.1f} mm capped to {cap * 1000:.1f} mm")
+        reasons.append(f"translation step {n * 1000:.1f} mm capped to {cap * 1000:.1f} mm{early}")
         dp = dp * (cap / n)
     inside = limits.contains(p_now)
     if inside:
-        # A convex mix of two steps within the cap stays within the cap.
+        # A convex mix of two steps within the cap stays within the cap; a shorter period than
+        # the previous command's shrinks the cap, so the previous step is shortened to it first.
         prev = np.asarray(prev_step_m, dtype=np.float64)
+        pn = float(np.linalg.norm(prev))
+        if pn > cap:
+            prev = prev * (cap / pn)
         dd = dp - prev
-        a_cap = limits.max_accel_mps2 * limits.control_period_s**2
+        a_cap = limits.max_accel_mps2 * dt**2
         m = float(np.linalg.norm(dd))
         if m > a_cap:
             reasons.append(f"step change {m * 1000:.2f} mm exceeds the acceleration cap {a_cap * 1000:.2f} mm: smoothed")
@@ -141,9 +169,8 @@ def limit_command(T_now: np.ndarray, T_target: np.ndarray, prev_step_m: np.ndarr
         p_cmd = p_now + dp
     r = so3_log(R_now.T @ T_target[:3, :3])
     ang = float(np.linalg.norm(r))
-    rcap = limits.step_cap_rad
     if ang > rcap:
-        reasons.append(f"rotation step {np.degrees(ang):.2f} deg capped to {np.degrees(rcap):.2f} deg")
+        reasons.append(f"rotation step {np.degrees(ang):.2f} deg capped to {np.degrees(rcap):.2f} deg{early}")
         r = r * (rcap / ang)
     return make_T(R_now @ so3_exp(r), p_cmd), dp, reasons
 
@@ -176,6 +203,7 @@ class SafeArm:
         self.events: collections.deque[SafetyEvent] = collections.deque(maxlen=10_000)
         self._trial_start: float | None = None
         self._prev_step = np.zeros(3)
+        self._last_command_s: float | None = None  # on the arm's command clock (see _command_clock)
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -204,6 +232,10 @@ class SafeArm:
             self.disconnect()
         return False
 
+    def keepalive(self) -> None:
+        """Kick the driver's watchdog; call it when the arm is connected but no command is due."""
+        self.__arm.keepalive()
+
     # ------------------------------------------------------------------ state
     def tcp_pose(self) -> np.ndarray:
         return self.__arm.tcp_pose()
@@ -228,6 +260,17 @@ class SafeArm:
     @property
     def trial_elapsed_s(self) -> float:
         return 0.0 if self._trial_start is None else self.clock() - self._trial_start
+
+    def _command_clock(self) -> float:
+        # Simulated time for a sim arm running faster than real time, else the wall clock.
+        t = self.__arm.simulated_time_s()
+        return self.clock() if t is None else float(t)
+
+    def _command_period_s(self, now: float) -> float:
+        """The time the next command may cover: the loop period, or less when it comes sooner."""
+        if self._last_command_s is None:
+            return self.limits.control_period_s
+        return self.limits.command_period_s(now - self._last_command_s)
 
     def _record(self, action: str, reason: str) -> None:
         self.events.append(SafetyEvent(self.clock(), action, reason))
@@ -269,7 +312,9 @@ class SafeArm:
             raise SafetyRefusal(reason)
         v = self.limits.positioning_speed_mps if speed_mps is None else float(speed_mps)
         if not np.isfinite(v) or v <= 0:
-            raise SafetyRefusal(f"positioning speed must be positive, got {speed_mps}")
+            reason = f"positioning speed must be positive, got {speed_mps}"
+            self._record("refused", reason)
+            raise SafetyRefusal(reason)
         if v > self.limits.max_speed_mps:
             self._record("clipped", f"positioning speed {v} m/s capped to {self.limits.max_speed_mps} m/s")
             v = self.limits.max_speed_mps
@@ -280,7 +325,9 @@ class SafeArm:
         except BaseException as err:
             self._stop_quietly(f"{type(err).__name__} during a positioning move: {err}")
             raise
+        # The move ended at rest: the next step starts from zero velocity, with a full period.
         self._prev_step = np.zeros(3)
+        self._last_command_s = None
 
     def step(self, T_base_tcp: np.ndarray, frame) -> StepResult:
         """One policy-loop command toward ``T_base_tcp``, computed from camera ``frame``.
@@ -344,9 +391,13 @@ class SafeArm:
         T_target = target_fn(T_now)
         if not is_valid_pose(T_target):
             raise _Refuse("target is not a finite rigid (4, 4) transform (NaN, Inf or not a rotation)")
-        T_cmd, dp, reasons = limit_command(T_now, np.asarray(T_target, dtype=np.float64), self._prev_step, lim)
+        # Read before sending: a sim arm's clock advances while it executes the command.
+        t_cmd = self._command_clock()
+        T_cmd, dp, reasons = limit_command(T_now, np.asarray(T_target, dtype=np.float64), self._prev_step, lim,
+                                           self._command_period_s(t_cmd))
         for r in reasons:
             self._record("clipped", r)
+        self._last_command_s = t_cmd  # before sending: a servo that raises may still have reached the arm
         self.__arm.servo(T_cmd, lim.control_period_s)
         self._prev_step = dp
         return StepResult("clipped" if reasons else "ok", T_cmd, tuple(reasons))

@@ -77,3 +77,12 @@ class Arm(Device):
 
     def keepalive(self) -> None:
         """Tell the arm's watchdog we are alive; called every control loop iteration."""
+
+    def simulated_time_s(self) -> float | None:
+        """The arm's simulated clock, or ``None`` when it executes commands in wall-clock time.
+
+        Every real arm returns ``None``. A simulation that runs faster than real time returns the
+        time its commands have covered, so the safety layer measures the time between commands
+        on that clock rather than throttling the simulation to the wall clock.
+        """
+        return None

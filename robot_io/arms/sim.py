@@ -3,6 +3,8 @@
 Kinematic, like the sim itself, but speed-limited so motions take time: ``servo`` advances at
 most ``max_speed * duration_s`` toward its target, and ``move_to`` either sleeps for the motion's
 duration (``realtime=True``, for hardware-in-the-loop sessions) or only advances ``sim_time_s``.
+Without ``realtime`` the arm reports ``sim_time_s`` as its :meth:`simulated_time_s`, so the
+safety layer's speed caps count simulated time and sessions may run faster than real time.
 The world frame plays the role of the robot base frame.
 """
 
@@ -91,6 +93,10 @@ class SimArm(Arm):
         self.sim_time_s += duration
         if self.realtime:
             time.sleep(duration)
+
+    def simulated_time_s(self) -> float | None:
+        # Non-realtime: each command takes simulated time only, so the safety layer uses this clock.
+        return None if self.realtime else self.sim_time_s
 
     def stop(self) -> None:
         pass  # kinematic: motion ends with each command

@@ -114,6 +114,44 @@ def test_speed_cap_binds_when_tighter_than_step_cap():
     assert any("capped" in r for r in reasons)
 
 
+def test_caps_scale_with_the_period_the_command_covers_but_never_beyond_one_loop_period():
+    lim = SafetyLimits(workspace_min_m=(-1, -1, 0), workspace_max_m=(1, 1, 1), max_step_m=0.05, max_step_rad=0.5,
+                       max_speed_mps=0.1, max_speed_radps=1.0, control_period_s=0.1, max_accel_mps2=1e6)
+    T_far = make_pose(0.6, rotvec=(np.pi, 0.0, 0.3))
+    T_cmd, dp, reasons = limit_command(make_pose(), T_far, np.zeros(3), lim, period_s=0.02)
+    assert np.linalg.norm(dp) == pytest.approx(0.002)  # 0.1 m/s * 20 ms
+    assert pose_step(make_pose(), T_cmd)[1] == pytest.approx(0.02)  # 1 rad/s * 20 ms
+    assert any("20.0 ms since the last command" in r for r in reasons)
+    _, dp, _ = limit_command(make_pose(), T_far, np.zeros(3), lim, period_s=5.0)
+    assert np.linalg.norm(dp) == pytest.approx(0.01)  # a late command still covers one period only
+    _, dp, _ = limit_command(make_pose(), T_far, np.array([0.01, 0, 0]), lim, period_s=0.0)
+    assert np.linalg.norm(dp) == 0.0  # simultaneous commands: no motion, not even the previous step's
+
+
+def test_commands_faster_than_the_loop_period_cannot_exceed_the_speed_cap(limits):
+    # Calling step_delta in a tight loop once moved an arm 1 m in 64 ms (15.6 m/s under a 0.15 m/s cap).
+    clock = Clock()
+    T0 = make_pose(-0.5, 0.0, 0.5)
+    arm = RecordingArm(T0)
+    with SafeArm(arm, limits, clock=clock) as safe:
+        t0 = clock.t
+        for _ in range(1000):
+            clock.t += 64e-6
+            safe.step_delta([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], clock.t)
+    elapsed_s = clock.t - t0
+    moved = pose_step(T0, arm.T)[0]
+    assert len(arm.servos) == 1000
+    assert moved <= limits.max_speed_mps * (elapsed_s + limits.control_period_s) + 1e-9
+    assert any("since the last command" in e.reason for e in safe.events)
+
+
+def test_a_completed_positioning_move_leaves_the_arm_at_rest_for_a_full_next_step(rig, limits):
+    safe, arm, clock = rig
+    safe.move_to(make_pose(0.5, 0.0, 0.3))
+    res = safe.step_delta([0.5, 0.0, 0.0, 0.0, 0.0, 0.0], clock.t)  # same instant as the move's end
+    assert pose_step(arm.servos[0][0], res.T_cmd)[0] == pytest.approx(limits.step_cap_m)
+
+
 def test_fast_reversal_is_smoothed_by_the_acceleration_cap():
     lim = SafetyLimits(workspace_min_m=(-1, -1, 0), workspace_max_m=(1, 1, 1), max_step_m=0.01,
                        max_speed_mps=1.0, control_period_s=0.02, max_accel_mps2=5.0)
@@ -178,6 +216,22 @@ def test_positioning_speed_is_capped(rig, limits):
     safe.move_to(make_pose(0.5, 0.0, 0.3), speed_mps=10.0)
     assert arm.moves[0][1] == limits.max_speed_mps
     assert any(e.action == "clipped" and "speed" in e.reason for e in safe.events)
+
+
+@pytest.mark.parametrize("speed", [0.0, -0.1, float("nan")])
+def test_a_non_positive_positioning_speed_is_refused_and_logged(rig, speed):
+    safe, arm, _ = rig
+    with pytest.raises(SafetyRefusal, match="positive"):
+        safe.move_to(make_pose(0.5, 0.0, 0.3), speed_mps=speed)
+    assert arm.moves == []
+    assert safe.events[-1].action == "refused" and "positioning speed" in safe.events[-1].reason
+
+
+def test_keepalive_reaches_the_driver(rig):
+    safe, arm, _ = rig
+    kicks = arm.kicks
+    safe.keepalive()
+    assert arm.kicks == kicks + 1
 
 
 def test_the_raw_driver_is_not_exposed(rig):

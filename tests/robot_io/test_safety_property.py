@@ -4,6 +4,9 @@
 pure-math arm (no rendering, no I/O). Drawing every float through hypothesis costs ~2 ms per
 action, so each example draws a few hostile actions directly and a seed for numpy to generate
 the rest from the same menu (small, huge, NaN/Inf, far away, non-rigid, oscillating, stale).
+The injected clock advances by irregular amounts (a whole period, nothing at all, bursts far
+faster than the loop, long pauses), and every command is checked against the time that
+actually passed since the previous one.
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ action = st.one_of(delta, far_pose, garbage_matrix, oscillation, stale)
 
 
 ACTIONS_PER_EXAMPLE = 100
+P = LIMITS.control_period_s
+# Time between two actions: on time, simultaneous, a tight loop (as fast as possible), jitter, stalls.
+DT_MENU_S = np.array([P, 0.0, 1e-4, 1e-3, P / 3, 0.9 * P, 2 * P, 1.0])
 
 
 def numpy_actions(seed: int, n: int) -> list[tuple[str, object]]:
@@ -64,6 +70,10 @@ def numpy_actions(seed: int, n: int) -> list[tuple[str, object]]:
     return out
 
 
+def numpy_dts(seed: int, n: int) -> np.ndarray:
+    return np.random.default_rng([seed, 1]).choice(DT_MENU_S, size=n)
+
+
 # No shrink phase: a failure prints its (reproducible, derandomized) example at once.
 @settings(max_examples=100, deadline=None, derandomize=True, database=None, phases=[Phase.explicit, Phase.generate],
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.large_base_example])
@@ -78,9 +88,10 @@ def test_hostile_actions_never_produce_a_command_outside_the_limits(seed, drawn,
     arm = RecordingArm(make_pose(*start))
     safe = SafeArm(arm, LIMITS, clock=lambda: t[0])
     sign = 1.0
+    sent_at_s = []  # clock time of every command the arm received
     with safe:
-        for kind, value in actions:
-            t[0] += LIMITS.control_period_s
+        for (kind, value), dt in zip(actions, numpy_dts(seed, len(actions))):
+            t[0] += dt
             n_before, stops_before = len(arm.servos), arm.stops
             if kind == "delta":
                 res = safe.step_delta(value, t[0])
@@ -94,14 +105,23 @@ def test_hostile_actions_never_produce_a_command_outside_the_limits(seed, drawn,
             if kind == "stale" or (kind == "delta" and not np.isfinite(value).all()) or (
                     kind == "pose" and not is_valid_pose(value)):
                 assert res.status == "refused" and len(arm.servos) == n_before and arm.stops == stops_before + 1
+            sent_at_s += [t[0]] * (len(arm.servos) - n_before)
     kicks_expected = len(actions)
     assert arm.kicks >= kicks_expected  # the watchdog is kicked on every step, refused or not
-    for T_before, T_cmd, duration in arm.servos:
+    prev_s, path_m, path_rad = None, 0.0, 0.0
+    for (T_before, T_cmd, duration), t_s in zip(arm.servos, sent_at_s):
         assert is_valid_pose(T_cmd)
-        assert duration == LIMITS.control_period_s
+        assert duration == P
         p = T_cmd[:3, 3]
         assert (p >= np.array(LIMITS.workspace_min_m) - TOL).all() and (p <= np.array(LIMITS.workspace_max_m) + TOL).all()
         dp, dr = pose_step(T_before, T_cmd)
         assert dp <= LIMITS.step_cap_m + TOL
         assert dr <= LIMITS.step_cap_rad + 1e-7
-        assert dp / duration <= LIMITS.max_speed_mps + 1e-6
+        # Real speed: a command covers at most one period, and no more than the time since the last one.
+        window_s = P if prev_s is None else min(P, t_s - prev_s)
+        assert dp <= LIMITS.max_speed_mps * window_s + TOL, f"{dp * 1000:.2f} mm {window_s * 1000:.2f} ms after the last command"
+        assert dr <= LIMITS.max_speed_radps * window_s + 1e-7
+        prev_s, path_m, path_rad = t_s, path_m + dp, path_rad + dr
+    if sent_at_s:  # over the whole run: the path length fits the elapsed time (plus the first command's period)
+        span_s = sent_at_s[-1] - sent_at_s[0] + P
+        assert path_m <= LIMITS.max_speed_mps * span_s + 1e-6 and path_rad <= LIMITS.max_speed_radps * span_s + 1e-6

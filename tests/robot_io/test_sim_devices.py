@@ -12,6 +12,7 @@ from robot_io.arms.sim import SimArm
 from robot_io.cameras.sim import SimCamera
 from robot_io.config import build_arm, build_camera, load_hardware_config
 from robot_io.poses import pose_step
+from robot_io.safety import SafeArm
 
 SIM_YAML = Path(__file__).resolve().parents[2] / "examples" / "hardware" / "sim.yaml"
 
@@ -56,6 +57,19 @@ def test_sim_arm_realtime_moves_take_wall_clock_time(fresh_world):
         t0 = time.monotonic()
         arm.move_to(T, 0.2)
         assert time.monotonic() - t0 >= 0.09  # 20 mm at 0.2 m/s
+
+
+@pytest.mark.parametrize("realtime", [False, True])
+def test_speed_caps_count_simulated_time_unless_the_sim_arm_runs_in_real_time(fresh_world, limits, realtime):
+    # A frozen wall clock: the loop runs "infinitely fast", as the trial runner's --no-rate-limit does.
+    safe = SafeArm(SimArm(fresh_world, realtime=realtime), limits, clock=lambda: 50.0)
+    with safe:
+        T0 = safe.tcp_pose()
+        for _ in range(5):
+            safe.step_delta([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], 50.0)
+        moved = pose_step(T0, safe.tcp_pose())[0]
+    # Simulated: each command covered one control period. Real time: none passed after the first.
+    assert moved == pytest.approx(limits.step_cap_m * (1 if realtime else 5))
 
 
 def test_a_whole_session_runs_from_the_sim_config(fresh_world):
