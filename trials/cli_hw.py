@@ -30,7 +30,9 @@ def check(
             stack.callback(world.close)
         camera = build_camera(cfg, world)
         arm = build_arm(cfg, world)
-        with camera, arm:
+        # The camera is timed before the arm connects: a connected UR arm's watchdog stops its
+        # control script unless kicked every 1 / watchdog_min_hz, which timing frames would not do.
+        with camera:
             s = measure_camera(camera, frames)
             K = camera.intrinsics.K
             typer.echo(f"camera ({cfg.camera.type}): {s.width}x{s.height}, {s.fps:.1f} fps over {s.frames} frames, "
@@ -38,6 +40,8 @@ def check(
             typer.echo(f"  read() {s.read_ms_median:.1f} ms median / {s.read_ms_p95:.1f} ms p95; "
                        f"frame age {s.age_ms_median:.1f} ms median / {s.age_ms_p95:.1f} ms p95")
             typer.echo(f"  intrinsics fx={K[0, 0]:.1f} fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f} px")
+        with arm:
+            arm.keepalive()
             fault = arm.fault()
             typer.echo(f"arm ({cfg.arm.type}): {format_pose(arm.tcp_pose())}")
             typer.echo(f"  fault: {fault if fault else 'none'}")

@@ -2,7 +2,12 @@
 
 * ``moveL`` positions; the policy loop streams ``servoL`` (or ``speedL``) targets.
 * ``setWatchdog`` makes the controller stop the arm when our process stops kicking it, so a
-  crashed or frozen Python process cannot leave the arm following its last command.
+  crashed or frozen Python process cannot leave the arm following its last command. From
+  ``connect()`` on, something must reach the controller at least every ``1 / watchdog_min_hz``:
+  the policy loop's commands, or :meth:`URArm.keepalive`. ``moveL`` therefore runs
+  asynchronously and :meth:`URArm.move_to` kicks the watchdog (and checks for faults) while it
+  polls ``getAsyncOperationProgressEx`` for the end of the move; a blocking ``moveL`` longer than
+  the watchdog period would stop the control script mid-move.
 * A protective stop, an e-stop, a stopped control script or a dropped link becomes an
   :class:`ArmFaultError` that says what happened and how to recover (via ``DashboardClient``).
 * ``disconnect`` always runs ``servoStop``/``speedStop`` -> ``stopScript`` -> ``disconnect``,
@@ -12,17 +17,24 @@
 from __future__ import annotations
 
 import logging
+import time
 from typing import Literal
 
 import numpy as np
 
 from robot_io.arms.base import Arm, Fault
-from robot_io.errors import ArmFaultError, require_extra
-from robot_io.poses import pose_from_vec, pose_to_vec
+from robot_io.errors import ArmFaultError, MissingExtraError, require_extra
+from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 
 __all__ = ["URArm", "PROTECTIVE_STOP_RECOVERY"]
 
 log = logging.getLogger(__name__)
+
+# moveL timeout: twice the trapezoid's duration plus this margin (controller start-up, slow
+# rotation-dominated moves at _MOVE_ROT_RADPS); a move still running then is stopped as a fault.
+_MOVE_MARGIN_S = 2.0
+_MOVE_ROT_RADPS = 0.5
+_STOP_DECEL_MPS2 = 10.0  # ur-rtde's stopL default
 
 PROTECTIVE_STOP_RECOVERY = (
     "check the cause on the teach pendant (collision, joint limit), clear the workspace, then "
@@ -64,14 +76,27 @@ class URArm(Arm):
         rtde_control = require_extra("rtde_control", "ur", "the UR arm driver")
         rtde_receive = require_extra("rtde_receive", "ur", "the UR arm driver")
         self._dashboard_mod = require_extra("dashboard_client", "ur", "the UR arm driver")
+        if not hasattr(rtde_control.RTDEControlInterface, "getAsyncOperationProgressEx"):
+            raise MissingExtraError("the installed ur-rtde has no RTDEControlInterface.getAsyncOperationProgressEx, "
+                                    "which the UR driver needs to wait for moveL: pip install -U ur-rtde")
         try:
             self._rtde_r = rtde_receive.RTDEReceiveInterface(self.host)
             self._rtde_c = rtde_control.RTDEControlInterface(self.host)
-        except RuntimeError as err:
-            self._rtde_c = self._rtde_r = None
-            raise ArmFaultError(Fault("connection_lost", f"cannot connect to UR controller at {self.host}: {err}",
-                                      "check the network, that the arm is powered on and in remote control")) from None
-        self._rtde_c.setWatchdog(self.watchdog_min_hz)
+            self._rtde_c.setWatchdog(self.watchdog_min_hz)
+        except BaseException as err:
+            # Release what was opened: a dangling receive interface keeps its RTDE thread running,
+            # a control interface its script on the controller.
+            self._close_quietly()
+            if isinstance(err, RuntimeError):
+                raise ArmFaultError(Fault("connection_lost", f"cannot connect to UR controller at {self.host}: {err}",
+                                          "check the network, that the arm is powered on and in remote control")) from None
+            raise
+
+    def _close_quietly(self) -> None:
+        try:
+            self._close()
+        except Exception as err:  # noqa: BLE001 - on an error path: the original error matters more
+            log.warning("UR %s: releasing the RTDE interfaces failed (%s)", self.host, err)
 
     def _close(self) -> None:
         c, r = self._rtde_c, self._rtde_r
@@ -122,13 +147,48 @@ class URArm(Arm):
         if self._rtde_c is not None:
             self._rtde_c.kickWatchdog()
 
-    def move_to(self, T_base_tcp: np.ndarray, speed_mps: float) -> None:
+    def move_to(self, T_base_tcp: np.ndarray, speed_mps: float, timeout_s: float | None = None) -> None:
+        """``moveL`` there, kicking the watchdog and checking faults until the move has ended.
+
+        ``timeout_s`` (default: from distance, speed and acceleration, with a margin): a move
+        still running then is stopped and raised as a fault.
+        """
         self.keepalive()
         self._require_ok()
-        if not self._rtde_c.moveL(pose_to_vec(T_base_tcp), float(speed_mps), self.acceleration_mps2):
-            self._require_ok()  # a refused move is usually a fault raised meanwhile
-            raise ArmFaultError(Fault("device_fault", "moveL was rejected by the controller",
-                                      "check the target is reachable and the teach pendant log"))
+        c = self._rtde_c
+        T_goal = np.asarray(T_base_tcp, dtype=np.float64)
+        v = float(speed_mps)
+        if timeout_s is None:
+            dp, dr = pose_step(self.tcp_pose(), T_goal)
+            timeout_s = 2.0 * (dp / v + v / self.acceleration_mps2 + dr / _MOVE_ROT_RADPS) + _MOVE_MARGIN_S
+        # The operation id changes when the controller starts our move; until then the status
+        # register may still show the previous (finished) operation.
+        before = c.getAsyncOperationProgressEx().operationId()
+        poll_s = min(0.01, 0.25 / self.watchdog_min_hz)
+        try:
+            if not c.moveL(pose_to_vec(T_goal), v, self.acceleration_mps2, True):
+                self._require_ok()  # a refused move is usually a fault raised meanwhile
+                raise ArmFaultError(Fault("device_fault", "moveL was rejected by the controller",
+                                          "check the target is reachable and the teach pendant log"))
+            deadline = time.monotonic() + timeout_s
+            while True:
+                self.keepalive()
+                self._require_ok()
+                st = c.getAsyncOperationProgressEx()
+                if st.operationId() != before and not st.isAsyncOperationRunning():
+                    self._require_ok()  # ended by a fault raised since the check above?
+                    return
+                if time.monotonic() > deadline:
+                    raise ArmFaultError(Fault("device_fault", f"moveL did not finish within {timeout_s:.1f} s",
+                                              "check the teach pendant for what held the arm back"))
+                time.sleep(poll_s)
+        except BaseException:
+            # Fault, timeout, Ctrl-C: an asynchronous move keeps going unless stopped (servoStop does not).
+            try:
+                c.stopL(_STOP_DECEL_MPS2)
+            except Exception as err:  # noqa: BLE001 - a faulted controller may refuse; the error raised matters more
+                log.warning("UR %s: stopL after an interrupted move failed (%s)", self.host, err)
+            raise
 
     def servo(self, T_base_tcp: np.ndarray, duration_s: float) -> None:
         # Kick first: even if this step raises, the controller knows we were alive just now.

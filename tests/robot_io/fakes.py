@@ -16,7 +16,21 @@ import numpy as np
 
 
 class FakeURController:
-    """The robot side shared by the three fake ur-rtde interfaces."""
+    """The robot side shared by the three fake ur-rtde interfaces.
+
+    Models what the driver must get right in time, on the wall clock:
+
+    * the RTDE watchdog: after ``setWatchdog(hz)`` every input update the control interface sends
+      (``kickWatchdog`` and every command) must come within ``1 / hz`` of the previous one, or the
+      control script stops (ur-rtde's watchdog action is "stop"); ``stopScript`` disarms it.
+      ``feed_gaps_s`` records every gap, ``watchdog_tripped`` whether one was too long.
+    * ``moveL`` takes ``distance / speed``: blocking, it returns after that long; asynchronous, it
+      returns at once and ``getAsyncOperationProgressEx`` reports the operation (its id is bumped
+      when it starts; for ``stale_polls`` reads after ``moveL`` returns the register still shows the
+      previous operation, as when the control script has not started the move thread yet).
+      ``stopL`` ends it where the TCP is; ``stall_moves`` makes moves never finish;
+      ``protective_stop_after_s`` raises a protective stop that long into a move (which freezes it).
+    """
 
     def __init__(self, pose=(0.4, 0.0, 0.3, 3.14159, 0.0, 0.0)):
         self.pose = list(pose)
@@ -26,6 +40,23 @@ class FakeURController:
         self.program_running = True
         self.connected = True
         self.fail_connect = False
+        self.fail_control_init = False
+        self.fail_set_watchdog = False
+        self.serial_number: str | None = "20235500042"  # None: a DashboardClient without getSerialNumber
+        self.robot_model = "UR5"
+        self.dashboard_unreachable = False
+        self.has_async_status = True
+        # watchdog
+        self.watchdog_hz: float | None = None
+        self.last_feed_s: float | None = None
+        self.feed_gaps_s: list[float] = []
+        self.watchdog_tripped = False
+        # motion
+        self.move: dict | None = None
+        self.op_id = 0
+        self.stale_polls = 2
+        self.stall_moves = False
+        self.protective_stop_after_s: float | None = None
 
     def log(self, *call):
         self.calls.append(call)
@@ -33,47 +64,137 @@ class FakeURController:
     def names(self) -> list[str]:
         return [c[0] for c in self.calls]
 
+    # ------------------------------------------------------------ watchdog
+    def feed(self) -> None:
+        """An RTDE input update from the control interface (a kick or any command)."""
+        now = time.monotonic()
+        if self.watchdog_hz is not None and self.last_feed_s is not None:
+            gap = now - self.last_feed_s
+            self.feed_gaps_s.append(gap)
+            if gap > 1.0 / self.watchdog_hz:
+                self.watchdog_tripped = True
+                self.program_running = False  # the control script stops; the arm with it
+                self.update(now)
+                self.move = None
+        self.last_feed_s = now
+
+    @property
+    def max_feed_gap_s(self) -> float:
+        return max(self.feed_gaps_s, default=0.0)
+
+    # ------------------------------------------------------------ motion
+    def update(self, now: float | None = None) -> None:
+        m = self.move
+        if m is None:
+            return
+        now = time.monotonic() if now is None else now
+        if self.protective_stop_after_s is not None and now - m["t0"] >= self.protective_stop_after_s:
+            # The arm freezes; the paused script's status register still reads "running".
+            self.protective_stopped = True
+            now = m["t0"] + self.protective_stop_after_s
+        s = 1.0 if m["duration"] <= 0 else min(1.0, (now - m["t0"]) / m["duration"])
+        if self.stall_moves:
+            s = min(s, 0.5)
+        self.pose = [a + s * (b - a) for a, b in zip(m["from"], m["to"])]
+        if s >= 1.0:
+            self.move = None
+
+    def start_move(self, pose, speed) -> float:
+        d = float(np.linalg.norm(np.subtract(pose[:3], self.pose[:3])))
+        duration = d / speed
+        self.move = {"t0": time.monotonic(), "duration": duration, "from": list(self.pose), "to": list(pose)}
+        self.op_id = (self.op_id + 1) % 128
+        return duration
+
+
+class FakeAsyncOperationStatus:
+    """ur-rtde's ``AsyncOperationStatus`` (the status word of ``getAsyncOperationProgressEx``)."""
+
+    def __init__(self, op_id: int, running: bool):
+        self._id, self._running = op_id, running
+
+    def isAsyncOperationRunning(self):
+        return self._running
+
+    def operationId(self):
+        return self._id
+
+    def progress(self):
+        return 0 if self._running else -1
+
 
 def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
     class RTDEControlInterface:
         def __init__(self, host):
-            if ctrl.fail_connect:
+            if ctrl.fail_connect or ctrl.fail_control_init:
                 raise RuntimeError("Failed to connect to the robot")
             ctrl.log("control_init", host)
+            self._stale = 0
 
         def setWatchdog(self, min_frequency=10.0):
             ctrl.log("setWatchdog", min_frequency)
+            if ctrl.fail_set_watchdog:
+                raise RuntimeError("RTDE control script is not running!")
+            ctrl.watchdog_hz = float(min_frequency)
+            ctrl.feed()
             return True
 
         def kickWatchdog(self):
             ctrl.log("kickWatchdog")
+            ctrl.feed()
             return True
 
         def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
-            ctrl.log("moveL", list(pose), speed, acceleration)
-            if ctrl.protective_stopped:
+            ctrl.log("moveL", list(pose), speed, acceleration, asynchronous)
+            ctrl.feed()
+            ctrl.update()
+            if ctrl.protective_stopped or not ctrl.program_running:
                 return False
-            ctrl.pose = list(pose)
+            duration = ctrl.start_move(list(pose), speed)
+            if asynchronous:
+                self._stale = ctrl.stale_polls
+                return True
+            time.sleep(duration)  # blocking: nothing else reaches the controller meanwhile
+            ctrl.update()
             return True
+
+        def getAsyncOperationProgressEx(self):
+            ctrl.update()
+            if self._stale > 0:  # the script has not started the move thread yet
+                self._stale -= 1
+                return FakeAsyncOperationStatus((ctrl.op_id - 1) % 128, False)
+            return FakeAsyncOperationStatus(ctrl.op_id, ctrl.move is not None)
+
+        def stopL(self, a=10.0, asynchronous=False):
+            ctrl.log("stopL", a)
+            ctrl.feed()
+            ctrl.update()
+            ctrl.move = None
 
         def servoL(self, pose, speed, acceleration, time, lookahead_time, gain):
             ctrl.log("servoL", list(pose), speed, acceleration, time, lookahead_time, gain)
+            ctrl.feed()
             ctrl.pose = list(pose)
             return True
 
         def speedL(self, xd, acceleration=0.25, time=0.0):
             ctrl.log("speedL", list(xd), acceleration, time)
+            ctrl.feed()
             ctrl.pose = [p + v * time for p, v in zip(ctrl.pose[:3], xd[:3])] + ctrl.pose[3:]
             return True
 
         def servoStop(self, a=10.0):
             ctrl.log("servoStop")
+            ctrl.feed()
 
         def speedStop(self, a=10.0):
             ctrl.log("speedStop")
+            ctrl.feed()
 
         def stopScript(self):
             ctrl.log("stopScript")
+            ctrl.feed()
+            ctrl.watchdog_hz = None  # no script, no watchdog
 
         def reuploadScript(self):
             ctrl.log("reuploadScript")
@@ -96,9 +217,11 @@ def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
             ctrl.log("receive_init", host)
 
         def getActualTCPPose(self):
+            ctrl.update()
             return list(ctrl.pose)
 
         def isProtectiveStopped(self):
+            ctrl.update()
             return ctrl.protective_stopped
 
         def isEmergencyStopped(self):
@@ -114,8 +237,19 @@ def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
         def __init__(self, host):
             ctrl.log("dashboard_init", host)
 
-        def connect(self):
+        def connect(self, timeout_ms=2000):
             ctrl.log("dashboard_connect")
+            if ctrl.dashboard_unreachable:
+                raise RuntimeError("Connection refused")
+
+        def getRobotModel(self):
+            return ctrl.robot_model
+
+        def __getattr__(self, name):
+            # Older ur-rtde releases have no getSerialNumber.
+            if name == "getSerialNumber" and ctrl.serial_number is not None:
+                return lambda: ctrl.serial_number
+            raise AttributeError(name)
 
         def closeSafetyPopup(self):
             ctrl.log("closeSafetyPopup")
@@ -127,6 +261,8 @@ def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
         def disconnect(self):
             ctrl.log("dashboard_disconnect")
 
+    if not ctrl.has_async_status:  # an ur-rtde too old for getAsyncOperationProgressEx
+        del RTDEControlInterface.getAsyncOperationProgressEx
     mods = {}
     for name, attrs in {
         "rtde_control": {"RTDEControlInterface": RTDEControlInterface},

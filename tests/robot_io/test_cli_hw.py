@@ -57,3 +57,25 @@ def test_check_rejects_a_bad_config_with_the_field_named(tmp_path):
     result = CliRunner().invoke(app, ["hw", "check", "--config", str(bad)])
     assert result.exit_code != 0
     assert "arm.sim.speed" in str(result.exception)
+
+
+def test_check_keeps_a_ur_watchdog_fed_while_timing_the_camera_and_jogging(monkeypatch, tmp_path):
+    import yaml
+
+    from tests.robot_io.fakes import install_depthai, install_ur
+
+    ctrl = install_ur(monkeypatch)
+    oak = install_depthai(monkeypatch)
+    oak.period_s = 0.03  # 8 frames take ~0.25 s: longer than the 0.1 s the watchdog allows
+    hw = tmp_path / "hw.yaml"
+    hw.write_text(yaml.safe_dump({
+        "camera": {"type": "depthai", "width": 64, "height": 48},
+        "arm": {"type": "ur_rtde", "host": "10.0.0.2", "watchdog_min_hz": 10},
+        "safety": {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6]},
+    }))
+    result = CliRunner().invoke(app, ["hw", "check", "-c", str(hw), "--frames", "8", "--jog", "--jog-mm", "10"])
+    assert result.exit_code == 0, result.output
+    assert "fps over 8 frames" in result.output and "jog: up to" in result.output
+    assert "setWatchdog" in ctrl.names() and ctrl.names().count("moveL") == 2
+    assert not ctrl.watchdog_tripped, f"watchdog tripped: longest gap {ctrl.max_feed_gap_s * 1000:.0f} ms"
+    assert ctrl.max_feed_gap_s <= 1 / 10

@@ -136,3 +136,95 @@ def test_missing_sdk_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "rtde_control", None)  # makes the import fail
     with pytest.raises(MissingExtraError, match=r"advobj\[ur\]"):
         URArm("10.0.0.2").connect()
+
+
+def test_a_long_movel_runs_asynchronously_and_the_watchdog_is_kicked_until_it_ends(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    with URArm("10.0.0.2", watchdog_min_hz=10) as arm:
+        T = arm.tcp_pose()
+        T[0, 3] += 0.05
+        t0 = time.monotonic()
+        arm.move_to(T, 0.1)  # 0.5 s: five watchdog periods
+        assert time.monotonic() - t0 >= 0.45  # returned when the move had ended, not when it was sent
+        assert np.allclose(arm.tcp_pose()[:3, 3], T[:3, 3], atol=1e-9)
+    move = next(c for c in ctrl.calls if c[0] == "moveL")
+    assert move[4] is True  # asynchronous
+    assert not ctrl.watchdog_tripped, f"watchdog tripped: longest gap {ctrl.max_feed_gap_s * 1000:.0f} ms"
+    assert ctrl.max_feed_gap_s <= 1 / 10
+
+
+def test_movel_waits_for_the_controller_to_start_the_move(monkeypatch):
+    # The status register shows the previous, finished operation for a while after moveL returns.
+    ctrl = install_ur(monkeypatch)
+    ctrl.stale_polls = 5
+    with URArm("10.0.0.2") as arm:
+        T = arm.tcp_pose()
+        T[1, 3] += 0.01
+        arm.move_to(T, 0.1)
+        assert np.allclose(arm.tcp_pose()[:3, 3], T[:3, 3], atol=1e-9)
+
+
+def test_a_protective_stop_during_movel_is_an_explained_fault_and_the_move_is_stopped(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    ctrl.protective_stop_after_s = 0.1
+    with URArm("10.0.0.2") as arm:
+        T = arm.tcp_pose()
+        T[0, 3] += 0.05
+        t0 = time.monotonic()
+        with pytest.raises(ArmFaultError) as info:
+            arm.move_to(T, 0.1)
+        assert time.monotonic() - t0 < 0.3  # seen while moving, not after the move's planned end
+    assert info.value.fault.kind == "protective_stop"
+    assert "stopL" in ctrl.names()
+
+
+def test_a_movel_that_does_not_end_times_out_and_is_stopped(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    ctrl.stall_moves = True
+    with URArm("10.0.0.2") as arm:
+        T = arm.tcp_pose()
+        T[0, 3] += 0.01
+        with pytest.raises(ArmFaultError, match="did not finish within 0.3 s"):
+            arm.move_to(T, 0.1, timeout_s=0.3)
+    assert "stopL" in ctrl.names() and not ctrl.watchdog_tripped
+
+
+def test_ctrl_c_during_movel_stops_the_move(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    with URArm("10.0.0.2") as arm:
+        real, polls = arm._rtde_c.getAsyncOperationProgressEx, []
+
+        def interrupted():
+            polls.append(1)
+            if len(polls) == 3:
+                raise KeyboardInterrupt
+            return real()
+
+        arm._rtde_c.getAsyncOperationProgressEx = interrupted
+        T = arm.tcp_pose()
+        T[0, 3] += 0.05
+        with pytest.raises(KeyboardInterrupt):
+            arm.move_to(T, 0.1)
+        assert "stopL" in ctrl.names() and ctrl.move is None
+
+
+@pytest.mark.parametrize("flag", ["fail_control_init", "fail_set_watchdog"])
+def test_a_failed_connect_releases_what_it_opened(monkeypatch, flag):
+    ctrl = install_ur(monkeypatch)
+    setattr(ctrl, flag, True)
+    arm = URArm("10.0.0.2")
+    with pytest.raises(ArmFaultError, match="cannot connect to UR controller"):
+        arm.connect()
+    names = ctrl.names()
+    assert "receive_disconnect" in names and not arm.connected
+    if flag == "fail_set_watchdog":  # the control script was already running: stop it too
+        assert names.index("stopScript") < names.index("control_disconnect")
+
+
+def test_an_ur_rtde_without_async_status_is_refused_on_connect(monkeypatch):
+    ctrl = FakeURController()
+    ctrl.has_async_status = False
+    install_ur(monkeypatch, ctrl)
+    with pytest.raises(MissingExtraError, match="getAsyncOperationProgressEx"):
+        URArm("10.0.0.2").connect()
+    assert "control_init" not in ctrl.names()
