@@ -1,15 +1,22 @@
 """CI: a whole "real" session on SimCamera + SimArm: plan -> run (auto-confirmed) -> report -> export.
 
-The logged automatic outcomes are checked against the sim's ground truth, recomputed here from the
-world right after each trial's policy loop (a hook), not taken from the runner.
+The policy is a real ONNX network run by onnxruntime whose action is "move straight ahead"
+(:func:`straight_ahead_onnx`); from the plan's start poses (seed 5, 2 TCP poses x 2 layouts) it
+reaches the goal in some trials and the adversarial object in others, so the checks below have
+something to check. The logged automatic outcomes are compared with the sim's ground truth,
+recomputed here from the world right after each trial's policy loop (a hook), not taken from the
+runner; the report's rates are compared with counts of the stored rows.
 """
 
 from __future__ import annotations
 
+import json
+from collections import Counter
+
 import numpy as np
 from typer.testing import CliRunner
 
-from tests.trials.trial_session_helpers import attack_dir, sim_hardware, tiny_onnx
+from tests.trials.trial_session_helpers import attack_dir, sim_hardware, straight_ahead_onnx
 
 
 def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):
@@ -19,12 +26,12 @@ def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):
     from trials.real.store import TrialStore
 
     cli = CliRunner()
-    policy = tiny_onnx(tmp_path / "p.onnx")
+    policy = straight_ahead_onnx(tmp_path / "p.onnx")
     hw = sim_hardware(tmp_path / "hw.yaml")
     adv, patch = attack_dir(tmp_path / "adv", "cube"), attack_dir(tmp_path / "patch", "patch", 1)
     plan = tmp_path / "plan.yaml"
     r = cli.invoke(app, ["trial", "plan", "--out", str(plan), "--shape", "cube", "--texture", f"cube/adv3d={adv}",
-                         "--texture", f"cube/patch={patch}", "--tcp-poses", "2", "--object-poses", "1"])
+                         "--texture", f"cube/patch={patch}", "--tcp-poses", "2", "--object-poses", "2", "--seed", "5"])
     assert r.exit_code == 0, r.output
 
     truth = {}
@@ -51,7 +58,10 @@ def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):
 
     with TrialStore(db, create=False) as store:
         rows = store.trial_rows()
-        assert len(rows) == 6 and len(truth) == 6
+        assert len(rows) == 12 and len(truth) == 12
+        outcomes = Counter(r["final_outcome"] for r in rows)
+        assert outcomes["goal"] > 0 and outcomes["adversarial"] > 0, outcomes  # the session has power
+        assert any(r["stop_reason"] == "reached" for r in rows)
         for row in rows:
             assert row["auto_outcome"] == truth[row["trial_id"]], row
             assert row["final_outcome"] == row["auto_outcome"] and row["operator_outcome"] is None
@@ -66,7 +76,21 @@ def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):
     out = tmp_path / "report"
     r = cli.invoke(app, ["trial", "report", "--db", str(db), "--out", str(out)])
     assert r.exit_code == 0, r.output
-    assert (out / "report.md").is_file()
+    report = json.loads((out / "report.json").read_text())
+    md = (out / "report.md").read_text()
+    # every per-condition cell and the Table IV row (untagged adv3d) are the counts of the stored rows
+    for cond in ("clean", "adv3d", "patch"):
+        rs = [x for x in rows if x["condition"] == cond]
+        cell = report["summary"]["all"]["by_condition"][cond]
+        assert (cell["n"], cell["tasr"]["k"], cell["asr"]["k"]) == (
+            len(rs), sum(x["final_outcome"] == "adversarial" for x in rs), sum(x["final_outcome"] != "goal" for x in rs)), cond
+    adv = [x for x in rows if x["condition"] == "adv3d"]
+    k_tasr = sum(x["final_outcome"] == "adversarial" for x in adv)
+    k_asr = sum(x["final_outcome"] != "goal" for x in adv)
+    (row,) = report["table_iv"]
+    assert (row["env"], row["shape"], row["n"], row["real"]["tasr"]["k"], row["real"]["asr"]["k"]) == ("A", "cube", len(adv), k_tasr, k_asr)
+    assert 0 < k_tasr < len(adv) or 0 < k_asr < len(adv)  # a rate strictly between 0 and 1 somewhere in the row
+    assert f"| A | cube | – | – | {100 * k_tasr / len(adv):.2f} [" in md and f"| {len(adv)} |" in md
 
     r = cli.invoke(app, ["trial", "export", "--db", str(db), "--out", str(tmp_path / "export")])
     assert r.exit_code == 0, r.output

@@ -1,4 +1,4 @@
-"""Building blocks for the real-trial tests: a tiny ONNX policy, attack textures, a small plan, sim hardware."""
+"""Building blocks for the real-trial tests: tiny ONNX policies, attack textures, a small plan, sim hardware."""
 
 from __future__ import annotations
 
@@ -21,6 +21,29 @@ def tiny_onnx(path: Path, size: int = 32) -> Path:
 
     torch.manual_seed(0)
     return export_onnx(VisuomotorPolicy(arch="small_cnn", image_size=size), path)
+
+
+def straight_ahead_onnx(path: Path, size: int = 32) -> Path:
+    """A small-CNN policy whose action is always "move straight ahead" (TCP +z, the camera's view axis).
+
+    The last head layer has zero weights and a bias of 4 on action 2: tanh gives 0.9993 there and
+    0 elsewhere, whatever the image. A real ONNX network run by onnxruntime, whose rollouts reach
+    the goal from some start poses and the adversarial object from others (the untrained one
+    mostly reaches nothing), so the trial outcomes a session logs are not all 'none'.
+    """
+    import torch
+
+    from sim.policies.onnx_policy import export_onnx
+    from sim.policies.policy import VisuomotorPolicy
+
+    torch.manual_seed(0)
+    policy = VisuomotorPolicy(arch="small_cnn", image_size=size)
+    last = policy.mlp[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.zero_()
+        last.bias[2] = 4.0
+    return export_onnx(policy, path)
 
 
 def attack_dir(path: Path, mesh: str, seed: int = 0) -> Path:
