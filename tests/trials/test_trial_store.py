@@ -112,3 +112,100 @@ def test_unknown_schema_version_refused(tmp_path):
         TrialStore(other)
     with pytest.raises(StoreError, match="no trial database"):
         TrialStore(tmp_path / "missing.sqlite", create=False)
+
+
+def _with(info, **changes):
+    from dataclasses import replace
+
+    return replace(info, **changes)
+
+
+def test_resume_refuses_another_policy_or_calibration_file_naming_it(tmp_path):
+    info = _with(_info(), calibration={"T_tcp_cam": "1" * 64, "registry": None},
+                 config={"calibration_files": {"T_tcp_cam": "calib/hand_eye.yaml", "registry": None}})
+    store = TrialStore(tmp_path / "t.sqlite")
+    store.open_session(info)
+    assert store.check_resume(info) == []  # the same inputs: resumes silently
+    with pytest.raises(SessionMismatch) as err:
+        store.open_session(_with(info, policy_path="q.onnx", policy_sha256="e" * 64))
+    msg = str(err.value)
+    assert "policy: sha256 bbbbbbbbbbbb... (p.onnx) at the session's start, now sha256 eeeeeeeeeeee... (q.onnx)" in msg
+    assert "calibration T_tcp_cam" not in msg and "start a new --session" in msg
+    other_cal = _with(info, calibration={"T_tcp_cam": "2" * 64, "registry": "3" * 64},
+                      config={"calibration_files": {"T_tcp_cam": "calib/hand_eye2.yaml", "registry": "objects.yaml"}})
+    with pytest.raises(SessionMismatch) as err:
+        store.open_session(other_cal)
+    msg = str(err.value)
+    assert ("calibration T_tcp_cam: sha256 111111111111... (calib/hand_eye.yaml) at the session's start, "
+            "now sha256 222222222222... (calib/hand_eye2.yaml)") in msg
+    assert "calibration registry: no file at the session's start, now sha256 333333333333... (objects.yaml)" in msg
+    assert "policy" not in msg.split("\n")[1]
+    assert store.con.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 1  # refused resumes record no run
+
+
+def test_resume_with_a_new_version_warns_and_files_trials_under_their_run(tmp_path):
+    store = TrialStore(tmp_path / "t.sqlite")
+    sid = store.open_session(_info())
+    store.commit_trial(sid, _trial("t0"))
+    store.close()
+    newer = _with(_info(), software_version="0.2.0", git_commit="def", hardware_text="hw: 2")
+    store = TrialStore(tmp_path / "t.sqlite")
+    warnings = store.check_resume(newer)
+    assert len(warnings) == 3 and all(w.startswith("session 's1': ") for w in warnings)
+    assert "advobj version 0.1.0 -> 0.2.0" in warnings[0] and "git commit abc -> def" in warnings[1]
+    assert "hardware YAML" in warnings[2]
+    assert store.open_session(newer) == sid
+    store.commit_trial(sid, _trial("t1"))
+    runs = store.con.execute("SELECT id, software_version, git_commit, hardware_text FROM runs ORDER BY id").fetchall()
+    assert [tuple(r)[1:] for r in runs] == [("0.1.0", "abc", "hw: 1"), ("0.2.0", "def", "hw: 2")]
+    by_trial = {r["trial_id"]: r["run_id"] for r in store.trial_rows()}
+    assert by_trial == {"t0": runs[0]["id"], "t1": runs[1]["id"]}
+    # the session row keeps the provenance of its start; a further resume compares with the last run
+    assert store.session("s1")["software_version"] == "0.1.0"
+    assert store.check_resume(newer) == []
+    cols, rows = store.table("runs")
+    assert cols[:2] == ["session", "id"] and len(rows) == 2
+
+
+def test_table_frame_is_stored_with_the_session(tmp_path):
+    from sim.geometry import make_T, rot_z
+
+    T = make_T(rot_z(0.3), np.array([0.5, -0.2, 0.01]))
+    store = TrialStore(tmp_path / "t.sqlite")
+    assert store.stored_T_base_table("s1") is None
+    store.open_session(_with(_info(), T_base_table=T))
+    store.close()
+    store = TrialStore(tmp_path / "t.sqlite")
+    np.testing.assert_array_equal(store.stored_T_base_table("s1"), T)  # lossless through JSON
+    store.open_session(_info())  # a resume does not overwrite it
+    np.testing.assert_array_equal(store.stored_T_base_table("s1"), T)
+
+
+def test_version_1_store_is_migrated_keeping_its_trials(tmp_path):
+    from trials.real import store as store_mod
+
+    new = tmp_path / "v2.sqlite"
+    with TrialStore(new) as store:
+        sid = store.open_session(_info())
+        store.commit_trial(sid, _trial("t0"))
+    # the same content in a version-1 database
+    old = tmp_path / "v1.sqlite"
+    con = sqlite3.connect(old)
+    con.executescript(store_mod._SCHEMA + "INSERT INTO schema_version VALUES (1);")
+    con.execute("ATTACH DATABASE ? AS v2", (str(new),))
+    for table in ("sessions", "trials", "steps", "object_poses", "events"):
+        cols = ", ".join(r[1] for r in con.execute(f"PRAGMA main.table_info({table})"))
+        con.execute(f"INSERT INTO main.{table} ({cols}) SELECT {cols} FROM v2.{table}")
+    con.commit()
+    con.close()
+    with TrialStore(old) as store:
+        assert store.con.execute("SELECT version FROM schema_version").fetchone()[0] == store_mod.SCHEMA_VERSION
+        (run,) = store.con.execute("SELECT * FROM runs").fetchall()
+        assert run["software_version"] == "0.1.0" and run["session_id"] == sid
+        rows = store.trial_rows()
+        assert [(r["trial_id"], r["run_id"], r["n_steps"]) for r in rows] == [("t0", run["id"], 3)]
+        assert store.stored_T_base_table("s1") is None and store.integrity_check() == "ok"
+        store.open_session(_with(_info(), T_base_table=np.eye(4)))  # a resume stores the frame it uses
+        np.testing.assert_array_equal(store.stored_T_base_table("s1"), np.eye(4))
+    with TrialStore(old) as store:  # opening a migrated store again changes nothing
+        assert store.con.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 2

@@ -9,11 +9,19 @@ With ``sim`` devices the table is staged by :class:`trials.real.stage.SimStage` 
 :class:`trials.real.locate.SimLocator` (ground truth); the sim camera renders at the policy's
 input size unless the hardware YAML sets ``sim.image_size``. Real cells need ``--registry`` (the
 tag -> object registry) and a ``T_base_table`` (``--table-frame`` YAML, or estimated from the
-registry's ``table`` tags seen from the arm's current pose).
+registry's ``table`` tags seen from the arm's current pose). The table frame is stored with the
+session: a resume without ``--table-frame`` reuses the stored one, never re-estimates it (the arm
+may now stand where no table tag is in view, and trials of one session must share one frame).
+
+Resuming checks the inputs against the stored session before any device connects
+(:meth:`trials.real.store.TrialStore.check_resume`): another plan, policy or calibration file is
+refused; a changed advobj version, git commit, hardware YAML or device is logged as a warning and
+recorded in the session's ``runs``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -112,6 +120,7 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
     from trials.real.store import SessionInfo, TrialStore
 
     hardware, plan_path, policy_path = Path(hardware), Path(plan_path), Path(policy_path)
+    log = log or (lambda _text: None)
     if answers is not None and auto_confirm:
         raise SessionSetupError("--auto-confirm and --answers: give one of them")
     hw = load_hardware_config(hardware)
@@ -137,8 +146,8 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
     action_scale = [ep.max_step_m] * 3 + [ep.max_step_rad] * 3
 
     intrinsics = getattr(hw.camera, "intrinsics", None)
-    calibration = {"T_tcp_cam": file_sha256(hw.T_tcp_cam), "intrinsics": file_sha256(intrinsics),
-                   "registry": file_sha256(registry), "table_frame": file_sha256(table_frame)}
+    calibration_files = {"T_tcp_cam": hw.T_tcp_cam, "intrinsics": intrinsics, "registry": registry, "table_frame": table_frame}
+    calibration = {k: file_sha256(v) for k, v in calibration_files.items()}
     world = build_world(hw) if hw.camera.type == "sim" or hw.arm.type == "sim" else None
     if world is not None and plan.scene is not None:
         world.set_scene(spec)
@@ -153,8 +162,16 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
             git_commit=git_commit(), devices={"camera": device_identity(camera), "arm": device_identity(arm)}, calibration=calibration,
             config={"hardware": str(hardware), "plan": str(plan_path), "policy": str(policy_path), "db": str(db), "registry": registry,
                     "table_frame": table_frame, "rate_limit": rate_limit, "threads": threads, "image_size": S,
-                    "action_scale": action_scale, "seed": plan.seed})
+                    "action_scale": action_scale, "seed": plan.seed,
+                    "calibration_files": {k: None if v is None else str(v) for k, v in calibration_files.items()}})
         store = TrialStore(db)
+        try:
+            for warning in store.check_resume(info):  # a refused resume raises here, before any device connects
+                log(warning)
+        except BaseException:
+            store.close()
+            raise
+        stored_T_base_table = store.stored_T_base_table(session)
         from sim.runinfo import write_run_info
 
         write_run_info(Path(db).resolve().parent / "frames" / session, info.config, plan.seed)
@@ -168,7 +185,8 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
                     locator = SimLocator(world)
                     stage = SimStage(world, plan, plan_path.parent)
                 else:
-                    locator, T_base_table = _tag_locator(hw, camera, arm, registry, table_frame)
+                    locator, T_base_table = _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table, log)
+                info = dataclasses.replace(info, T_base_table=T_base_table)
                 runner = TrialRunner(plan, camera, arm, policy, store, operator, locator, info, action_scale, stage=stage,
                                      T_base_table=T_base_table, rate_limit=rate_limit, on_trial_end=on_trial_end)
                 if on_ready is not None:
@@ -183,7 +201,8 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
             world.close()
 
 
-def _tag_locator(hw, camera, arm, registry, table_frame):
+def _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table=None, log=print):
+    """The tag locator and ``T_base_table``: from ``table_frame``, else the session's stored one, else estimated."""
     from calibration.registry import load_registry
     from robot_io.config import load_T_tcp_cam
     from trials.real.locate import TagLocator
@@ -194,10 +213,15 @@ def _tag_locator(hw, camera, arm, registry, table_frame):
     T_tcp_cam = load_T_tcp_cam(hw.T_tcp_cam)
     if table_frame is not None:
         T_base_table = load_T_base_table(table_frame)
+    elif stored_T_base_table is not None:
+        # the resume check guarantees the session had no --table-frame either: this is its estimate
+        T_base_table = np.asarray(stored_T_base_table, dtype=np.float64)
+        log("table frame: the one estimated at the session's start (stored with the session), not re-estimated")
     else:
         probe = TagLocator(reg, camera.intrinsics, T_tcp_cam, np.eye(4))
         T_base_table = TagLocator.estimate_T_base_table(probe.observe(camera.read()), arm.tcp_pose(), T_tcp_cam)
         if T_base_table is None:
             raise SessionSetupError("--table-frame: not given, and no 'table' tag of the registry is visible from the arm's "
                                     "current pose; give the table frame YAML or move the arm so a table tag is in view")
+        log("table frame: estimated from the registry's table tags; stored with the session and reused on resume")
     return TagLocator(reg, camera.intrinsics, T_tcp_cam, T_base_table), T_base_table

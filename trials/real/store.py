@@ -2,7 +2,7 @@
 
 Layout::
 
-    trials.sqlite                      sessions, trials, steps, object_poses, events
+    trials.sqlite                      sessions, runs, trials, steps, object_poses, events
     frames/<session>/<trial_id>/       step_000.png ... (the images the policy acted on)
 
 Durability rules (issue 8, "atomic trials"):
@@ -20,6 +20,14 @@ Durability rules (issue 8, "atomic trials"):
   without a committed trial is a leftover of a killed run, and the runner clears it when it
   redoes that trial (:func:`frames_dir`).
 
+Resuming (:meth:`TrialStore.open_session` on an existing session name) refuses inputs the
+recorded trials depend on when they differ from the session's: the plan, the policy and the
+calibration files (sha256 of each). What may legitimately change between sittings (the advobj
+version and git commit, the hardware YAML, device serials) is accepted and recorded per run: one
+``runs`` row per start or resume, and every trial names the run it was recorded in
+(:meth:`TrialStore.check_resume` returns those changes as warnings). The table frame a session
+started with (``T_base_table``, estimated or from a file) is stored with it and reused on resume.
+
 Poses are stored as 6-vectors ``[x, y, z (m), rx, ry, rz (rotation vector, rad)]`` in the
 table frame (the sim world frame) unless a column name says ``base``: easy to read in CSV,
 lossless at float64.
@@ -28,6 +36,7 @@ lossless at float64.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import shutil
 import sqlite3
@@ -56,9 +65,9 @@ __all__ = [
     "EXPORT_TABLES",
 ]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 OUTCOMES = ("goal", "adversarial", "none", "unknown")
-EXPORT_TABLES = ("trials", "steps", "object_poses", "events", "sessions")
+EXPORT_TABLES = ("trials", "steps", "object_poses", "events", "sessions", "runs")
 
 
 class StoreError(AdvobjError, RuntimeError):
@@ -66,7 +75,7 @@ class StoreError(AdvobjError, RuntimeError):
 
 
 class SessionMismatch(StoreError):
-    """Resuming a session with a different plan than the one it was started with."""
+    """Resuming a session with a different plan, policy or calibration file than it was started with."""
 
 
 _POSE = ("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad")
@@ -160,6 +169,30 @@ CREATE INDEX steps_trial ON steps (trial_row);
 CREATE INDEX events_trial ON events (trial_row);
 """
 
+# Schema changes after version 1, applied in order to new and old databases alike (one
+# transaction), so a version-1 store keeps its trials. Version 2: the session's table frame, and
+# per-run provenance (a version-1 session gets one run from its own provenance columns).
+_MIGRATIONS = {
+    2: """
+ALTER TABLE sessions ADD COLUMN T_base_table_json TEXT;
+CREATE TABLE runs (
+    id INTEGER PRIMARY KEY,
+    session_id INTEGER NOT NULL REFERENCES sessions(id),
+    started_at TEXT NOT NULL,
+    software_version TEXT NOT NULL,
+    git_commit TEXT NOT NULL,
+    hardware_text TEXT NOT NULL,
+    devices_json TEXT NOT NULL,
+    config_json TEXT NOT NULL
+);
+CREATE INDEX runs_session ON runs (session_id);
+ALTER TABLE trials ADD COLUMN run_id INTEGER REFERENCES runs(id);
+INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, config_json)
+    SELECT id, created_at, software_version, git_commit, hardware_text, devices_json, config_json FROM sessions ORDER BY id;
+UPDATE trials SET run_id = (SELECT r.id FROM runs r WHERE r.session_id = trials.session_id);
+""",
+}
+
 
 # ---------------------------------------------------------------------- records
 def pose_vec(T) -> list[float]:
@@ -187,6 +220,7 @@ class SessionInfo:
     devices: dict
     calibration: dict
     config: dict = field(default_factory=dict)
+    T_base_table: np.ndarray | None = None  # the table frame the trials are in (stored at the session's start)
 
 
 @dataclass(frozen=True)
@@ -257,6 +291,10 @@ class TrialRecord:
         return self.operator_outcome or self.auto_outcome
 
 
+def _sha(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def frames_dir(db_path: str | Path, session: str, trial_id: str) -> Path:
     """``<db dir>/frames/<session>/<trial_id>``: where one trial's images go."""
     return Path(db_path).resolve().parent / "frames" / session / trial_id
@@ -281,6 +319,7 @@ class TrialStore:
         try:
             # isolation_level=None: no implicit transactions; every write transaction is explicit.
             self.con = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
+            self._runs: dict[int, int] = {}  # session id -> the run this process recorded (open_session)
             self.con.row_factory = sqlite3.Row
             mode = self.con.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             self.con.execute("PRAGMA synchronous=FULL")
@@ -294,25 +333,39 @@ class TrialStore:
     def _init_schema(self) -> None:
         have = {r[0] for r in self.con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
         if not have:
-            self.con.execute("BEGIN IMMEDIATE")
-            try:
-                for stmt in _SCHEMA.split(";"):
-                    if stmt.strip():
-                        self.con.execute(stmt)
-                self.con.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION,))
-                self.con.execute("COMMIT")
-            except BaseException:
-                self.con.execute("ROLLBACK")
-                raise
+            self._write_schema(_SCHEMA, 1)
             return
         if "schema_version" not in have:
             raise StoreError(f"{self.path}: an SQLite database but not a trial store (no schema_version table)")
         row = self.con.execute("SELECT version FROM schema_version").fetchone()
         version = None if row is None else row[0]
+        if isinstance(version, int) and 1 <= version < SCHEMA_VERSION:
+            self._write_schema(None, version)
+            return
         if version != SCHEMA_VERSION:
             newer = isinstance(version, int) and version > SCHEMA_VERSION
             raise StoreError(f"{self.path}: trial store schema version {version}, this advobj reads version {SCHEMA_VERSION}"
                              + ("; upgrade advobj" if newer else ""))
+
+    def _write_schema(self, base: str | None, version: int) -> None:
+        """Create the version-1 schema (``base``) and/or migrate from ``version`` to the current one, in one transaction."""
+        statements = [] if base is None else [base]
+        statements += [_MIGRATIONS[v] for v in range(version + 1, SCHEMA_VERSION + 1)]
+        self.con.execute("BEGIN IMMEDIATE")
+        try:
+            if base is None and self.con.execute("SELECT version FROM schema_version").fetchone()[0] == SCHEMA_VERSION:
+                statements = []  # another process migrated it while this one waited for the lock
+            for stmt in ";".join(statements).split(";"):
+                if stmt.strip():
+                    self.con.execute(stmt)
+            if base is not None:
+                self.con.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION,))
+            else:
+                self.con.execute("UPDATE schema_version SET version = ?", (SCHEMA_VERSION,))
+            self.con.execute("COMMIT")
+        except BaseException:
+            self.con.execute("ROLLBACK")
+            raise
 
     def close(self) -> None:
         self.con.close()
@@ -327,28 +380,96 @@ class TrialStore:
     def session(self, name: str) -> sqlite3.Row | None:
         return self.con.execute("SELECT * FROM sessions WHERE name = ?", (name,)).fetchone()
 
-    def open_session(self, info: SessionInfo) -> int:
-        """The id of session ``info.name``: created, or resumed if its plan is the same file."""
+    def check_resume(self, info: SessionInfo) -> list[str]:
+        """Whether session ``info.name`` may be resumed with ``info``; returns the accepted changes as warnings.
+
+        Raises :class:`SessionMismatch` naming every refused difference (old vs new sha256 and
+        file): the plan, the policy, a calibration file. Trials recorded with other inputs are
+        another experiment and must not be pooled under this session's provenance. A new
+        advobj version or git commit, an edited hardware YAML or other device serials are
+        legitimate between sittings (a bug fix, a new USB port): they are recorded per run and
+        returned as warnings. A new session: nothing to check, ``[]``.
+        """
         row = self.session(info.name)
-        if row is not None:
-            if row["plan_sha256"] != info.plan_sha256:
-                raise SessionMismatch(
-                    f"session {info.name!r} in {self.path} was started with a plan of sha256 {row['plan_sha256'][:12]}..., "
-                    f"this plan is {info.plan_sha256[:12]}...; resume with the original plan file or start a new --session")
-            return int(row["id"])
+        if row is None:
+            return []
+        config = json.loads(row["config_json"])
+        old_files = config.get("calibration_files") or {}
+        new_files = info.config.get("calibration_files") or {}
+
+        def what(sha, path):
+            return ("no file" if sha is None else f"sha256 {sha[:12]}...") + (f" ({path})" if path else "")
+
+        refused = []
+        if row["plan_sha256"] != info.plan_sha256:
+            refused.append(f"plan: {what(row['plan_sha256'], config.get('plan'))} at the session's start, "
+                           f"now {what(info.plan_sha256, info.config.get('plan'))}")
+        if row["policy_sha256"] != info.policy_sha256:
+            refused.append(f"policy: {what(row['policy_sha256'] or None, row['policy_path'])} at the session's start, "
+                           f"now {what(info.policy_sha256 or None, info.policy_path)}")
+        old_cal = json.loads(row["calibration_json"])
+        for key in sorted(set(old_cal) | set(info.calibration)):
+            if old_cal.get(key) != info.calibration.get(key):
+                refused.append(f"calibration {key}: {what(old_cal.get(key), old_files.get(key))} at the session's start, "
+                               f"now {what(info.calibration.get(key), new_files.get(key))}")
+        if refused:
+            raise SessionMismatch(
+                f"session {info.name!r} in {self.path} was started with other inputs; its trials must not be mixed with "
+                "trials run with these:\n  " + "\n  ".join(refused)
+                + "\nresume with the original plan, policy and calibration files, or start a new --session")
+        last = self.con.execute("SELECT * FROM runs WHERE session_id = ? ORDER BY id DESC LIMIT 1", (row["id"],)).fetchone()
+        if last is None:
+            return []
+        changed = []
+        if last["software_version"] != info.software_version:
+            changed.append(f"advobj version {last['software_version']} -> {info.software_version}")
+        if last["git_commit"] != info.git_commit:
+            changed.append(f"git commit {last['git_commit']} -> {info.git_commit}")
+        if last["hardware_text"] != info.hardware_text:
+            changed.append(f"hardware YAML (sha256 {_sha(last['hardware_text'])[:12]}... -> {_sha(info.hardware_text)[:12]}...)")
+        if json.loads(last["devices_json"]) != info.devices:
+            changed.append(f"devices {last['devices_json']} -> {json.dumps(info.devices)}")
+        return [f"session {info.name!r}: {c} since the last run (started {last['started_at']}); "
+                "new trials are recorded under this run (table runs)" for c in changed]
+
+    def open_session(self, info: SessionInfo) -> int:
+        """The id of session ``info.name``: created, or resumed if :meth:`check_resume` allows; records this run."""
+        self.check_resume(info)
+        row = self.session(info.name)
+        T_json = None if info.T_base_table is None else json.dumps(np.asarray(info.T_base_table, dtype=np.float64).tolist())
         self.con.execute("BEGIN IMMEDIATE")
         try:
+            if row is None:
+                cur = self.con.execute(
+                    "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
+                    "software_version, git_commit, devices_json, calibration_json, config_json, T_base_table_json) "
+                    "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    (info.name, _now_iso(), info.plan_sha256, info.plan_text, info.hardware_text, info.policy_path,
+                     info.policy_sha256, info.software_version, info.git_commit, json.dumps(info.devices),
+                     json.dumps(info.calibration), json.dumps(info.config, default=str), T_json))
+                sid = int(cur.lastrowid)
+            else:
+                sid = int(row["id"])
+                if row["T_base_table_json"] is None and T_json is not None:  # a session from schema version 1
+                    self.con.execute("UPDATE sessions SET T_base_table_json = ? WHERE id = ?", (T_json, sid))
             cur = self.con.execute(
-                "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
-                "software_version, git_commit, devices_json, calibration_json, config_json) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
-                (info.name, _now_iso(), info.plan_sha256, info.plan_text, info.hardware_text, info.policy_path, info.policy_sha256,
-                 info.software_version, info.git_commit, json.dumps(info.devices), json.dumps(info.calibration),
+                "INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, config_json) "
+                "VALUES (?,?,?,?,?,?,?)",
+                (sid, _now_iso(), info.software_version, info.git_commit, info.hardware_text, json.dumps(info.devices),
                  json.dumps(info.config, default=str)))
+            self._runs[sid] = int(cur.lastrowid)
             self.con.execute("COMMIT")
         except BaseException:
             self.con.execute("ROLLBACK")
             raise
-        return int(cur.lastrowid)
+        return sid
+
+    def stored_T_base_table(self, name: str) -> np.ndarray | None:
+        """The table frame session ``name`` was started with (None: no such session, or none stored)."""
+        row = self.session(name)
+        if row is None or row["T_base_table_json"] is None:
+            return None
+        return np.asarray(json.loads(row["T_base_table_json"]), dtype=np.float64).reshape(4, 4)
 
     def session_names(self) -> list[str]:
         return [r[0] for r in self.con.execute("SELECT name FROM sessions ORDER BY id")]
@@ -369,12 +490,12 @@ class TrialStore:
                 "INSERT INTO trials (session_id, trial_id, plan_order, env, shape, condition, tcp_pose, object_layout, tags_json, "
                 "texture_sha256, started_at, duration_s, n_steps, stop_reason, auto_outcome, auto_reason, distances_json, "
                 "operator_outcome, note, final_outcome, placement_checks, placement_skipped, "
-                + ", ".join(f"tcp_final_{p}" for p in _POSE) + ", frames_dir) VALUES (" + ",".join("?" * 29) + ")",
+                + ", ".join(f"tcp_final_{p}" for p in _POSE) + ", frames_dir, run_id) VALUES (" + ",".join("?" * 30) + ")",
                 (session_id, rec.trial_id, rec.plan_order, rec.env, rec.shape, rec.condition, rec.tcp_pose, rec.object_layout,
                  json.dumps(list(rec.tags)), rec.texture_sha256, rec.started_at, float(rec.duration_s), len(rec.steps),
                  rec.stop_reason, rec.auto_outcome, rec.auto_reason, json.dumps(rec.distances_m), rec.operator_outcome,
                  rec.note or "", rec.final_outcome, int(rec.placement_checks), int(rec.placement_skipped),
-                 *pose_vec(rec.T_table_tcp_final), rec.frames_dir))
+                 *pose_vec(rec.T_table_tcp_final), rec.frames_dir, self._runs.get(session_id)))
             row = int(cur.lastrowid)
             c.executemany(
                 "INSERT INTO steps VALUES (" + ",".join("?" * 26) + ")",
@@ -424,6 +545,8 @@ class TrialStore:
             raise StoreError(f"unknown table {name!r}; exportable: {', '.join(EXPORT_TABLES)}")
         if name == "sessions":
             q = "SELECT * FROM sessions ORDER BY id"
+        elif name == "runs":
+            q = "SELECT s.name AS session, r.* FROM runs r JOIN sessions s ON s.id = r.session_id ORDER BY r.id"
         elif name == "trials":
             q = "SELECT s.name AS session, t.* FROM trials t JOIN sessions s ON s.id = t.session_id ORDER BY s.id, t.plan_order"
         else:
