@@ -9,6 +9,7 @@ __all__ = [
     "HardwareConfigError",
     "MissingExtraError",
     "CameraLostError",
+    "MissingIntrinsicsError",
     "ArmFaultError",
     "ProtocolError",
     "SafetyStop",
@@ -30,6 +31,10 @@ class MissingExtraError(RobotIOError, ImportError):
 
 class CameraLostError(RobotIOError):
     """The camera stopped delivering frames (unplugged, X_LINK error, read timeout)."""
+
+
+class MissingIntrinsicsError(RobotIOError):
+    """A camera asked for intrinsics it does not have (they are optional: only tag locating needs them)."""
 
 
 class ArmFaultError(RobotIOError):

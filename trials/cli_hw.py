@@ -21,6 +21,7 @@ def check(
 
     from robot_io.check import format_pose, jog_z, measure_camera
     from robot_io.config import build_arm, build_camera, build_world, load_hardware_config
+    from robot_io.errors import MissingIntrinsicsError
 
     cfg = load_hardware_config(config)
     with contextlib.ExitStack() as stack:
@@ -34,12 +35,16 @@ def check(
         # control script unless kicked every 1 / watchdog_min_hz, which timing frames would not do.
         with camera:
             s = measure_camera(camera, frames)
-            K = camera.intrinsics.K
             typer.echo(f"camera ({cfg.camera.type}): {s.width}x{s.height}, {s.fps:.1f} fps over {s.frames} frames, "
                        f"{s.dropped} dropped")
             typer.echo(f"  read() {s.read_ms_median:.1f} ms median / {s.read_ms_p95:.1f} ms p95; "
                        f"frame age {s.age_ms_median:.1f} ms median / {s.age_ms_p95:.1f} ms p95")
-            typer.echo(f"  intrinsics fx={K[0, 0]:.1f} fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f} px")
+            try:
+                K = camera.intrinsics.K
+            except MissingIntrinsicsError:  # optional: only tag-based locating needs them
+                typer.echo("  intrinsics: not configured")
+            else:
+                typer.echo(f"  intrinsics fx={K[0, 0]:.1f} fy={K[1, 1]:.1f} cx={K[0, 2]:.1f} cy={K[1, 2]:.1f} px")
         with arm:
             arm.keepalive()
             fault = arm.fault()

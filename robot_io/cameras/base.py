@@ -62,7 +62,11 @@ class Camera(Device):
     @property
     @abc.abstractmethod
     def intrinsics(self) -> CameraIntrinsics:
-        """Intrinsics at the resolution ``read()`` returns."""
+        """Intrinsics at the resolution ``read()`` returns.
+
+        :class:`~robot_io.errors.MissingIntrinsicsError` when there are none (not in the hardware
+        config, and the device does not report them).
+        """
 
     @abc.abstractmethod
     def _read(self) -> Frame: ...

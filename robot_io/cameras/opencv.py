@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from robot_io.cameras.base import Camera, CameraIntrinsics, Frame, scale_intrinsics
-from robot_io.errors import CameraLostError, RobotIOError
+from robot_io.errors import CameraLostError, MissingIntrinsicsError
 
 __all__ = ["OpenCVCamera", "resolve_device"]
 
@@ -171,7 +171,7 @@ class OpenCVCamera(Camera):
     @property
     def intrinsics(self) -> CameraIntrinsics:
         if self._calibration is None:
-            raise RobotIOError(f"camera {self.device}: no intrinsics; set camera.intrinsics in the hardware config")
+            raise MissingIntrinsicsError(f"camera {self.device}: no intrinsics; set camera.intrinsics in the hardware config")
         if self.size is None:
             return self._calibration
         if self.size != (self._calibration.width, self._calibration.height) and not self._warned_rescale:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from robot_io.cameras.base import Camera, CameraIntrinsics, Frame, scale_intrinsics
-from robot_io.errors import CameraLostError, RobotIOError
+from robot_io.errors import CameraLostError, MissingIntrinsicsError, RobotIOError
 
 __all__ = ["ReplayCamera", "IMAGE_SUFFIXES"]
 
@@ -109,5 +109,5 @@ class ReplayCamera(Camera):
     @property
     def intrinsics(self) -> CameraIntrinsics:
         if self._calibration is None:
-            raise RobotIOError(f"replay {self.path}: no intrinsics; set camera.intrinsics in the hardware config")
+            raise MissingIntrinsicsError(f"replay {self.path}: no intrinsics; set camera.intrinsics in the hardware config")
         return self._calibration if self.size is None else scale_intrinsics(self._calibration, *self.size)

@@ -79,3 +79,27 @@ def test_check_keeps_a_ur_watchdog_fed_while_timing_the_camera_and_jogging(monke
     assert "setWatchdog" in ctrl.names() and ctrl.names().count("moveL") == 2
     assert not ctrl.watchdog_tripped, f"watchdog tripped: longest gap {ctrl.max_feed_gap_s * 1000:.0f} ms"
     assert ctrl.max_feed_gap_s <= 1 / 10
+
+
+def test_check_reports_a_camera_without_intrinsics_instead_of_aborting(monkeypatch, tmp_path):
+    import numpy as np
+    import yaml
+    from PIL import Image
+
+    from tests.robot_io.fakes import install_ur
+
+    install_ur(monkeypatch)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((24, 32, 3), 40 * i, np.uint8)).save(frames / f"{i}.png")
+    hw = tmp_path / "hw.yaml"
+    hw.write_text(yaml.safe_dump({
+        "camera": {"type": "replay", "path": str(frames), "loop": True},  # no intrinsics: they are optional
+        "arm": {"type": "ur_rtde", "host": "10.0.0.2"},
+        "safety": {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6]},
+    }))
+    result = CliRunner().invoke(app, ["hw", "check", "-c", str(hw), "--frames", "4"])
+    assert result.exit_code == 0, result.output
+    assert "intrinsics: not configured" in result.output and "32x24" in result.output
+    assert "arm (ur_rtde): xyz = [" in result.output
