@@ -81,6 +81,19 @@ def test_same_seed_same_plan_other_seed_other_order(spec, plan):
     assert {t.trial_id for t in other.trials} == {t.trial_id for t in plan.trials}
 
 
+def test_order_keeps_each_environment_together_randomized_within(spec, plan):
+    envs_in_order = [t.env for t in plan.trials]
+    first_env = envs_in_order[0]
+    n_first = envs_in_order.count(first_env)
+    assert set(envs_in_order[:n_first]) == {first_env} and first_env not in envs_in_order[n_first:]  # one switch only
+    block = [t for t in plan.trials if t.env == first_env]
+    # within the block the trials are shuffled across shapes, conditions and tags, not run cell by cell
+    assert len({(t.shape, t.condition, tuple(t.tags)) for t in block[:12]}) > 3
+    firsts = {make_plan(spec, seed, ["A", "B", "C"], ["cube"], ["clean"], {}, n_tcp_poses=1, n_object_layouts=2).trials[0].env
+              for seed in range(8)}
+    assert len(firsts) > 1  # the env order is drawn from the seed too
+
+
 def test_trial_ids_unique_and_stable(plan):
     ids = [t.trial_id for t in plan.trials]
     assert len(set(ids)) == len(ids)

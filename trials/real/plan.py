@@ -21,7 +21,11 @@ configurations; TCP poses from further configurations, keeping a TCP pose only i
 start for *every* layout (the sampler's own rules: at least ``min_tcp_height_m + 0.04`` high and
 1.5 success radii from every object) and sees both objects' centres in the wrist image - a crossed
 design reuses one TCP pose with layouts it was not drawn for, and a start with an object out of
-view wastes a real trial. The trial order is a permutation drawn from ``seed``.
+view wastes a real trial.
+
+The trial order is drawn from ``seed`` and keeps each environment together (an environment is a
+physical setup): the environments come in a random order, and within each environment's block
+every trial of it (all shapes, conditions, tags, poses and layouts) comes in a random order.
 """
 
 from __future__ import annotations
@@ -346,7 +350,7 @@ def make_plan(
     scene: str | None = None,
     **settings,
 ) -> TrialPlan:
-    """The full-factorial trial plan (see the module docstring), in a random order drawn from ``seed``.
+    """The full-factorial trial plan (see the module docstring), in a random order drawn from ``seed`` (env by env).
 
     ``pool``: optional list of :class:`sim.configs.InitialConfig` (e.g. a task-feasible pool) to
     draw poses and layouts from instead of the sampler. ``scene``: the scene file name recorded in
@@ -387,7 +391,15 @@ def make_plan(
                     for t in range(n_tcp_poses):
                         for o in range(n_object_layouts):
                             cells.append((trial_id(env, shape, cond, t, o, tag), env, shape, cond, t, o, [tag] if tag else []))
-    order = rng.permutation(len(cells))
+    # Environment by environment (a random order of envs), each block in a random order: an
+    # environment is a physical setup, and switching it between trials would cost a rebuild each time.
+    order = np.empty(len(cells), dtype=np.int64)
+    k = 0
+    for e in rng.permutation(len(envs)):
+        block = [i for i, c in enumerate(cells) if c[1] == envs[int(e)]]
+        for i in rng.permutation(block):
+            order[int(i)] = k
+            k += 1
     trials = sorted(
         (PlannedTrial(trial_id=c[0], order=int(k), env=c[1], shape=c[2], condition=c[3], tcp_pose=c[4], object_layout=c[5], tags=c[6]) for c, k in zip(cells, order)),
         key=lambda t: t.order,
@@ -421,7 +433,7 @@ def design_summary(plan: TrialPlan) -> list[str]:
     return lines
 
 
-_HEADER = """advobj real-robot trial plan (advobj trial plan). Run the trials in 'order'.
+_HEADER = """advobj real-robot trial plan (advobj trial plan). Run the trials in 'order' (one environment after the other).
 Frames: the table frame = the simulator's world frame (z up, origin on the table top).
 Object placements: base centre xy (m) and yaw (rad) per scene role; TCP poses: T_table_tcp.
 Conditions: clean = the shape's benign look; adv3d = the shape with textures['<shape>/adv3d'];
