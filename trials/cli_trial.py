@@ -76,9 +76,10 @@ def run_command(
     session: str = typer.Option(..., help="session name; the same name resumes an interrupted session"),
     db: Path = typer.Option(Path("trials.sqlite"), help="trial database (frames go to frames/ beside it)"),
     auto_confirm: bool = typer.Option(False, "--auto-confirm", help="accept every automatic outcome (CI, scripted sessions)"),
-    answers: Optional[Path] = typer.Option(None, help="operator answers YAML: {trial_id: {outcome: ..., note: ...}} or a list"),
+    answers: Optional[Path] = typer.Option(None, help="operator answers YAML: {trial_id: {outcome: ..., note: ...}} or a list in run order"),
     registry: Optional[Path] = typer.Option(None, help="tag registry YAML (objects.yaml); needed with a real camera"),
-    table_frame: Optional[Path] = typer.Option(None, help="YAML with T_base_table; default: from the registry's table tags"),
+    table_frame: Optional[Path] = typer.Option(None, help="YAML with T_base_table; default: estimated from the registry's table "
+                                               "tags at the session's start, stored, reused on resume"),
     max_trials: Optional[int] = typer.Option(None, min=0, help="run at most this many of the remaining trials"),
     rate_limit: Optional[bool] = typer.Option(None, "--rate-limit/--no-rate-limit",
                                               help="hold the plan's control rate (default: on, off for non-realtime sim arms)"),

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from tests.trials.trial_session_helpers import sim_hardware, small_plan, tiny_onnx
+from tests.trials.trial_session_helpers import sim_hardware, small_plan, straight_ahead_onnx, tiny_onnx
 from trials.real.locate import LocatedObject, TagLocator, placement_issues
-from trials.real.operator import AnswersError, AutoOperator, ScriptedOperator, load_answers
+from trials.real.operator import AnswersError, AutoOperator, ScriptedOperator, TerminalOperator, load_answers
 from trials.real.plan import ObjectPlacement, load_plan
-from trials.real.session import run_session
+from trials.real.session import file_sha256, run_session
 from trials.real.store import SessionMismatch, TrialStore
 
 
@@ -113,6 +113,115 @@ def test_a_changed_plan_is_refused_on_resume(files, tmp_path):
     changed.write_text(files["plan"].read_text() + "\n# edited\n")
     with pytest.raises(SessionMismatch, match="original plan"):
         run_session(files["hw"], files["policy"], changed, "s", db, operator=AutoOperator(log=None), rate_limit=False)
+
+
+def test_resume_with_another_policy_is_refused_naming_both_files(files, tmp_path):
+    db = tmp_path / "t.sqlite"
+    _run(files, db, max_trials=1)
+    other = straight_ahead_onnx(tmp_path / "other.onnx")
+    with pytest.raises(SessionMismatch) as err:
+        run_session(files["hw"], other, files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False)
+    msg = str(err.value)
+    assert f"policy: sha256 {file_sha256(files['policy'])[:12]}... ({files['policy']}) at the session's start" in msg
+    assert f"now sha256 {file_sha256(other)[:12]}... ({other})" in msg
+    assert len(TrialStore(db).trial_rows()) == 1
+
+
+def test_resume_with_an_edited_hardware_yaml_warns_and_records_the_run(files, tmp_path):
+    db = tmp_path / "t.sqlite"
+    _run(files, db, max_trials=1)
+    hw = tmp_path / "hw.yaml"
+    hw.write_text(files["hw"].read_text() + "# moved the camera cable\n")
+    logged = []
+    run_session(hw, files["policy"], files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False, max_trials=1,
+                log=logged.append)
+    assert any("hardware YAML" in line and "since the last run" in line for line in logged), logged
+    store = TrialStore(db)
+    runs = store.con.execute("SELECT id, hardware_text FROM runs ORDER BY id").fetchall()
+    assert len(runs) == 2 and runs[1]["hardware_text"].endswith("# moved the camera cable\n")
+    assert [r["run_id"] for r in store.trial_rows()] == [runs[0]["id"], runs[1]["id"]]
+    # sim cells are in the table frame by construction; it is stored like an estimated one
+    np.testing.assert_array_equal(store.stored_T_base_table("s"), np.eye(4))
+
+
+def test_estimated_table_frame_is_stored_and_reused_on_resume(tmp_path, monkeypatch):
+    """Without --table-frame the frame is estimated once, at the session's start; a resume reuses the stored one."""
+    from types import SimpleNamespace
+
+    import calibration.registry
+    import robot_io.config
+    from sim.geometry import make_T, rot_z
+    from trials.real import session as session_mod
+    from trials.real.store import SessionInfo
+
+    T_est = make_T(rot_z(0.4), np.array([0.3, -0.1, 0.02]))
+    estimates = []
+    monkeypatch.setattr(calibration.registry, "load_registry", lambda path: "registry")
+    monkeypatch.setattr(robot_io.config, "load_T_tcp_cam", lambda path: np.eye(4))
+    monkeypatch.setattr(TagLocator, "observe", lambda self, frame: {})
+    monkeypatch.setattr(TagLocator, "estimate_T_base_table", staticmethod(lambda obs, T_tcp, T_tcp_cam: estimates.append(1) or T_est))
+    hw = SimpleNamespace(T_tcp_cam="hand_eye.yaml")
+    camera = SimpleNamespace(intrinsics=None, read=lambda: None)
+    arm = SimpleNamespace(tcp_pose=lambda: np.eye(4))
+    store = TrialStore(tmp_path / "t.sqlite")
+    logged = []
+
+    def start(stored):
+        loc, T = session_mod._tag_locator(hw, camera, arm, "objects.yaml", None, stored, logged.append)
+        info = SessionInfo(name="s", plan_sha256="a" * 64, plan_text="", hardware_text="", policy_path="p.onnx", policy_sha256="b" * 64,
+                           software_version="0", git_commit="c", devices={}, calibration={}, T_base_table=T)
+        store.open_session(info)
+        return loc, T
+
+    _, T = start(store.stored_T_base_table("s"))
+    assert estimates == [1] and "estimated from the registry's table tags" in logged[-1]
+    loc, T2 = start(store.stored_T_base_table("s"))  # the resume
+    assert estimates == [1] and "not re-estimated" in logged[-1]
+    np.testing.assert_array_equal(T2, T_est)
+    np.testing.assert_array_equal(loc.T_base_table, T_est)
+
+
+def test_answers_list_is_keyed_by_run_order_across_a_resume(files, tmp_path):
+    db = tmp_path / "t.sqlite"
+    ordered = [t.trial_id for t in sorted(load_plan(files["plan"]).trials, key=lambda t: t.order)]
+    answers = tmp_path / "answers.yaml"
+    answers.write_text("- {note: first}\n- {outcome: unknown, note: second}\n- {note: third}\n")
+    for _ in range(3):  # one trial per sitting: every resume must read the next entry, not entry 0 again
+        run_session(files["hw"], files["policy"], files["plan"], "s", db, answers=answers, rate_limit=False, max_trials=1, log=None)
+    rows = {r["trial_id"]: r for r in TrialStore(db).trial_rows()}
+    assert [rows[t]["note"] for t in ordered[:3]] == ["first", "second", "third"]
+    assert rows[ordered[1]]["final_outcome"] == "unknown" and rows[ordered[0]]["operator_outcome"] is None
+    answers.write_text("".join(f"- {{note: n{i}}}\n" for i in range(len(ordered) + 1)))
+    with pytest.raises(AnswersError, match=f"{len(ordered) + 1} answers for a plan of {len(ordered)} trials"):
+        run_session(files["hw"], files["policy"], files["plan"], "s", db, answers=answers, rate_limit=False, log=None)
+
+
+def test_closed_operator_input_aborts_like_q(files, tmp_path):
+    """EOF on the operator's input (the terminal went away) stops the arm and drops the trial: no traceback."""
+    import io
+
+    db = tmp_path / "t.sqlite"
+    first = sorted(load_plan(files["plan"]).trials, key=lambda t: t.order)[0].trial_id
+    seen = {}
+    op = TerminalOperator(stdin=io.StringIO(""), stdout=io.StringIO())  # a pipe already at its end
+    summary = _run(files, db, operator=op, on_ready=lambda r, w: seen.setdefault("runner", r))
+    assert summary.aborted and summary.abort_reason == "operator input closed" and not summary.committed
+    assert TrialStore(db).trial_rows() == [] and not (db.parent / "frames" / "s" / first).exists()
+    events = list(seen["runner"].arm.events)
+    assert (events[-1].action, events[-1].reason) == ("stopped", "session aborted (operator input closed)")
+
+
+def test_cli_exits_3_when_the_operator_input_closes(files, tmp_path):
+    from typer.testing import CliRunner
+
+    from trials.cli import app
+
+    db = tmp_path / "t.sqlite"
+    r = CliRunner().invoke(app, ["trial", "run", "--hardware", str(files["hw"]), "--policy", str(files["policy"]), "--plan",
+                                 str(files["plan"]), "--session", "s", "--db", str(db), "--no-rate-limit"], input="")
+    assert r.exit_code == 3, r.output
+    assert r.exception is None or isinstance(r.exception, SystemExit)
+    assert "aborted (operator input closed)" in r.output and TrialStore(db).trial_rows() == []
 
 
 # ---------------------------------------------------------------------- pure pieces

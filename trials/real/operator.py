@@ -17,11 +17,14 @@ after a pause, and whether the automatic outcome stands (with an optional note).
   q             abort: stop the arm, drop the trial in progress, exit
   ============  ==========================================================
 
+  Closed input (end of file on stdin) raises :class:`EOFError`, which the runner handles as ``q``.
+
 * :class:`AutoOperator`: accepts every outcome (``--auto-confirm``, CI).
 * :class:`ScriptedOperator`: answers from a YAML file (``--answers``): either a mapping
-  ``{trial_id: {outcome: adversarial, note: "..."}}`` or an ordered list of such entries consumed
-  one per trial; ``outcome: accept`` (or no outcome) keeps the automatic one. Trials without an
-  answer keep theirs.
+  ``{trial_id: {outcome: adversarial, note: "..."}}`` or a list of such entries, entry ``i`` for
+  the ``i``-th trial of the plan's run order (by position, not by how many trials this run has
+  done, so a resumed session reads the same answers as an uninterrupted one); ``outcome: accept``
+  (or no outcome) keeps the automatic one. Trials without an answer keep theirs.
 """
 
 from __future__ import annotations
@@ -141,27 +144,31 @@ class ScriptedOperator(AutoOperator):
         super().__init__(log)
         self.answers = answers
         self.source = source
-        self._next = 0
+        self._position: dict[str, int] | None = None  # trial id -> position in the run order (check_plan)
 
     @classmethod
     def from_file(cls, path, log=print) -> "ScriptedOperator":
         return cls(load_answers(path), log, str(path))
 
     def check_plan(self, plan) -> None:
-        """Refuse answers for trial ids the plan does not have (a typo would be silently ignored)."""
+        """Refuse answers the plan has no trial for (a typo or a list for another plan would be silently ignored)."""
         if isinstance(self.answers, dict):
             ids = {t.trial_id for t in plan.trials}
             bad = sorted(set(self.answers) - ids)
             if bad:
                 raise AnswersError(f"{self.source}: trial ids not in the plan: {', '.join(bad[:5])}" + (" ..." if len(bad) > 5 else ""))
+            return
+        if len(self.answers) > len(plan.trials):
+            raise AnswersError(f"{self.source}: {len(self.answers)} answers for a plan of {len(plan.trials)} trials "
+                               "(entry i answers the i-th trial of the run order)")
+        self._position = {t.trial_id: i for i, t in enumerate(sorted(plan.trials, key=lambda t: t.order))}
 
     def confirm(self, trial, result, info: str) -> Decision:
         if isinstance(self.answers, dict):
             return self.answers.get(trial.trial_id, Decision())
-        if self._next < len(self.answers):
-            self._next += 1
-            return self.answers[self._next - 1]
-        return Decision()
+        # entry i = the i-th trial of the run order; without check_plan, a generated plan's order is that position
+        i = trial.order if self._position is None else self._position[trial.trial_id]
+        return self.answers[i] if i < len(self.answers) else Decision()
 
 
 class TerminalOperator:
@@ -197,14 +204,17 @@ class TerminalOperator:
         while True:
             if self.tty:
                 with self._cbreak():
-                    ch = os.read(self.stdin.fileno(), 1).decode(errors="ignore")
+                    raw = os.read(self.stdin.fileno(), 1)
+                if raw == b"":
+                    raise EOFError("operator input closed")
+                ch = raw.decode(errors="ignore")
             else:
                 line = self.stdin.readline()
                 if line == "":
                     raise EOFError("operator input closed")
                 ch = line.strip()[:1] or "\n"
             ch = "\n" if ch in ("\r", "\n") else ch.lower()
-            if ch in allowed:
+            if ch and ch in allowed:  # "" (an undecodable byte) is "in" every string
                 return ch
 
     def _line(self, prompt: str) -> str:

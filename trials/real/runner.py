@@ -23,9 +23,10 @@ Per trial, in this order:
 7. The trial is committed in one transaction (:meth:`TrialStore.commit_trial`), frames first.
 
 Pause (during the loop) stops the arm; on resume the trial in progress restarts from step 1 (a
-paused rollout is not the experiment). Abort (key ``q`` or Ctrl-C) stops the arm, drops the trial
-in progress and returns; running the same command again resumes: committed trials are skipped,
-and the session refuses a plan file whose sha256 differs from the one it started with.
+paused rollout is not the experiment). Abort (key ``q``, Ctrl-C, or the operator's input closing)
+stops the arm, drops the trial in progress and returns; running the same command again resumes:
+committed trials are skipped, and the session refuses a plan, policy or calibration file whose
+sha256 differs from the one it started with.
 """
 
 from __future__ import annotations
@@ -176,9 +177,12 @@ class TrialRunner:
                 current = None
                 self.operator.show(f"  committed: {rec.final_outcome}" + (f" (auto: {rec.auto_outcome})" if rec.operator_outcome else "")
                                    + f", {len(rec.steps)} steps at {timing.loop_hz:.1f} Hz, {rec.stop_reason}")
-        except (_Abort, KeyboardInterrupt) as err:
+        except (_Abort, KeyboardInterrupt, EOFError) as err:
+            # EOF: the operator's input closed (terminal gone, answers piped in ran out). Nobody can
+            # confirm outcomes any more, so it is an abort like 'q', not a crash with a traceback.
             summary.aborted = True
-            summary.abort_reason = "Ctrl-C" if isinstance(err, KeyboardInterrupt) else "operator abort"
+            summary.abort_reason = ("Ctrl-C" if isinstance(err, KeyboardInterrupt)
+                                    else "operator input closed" if isinstance(err, EOFError) else "operator abort")
             self._stop_quietly(f"session aborted ({summary.abort_reason})")
             if current is not None and current.trial_id not in self.store.committed_trial_ids(sid):
                 clear_frames(frames_dir(self.store.path, self.session.name, current.trial_id))
