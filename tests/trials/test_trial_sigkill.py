@@ -3,7 +3,9 @@
 Each kill happens a random delay after the session has committed a given number of trials, so
 it lands anywhere in the next trial (placement, policy loop, frame writes, the commit itself).
 After every kill: ``PRAGMA integrity_check`` is ``ok``, every committed trial is complete (all its
-steps and frames), and after the final resume every planned trial is stored exactly once.
+steps and frames), and after the final resume every planned trial is stored exactly once. At
+least one kill must land (a runner that finished before its kill proves nothing). The kill points
+come from a seed, printed and named in every failure; ``ADVOBJ_SIGKILL_SEED=N`` replays one.
 """
 
 from __future__ import annotations
@@ -47,18 +49,24 @@ def _committed(db: Path) -> int:
         return 0  # schema not created yet
 
 
-def _kill_after(files, db, n_committed: int, delay_s: float, timeout_s: float = 120.0) -> bool:
+def _seed() -> int:
+    seed = int(os.environ.get("ADVOBJ_SIGKILL_SEED", time.time_ns() % 2**32))
+    print(f"kill points from seed {seed} (replay: ADVOBJ_SIGKILL_SEED={seed})")
+    return seed
+
+
+def _kill_after(files, db, n_committed: int, delay_s: float, why: str, timeout_s: float = 120.0) -> bool:
     """Start the runner, SIGKILL it ``delay_s`` after ``n_committed`` trials are stored; False if it finished first."""
     env = {**os.environ, "PYOPENGL_PLATFORM": "egl"}
     proc = subprocess.Popen(_cmd(files, db), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     t_end = time.monotonic() + timeout_s
     try:
         while _committed(db) < n_committed and proc.poll() is None:
-            assert time.monotonic() < t_end, "runner made no progress"
+            assert time.monotonic() < t_end, f"runner made no progress ({why})"
             time.sleep(0.02)
         time.sleep(delay_s)
         if proc.poll() is not None:
-            assert proc.returncode == 0, proc.stderr.read().decode()
+            assert proc.returncode == 0, f"{why}: {proc.stderr.read().decode()}"
             return False
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
@@ -91,30 +99,35 @@ def _check_db(db: Path) -> list[str]:
         con.close()
 
 
-def _kill_and_resume(files, db, kills: list[tuple[int, float]]) -> None:
+def _kill_and_resume(files, db, kills: list[tuple[int, float]], seed: int) -> None:
     from trials.real.plan import load_plan
 
     planned = {t.trial_id for t in load_plan(files["plan"]).trials}
-    done = []
+    done, killed = [], []
     for k, (after, delay) in enumerate(kills):
-        _kill_after(files, db, after, delay)
+        why = f"seed {seed}, kill {k}: {delay:.3f} s after {after} committed trials"
+        killed.append(_kill_after(files, db, after, delay, why))
         done = _check_db(db)
-        assert len(done) == len(set(done)) and set(done) <= planned
+        assert len(done) == len(set(done)) and set(done) <= planned, why
+    assert any(killed), f"seed {seed}: the runner finished before every kill {kills}; nothing was tested"
     r = subprocess.run(_cmd(files, db), cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert f"{len(done)} of {len(planned)} trials already done" in r.stdout or not done
+    assert r.returncode == 0, f"seed {seed}: {r.stderr}"
+    assert f"{len(done)} of {len(planned)} trials already done" in r.stdout or not done, f"seed {seed}"
     final = _check_db(db)
-    assert sorted(final) == sorted(planned)  # every planned trial exactly once
+    assert sorted(final) == sorted(planned), f"seed {seed}"  # every planned trial exactly once
 
 
 def test_sigkill_mid_session_then_resume(files, tmp_path):
     # One kill keeps the default suite at two runner start-ups (~7 s of CPU each, mostly imports).
-    rng = random.Random()
-    _kill_and_resume(files, tmp_path / "trials.sqlite", [(rng.randint(1, 3), rng.uniform(0.0, 0.3))])
+    # 9 trials of at most 8 steps: 0.3 s after the 3rd commit, the 6 trials left are far from done.
+    seed = _seed()
+    rng = random.Random(seed)
+    _kill_and_resume(files, tmp_path / "trials.sqlite", [(rng.randint(1, 3), rng.uniform(0.0, 0.3))], seed)
 
 
 @pytest.mark.slow
 def test_sigkill_at_many_random_points(files, tmp_path):
-    rng = random.Random(int(time.time()))
+    seed = _seed()
+    rng = random.Random(seed)
     kills = sorted((rng.randint(0, 5), rng.uniform(0.0, 1.5)) for _ in range(6))
-    _kill_and_resume(files, tmp_path / "trials.sqlite", kills)
+    _kill_and_resume(files, tmp_path / "trials.sqlite", kills, seed)
