@@ -1,4 +1,4 @@
-"""The lifecycle every device shares: ``connect()`` / ``disconnect()`` and ``with device:``."""
+"""What every device shares: ``connect()`` / ``disconnect()``, ``with device:``, and ``identity()``."""
 
 from __future__ import annotations
 
@@ -36,6 +36,15 @@ class Device(abc.ABC):
     def __exit__(self, exc_type, exc, tb):
         self.disconnect()
         return False
+
+    @abc.abstractmethod
+    def identity(self) -> dict[str, str]:
+        """What identifies this unit, for the session record (``trials.real.session.device_identity``).
+
+        Always the configured address (device path, host, port, socket); once connected also what
+        the device reported when it connected, with its hardware serial number, when it has one,
+        under ``serial``. Cheap and side-effect free (no I/O): callable before ``connect()``.
+        """
 
     @abc.abstractmethod
     def _open(self) -> None: ...

@@ -232,6 +232,10 @@ class SafeArm:
             self.disconnect()
         return False
 
+    def identity(self) -> dict[str, str]:
+        """The driver's :meth:`~robot_io.device.Device.identity` (for the session record)."""
+        return self.__arm.identity()
+
     def keepalive(self) -> None:
         """Kick the driver's watchdog; call it when the arm is connected but no command is due."""
         self.__arm.keepalive()

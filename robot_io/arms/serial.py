@@ -171,6 +171,14 @@ class SerialArm(Arm):
         finally:
             ser.close()
 
+    def identity(self) -> dict[str, str]:
+        out = {"port": self.port}
+        info = self.device_info  # from the boot banner or HELLO; 'id' is optional (docs/serial-protocol.md)
+        for key, field in (("serial", "id"), ("firmware", "fw"), ("protocol", "proto")):
+            if field in info:
+                out[key] = info[field]
+        return out
+
     def _readline(self, deadline: float) -> bytes | None:
         while True:
             nl = self._buf.find(b"\n")

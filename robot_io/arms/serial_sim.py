@@ -54,9 +54,10 @@ class SerialArmSimulator:
                  send_banner: bool = True, boot_noise: bytes = b"\x00\xfe boot v0.1\r\n",
                  max_speed_mps: float = 0.5, max_speed_radps: float = 2.0,
                  T_base_tcp: np.ndarray | None = None, keep_fd: int | None = None,
-                 protocol_version: int = PROTOCOL_VERSION):
+                 protocol_version: int = PROTOCOL_VERSION, device_id: str = "SIM-0001"):
         self.fd = fd
         self.protocol_version = int(protocol_version)
+        self.device_id = device_id
         self._keep_fd = keep_fd
         self.heartbeat_timeout_ms = float(heartbeat_timeout_ms)
         self.boot_delay_s = float(boot_delay_s)
@@ -146,7 +147,7 @@ class SerialArmSimulator:
                     self._last_rx = now
                     if self.send_banner:
                         self._send(self.boot_noise + f"#BOOT advobj-arm fw={FIRMWARE} proto={self.protocol_version} "
-                                   f"hb_ms={self.heartbeat_timeout_ms:.0f}\n".encode())
+                                   f"hb_ms={self.heartbeat_timeout_ms:.0f} id={self.device_id}\n".encode())
                     self.booted.set()
                 t_prev = now
                 continue  # input during boot is lost, as on a real board
@@ -229,7 +230,8 @@ class SerialArmSimulator:
     def _execute(self, cmd: str, args: list[str]) -> list[str]:
         with self._lock:
             if cmd == "HELLO":
-                return ["OK", f"proto={self.protocol_version}", f"fw={FIRMWARE}", f"hb_ms={self.heartbeat_timeout_ms:.0f}"]
+                return ["OK", f"proto={self.protocol_version}", f"fw={FIRMWARE}", f"hb_ms={self.heartbeat_timeout_ms:.0f}",
+                        f"id={self.device_id}"]
             if cmd == "HB":
                 return ["OK"]
             if cmd == "STATUS":

@@ -94,6 +94,9 @@ class SimArm(Arm):
         if self.realtime:
             time.sleep(duration)
 
+    def identity(self) -> dict[str, str]:
+        return {"serial": "sim"}
+
     def simulated_time_s(self) -> float | None:
         # Non-realtime: each command takes simulated time only, so the safety layer uses this clock.
         return None if self.realtime else self.sim_time_s

@@ -70,6 +70,7 @@ class URArm(Arm):
         self._rtde_c = None
         self._rtde_r = None
         self._dashboard_mod = None
+        self._controller: dict[str, str] = {}  # serial number and model, read from the dashboard on connect
 
     # ------------------------------------------------------------------ connection
     def _open(self) -> None:
@@ -82,6 +83,7 @@ class URArm(Arm):
         try:
             self._rtde_r = rtde_receive.RTDEReceiveInterface(self.host)
             self._rtde_c = rtde_control.RTDEControlInterface(self.host)
+            self._controller = self._read_controller_identity()  # before the watchdog runs
             self._rtde_c.setWatchdog(self.watchdog_min_hz)
         except BaseException as err:
             # Release what was opened: a dangling receive interface keeps its RTDE thread running,
@@ -91,6 +93,26 @@ class URArm(Arm):
                 raise ArmFaultError(Fault("connection_lost", f"cannot connect to UR controller at {self.host}: {err}",
                                           "check the network, that the arm is powered on and in remote control")) from None
             raise
+
+    def _read_controller_identity(self) -> dict[str, str]:
+        # The serial number is for the session record only: not being able to read it is no error.
+        out: dict[str, str] = {}
+        try:
+            dash = self._dashboard_mod.DashboardClient(self.host)
+            dash.connect()
+            try:
+                for key, getter in (("serial", "getSerialNumber"), ("model", "getRobotModel")):
+                    fn = getattr(dash, getter, None)  # getSerialNumber is missing in older ur-rtde releases
+                    if fn is not None:
+                        out[key] = str(fn()).strip()
+            finally:
+                dash.disconnect()
+        except Exception as err:  # noqa: BLE001
+            log.warning("UR %s: cannot read the controller's serial number from the dashboard server (%s)", self.host, err)
+        return out
+
+    def identity(self) -> dict[str, str]:
+        return {"host": self.host, **self._controller}
 
     def _close_quietly(self) -> None:
         try:

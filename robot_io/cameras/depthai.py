@@ -25,6 +25,21 @@ def _lost(err: Exception) -> Exception:
     return err
 
 
+def _device_info(device, calib) -> dict[str, str]:
+    # v3 names the chip id getDeviceId (v2: getMxId); the product name lives in the EEPROM data.
+    out: dict[str, str] = {}
+    get_id = getattr(device, "getDeviceId", None) or getattr(device, "getMxId", None)
+    if get_id is not None:
+        out["serial"] = str(get_id())
+    try:
+        name = calib.getEepromData().productName
+        if name:
+            out["product"] = str(name)
+    except (AttributeError, RuntimeError):
+        pass  # old calibration data has no EEPROM block; the id identifies the unit anyway
+    return out
+
+
 class DepthAICamera(Camera):
     """An OAK colour camera.
 
@@ -48,6 +63,7 @@ class DepthAICamera(Camera):
         self._pipeline = None
         self._queue = None
         self._seq = 0
+        self._device_info: dict[str, str] = {}  # device id and product name, read on connect
 
     def _open(self) -> None:
         dai = require_extra("depthai", "oak", "the OAK (depthai) camera")
@@ -62,8 +78,10 @@ class DepthAICamera(Camera):
             self._queue = out.createOutputQueue(maxSize=1, blocking=False)
             pipeline.start()
             self._pipeline = pipeline
+            device = pipeline.getDefaultDevice()
+            calib = device.readCalibration()
+            self._device_info = _device_info(device, calib)
             if self._calibration is None:
-                calib = pipeline.getDefaultDevice().readCalibration()
                 K = np.asarray(calib.getCameraIntrinsics(socket, self.width, self.height), dtype=np.float64)
                 dist = np.asarray(calib.getDistortionCoefficients(socket), dtype=np.float64)[:5]
                 self._device_intrinsics = CameraIntrinsics(K, dist, self.width, self.height)
@@ -71,6 +89,9 @@ class DepthAICamera(Camera):
             self._close()
             raise _lost(err) from None
         self._seq = 0
+
+    def identity(self) -> dict[str, str]:
+        return {"socket": self.socket, **self._device_info}
 
     def _close(self) -> None:
         pipeline, self._pipeline, self._queue = self._pipeline, None, None

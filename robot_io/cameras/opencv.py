@@ -77,6 +77,7 @@ class OpenCVCamera(Camera):
         self._last_read_seq = -1
         self._error: Exception | None = None
         self._warned_rescale = False
+        self._opened: dict[str, str] = {}  # what connect() found: the resolved node, OpenCV's backend
 
     # ------------------------------------------------------------------ setup
     def _open(self) -> None:
@@ -87,6 +88,11 @@ class OpenCVCamera(Camera):
         if not cap.isOpened():
             cap.release()
             raise CameraLostError(f"cannot open camera {self.device} (busy, or not a V4L2 capture node)")
+        self._opened = {"node": str(src)}
+        try:
+            self._opened["backend"] = str(cap.getBackendName())
+        except Exception:  # noqa: BLE001 - informational only; some builds raise for unknown backends
+            pass
         req = self.requested
         wanted: list[tuple[str, int, object]] = []
         if req["fourcc"]:
@@ -130,6 +136,10 @@ class OpenCVCamera(Camera):
         if self._cap is not None:
             self._cap.release()
             self._cap = None
+
+    def identity(self) -> dict[str, str]:
+        # A /dev/v4l/by-id path names the model and, for most UVC devices, its serial number.
+        return {"device": str(self.device), **self._opened}
 
     # ------------------------------------------------------------------ frames
     def _grab_loop(self) -> None:

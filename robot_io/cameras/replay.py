@@ -82,6 +82,9 @@ class ReplayCamera(Camera):
             return None
         return np.ascontiguousarray(bgr[:, :, 2::-1])
 
+    def identity(self) -> dict[str, str]:
+        return {"path": str(self.path)}
+
     def _rewind(self) -> None:
         self._index = 0
         if self._cap is not None:

@@ -44,6 +44,9 @@ class SimCamera(Camera):
         out = self.world.render(T_world_cam, with_ids=False)
         return Frame(np.ascontiguousarray(out.rgb), t_capture, next(self._seq))
 
+    def identity(self) -> dict[str, str]:
+        return {"serial": "sim"}
+
     @property
     def intrinsics(self) -> CameraIntrinsics:
         return CameraIntrinsics(self.world.K, np.zeros(5), self.world.width, self.world.height)

@@ -298,6 +298,9 @@ class FakeOak:
         self.fail_after: int | None = None  # frames before the USB link "drops"
         self.served = 0
         self.period_s = 0.002
+        self.attached = True
+        self.device_id = "18443010D116631200"
+        self.product_name = "OAK-D-PRO-W-97"
 
 
 def make_depthai(oak: FakeOak) -> types.ModuleType:
@@ -366,15 +369,26 @@ def make_depthai(oak: FakeOak) -> types.ModuleType:
         def getDistortionCoefficients(self, socket):
             return [0.01] + [0.0] * 13
 
+        def getEepromData(self):
+            return types.SimpleNamespace(productName=oak.product_name, boardName="DM9098")
+
     class _Device:
         def readCalibration(self):
             return _Calib()
 
+        def getDeviceId(self):
+            return oak.device_id
+
     class Pipeline:
+        def __init__(self):
+            if not oak.attached:  # depthai v3 connects to the device when the pipeline is created
+                raise RuntimeError("No available devices")
+
         def create(self, kind):
             return kind()
 
         def start(self):
+            oak.requested.append(("start",))
             oak.started = True
 
         def stop(self):
@@ -447,6 +461,9 @@ def make_video_capture(dev: FakeCaptureDevice, cv2):
 
         def get(self, prop):
             return float(self.props.get(prop, 0.0))
+
+        def getBackendName(self):
+            return "V4L2"
 
         def read(self):
             time.sleep(1.0 / dev.fps)
@@ -525,3 +542,6 @@ class RecordingArm(Arm):
 
     def keepalive(self):
         self.kicks += 1
+
+    def identity(self):
+        return {"serial": "recording"}

@@ -94,6 +94,45 @@ def test_camera_reconnects(camera):
         assert camera.read().rgb.size > 0
 
 
+# What identity() must hold once connected (values: exact, or None for "present").
+CAMERA_IDENTITY = {
+    "opencv": {"device": "0", "node": "0", "backend": "V4L2"},
+    "depthai": {"socket": "CAM_A", "serial": "18443010D116631200", "product": "OAK-D-PRO-W-97"},
+    "sim": {"serial": "sim"},
+    "replay": {"path": None},
+}
+ARM_IDENTITY = {
+    "sim": {"serial": "sim"},
+    "serial": {"port": None, "serial": "SIM-0001", "firmware": "advobj-sim-1.0", "protocol": "1"},
+    "ur_rtde": {"host": "10.0.0.2", "serial": "20235500042", "model": "UR5"},
+}
+
+
+def _check_identity(device, expected):
+    before = device.identity()
+    with device:
+        after = device.identity()
+    for ident in (before, after):
+        assert isinstance(ident, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in ident.items())
+    assert before.items() <= after.items()  # connecting only adds what the device reports
+    for key, value in expected.items():
+        assert key in after and (value is None or after[key] == value), (key, after)
+    return after
+
+
+def test_camera_identity(camera):
+    _check_identity(camera, CAMERA_IDENTITY[camera.name])
+
+
+def test_arm_identity_reaches_the_session_record_through_the_safety_layer(arm, limits):
+    from trials.real.session import device_identity
+
+    after = _check_identity(arm, ARM_IDENTITY[arm.name])
+    safe = SafeArm(arm, limits)
+    assert safe.identity() == after
+    assert device_identity(safe)["serial"] == after["serial"]
+
+
 def _wait_near(arm, T, tol_m=1e-4, timeout_s=2.0):
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

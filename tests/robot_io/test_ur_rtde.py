@@ -228,3 +228,18 @@ def test_an_ur_rtde_without_async_status_is_refused_on_connect(monkeypatch):
     with pytest.raises(MissingExtraError, match="getAsyncOperationProgressEx"):
         URArm("10.0.0.2").connect()
     assert "control_init" not in ctrl.names()
+
+
+@pytest.mark.parametrize("case", ["no_getSerialNumber", "dashboard_unreachable"])
+def test_identity_without_the_controller_serial_still_connects(monkeypatch, caplog, case):
+    ctrl = FakeURController()
+    if case == "no_getSerialNumber":
+        ctrl.serial_number = None  # an older ur-rtde
+    else:
+        ctrl.dashboard_unreachable = True
+    install_ur(monkeypatch, ctrl)
+    with URArm("10.0.0.2") as arm:
+        ident = arm.identity()
+    assert ident["host"] == "10.0.0.2" and "serial" not in ident
+    assert ("model" in ident) == (case == "no_getSerialNumber")
+    assert (case == "dashboard_unreachable") == any("serial number" in r.getMessage() for r in caplog.records)
