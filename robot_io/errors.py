@@ -30,7 +30,7 @@ class MissingExtraError(RobotIOError, ImportError):
 
 
 class CameraLostError(RobotIOError):
-    """The camera stopped delivering frames (unplugged, X_LINK error, read timeout)."""
+    """The camera cannot be opened or stopped delivering frames (unplugged, X_LINK error, read timeout)."""
 
 
 class MissingIntrinsicsError(RobotIOError):

@@ -4,7 +4,7 @@ Pipeline: ``Camera`` node built on a board socket -> ``requestOutput`` at the wa
 fps -> a host queue of one non-blocking slot, so the device overwrites stale frames and ``read()``
 always gets the newest. Intrinsics come from the device's factory calibration unless a YAML is
 given. The device's USB link failing surfaces as ``RuntimeError('... X_LINK ...')``; it becomes
-:class:`CameraLostError`.
+:class:`CameraLostError`, and so does any depthai error while connecting (no OAK attached).
 """
 
 from __future__ import annotations
@@ -23,6 +23,14 @@ def _lost(err: Exception) -> Exception:
     if "X_LINK" in str(err):
         return CameraLostError(f"OAK camera lost (USB link error: {err}); check the cable and power, then reconnect")
     return err
+
+
+def _not_opened(err: Exception) -> CameraLostError:
+    # depthai v3 finds and boots the device when the Pipeline is created: no OAK attached, one
+    # without USB permissions or one held by another process fails there ('No available devices').
+    return CameraLostError(f"cannot open the OAK camera ({err}): check that it is plugged in (lsusb lists Luxonis "
+                           "devices as 03e7:...), that no other process uses it and, on Linux, that the Luxonis "
+                           "udev rules are installed")
 
 
 def _device_info(device, calib) -> dict[str, str]:
@@ -87,7 +95,7 @@ class DepthAICamera(Camera):
                 self._device_intrinsics = CameraIntrinsics(K, dist, self.width, self.height)
         except RuntimeError as err:
             self._close()
-            raise _lost(err) from None
+            raise _not_opened(err) from None
         self._seq = 0
 
     def identity(self) -> dict[str, str]:

@@ -111,7 +111,16 @@ def test_depthai_builds_the_v3_pipeline_and_reads_device_intrinsics(monkeypatch)
     assert ("build", "CAM_A") in oak.requested
     assert ("output", (640, 400), "BGR888i", 30.0) in oak.requested
     assert ("queue", 1, False) in oak.requested
+    # The host queue must exist before the pipeline starts, or the first frames have nowhere to go.
+    assert oak.requested.index(("queue", 1, False)) < oak.requested.index(("start",))
     assert oak.started and oak.stopped
+
+
+def test_depthai_without_an_oak_attached_is_a_clear_camera_error(monkeypatch):
+    oak = install_depthai(monkeypatch)
+    oak.attached = False
+    with pytest.raises(CameraLostError, match=r"cannot open the OAK camera \(No available devices\).*plugged in"):
+        DepthAICamera().connect()
 
 
 @pytest.mark.parametrize("size", [(1280, 800), (416, 416)])
