@@ -209,3 +209,18 @@ def test_version_1_store_is_migrated_keeping_its_trials(tmp_path):
         np.testing.assert_array_equal(store.stored_T_base_table("s1"), np.eye(4))
     with TrialStore(old) as store:  # opening a migrated store again changes nothing
         assert store.con.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 2
+
+
+def test_devices_are_compared_once_connected_not_before(tmp_path):
+    import dataclasses
+
+    connected = {"arm": {"type": "ur_rtde", "host": "ur.local", "serial": "20215300123"}}
+    with TrialStore(tmp_path / "t.sqlite") as store:
+        store.open_session(dataclasses.replace(_info(), devices=connected))
+    with TrialStore(tmp_path / "t.sqlite") as store:
+        before = dataclasses.replace(_info(), devices=None)  # a resume, checked before any device connects
+        assert store.check_resume(before) == []
+        assert store.device_changes(dataclasses.replace(before, devices=connected)) == []
+        swapped = {"arm": {**connected["arm"], "serial": "20215300999"}}
+        (warning,) = store.device_changes(dataclasses.replace(before, devices=swapped))
+        assert "20215300123" in warning and "20215300999" in warning and "runs" in warning

@@ -56,17 +56,9 @@ def file_sha256(path: str | Path | None) -> str | None:
 
 
 def device_identity(device) -> dict:
-    """What a device says about itself: its type, and a serial number if the driver exposes one."""
-    serial = getattr(device, "serial", None)
-    ident = getattr(device, "identity", None)
-    out = {"type": getattr(device, "name", type(device).__name__)}
-    if callable(ident):
-        out.update(ident())
-    elif serial is not None:
-        out["serial"] = str(serial)
-    elif out["type"] == "sim":
-        out["serial"] = "sim"
-    return out
+    """What a connected device says about itself: its type, address and, where the hardware reports
+    one, its serial number (:meth:`robot_io.device.Device.identity`)."""
+    return {"type": device.name, **device.identity()}
 
 
 def load_trial_policy(path: str | Path, threads: int = 1):
@@ -159,7 +151,7 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
         info = SessionInfo(
             name=session, plan_sha256=plan_sha256(plan_path), plan_text=plan_path.read_text(), hardware_text=hardware.read_text(),
             policy_path=str(policy_path), policy_sha256=file_sha256(policy_path) or "", software_version=importlib.metadata.version("advobj"),
-            git_commit=git_commit(), devices={"camera": device_identity(camera), "arm": device_identity(arm)}, calibration=calibration,
+            git_commit=git_commit(), devices=None, calibration=calibration,
             config={"hardware": str(hardware), "plan": str(plan_path), "policy": str(policy_path), "db": str(db), "registry": registry,
                     "table_frame": table_frame, "rate_limit": rate_limit, "threads": threads, "image_size": S,
                     "action_scale": action_scale, "seed": plan.seed,
@@ -177,6 +169,10 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
         write_run_info(Path(db).resolve().parent / "frames" / session, info.config, plan.seed)
         try:
             with camera, arm:
+                # Identities after connecting: drivers read serial numbers from the devices.
+                info = dataclasses.replace(info, devices={"camera": device_identity(camera), "arm": device_identity(arm)})
+                for warning in store.device_changes(info):
+                    log(warning)
                 T_base_table = np.eye(4)
                 if sim:
                     from trials.real.locate import SimLocator

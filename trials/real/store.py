@@ -217,7 +217,7 @@ class SessionInfo:
     policy_sha256: str
     software_version: str
     git_commit: str
-    devices: dict
+    devices: dict | None  # {"camera": identity, "arm": identity}; None until the devices are connected
     calibration: dict
     config: dict = field(default_factory=dict)
     T_base_table: np.ndarray | None = None  # the table frame the trials are in (stored at the session's start)
@@ -427,8 +427,26 @@ class TrialStore:
             changed.append(f"git commit {last['git_commit']} -> {info.git_commit}")
         if last["hardware_text"] != info.hardware_text:
             changed.append(f"hardware YAML (sha256 {_sha(last['hardware_text'])[:12]}... -> {_sha(info.hardware_text)[:12]}...)")
-        if json.loads(last["devices_json"]) != info.devices:
-            changed.append(f"devices {last['devices_json']} -> {json.dumps(info.devices)}")
+        changed += self._device_change(last, info)
+        return self._changes_message(info, last, changed)
+
+    def device_changes(self, info: SessionInfo) -> list[str]:
+        """Warnings for devices that differ from the session's last run (call once they are connected:
+        a driver reads serial numbers from the device)."""
+        row = self.session(info.name)
+        last = None if row is None else self.con.execute(
+            "SELECT * FROM runs WHERE session_id = ? ORDER BY id DESC LIMIT 1", (row["id"],)).fetchone()
+        return [] if last is None else self._changes_message(info, last, self._device_change(last, info))
+
+    @staticmethod
+    def _device_change(last, info: SessionInfo) -> list[str]:
+        # devices=None: not known yet (before connecting), compared later by device_changes().
+        if info.devices is None or json.loads(last["devices_json"]) == info.devices:
+            return []
+        return [f"devices {last['devices_json']} -> {json.dumps(info.devices)}"]
+
+    @staticmethod
+    def _changes_message(info: SessionInfo, last, changed: list[str]) -> list[str]:
         return [f"session {info.name!r}: {c} since the last run (started {last['started_at']}); "
                 "new trials are recorded under this run (table runs)" for c in changed]
 
