@@ -8,6 +8,7 @@ Per shortcut it prints ms per frame with and without, their ratio, and the accur
 * frustum culling (``SceneRenderer(frustum_cull=...)``) on wrist-camera reach trajectories: how
   often an object is culled, the max-abs pixel difference of color and id images, and the
   episode outcomes (success, reached-adversarial = T-ASR) of the same episodes with and without;
+* frustum culling on a cluttered table (``--clutter N`` extra objects around the same trajectories);
 * isolated shading passes (``HybridRenderer(isolate_shading=...)``: the attack's white/black
   passes draw the adversarial object alone and reuse the color pass for everything else): ms
   per capture, max-abs difference of the shading passes under the object's mask and of ``I_adv``;
@@ -120,6 +121,51 @@ def bench_frustum(spec, configs, size, policy, texture) -> None:
           f"{np.mean(off['reached'] == goal):.3f}; reached adversarial (T-ASR) {np.mean(on['reached'] == adv):.3f} / "
           f"{np.mean(off['reached'] == adv):.3f}")
     return states, on["episodes"]
+
+
+def clutter_spec(spec, n: int):
+    """``spec`` plus ``n`` distractors (cubes, ducks, dogs, cylinders) on a ring 0.45-0.7 m from the
+    table centre, and their fixed ``T_world_object`` poses ``(n, 4, 4)``."""
+    from sim.render import object_pose
+
+    meshes = ("cube", "duck", "dog", "cylinder")
+    objs, poses = [o.model_dump() for o in spec.objects], []
+    for k in range(n):
+        a, rad = 2 * np.pi * k / n, 0.45 + 0.25 * (k % 2)
+        x, y = rad * np.cos(a), rad * np.sin(a)
+        objs.append({"name": f"clutter_{k}", "mesh": meshes[k % len(meshes)], "role": "distractor",
+                     "pose": {"x_m": float(x), "y_m": float(y), "yaw_deg": float(np.degrees(a))}})
+        poses.append(object_pose(x, y, a))
+    return spec.model_copy(update={"objects": [type(spec.objects[0]).model_validate(o) for o in objs]}), np.array(poses)
+
+
+def bench_frustum_clutter(spec, states, size, n: int) -> None:
+    """Culling where it can pay: the same wrist trajectories in a table with ``n`` extra objects."""
+    from sim.render import SceneRenderer
+
+    cspec, extra = clutter_spec(spec, n)
+    r = SceneRenderer(cspec, size, size)
+    cstates = [(np.concatenate([T_objs, extra]), T_tcp, T_cam) for T_objs, T_tcp, T_cam in states]
+    time_renders(r, cstates[:20], True, blocks=1)  # warm-up
+    culled = []
+    for T_objs, T_tcp, T_cam in cstates:
+        r.set_state(T_objs, T_tcp)
+        r.render(T_cam, with_ids=False)
+        culled.append(len(r.culled))
+    ms, frames = {True: [], False: []}, {}
+    for _ in range(3):
+        for cull in (True, False):
+            r.frustum_cull = cull
+            t, frames[cull] = time_renders(r, cstates, True, blocks=1)
+            ms[cull].append(t)
+    d_rgb = max(int(np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max()) for a, b in zip(frames[True], frames[False]))
+    d_ids = max(int((a.ids != b.ids).sum()) for a, b in zip(frames[True], frames[False]))
+    r.close()
+    t_on, t_off = statistics.median(ms[True]), statistics.median(ms[False])
+    print(f"[frustum cull, cluttered] the same {len(cstates)} frames with {n} extra objects ({len(cspec.objects)} in all): "
+          f"{np.mean(culled):.1f} objects culled per frame on average")
+    print(f"  color+id pass: {t_on:.2f} ms/frame with, {t_off:.2f} without, ratio {t_off / t_on:.3f}x; "
+          f"max |rgb diff| {d_rgb}, differing id pixels {d_ids}")
 
 
 def bench_isolated_shading(spec, states, size) -> None:
@@ -275,6 +321,7 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=16)
     ap.add_argument("--size", type=int, default=64, help="render size without --policy (else the policy's)")
     ap.add_argument("--validation", action="store_true", help="also time the attack's held-out validation")
+    ap.add_argument("--clutter", type=int, default=12, help="extra objects for the cluttered-table culling row (0: skip)")
     args = ap.parse_args()
 
     import torch
@@ -301,6 +348,8 @@ def main() -> None:
         texture = np.clip(np.rint(tex * 255.0), 0, 255).astype(np.uint8)
     print(f"load average {os.getloadavg()[0]:.2f}, torch threads {torch.get_num_threads()}")
     states, episodes = bench_frustum(spec, configs, size, policy, texture)
+    if args.clutter:
+        bench_frustum_clutter(spec, states, size, args.clutter)
     bench_isolated_shading(spec, states, size)
     bench_previous_frame(spec, states, episodes, size)
     bench_resolution(spec, states, size)
