@@ -51,6 +51,7 @@ class FakeURController:
         self.last_feed_s: float | None = None
         self.feed_gaps_s: list[float] = []
         self.watchdog_tripped = False
+        self.trip_stops_script = True  # False: record a trip but keep running (call-order tests on a loaded machine)
         # motion
         self.move: dict | None = None
         self.op_id = 0
@@ -73,9 +74,10 @@ class FakeURController:
             self.feed_gaps_s.append(gap)
             if gap > 1.0 / self.watchdog_hz:
                 self.watchdog_tripped = True
-                self.program_running = False  # the control script stops; the arm with it
-                self.update(now)
-                self.move = None
+                if self.trip_stops_script:
+                    self.program_running = False  # the control script stops; the arm with it
+                    self.update(now)
+                    self.move = None
         self.last_feed_s = now
 
     @property
