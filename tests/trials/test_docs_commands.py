@@ -434,8 +434,8 @@ TINY: dict[str, Tiny] = {
     # ---- README: reference policies
     "advobj policy train --preset quick --out runs/policy-quick":
         Tiny("policy train --preset ci --out {tmp}/train-ci --episodes 2", ("{tmp}/train-ci/policy.json", "{tmp}/train-ci/feasible_pool.json"), slow=True),
-    "advobj policy train --arch resnet18 --preset paper --out runs/policy-r18":
-        Tiny("policy train --arch small_cnn --preset ci --out {tmp}/train-arch --episodes 2", ("{tmp}/train-arch/policy.json",), slow=True),
+    "advobj policy train --preset paper --out runs/policy-paper --threads 2":
+        Tiny("policy train --preset ci --out {tmp}/train-threads --episodes 2 --threads 2", ("{tmp}/train-threads/policy.json",), slow=True),
     "advobj policy eval runs/policy-quick --episodes 200": Tiny("policy eval {policy_copy} --episodes 2 --num-envs 2", ("{policy_copy}/eval/feasible_pool.json",), expect="clean success"),
     "advobj policy export runs/policy-quick --onnx policy.onnx": Tiny("policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)),
     "advobj policy export runs/policy-quick --onnx runs/policy-quick.onnx": Tiny("policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)),
