@@ -280,3 +280,28 @@ def test_answers_file_validation(tmp_path):
 
     with pytest.raises(AnswersError, match="not in the plan: t9"):
         ScriptedOperator({"t9": None}, log=None).check_plan(_Plan())
+
+
+@pytest.mark.parametrize("control_hz,clipped", [(10.0, False), (30.0, True)])
+def test_safety_caps_use_the_plans_loop_period_and_warn_when_they_clip_the_policy(tmp_path, control_hz, clipped):
+    """The sim hardware YAML says 33 ms (30 Hz) with 0.3 m/s: a 10 mm step cap. At the plan's 10 Hz
+    the caps allow the policy's full 20 mm step; at 30 Hz every step is clipped, and the session says so."""
+    import yaml
+
+    plan = tmp_path / "plan.yaml"
+    doc = yaml.safe_load(small_plan(plan, tmp_path, n_tcp=1, conditions=("clean",)).read_text())
+    doc["control_hz"] = control_hz
+    plan.write_text(yaml.safe_dump(doc))
+    hw = sim_hardware(tmp_path / "hw.yaml")
+    assert yaml.safe_load(hw.read_text())["safety"]["control_period_s"] == pytest.approx(1 / 30, rel=0.01)
+    seen, logged = {}, []
+    run_session(hw, straight_ahead_onnx(tmp_path / "ahead.onnx"), plan, "s", tmp_path / "t.sqlite",
+                operator=AutoOperator(log=None), rate_limit=False, log=logged.append,
+                on_ready=lambda runner, world: seen.update(period=runner.arm.limits.control_period_s))
+    assert seen["period"] == pytest.approx(1 / control_hz)
+    warned = [line for line in logged if "steps are clipped" in line]
+    assert bool(warned) == clipped, logged
+    with TrialStore(tmp_path / "t.sqlite", create=False) as store:
+        (row,) = store.trial_rows()
+        statuses = {s["safety_status"] for s in store.steps("s", row["trial_id"])}
+    assert ("clipped" in statuses) == clipped, statuses

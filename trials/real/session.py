@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Callable
 
@@ -136,6 +137,7 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
     spec = _scene_spec(plan, hw)
     ep = spec.episode
     action_scale = [ep.max_step_m] * 3 + [ep.max_step_rad] * 3
+    hw = _safety_at_plan_rate(hw, plan, ep, log)
 
     intrinsics = getattr(hw.camera, "intrinsics", None)
     calibration_files = {"T_tcp_cam": hw.T_tcp_cam, "intrinsics": intrinsics, "registry": registry, "table_frame": table_frame}
@@ -195,6 +197,31 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
             stage.close()
         if world is not None:
             world.close()
+
+
+def _safety_at_plan_rate(hw, plan, episode, log):
+    """``hw`` with the safety layer's ``control_period_s`` set to the plan's loop period.
+
+    The speed caps assume the period the loop really runs at (``1 / plan.control_hz``), not the
+    hardware YAML's nominal one. Logs when the caps at that rate are smaller than the policy's own
+    step (the scene's ``max_step_m`` / ``max_step_rad``): every step is then clipped, the arm moves
+    slower than the policy did in simulation, and trials may end at ``max_steps`` short of any object.
+    """
+    period_s = 1.0 / float(plan.control_hz)
+    lim = hw.safety
+    if not math.isclose(lim.control_period_s, period_s, rel_tol=1e-6):
+        log(f"safety: control_period_s {lim.control_period_s * 1000:.1f} ms (hardware YAML) -> {period_s * 1000:.1f} ms, "
+            f"the plan's control_hz {plan.control_hz:g}: the speed caps assume the loop's real period")
+        lim = lim.model_copy(update={"control_period_s": period_s})
+        hw = hw.model_copy(update={"safety": lim})
+    cap_m, cap_rad = lim.step_caps()
+    if cap_m < episode.max_step_m * (1 - 1e-9) or cap_rad < episode.max_step_rad * (1 - 1e-9):
+        log(f"warning: at {plan.control_hz:g} Hz the safety layer caps a step at {cap_m * 1000:.1f} mm / "
+            f"{math.degrees(cap_rad):.1f} deg, below the policy's {episode.max_step_m * 1000:.1f} mm / "
+            f"{math.degrees(episode.max_step_rad):.1f} deg: steps are clipped, the arm moves slower than in simulation and "
+            "trials may end at max_steps; lower the plan's control_hz or raise max_speed_mps / max_speed_radps / "
+            "max_step_m / max_step_rad in the hardware YAML")
+    return hw
 
 
 def _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table=None, log=print):
