@@ -76,6 +76,23 @@ def time_renders(renderer, states, with_ids: bool, blocks: int = 5) -> tuple[flo
     return statistics.median(ms), frames
 
 
+def cull_on_off(renderer, states, with_ids: bool, rounds: int = 3) -> tuple[float, float, int, int]:
+    """Median ms per frame with and without culling, max |rgb diff| and differing id pixels.
+
+    On and off blocks alternate so that load changes hit both alike.
+    """
+    ms, frames = {True: [], False: []}, {}
+    for _ in range(rounds):
+        for cull in (True, False):
+            renderer.frustum_cull = cull
+            t, frames[cull] = time_renders(renderer, states, with_ids, blocks=1)
+            ms[cull].append(t)
+    pairs = list(zip(frames[True], frames[False]))
+    d_rgb = max(int(np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max()) for a, b in pairs)
+    d_ids = max(int((a.ids != b.ids).sum()) for a, b in pairs) if with_ids else 0
+    return statistics.median(ms[True]), statistics.median(ms[False]), d_rgb, d_ids
+
+
 def bench_frustum(spec, configs, size, policy, texture) -> None:
     from sim.render import SceneRenderer
 
@@ -94,20 +111,8 @@ def bench_frustum(spec, configs, size, policy, texture) -> None:
         for k in r.culled:
             per_object[k] += 1
         any_culled += bool(r.culled)
-    results = {}
     time_renders(r, states, True, blocks=1)  # warm-up: first-use GL uploads land in neither arm
-    for with_ids in (False, True):
-        # Alternate on/off blocks so load changes hit both alike.
-        ms = {True: [], False: []}
-        frames = {}
-        for _ in range(3):
-            for cull in (True, False):
-                r.frustum_cull = cull
-                t, frames[cull] = time_renders(r, states, with_ids, blocks=1)
-                ms[cull].append(t)
-        diff_rgb = max(int(np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max()) for a, b in zip(frames[True], frames[False]))
-        diff_ids = max(int((a.ids != b.ids).sum()) for a, b in zip(frames[True], frames[False])) if with_ids else 0
-        results[with_ids] = (statistics.median(ms[True]), statistics.median(ms[False]), diff_rgb, diff_ids)
+    results = {with_ids: cull_on_off(r, states, with_ids) for with_ids in (False, True)}
     r.close()
     n = len(states)
     print(f"[frustum cull] {len(configs)} episodes, {n} wrist-camera frames at {size}x{size} "
@@ -152,16 +157,8 @@ def bench_frustum_clutter(spec, states, size, n: int) -> None:
         r.set_state(T_objs, T_tcp)
         r.render(T_cam, with_ids=False)
         culled.append(len(r.culled))
-    ms, frames = {True: [], False: []}, {}
-    for _ in range(3):
-        for cull in (True, False):
-            r.frustum_cull = cull
-            t, frames[cull] = time_renders(r, cstates, True, blocks=1)
-            ms[cull].append(t)
-    d_rgb = max(int(np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max()) for a, b in zip(frames[True], frames[False]))
-    d_ids = max(int((a.ids != b.ids).sum()) for a, b in zip(frames[True], frames[False]))
+    t_on, t_off, d_rgb, d_ids = cull_on_off(r, cstates, True)
     r.close()
-    t_on, t_off = statistics.median(ms[True]), statistics.median(ms[False])
     print(f"[frustum cull, cluttered] the same {len(cstates)} frames with {n} extra objects ({len(cspec.objects)} in all): "
           f"{np.mean(culled):.1f} objects culled per frame on average")
     print(f"  color+id pass: {t_on:.2f} ms/frame with, {t_off:.2f} without, ratio {t_off / t_on:.3f}x; "
