@@ -17,6 +17,8 @@ from sim.spec import LightingSpec, LightSpec
 __all__ = ["Randomization", "Appearance", "sample_appearance", "add_sensor_noise", "table_variant_texture", "NUM_TABLE_VARIANTS"]
 
 NUM_TABLE_VARIANTS = 8
+# background "mixed": share of episodes that keep the spec's own table and backdrop.
+MIXED_SPEC_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -25,18 +27,20 @@ class Randomization:
 
     light: "fixed" (the spec's), "bright", "dim" (the paper's presets) or "random" (domain
     randomisation: intensity, direction, ambient and a slight tint).
-    background: "fixed" or "varied" (table texture and backdrop colour drawn per episode).
+    background: "fixed", "varied" (table texture and backdrop colour drawn per episode) or "mixed"
+        (training: the spec's own table and backdrop in a quarter of the episodes, varied in the
+        rest, so that a policy trained with randomisation has also seen the nominal scene).
     noise_std: Gaussian sensor noise, standard deviation as a fraction of full scale (0 = off).
     """
 
     light: Literal["fixed", "bright", "dim", "random"] = "fixed"
-    background: Literal["fixed", "varied"] = "fixed"
+    background: Literal["fixed", "varied", "mixed"] = "fixed"
     noise_std: float = 0.0
 
     def __post_init__(self):
         if self.light not in ("fixed", "bright", "dim", "random"):
             raise ValueError(f"randomization.light: unknown preset {self.light!r}")
-        if self.background not in ("fixed", "varied"):
+        if self.background not in ("fixed", "varied", "mixed"):
             raise ValueError(f"randomization.background: unknown value {self.background!r}")
         if not (0.0 <= self.noise_std <= 0.5):
             raise ValueError(f"randomization.noise_std must lie in [0, 0.5], got {self.noise_std}")
@@ -78,7 +82,10 @@ def sample_appearance(spec, randomization: Randomization, rng: np.random.Generat
     else:
         lighting = base
     table_variant, background = -1, None
-    if randomization.background == "varied":
+    varied = randomization.background == "varied"
+    if randomization.background == "mixed":
+        varied = bool(rng.random() >= MIXED_SPEC_SHARE)
+    if varied:
         table_variant = int(rng.integers(NUM_TABLE_VARIANTS))
         background = tuple(float(c) for c in rng.uniform(0.1, 0.9, 3))
     return Appearance(lighting, table_variant, background, float(randomization.noise_std))

@@ -71,8 +71,11 @@ class TrainConfig(BaseModel):
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
-# Domain randomisation during training: random lights, varied table/backdrop, sensor noise.
-_DR = dict(light="random", background="varied", noise_std=0.02)
+# Domain randomisation during training: random lights, table/backdrop varied in 3 of 4 episodes
+# (the spec's own in the rest), sensor noise. With "varied" (never the spec's own table) the quick
+# small CNN reached only 61% / 64.5% clean success (seeds 0 / 1) against 93.5% / 95.5% with
+# "mixed": it never saw the nominal table. The paper preset keeps "varied", with which it was measured.
+_DR = dict(light="random", background="mixed", noise_std=0.02)
 
 PRESETS: dict[str, dict] = {
     "ci": dict(
@@ -95,7 +98,7 @@ PRESETS: dict[str, dict] = {
         # The paper's ResNet-18 with the standard ImageNet stem (total stride 32, 4x4 feature map
         # at 128 px): ~5x cheaper per image than the small-image stem on CPU.
         policy=dict(arch="resnet18", image_size=128, small_stem=False),
-        env=dict(image_size=128, **_DR),
+        env=dict(image_size=128, **{**_DR, "background": "varied"}),
         dagger=dict(iterations=8, episodes_per_iter=128, num_envs=16, grad_steps_per_iter=400, batch_size=64, lr=3e-4,
                     max_frames=80_000),
         ppo=dict(total_timesteps=2_000_000, num_envs=16, n_steps=256, batch_size=256, n_epochs=4, chunk_timesteps=32_768),

@@ -24,7 +24,7 @@ class EnvConfig(BaseModel):
 
     image_size: int = Field(64, ge=32, le=512)
     light: Literal["fixed", "bright", "dim", "random"] = "fixed"
-    background: Literal["fixed", "varied"] = "fixed"
+    background: Literal["fixed", "varied", "mixed"] = "fixed"
     noise_std: float = Field(0.0, ge=0.0, le=0.5)
 
     def randomization(self):

@@ -161,3 +161,20 @@ def test_renderer_memory_does_not_grow_over_many_frames(spec):
     # after warm-up measured ~2 MB, so a quarter of that leak is the bound.
     allowance = n * frame_bytes // 4
     assert grown < allowance, f"RSS grew {grown / 1e6:.1f} MB over {n} frames (allowance {allowance / 1e6:.1f} MB)"
+
+
+def test_mixed_background_keeps_the_spec_table_in_a_quarter_of_episodes_and_varied_never(spec):
+    """Training randomisation must also show the nominal scene: 'varied' never draws the spec's
+    own table and backdrop (a policy trained on it alone failed on the clean scene), 'mixed' does
+    in MIXED_SPEC_SHARE of the episodes."""
+    from sim.variations import MIXED_SPEC_SHARE, Randomization, sample_appearance
+
+    def spec_share(background):
+        rng = np.random.default_rng(0)
+        draws = [sample_appearance(spec, Randomization(background=background), rng) for _ in range(2000)]
+        own = [a.table_variant == -1 and a.background is None for a in draws]
+        assert all(a.table_variant >= 0 and a.background is not None for a, o in zip(draws, own) if not o)
+        return float(np.mean(own))
+
+    assert spec_share("fixed") == 1.0 and spec_share("varied") == 0.0
+    assert abs(spec_share("mixed") - MIXED_SPEC_SHARE) < 0.03
