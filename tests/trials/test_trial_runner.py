@@ -305,3 +305,22 @@ def test_safety_caps_use_the_plans_loop_period_and_warn_when_they_clip_the_polic
         (row,) = store.trial_rows()
         statuses = {s["safety_status"] for s in store.steps("s", row["trial_id"])}
     assert ("clipped" in statuses) == clipped, statuses
+
+
+def test_a_plan_pose_outside_the_workspace_is_refused_before_anything_moves(files, tmp_path):
+    import yaml
+
+    from trials.real.runner import PlanOutsideWorkspace
+
+    plan = load_plan(files["plan"])
+    z = [p.T_table_tcp.T()[2, 3] for p in plan.tcp_poses]
+    doc = yaml.safe_load(files["hw"].read_text())
+    doc["safety"]["workspace_max_m"][2] = float(min(z)) + 0.001 if max(z) > min(z) + 0.002 else float(min(z)) - 0.001
+    hw = tmp_path / "hw.yaml"
+    hw.write_text(yaml.safe_dump(doc))
+    db = tmp_path / "t.sqlite"
+    with pytest.raises(PlanOutsideWorkspace, match="TCP pose .* outside|outside the safety workspace") as info:
+        run_session(hw, files["policy"], files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False)
+    assert "workspace_max_m" in str(info.value) and "TCP pose" in str(info.value)
+    with TrialStore(db) as store:
+        assert store.session("s") is None  # nothing recorded: the plan was refused before the session opened

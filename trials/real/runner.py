@@ -39,6 +39,7 @@ from typing import Callable
 
 import numpy as np
 
+from sim.errors import AdvobjError
 from trials.real.locate import placement_issues
 from trials.real.operator import Decision
 from trials.real.store import (EventRecord, ObjectPoseRecord, SessionInfo, StepRecord, TrialRecord, clear_frames,
@@ -48,6 +49,10 @@ __all__ = ["TrialRunner", "RunSummary", "TrialTiming", "ROLES"]
 
 ROLES = ("goal", "adversarial")
 _SIM_GUIDANCE_ROUNDS = 5  # the simulated operator follows the guidance this often before asking the real one
+
+
+class PlanOutsideWorkspace(AdvobjError, ValueError):
+    """A planned initial TCP pose lies outside the safety layer's workspace box."""
 
 
 class _Abort(Exception):
@@ -149,9 +154,10 @@ class TrialRunner:
 
     # ------------------------------------------------------------------ session
     def run(self, max_trials: int | None = None) -> RunSummary:
+        ordered = sorted(self.plan.trials, key=lambda t: t.order)
+        self._check_initial_poses(ordered)  # before the session is opened: a refused plan records nothing
         sid = self.store.open_session(self.session)
         done = self.store.committed_trial_ids(sid)
-        ordered = sorted(self.plan.trials, key=lambda t: t.order)
         todo = [t for t in ordered if t.trial_id not in done]
         summary = RunSummary(self.session.name, len(ordered), len(ordered) - len(todo))
         if max_trials is not None:
@@ -187,6 +193,29 @@ class TrialRunner:
             if current is not None and current.trial_id not in self.store.committed_trial_ids(sid):
                 clear_frames(frames_dir(self.store.path, self.session.name, current.trial_id))
         return summary
+
+    def _check_initial_poses(self, trials) -> None:
+        """Refuse the plan if an initial TCP pose lies outside the workspace box.
+
+        The safety layer would refuse that positioning move in the middle of the session; checking
+        every pose up front turns it into one error, before anything moves, naming the poses.
+        """
+        limits = self.arm.limits
+        bad = {}
+        for t in trials:
+            if t.tcp_pose in bad:
+                bad[t.tcp_pose][1].append(t.trial_id)
+                continue
+            p = (self.T_base_table @ self.plan.tcp_pose(t.tcp_pose).T_table_tcp.T())[:3, 3]
+            if not limits.contains(p):
+                bad[t.tcp_pose] = (p, [t.trial_id])
+        if bad:
+            lines = [f"TCP pose {k} at [{', '.join(f'{v:.3f}' for v in p)}] m in the base frame ({len(ids)} trials, e.g. {ids[0]})"
+                     for k, (p, ids) in sorted(bad.items())]
+            raise PlanOutsideWorkspace(
+                "trial plan: initial TCP poses outside the safety workspace box "
+                f"{list(limits.workspace_min_m)} .. {list(limits.workspace_max_m)} m:\n  " + "\n  ".join(lines)
+                + "\nwiden workspace_min_m / workspace_max_m in the hardware YAML (if the cell allows it) or make a new plan")
 
     def _header(self, trial, k: int, n: int, timings, left: int) -> str:
         per = np.mean([t.overhead_s + t.loop_s + t.commit_s for t in timings]) if timings else float("nan")
