@@ -30,6 +30,7 @@ after a pause, and whether the automatic outcome stands (with an optional note).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import select
 import sys
@@ -192,21 +193,49 @@ class TerminalOperator:
         import tty
 
         fd = self.stdin.fileno()
-        old = termios.tcgetattr(fd)
         try:
-            tty.setcbreak(fd)
+            old = termios.tcgetattr(fd)
+        except termios.error as err:
+            if err.args and err.args[0] == errno.EIO:  # the terminal is gone
+                raise EOFError("operator input closed") from None
+            raise
+        try:
+            # TCSANOW, not tty's default TCSAFLUSH: a key typed between two polls of the policy
+            # loop (p, q) waits in the input queue and must still be read by the next poll.
+            tty.setcbreak(fd, termios.TCSANOW)
             yield
         finally:
             termios.tcsetattr(fd, termios.TCSADRAIN, old)
+
+    def _discard_typeahead(self) -> None:
+        """Drop keys typed before a prompt, so a stale enter cannot answer a question not yet shown."""
+        if self.tty:
+            import termios
+
+            try:
+                termios.tcflush(self.stdin.fileno(), termios.TCIFLUSH)
+            except termios.error as err:
+                if err.args and err.args[0] == errno.EIO:  # the terminal is gone
+                    raise EOFError("operator input closed") from None
+                raise
+
+    def _read_byte(self) -> bytes:
+        try:
+            raw = os.read(self.stdin.fileno(), 1)
+        except OSError as err:  # a pty whose other end closed reads EIO, not EOF
+            if err.errno == errno.EIO:
+                raise EOFError("operator input closed") from None
+            raise
+        if raw == b"":
+            raise EOFError("operator input closed")
+        return raw
 
     def _key(self, allowed: str) -> str:
         """One key from ``allowed`` ('\\n' = enter); other keys are ignored."""
         while True:
             if self.tty:
                 with self._cbreak():
-                    raw = os.read(self.stdin.fileno(), 1)
-                if raw == b"":
-                    raise EOFError("operator input closed")
+                    raw = self._read_byte()
                 ch = raw.decode(errors="ignore")
             else:
                 line = self.stdin.readline()
@@ -224,6 +253,7 @@ class TerminalOperator:
 
     # ------------------------------------------------------------------ protocol
     def placement(self, trial, issues, attempt: int) -> str:
+        self._discard_typeahead()
         for i in issues:
             self.show(f"  ! {i.message}")
         self.show("  [r] re-check   [s] skip the check (logged)   [q] abort")
@@ -236,10 +266,11 @@ class TerminalOperator:
             ready, _, _ = select.select([self.stdin], [], [], 0)
             if not ready:
                 return None
-            ch = os.read(self.stdin.fileno(), 1).decode(errors="ignore").lower()
+            ch = self._read_byte().decode(errors="ignore").lower()
         return {"p": "pause", "q": "abort"}.get(ch)
 
     def paused(self) -> str:
+        self._discard_typeahead()  # the p itself, or keys pressed while the arm stopped, do not resume
         self.show("  paused: the arm is stopped. [any key] resume (the trial restarts)   [q] abort")
         ch = self._key("abcdefghijklmnopqrstuvwxyz \n")
         return "abort" if ch == "q" else "resume"
@@ -247,6 +278,7 @@ class TerminalOperator:
     def confirm(self, trial, result, info: str) -> Decision:
         note = ""
         outcome = None
+        self._discard_typeahead()  # keys pressed during the policy loop must not accept this outcome
         self.show(info)
         while True:
             self.show("  [enter/y] accept   [g/a/n/u] override: goal/adversarial/none/unknown   [t] note   [q] abort")
