@@ -41,6 +41,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from sim.errors import AdvobjError, format_validation_error
+from sim.paths import SAFE_NAME_RULE, SafeName, name_problem
 
 __all__ = [
     "PlanError",
@@ -141,7 +142,9 @@ class TextureRef(_Strict):
 
 
 class PlannedTrial(_Strict):
-    trial_id: Annotated[str, Field(min_length=1)]
+    # The runner makes (and on a retry clears) the directory frames/<session>/<trial_id>: the id
+    # must be one safe path component, never '..', '/abs' or a hidden name.
+    trial_id: Annotated[SafeName, Field(description=f"{SAFE_NAME_RULE} (it names the trial's frame directory)")]
     order: Annotated[int, Field(ge=0)]
     env: str
     shape: str
@@ -391,6 +394,10 @@ def make_plan(
                     for t in range(n_tcp_poses):
                         for o in range(n_object_layouts):
                             cells.append((trial_id(env, shape, cond, t, o, tag), env, shape, cond, t, o, [tag] if tag else []))
+    for c in cells:
+        if name_problem(c[0]) is not None:
+            raise PlanError(f"--env/--shape/--tag: trial id {c[0]!r} ({len(c[0])} characters) is too long; trial ids must be "
+                            f"{SAFE_NAME_RULE}: use shorter names")
     # Environment by environment (a random order of envs), each block in a random order: an
     # environment is a physical setup, and switching it between trials would cost a rebuild each time.
     order = np.empty(len(cells), dtype=np.int64)
