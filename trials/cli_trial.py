@@ -73,7 +73,8 @@ def run_command(
     hardware: Path = typer.Option(..., help="hardware YAML (camera, arm, safety limits, calibration files)"),
     policy: Path = typer.Option(..., help="policy: .onnx file (onnxruntime) or checkpoint directory"),
     plan: Path = typer.Option(..., help="trial plan YAML from 'advobj trial plan'"),
-    session: str = typer.Option(..., help="session name; the same name resumes an interrupted session"),
+    session: str = typer.Option(..., help="session name (1-64 letters, digits, '.', '_' or '-', not starting with '.'; its frames go "
+                                "to frames/<session>/ beside the database); the same name resumes an interrupted session"),
     db: Path = typer.Option(Path("trials.sqlite"), help="trial database (frames go to frames/ beside it)"),
     auto_confirm: bool = typer.Option(False, "--auto-confirm", help="accept every automatic outcome (CI, scripted sessions)"),
     answers: Optional[Path] = typer.Option(None, help="operator answers YAML: {trial_id: {outcome: ..., note: ...}} or a list in run order"),

@@ -43,7 +43,7 @@ from sim.errors import AdvobjError
 from trials.real.locate import placement_issues
 from trials.real.operator import Decision
 from trials.real.store import (EventRecord, ObjectPoseRecord, SessionInfo, StepRecord, TrialRecord, clear_frames,
-                               frames_dir)
+                               frames_dir, frames_ref, session_frames_dir)
 
 __all__ = ["TrialRunner", "RunSummary", "TrialTiming", "ROLES"]
 
@@ -156,6 +156,7 @@ class TrialRunner:
     def run(self, max_trials: int | None = None) -> RunSummary:
         ordered = sorted(self.plan.trials, key=lambda t: t.order)
         self._check_initial_poses(ordered)  # before the session is opened: a refused plan records nothing
+        session_frames_dir(self.store.path, self.session.name)  # a name that is no safe directory: refused, nothing recorded
         sid = self.store.open_session(self.session)
         done = self.store.committed_trial_ids(sid)
         todo = [t for t in ordered if t.trial_id not in done]
@@ -238,7 +239,7 @@ class TrialRunner:
         fdir = frames_dir(self.store.path, self.session.name, trial.trial_id)
         clear_frames(fdir)  # a leftover of an interrupted attempt at this trial
         fdir.mkdir(parents=True)
-        rel_dir = fdir.relative_to(self.store.path.resolve().parent).as_posix()
+        rel_dir = frames_ref(self.session.name, trial.trial_id)
 
         if self.stage is not None:
             self.stage.prepare(trial)

@@ -110,8 +110,11 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
     from trials.real.operator import AutoOperator, ScriptedOperator, TerminalOperator
     from trials.real.plan import load_plan, plan_sha256
     from trials.real.runner import TrialRunner
-    from trials.real.store import SessionInfo, TrialStore
+    from trials.real.store import SessionInfo, TrialStore, session_frames_dir
 
+    # First of all, before anything is read or written: the session name becomes the directory
+    # frames/<session> beside the database, which must stay inside frames/ (no symlink out of it).
+    session_dir = session_frames_dir(db, session, "--session")
     hardware, plan_path, policy_path = Path(hardware), Path(plan_path), Path(policy_path)
     log = log or (lambda _text: None)
     if answers is not None and auto_confirm:
@@ -168,7 +171,7 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
         stored_T_base_table = store.stored_T_base_table(session)
         from sim.runinfo import write_run_info
 
-        write_run_info(Path(db).resolve().parent / "frames" / session, info.config, plan.seed)
+        write_run_info(session_dir, info.config, plan.seed)
         try:
             with camera, arm:
                 # Identities after connecting: drivers read serial numbers from the devices.

@@ -48,6 +48,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from sim.errors import AdvobjError
+from sim.paths import check_name, safe_join
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -60,7 +61,10 @@ __all__ = [
     "TrialRecord",
     "TrialStore",
     "pose_vec",
+    "frames_root",
+    "session_frames_dir",
     "frames_dir",
+    "frames_ref",
     "clear_frames",
     "EXPORT_TABLES",
 ]
@@ -295,9 +299,34 @@ def _sha(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+def frames_root(db_path: str | Path) -> Path:
+    """``<db dir>/frames``: every session's images live below it."""
+    return Path(db_path).resolve().parent / "frames"
+
+
+def session_frames_dir(db_path: str | Path, session: str, what: str = "session") -> Path:
+    """``<db dir>/frames/<session>`` (resolved), refused unless ``session`` is a safe name inside ``frames/``.
+
+    ``what`` names the input the session name came from in the error (``--session`` on the CLI).
+    """
+    check_name(session, what)
+    return safe_join(frames_root(db_path), session, what=what)
+
+
 def frames_dir(db_path: str | Path, session: str, trial_id: str) -> Path:
-    """``<db dir>/frames/<session>/<trial_id>``: where one trial's images go."""
-    return Path(db_path).resolve().parent / "frames" / session / trial_id
+    """``<db dir>/frames/<session>/<trial_id>`` (resolved): where one trial's images go.
+
+    Both names must be safe (:func:`sim.paths.check_name`) and the resolved directory must lie
+    inside ``frames/`` (no symlink out of it): the runner clears and rewrites this directory.
+    """
+    check_name(session, "session")
+    check_name(trial_id, "trial_id")
+    return safe_join(frames_root(db_path), session, trial_id, what=f"frames of trial {trial_id!r}")
+
+
+def frames_ref(session: str, trial_id: str) -> str:
+    """The trial's frame directory relative to the database's directory, as stored (``frames/<session>/<trial_id>``)."""
+    return f"frames/{check_name(session, 'session')}/{check_name(trial_id, 'trial_id')}"
 
 
 def _now_iso() -> str:
@@ -620,6 +649,12 @@ class TrialStore:
 
 
 def clear_frames(path: Path) -> None:
-    """Remove a trial's frame directory left by an interrupted run (no-op if absent)."""
+    """Remove a trial's frame directory left by an interrupted run (no-op if absent).
+
+    ``path`` comes from :func:`frames_dir` (checked to lie inside ``frames/``); a symlink is
+    never followed: it is refused, not removed through.
+    """
+    if path.is_symlink():
+        raise StoreError(f"{path}: a trial's frame directory is a symlink; refusing to clear it")
     if path.exists():
         shutil.rmtree(path)
