@@ -2,7 +2,7 @@
 
 Each iteration (paper Sec. III-B/C):
 
-1. draw ``num_envs`` initial configurations from the task-feasible pool with the schedule's
+1. draw ``num_envs`` initial configurations from the task-feasible pool's "attack" part with the schedule's
    Beta weights over camera distance;
 2. roll each out for ``rollout_steps`` steps, the policy acting on ``I_adv`` (hybrid render under
    the current texture); rollouts only provide viewpoints (no backprop through the dynamics);
@@ -13,9 +13,9 @@ A run is resumable bit-for-bit: a checkpoint holds the texture, the iteration (w
 schedule stage), the loss history and every RNG state.
 
 Anytime quality: every checkpoint holds the evaluation-ready ``texture.npy``; with
-``validation_every > 0`` a held-out validation pool (disjoint from the EOT configurations) is
-rolled out with the standard renderer every ``validation_every`` iterations, and ``best/`` keeps
-the texture with the highest validation T-ASR so far (a valid ``advobj eval --attack`` source).
+``validation_every > 0`` a held-out validation pool (the split's "validation" part, disjoint
+from the EOT configurations and from every evaluation) is rolled out with the standard renderer
+every ``validation_every`` iterations, and ``best/`` keeps the texture with the highest validation T-ASR so far (a valid ``advobj eval --attack`` source).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from sim.errors import AdvobjError, format_validation_error
 
 __all__ = ["AttackConfig", "AttackError", "AttackWarning", "PRESETS", "resolve_config", "AttackRun", "run_attack", "find_checkpoint",
-           "split_validation", "better_score"]
+           "better_score"]
 
 
 class AttackError(AdvobjError, ValueError):
@@ -154,7 +154,7 @@ class AttackRun:
     """
 
     def __init__(self, policy, spec, cfg: AttackConfig, pool=None, out_dir: str | Path | None = None):
-        from sim.configs import sample_pool
+        from sim.configs import in_part, sample_pool
         from sim.env import ReachEnv
         from sim.policies.interface import require_white_box
         from sim.variations import Randomization
@@ -167,23 +167,35 @@ class AttackRun:
         self.policy = policy.to(self.device).eval()
         for p in self.policy.parameters():
             p.requires_grad_(False)
+        validating = cfg.validation_every > 0
+        # The held-out split (sim.configs.config_part): EOT only ever sees the "attack" part and
+        # the best texture is picked on the "validation" part; evaluations use neither.
+        if pool is None:
+            attack_pool = sample_pool(spec, cfg.pool_size, seed=cfg.seed, part="attack")
+            val_pool = sample_pool(spec, cfg.validation_episodes, seed=cfg.seed, part="validation") if validating else []
+        else:
+            pool = list(pool)
+            attack_pool, val_pool = in_part(pool, "attack"), in_part(pool, "validation")
         if cfg.adversarial_mesh is not None:
             objs = [o.model_copy(update={"mesh": cfg.adversarial_mesh, "texture": None}) if o.role == "adversarial" else o for o in spec.objects]
             spec = spec.with_updates(objects=[o.model_dump() for o in objs])
         self.spec = spec
         self.image_size = int(policy.image_size)
-        self.pool = list(pool) if pool is not None else sample_pool(spec, cfg.pool_size, seed=cfg.seed)
+        self.pool = attack_pool
         if not self.pool:
-            raise AttackError("pool: no task-feasible configurations to attack from")
+            raise AttackError("pool: no task-feasible configurations in the attack part of the split (sim.configs.config_part) "
+                              "to attack from; give a larger pool")
         self.val_pool: list = []
-        if cfg.validation_every > 0:
-            n_val = min(cfg.validation_episodes, len(self.pool) // 2)
-            if n_val < cfg.validation_episodes:
+        if validating:
+            if not val_pool:
+                raise AttackError("validation_episodes: the pool holds no configuration of the validation part of the split; "
+                                  "give a larger pool or set validation_every: 0")
+            if len(val_pool) < cfg.validation_episodes:
                 warnings.warn(
-                    f"validation_episodes: the pool holds only {len(self.pool)} configurations; holding out {n_val} "
-                    f"(half the pool) for validation instead of {cfg.validation_episodes}. Give a larger pool "
-                    "(--pool, pool_size) for a steadier validation score, or set validation_every: 0", AttackWarning, stacklevel=2)
-            self.pool, self.val_pool = split_validation(self.pool, n_val, cfg.seed)
+                    f"validation_episodes: the pool holds only {len(val_pool)} configurations of the validation part; validating on "
+                    f"{len(val_pool)} instead of {cfg.validation_episodes}. Give a larger pool (--pool) for a steadier validation "
+                    "score, or set validation_every: 0", AttackWarning, stacklevel=2)
+            self.val_pool = val_pool[: cfg.validation_episodes]
         self.pool_r = np.array([c.r_m for c in self.pool])
         randomization = Randomization(light="random") if cfg.light_randomization else None
         self.env = ReachEnv(spec, num_envs=cfg.num_envs, seed=cfg.seed, randomization=randomization, render_obs=False,
@@ -472,27 +484,6 @@ class AttackRun:
         if self._val_env is not None:
             self._val_env.close()
             self._val_env = None
-
-
-def split_validation(pool: list, n_val: int, seed: int) -> tuple[list, list]:
-    """Deterministic held-out split ``(train, val)`` of a configuration pool.
-
-    ``val`` holds ``n_val`` configurations drawn by a permutation seeded with ``seed``; ``train``
-    holds the rest minus any configuration whose seed is also in ``val`` (duplicates), so the two
-    are disjoint. Validation may take at most half the pool: a smaller pool is refused.
-    """
-    if n_val < 1 or len(pool) < 2 * n_val:
-        raise AttackError(
-            f"validation_episodes: the pool holds {len(pool)} configurations, too few to hold out {n_val} for validation "
-            f"(at most half the pool is held out: need >= {max(2, 2 * n_val)}); give a larger pool or set validation_every: 0"
-        )
-    order = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7A1])).permutation(len(pool))
-    val = [pool[i] for i in order[:n_val]]
-    held = {c.seed for c in val}
-    train = [pool[i] for i in sorted(order[n_val:]) if pool[i].seed not in held]
-    if not train:
-        raise AttackError("validation_episodes: no training configurations left after holding out the validation pool")
-    return train, val
 
 
 def better_score(new: dict, best: dict | None) -> bool:

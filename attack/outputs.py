@@ -8,7 +8,45 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["texture_to_uint8", "write_texture_png", "textured_mesh", "export_meshes", "plot_losses", "gradcam_overlay", "write_outputs"]
+__all__ = ["CONFIG_RECORD", "write_config_record", "read_config_record", "texture_to_uint8", "write_texture_png", "textured_mesh", "export_meshes", "plot_losses", "gradcam_overlay", "write_outputs"]
+
+
+# Which configurations a texture was optimised ("attack") and selected ("validation") on: the
+# record `advobj eval` checks its own configurations against (overlap must be 0).
+CONFIG_RECORD = "configs.json"
+_RECORD_FORMAT = "advobj-attack-configs/1"
+
+
+def write_config_record(out_dir: str | Path, attack_configs, validation_configs) -> Path:
+    """Write ``out_dir/configs.json``: seed and content id (:func:`sim.configs.config_id`) of every
+    configuration the attack may draw for EOT and every one its best texture is selected on."""
+    from sim.configs import config_id
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = {"format": _RECORD_FORMAT,
+           **{part: [{"seed": int(c.seed), "id": config_id(c)} for c in cs]
+              for part, cs in (("attack", attack_configs), ("validation", validation_configs))}}
+    tmp = out / (CONFIG_RECORD + ".tmp")
+    tmp.write_text(json.dumps(doc))
+    tmp.replace(out / CONFIG_RECORD)
+    return out / CONFIG_RECORD
+
+
+def read_config_record(texture_dir: str | Path) -> set[str] | None:
+    """The configuration ids a texture directory was optimised or selected on, or ``None`` when no
+    record exists. ``best/`` and ``checkpoint/`` textures use their run directory's record."""
+    d = Path(texture_dir)
+    for cand in (d / CONFIG_RECORD, d.parent / CONFIG_RECORD):
+        if cand.is_file():
+            try:
+                doc = json.loads(cand.read_text())
+                if doc.get("format") != _RECORD_FORMAT:
+                    raise ValueError(f"format is not {_RECORD_FORMAT!r}")
+                return {e["id"] for part in ("attack", "validation") for e in doc[part]}
+            except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+                raise ValueError(f"{cand}: unreadable configuration record ({err})") from None
+    return None
 
 
 def texture_to_uint8(texture: torch.Tensor | np.ndarray) -> np.ndarray:

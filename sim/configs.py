@@ -32,9 +32,23 @@ __all__ = [
     "object_local_centers",
     "spec_fingerprint",
     "object_poses_world",
+    "PARTS",
+    "config_part",
+    "config_id",
+    "in_part",
+    "part_seeds",
 ]
 
 _MAX_TRIES = 200
+
+# The held-out split. Every configuration seed belongs to exactly one part, by a hash of the seed
+# alone: the attack draws its EOT configurations from "attack" and picks its best texture on
+# "validation"; evaluations use only "evaluation". The split depends on nothing a run can choose
+# (no run seed, no pool file), so two runs can never disagree about it and a texture is never
+# scored on a configuration it was optimised or selected on. Shares: 40% / 10% / 50%.
+PARTS = ("attack", "validation", "evaluation")
+_PART_BOUNDS = (0.4, 0.5)  # cumulative shares of attack, then validation; the rest is evaluation
+_SPLIT_SALT = b"advobj-config-split/1:"
 
 
 class PoolError(AdvobjError, ValueError):
@@ -69,6 +83,38 @@ class InitialConfig:
             phi_rad=float(d["phi_rad"]),
             T_world_tcp=tuple(tuple(float(v) for v in row) for row in d["T_world_tcp"]),
         )
+
+
+def config_part(seed: int) -> str:
+    """The part (``"attack"``, ``"validation"`` or ``"evaluation"``) that configuration ``seed`` belongs to."""
+    h = hashlib.sha256(_SPLIT_SALT + str(int(seed)).encode()).digest()
+    u = int.from_bytes(h[:8], "big") / 2.0**64
+    return PARTS[0] if u < _PART_BOUNDS[0] else (PARTS[1] if u < _PART_BOUNDS[1] else PARTS[2])
+
+
+def in_part(configs, part: str) -> list:
+    """The configurations of ``configs`` whose seed lies in ``part`` (order kept)."""
+    if part not in PARTS:
+        raise ValueError(f"part: unknown part {part!r}; choose one of {PARTS}")
+    return [c for c in configs if config_part(c.seed) == part]
+
+
+def part_seeds(part: str, start: int = 0):
+    """Seeds ``>= start`` of ``part``, in increasing order (an endless generator)."""
+    if part not in PARTS:
+        raise ValueError(f"part: unknown part {part!r}; choose one of {PARTS}")
+    s = max(0, int(start))
+    while True:
+        if config_part(s) == part:
+            yield s
+        s += 1
+
+
+def config_id(config: "InitialConfig") -> str:
+    """Content hash of one configuration (seed and every resolved value): the identity used to
+    prove that an evaluation and an attack share no configuration, whatever files they came from."""
+    payload = json.dumps(config.to_dict(), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(payload.encode()).hexdigest()[:20]
 
 
 def object_poses_world(object_xy_yaw) -> np.ndarray:
@@ -147,10 +193,13 @@ def sample_config(spec, seed: int, centers_local: np.ndarray | None = None) -> I
     raise ValueError(f"seed {seed}: no valid initial configuration after {_MAX_TRIES} draws; check spec.init")
 
 
-def sample_pool(spec, n: int, seed: int = 0) -> list[InitialConfig]:
-    """``n`` configurations with seeds ``seed, seed + 1, ...``."""
+def sample_pool(spec, n: int, seed: int = 0, part: str | None = None) -> list[InitialConfig]:
+    """``n`` configurations with seeds ``seed, seed + 1, ...`` (only seeds of ``part`` if given)."""
     centers = object_local_centers(spec)
-    return [sample_config(spec, seed + i, centers) for i in range(n)]
+    if part is None:
+        return [sample_config(spec, seed + i, centers) for i in range(n)]
+    seeds = part_seeds(part, seed)
+    return [sample_config(spec, next(seeds), centers) for _ in range(n)]
 
 
 def spec_fingerprint(spec) -> str:

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["attack_job", "feasible_pool_path"]
+__all__ = ["attack_job", "feasible_pool_path", "top_up_attack_pool", "MIN_ATTACK_CONFIGS"]
+
+# Fewer attack-part configurations than this and EOT sees too few viewpoints: build more.
+MIN_ATTACK_CONFIGS = 32
 
 
 def feasible_pool_path(policy_dir: Path) -> Path:
@@ -15,11 +18,36 @@ def feasible_pool_path(policy_dir: Path) -> Path:
     return evaluated if not own.is_file() and evaluated.is_file() else own
 
 
+def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool = True) -> list:
+    """``pool`` plus task-feasible configurations built for the parts the attack uses ("attack",
+    and "validation" when validation is on) that hold too few (saved as ``out/feasible_pool.json``
+    and reused on resume). The evaluation part is never touched."""
+    from sim.configs import in_part, load_pool, save_pool
+    from trials.evaluate import build_feasible
+
+    path = out / "feasible_pool.json"
+    if path.is_file():
+        return load_pool(path, spec)
+    want = {"attack": MIN_ATTACK_CONFIGS, "validation": cfg.validation_episodes if cfg.validation_every > 0 else 0}
+    extra = []
+    for part, n in want.items():
+        short = n - len(in_part(pool, part))
+        if short > 0:
+            got, _ = build_feasible(policy, spec, part, short, cfg.seed, 8, exclude=[c.seed for c in pool], progress=progress,
+                                    desc=f"feasible pool ({part})")
+            extra += got
+    if not extra:
+        return pool
+    pool = pool + extra
+    save_pool(path, spec, pool, meta={"definition": "configs where the clean policy reaches the goal", "topped_up": len(extra)})
+    return pool
+
+
 def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True) -> dict:
     import yaml
 
     from attack.optimize import AttackError, AttackRun, find_checkpoint, resolve_config, run_attack
-    from attack.outputs import write_outputs
+    from attack.outputs import write_config_record, write_outputs
     from sim.configs import load_pool
     from sim.policies.checkpoint import load_policy
     from sim.runinfo import write_run_info
@@ -36,9 +64,13 @@ def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out,
     cfg = resolve_config(preset, overrides, source=str(config_path or "<preset>"))
     spec = load_spec(scene_path)
     policy = load_policy(policy_dir, cfg.device)
+    if pool_path is not None and not Path(pool_path).is_file():
+        raise AttackError(f"--pool: {pool_path}: no such pool file")
     pool_file = Path(pool_path) if pool_path is not None else feasible_pool_path(policy_dir)
     pool = load_pool(pool_file, spec) if pool_file.is_file() else None
     out = Path(out)
+    if pool is not None:
+        pool = top_up_attack_pool(policy, spec, pool, cfg, out, progress)
     run = AttackRun(policy, spec, cfg, pool=pool, out_dir=out)
     try:
         before = run.texture.clone()
@@ -49,6 +81,7 @@ def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out,
             run.load_checkpoint(ckpt)
         write_run_info(out, {"job": "attack", "preset": preset, "attack": cfg.model_dump(), "policy": str(policy_dir),
                              "pool": str(pool_file) if pool is not None else None, "scene": spec.model_dump(mode="json")}, cfg.seed)
+        write_config_record(out, run.pool, run.val_pool)
         run_attack(run, progress=progress)
         return write_outputs(run, out, before)
     finally:

@@ -24,6 +24,8 @@ def eval_command(
     gifs: int = typer.Option(2, min=0, help="configurations recorded as rollout GIFs"),
     out: Path = typer.Option(Path("runs/eval"), help="evaluation directory"),
     resume: bool = typer.Option(False, "--resume", help="continue an interrupted evaluation in OUT"),
+    allow_overlap: bool = typer.Option(False, "--allow-overlap", help="score a texture on configurations it was optimised or selected on "
+                                       "(in-sample; refused by default). The overlap is written to manifest.json and report.md either way"),
     threads: int = typer.Option(1, min=0, help="torch threads; 1 (default) avoids OpenMP spin-waits stealing the CPU renderer's cores, 0 = torch's default"),
 ) -> None:
     """Run E episodes per condition on the same task-feasible configurations; write rows, summary and report."""
@@ -44,6 +46,7 @@ def eval_command(
         policy=str(policy), conditions=tuple(condition), episodes=episodes, max_steps=max_steps, num_envs=num_envs,
         pool=None if pool is None else str(pool), scene=None if scene is None else str(scene), seed=seed, gifs=gifs,
         attack=None if attack is None else str(attack), patch=None if patch is None else str(patch), shapes=shapes,
+        allow_overlap=allow_overlap,
     )
     summary = run_eval(cfg, out, resume=resume)
     typer.echo(format_summary(summary))

@@ -56,9 +56,12 @@ class AttackSource:
     texture: np.ndarray = field(repr=False, compare=False)  # (H, W, 3) uint8
     mesh: str | None  # None = the scene's adversarial mesh
     sha256: str  # of texture.npy: guards resuming with a changed texture
+    # Ids of the configurations the texture was optimised or selected on (attack/outputs.py's
+    # configs.json); None when the directory has no record (then no overlap can be proven 0).
+    trained_on: frozenset | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
-        return {"path": self.path, "mesh": self.mesh, "sha256": self.sha256}
+        return {"path": self.path, "mesh": self.mesh, "sha256": self.sha256, "configs_recorded": self.trained_on is not None}
 
 
 @dataclass(frozen=True)
@@ -119,7 +122,13 @@ def load_attack_source(path: str | Path) -> AttackSource:
     else:
         raise ConditionError(f"{run_path}: missing; the attack's run.json says which mesh the texture belongs to")
     u8 = np.clip(np.rint(tex * 255.0), 0, 255).astype(np.uint8)
-    return AttackSource(str(p), u8, mesh, hashlib.sha256(raw).hexdigest())
+    from attack.outputs import read_config_record
+
+    try:
+        seen = read_config_record(p)
+    except ValueError as err:
+        raise ConditionError(str(err)) from None
+    return AttackSource(str(p), u8, mesh, hashlib.sha256(raw).hexdigest(), None if seen is None else frozenset(seen))
 
 
 @dataclass(frozen=True)

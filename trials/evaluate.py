@@ -23,11 +23,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from sim.errors import AdvobjError, format_validation_error
 
-__all__ = ["EvalError", "EvalConfig", "rollout_condition", "resolve_pool", "run_eval", "load_eval_config"]
+__all__ = ["EvalError", "EvalWarning", "EvalConfig", "rollout_condition", "build_feasible", "resolve_pool", "overlap_with_training", "run_eval", "load_eval_config"]
 
 
 class EvalError(AdvobjError, ValueError):
     """Bad evaluation config or inputs."""
+
+
+class EvalWarning(UserWarning):
+    """Something the evaluation cannot check (e.g. a texture without a configuration record)."""
 
 
 class EvalConfig(BaseModel):
@@ -49,6 +53,7 @@ class EvalConfig(BaseModel):
     shapes: dict[str, str] = Field(default_factory=dict)
     gifs: int = Field(2, ge=0, description="configurations recorded as rollout GIFs per condition")
     device: str = "cpu"
+    allow_overlap: bool = Field(False, description="score textures on configurations they were optimised or selected on (in-sample)")
 
 
 def load_eval_config(**fields) -> EvalConfig:
@@ -180,60 +185,102 @@ def rollout_condition(policy, spec, cond, configs, num_envs: int, on_done: Calla
 
 
 # ---------------------------------------------------------------------------------------------
-def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True) -> tuple[list, str]:
-    """The task-feasible configurations and where they came from.
+def build_feasible(policy, spec, part: str, n: int, start_seed: int = 0, num_envs: int = 8, exclude=(), max_candidates: int | None = None,
+                   progress: bool = True, desc: str = "feasible pool") -> tuple[list, int]:
+    """Up to ``n`` task-feasible configurations of ``part`` (:func:`sim.configs.config_part`).
 
-    An explicit ``cfg.pool`` must match the scene. Otherwise the policy's own pool
-    (:func:`trials.attack_job.feasible_pool_path`) is used if it was made for this scene and
-    episode length and holds at least ``cfg.episodes`` configurations; otherwise one is built here by running the clean policy on candidate seeds
-    ``cfg.seed, cfg.seed + 1, ...`` and keeping the configs where it reaches the goal (the
-    definition of task-feasible), saved as ``out/feasible_pool.json``.
+    Candidates are the part's seeds from ``start_seed`` on, minus the seeds in ``exclude`` (those
+    already in hand); each is rolled out once under the clean condition and kept when the policy
+    reaches the goal, the definition of task-feasible. At most ``max_candidates`` (default
+    ``4 * n``) are tried. Returns ``(configs, candidates tried)``.
     """
-    from sim.configs import PoolError, load_pool, sample_pool, save_pool
-    from trials.attack_job import feasible_pool_path
+    from sim.configs import part_seeds, sample_config, object_local_centers
     from trials.conditions import Condition
 
-    if cfg.pool is not None:
-        return load_pool(cfg.pool, spec), str(cfg.pool)
-    path = out / "feasible_pool.json"
-    if path.is_file():  # built by an earlier (interrupted) run of this evaluation: keep using it
-        return load_pool(path, spec), str(path)
-    own = feasible_pool_path(Path(cfg.policy)) if Path(cfg.policy).is_dir() else None
-    if own is not None and own.is_file():
-        try:
-            pool = load_pool(own, spec)
-        except PoolError:
-            pool = []  # made for another scene or episode length: build one for this evaluation
-        if len(pool) >= cfg.episodes:
-            return pool, str(own)
+    if n <= 0:
+        return [], 0
+    max_candidates = 4 * n if max_candidates is None else int(max_candidates)
+    skip = {int(s) for s in exclude}
+    seeds = (s for s in part_seeds(part, start_seed) if s not in skip)
+    centers = object_local_centers(spec)
+    goal = spec.object_index("goal")
     from tqdm import tqdm
 
-    n_cand = cfg.episodes * cfg.pool_factor
     feasible: list = []
-    bar = tqdm(total=cfg.episodes, desc="feasible pool", disable=not progress, dynamic_ncols=True)
     tried = 0
-    start = cfg.seed
-    goal = spec.object_index("goal")
-    while len(feasible) < cfg.episodes and tried < n_cand:
+    bar = tqdm(total=n, desc=desc, disable=not progress, dynamic_ncols=True)
+    while len(feasible) < n and tried < max_candidates:
         # twice the shortfall per round: a policy reaching the goal half the time needs one round
-        k = min(max(cfg.num_envs, 2 * (cfg.episodes - len(feasible))), n_cand - tried)
-        cands = sample_pool(spec, k, seed=start + tried)
+        k = min(max(num_envs, 2 * (n - len(feasible))), max_candidates - tried)
+        cands = [sample_config(spec, next(seeds), centers) for _ in range(k)]
         ok = np.zeros(k, bool)
 
         def done(j, res):
             ok[j] = res["reached"] == goal
 
-        rollout_condition(policy, spec, Condition("clean"), cands, cfg.num_envs, done)
+        rollout_condition(policy, spec, Condition("clean"), cands, num_envs, done)
         tried += k
-        new = [c for c, good in zip(cands, ok) if good][: cfg.episodes - len(feasible)]
+        new = [c for c, good in zip(cands, ok) if good][: n - len(feasible)]
         feasible += new
         bar.update(len(new))
     bar.close()
+    return feasible, tried
+
+
+def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True) -> tuple[list, str]:
+    """The task-feasible configurations of the split's "evaluation" part, and where they came from.
+
+    Only evaluation-part configurations are ever used (:func:`sim.configs.config_part`): attacks
+    draw theirs from the other parts, so no texture is scored on a configuration it was optimised
+    or selected on. The base is ``cfg.pool`` (it must match the scene), else the policy's own pool
+    (:func:`trials.attack_job.feasible_pool_path`) if it was made for this scene and episode
+    length; its evaluation-part configurations are used as they are. When they are fewer than
+    ``cfg.episodes``, more are built here (:func:`build_feasible`, candidate seeds of the
+    evaluation part from ``cfg.seed`` on) and the result is saved as ``out/feasible_pool.json``,
+    which a resumed evaluation reuses.
+    """
+    from sim.configs import PoolError, in_part, load_pool, save_pool
+    from trials.attack_job import feasible_pool_path
+
+    path = out / "feasible_pool.json"
+    if path.is_file():  # built by an earlier (interrupted) run of this evaluation: keep using it
+        return in_part(load_pool(path, spec), "evaluation"), str(path)
+    base, src = [], None
+    if cfg.pool is not None:
+        base, src = load_pool(cfg.pool, spec), str(cfg.pool)
+    else:
+        own = feasible_pool_path(Path(cfg.policy)) if Path(cfg.policy).is_dir() else None
+        if own is not None and own.is_file():
+            try:
+                base, src = load_pool(own, spec), str(own)
+            except PoolError:
+                base = []  # made for another scene or episode length: build one for this evaluation
+    configs = in_part(base, "evaluation")
+    if len(configs) >= cfg.episodes:
+        return configs, src
+    extra, tried = build_feasible(policy, spec, "evaluation", cfg.episodes - len(configs), cfg.seed, cfg.num_envs,
+                                  exclude=[c.seed for c in base], max_candidates=cfg.episodes * cfg.pool_factor, progress=progress)
+    feasible = configs + extra
     if not feasible:
         raise EvalError(f"policy {cfg.policy}: reached the goal in none of {tried} candidate configurations; nothing is task-feasible")
     save_pool(path, spec, feasible, meta={"definition": "configs where the clean policy reaches the goal", "policy": cfg.policy,
-                                          "candidates": tried, "first_seed": cfg.seed, "max_steps": spec.episode.max_steps})
+                                          "part": "evaluation", "base": src, "from_base": len(configs), "candidates": tried,
+                                          "first_seed": cfg.seed, "max_steps": spec.episode.max_steps})
     return feasible, str(path)
+
+
+def overlap_with_training(configs, conds) -> dict:
+    """Per condition with a texture: how many of ``configs`` its texture was optimised or selected
+    on (``None``: the texture directory has no configuration record)."""
+    from sim.configs import config_id
+
+    ids = {config_id(c) for c in configs}
+    out = {}
+    for cond in conds:
+        if cond.source is not None:
+            seen = cond.source.trained_on
+            out[cond.name] = None if seen is None else len(ids & seen)
+    return out
 
 
 def _row(cond_name: str, config, res: dict, spec) -> dict:
@@ -277,12 +324,25 @@ def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: b
     out.mkdir(parents=True, exist_ok=True)
     configs, pool_src = resolve_pool(cfg, policy, spec, out, progress)
     configs = configs[: cfg.episodes]
+    overlap = overlap_with_training(configs, conds)
+    leaked = {k: v for k, v in overlap.items() if v}
+    if leaked and not cfg.allow_overlap:
+        k, v = next(iter(leaked.items()))
+        raise EvalError(f"condition {k!r}: its texture was optimised or selected on {v} of the {len(configs)} evaluation configurations "
+                        "(an in-sample score); use a pool of the evaluation part, or pass --allow-overlap to score it anyway")
+    unknown = sorted(k for k, v in overlap.items() if v is None)
+    if unknown:
+        import warnings
+
+        warnings.warn(f"condition(s) {', '.join(unknown)}: the texture directory records no training configurations (configs.json), "
+                      "so its overlap with the evaluation cannot be checked", EvalWarning, stacklevel=2)
     resolved = {
         "job": "eval",
         "eval": cfg.model_dump(mode="json"),
         "conditions": [c.to_dict() for c in conds],
         "pool": pool_src,
         "seeds": [int(c.seed) for c in configs],
+        "overlap": overlap,
         "scene": spec.model_dump(mode="json"),
     }
     store = EpisodeStore(out, resolved, [o.name for o in spec.objects], resume=resume)
@@ -313,7 +373,7 @@ def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: b
 
     summary = summarize(store.rows, spec, [c.name for c in conds], meta={"pool": pool_src, "episodes_requested": cfg.episodes,
                                                                           "episodes_available": len(configs), "policy": cfg.policy,
-                                                                          "max_steps": cfg.max_steps})
+                                                                          "max_steps": cfg.max_steps, "overlap": overlap})
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     if report:
         write_report(out, summary, conds)

@@ -98,6 +98,14 @@ def _pairwise(by_cond: dict) -> dict:
     return out
 
 
+def _overlap_line(overlap: dict | None) -> str:
+    """Held-out check: how many evaluation configurations each texture was optimised or selected on."""
+    if not overlap:
+        return "Overlap with the attacks' configurations: no texture condition."
+    cells = ", ".join(f"`{k}` {'unknown (no configs.json)' if v is None else v}" for k, v in overlap.items())
+    return f"Overlap with the attacks' training and validation configurations (must be 0 for a held-out score): {cells}."
+
+
 def fmt_rate(p: dict) -> str:
     if not p["n"]:
         return "n/a"
@@ -181,6 +189,8 @@ def write_report(out: str | Path, summary: dict, conds=()) -> Path:
         f"Policy: `{meta.get('policy', '?')}`; goal `{summary['goal']}`, adversarial object `{summary['adversarial']}`; "
         f"{meta.get('episodes_available', '?')} task-feasible configurations (of {meta.get('episodes_requested', '?')} requested) "
         f"from `{meta.get('pool', '?')}`, episodes of at most {meta.get('max_steps', '?')} steps, same configurations for every condition.",
+        "",
+        _overlap_line(meta.get("overlap")),
         "",
         "| condition | n | T-ASR % [95% CI] | ASR % [95% CI] | E_trans [95% CI] | E_rot rad [95% CI] | McNemar p vs clean (ASR) | (T-ASR) |",
         "|---|---|---|---|---|---|---|---|",

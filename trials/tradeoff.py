@@ -4,10 +4,10 @@ The sweep is data (:func:`build_rows`): a baseline (the ``quick`` attack preset 
 policy) and variants that change one knob each. Every attack row is measured the same way:
 
 1. the attack runs in-process (:class:`attack.optimize.AttackRun`, ``step()`` by ``step()``),
-   sampling its EOT configurations from the policy's task-feasible pool *minus* the evaluation
-   set (held out when at least 20 configurations remain);
+   sampling its EOT configurations from the attack part of the policy's task-feasible pool
+   (:func:`sim.configs.config_part`; at least 20 are required);
 2. its texture is evaluated with :func:`trials.evaluate.run_eval` (paired clean/attack arms) on
-   one fixed evaluation set per policy: the first ``episodes`` configurations of its pool,
+   one fixed evaluation set per policy: the first ``episodes`` evaluation-part configurations of its pool,
    written once to ``<out>/eval_sets/<policy>.json`` and reused by every row of that policy.
 
 The ``iterations`` rows cost nothing extra: the baseline run snapshots its texture at
@@ -438,7 +438,7 @@ def _policy_pool(cfg: TradeoffConfig, label: str, spec) -> tuple[list, str]:
 
 def _eval_set(cfg: TradeoffConfig, label: str, out: Path, spec) -> tuple[Path, list, list, str]:
     """``(path, eval configs, attack configs, note)``: the fixed set (written once) and the attack's pool."""
-    from sim.configs import load_pool, save_pool
+    from sim.configs import in_part, load_pool, save_pool
 
     pool, src = _policy_pool(cfg, label, spec)
     path = out / "eval_sets" / f"{label}.json"
@@ -449,19 +449,17 @@ def _eval_set(cfg: TradeoffConfig, label: str, out: Path, spec) -> tuple[Path, l
             raise TradeoffError(f"{path}: evaluation set not task-feasible for {src} ({len(stale)} configurations are not in its pool; "
                                 "was the policy replaced?); move the file away to rebuild it")
     else:
-        eval_cfgs = pool[: cfg.episodes]
-        save_pool(path, spec, eval_cfgs, meta={"kind": "task-feasible", "source": src, "first": len(eval_cfgs),
-                                               "definition": "the first configurations of the policy's task-feasible pool"})
-    seeds = {c.seed for c in eval_cfgs}
-    rest = [c for c in pool if c.seed not in seeds]
+        eval_cfgs = in_part(pool, "evaluation")[: cfg.episodes]
+        save_pool(path, spec, eval_cfgs, meta={"kind": "task-feasible", "source": src, "first": len(eval_cfgs), "part": "evaluation",
+                                               "definition": "the first evaluation-part configurations of the policy's task-feasible pool"})
     note = ""
     if len(eval_cfgs) < cfg.episodes:
-        note = f"pool holds {len(eval_cfgs)} < {cfg.episodes} configurations; evaluated on all of them"
-    if len(rest) >= MIN_ATTACK_POOL:
-        attack_cfgs = rest
-    else:
-        attack_cfgs = pool
-        note = (note + "; " if note else "") + f"attack pool overlaps the evaluation set (only {len(rest)} held-out configurations)"
+        note = f"pool holds {len(eval_cfgs)} < {cfg.episodes} evaluation-part configurations; evaluated on all of them"
+    # The attack sees only the attack and validation parts (AttackRun filters), never eval_cfgs.
+    attack_cfgs = in_part(pool, "attack") + in_part(pool, "validation")
+    if len(in_part(pool, "attack")) < MIN_ATTACK_POOL:
+        raise TradeoffError(f"{src}: only {len(in_part(pool, 'attack'))} attack-part configurations (need {MIN_ATTACK_POOL}); "
+                            "evaluate the policy on more episodes ('advobj policy eval --episodes N') or pass --pool")
     return path, eval_cfgs, attack_cfgs, note
 
 
@@ -482,6 +480,7 @@ def _attack(cfg: TradeoffConfig, row: Row, out: Path, spec, attack_cfgs: list) -
     from tqdm import tqdm
 
     from attack.optimize import AttackRun, resolve_config
+    from attack.outputs import write_config_record
     from sim.policies.checkpoint import load_checkpoint
 
     acfg = resolve_config(cfg.attack_preset, {**cfg.attack_overrides, **row.overrides})
@@ -509,6 +508,7 @@ def _attack(cfg: TradeoffConfig, row: Row, out: Path, spec, attack_cfgs: list) -
         bar.close()
         wall, cpu = clock.read()
         _write_texture_dir(d, run.texture, acfg, {"iteration": run.iteration, "policy": _policy_dir(cfg, row.policy)})
+        write_config_record(d, run.pool, run.val_pool)  # snapshots in d/iterNNNNN/ use it too
         h = run.history
     finally:
         run.close()

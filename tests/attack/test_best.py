@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from attack.optimize import AttackError, AttackRun, AttackWarning, better_score, find_checkpoint, resolve_config, run_attack, split_validation
-from sim.configs import sample_pool
+from attack.optimize import AttackError, AttackRun, AttackWarning, better_score, find_checkpoint, resolve_config, run_attack
+from sim.configs import config_part, sample_pool
 from sim.policies.policy import VisuomotorPolicy
 from sim.spec import default_scene
 from trials.conditions import load_attack_source
@@ -24,7 +24,8 @@ def _policy():
 @pytest.fixture(scope="module")
 def spec_pool():
     spec = default_scene()
-    return spec, sample_pool(spec, 8, seed=5)
+    # 6 configurations of the attack part and 2 of the validation part (sim.configs.config_part)
+    return spec, sample_pool(spec, 6, seed=5, part="attack") + sample_pool(spec, 2, seed=5, part="validation")
 
 
 def _scripted(run, scores):
@@ -40,30 +41,27 @@ def _scripted(run, scores):
     return seen
 
 
-def test_split_is_deterministic_disjoint_and_refuses_small_pools(spec_pool):
-    _, pool = spec_pool
-    train, val = split_validation(pool, 3, seed=1)
-    assert len(val) == 3 and len(train) == 5
-    assert not {c.seed for c in train} & {c.seed for c in val}
-    assert split_validation(pool, 3, seed=1) == (train, val)
-    assert [c.seed for c in split_validation(pool, 3, seed=2)[1]] != [c.seed for c in val]
-    dup = pool + [pool[0]]  # a duplicated configuration never lands on both sides
-    tr, va = split_validation(dup, 4, seed=0)
-    assert not {c.seed for c in tr} & {c.seed for c in va}
-    with pytest.raises(AttackError, match="validation_episodes.*too few"):
-        split_validation(pool, 5, seed=0)
-    with pytest.raises(AttackError, match="validation_every: 0"):
-        split_validation(pool[:1], 0, seed=0)
-
-
-def test_a_small_pool_holds_out_half_and_says_so(spec_pool):
+def test_a_pool_short_of_validation_configurations_validates_on_what_it_has_and_says_so(spec_pool):
     spec, pool = spec_pool
-    with pytest.warns(AttackWarning, match="only 8 configurations; holding out 4"):
+    with pytest.warns(AttackWarning, match="only 2 configurations of the validation part; validating on 2 instead of 16"):
         run = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "validation_episodes": 16}), pool=pool)
-    assert len(run.val_pool) == 4 and len(run.pool) == 4
+    assert len(run.val_pool) == 2 and len(run.pool) == 6
     run.close()
-    with pytest.raises(AttackError, match="validation_episodes"), pytest.warns(AttackWarning):
-        AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=pool[:1])
+    with pytest.raises(AttackError, match="no configuration of the validation part"):
+        AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=[c for c in pool if config_part(c.seed) == "attack"])
+    with pytest.raises(AttackError, match="attack part"):
+        AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=[c for c in pool if config_part(c.seed) == "validation"])
+
+
+def test_a_pool_of_evaluation_configurations_is_never_attacked_or_validated_on(spec_pool):
+    spec, pool = spec_pool
+    evaluation = sample_pool(spec, 5, seed=5, part="evaluation")
+    run = AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=pool + evaluation)
+    try:
+        used = {c.seed for c in run.pool} | {c.seed for c in run.val_pool}
+        assert used == {c.seed for c in pool} and not used & {c.seed for c in evaluation}
+    finally:
+        run.close()
 
 
 def test_run_trains_only_on_configurations_outside_the_validation_pool(spec_pool):
@@ -174,7 +172,7 @@ def test_validation_off_keeps_the_whole_pool_and_writes_no_best(tmp_path, spec_p
     assert resolve_config("quick").validation_every > 0 and resolve_config("paper").validation_every > 0
     run_attack(run, progress=False)
     run.close()
-    assert len(run.pool) == 8 and not run.history.val_iteration and not (tmp_path / "best").exists()
+    assert len(run.pool) == 6 and not run.history.val_iteration and not (tmp_path / "best").exists()
     assert (tmp_path / "checkpoint" / "texture.npy").is_file()
 
 

@@ -23,7 +23,7 @@ def _policy():
 @pytest.fixture(scope="module")
 def spec_pool():
     spec = default_scene()
-    return spec, sample_pool(spec, 8, seed=5)
+    return spec, sample_pool(spec, 8, seed=5, part="attack")
 
 
 def test_resume_reaches_the_same_final_texture(tmp_path, spec_pool):

@@ -34,7 +34,18 @@ def pool_file(tmp_path_factory, short_spec):
     from sim.configs import sample_pool, save_pool
 
     path = tmp_path_factory.mktemp("pool") / "pool.json"
-    save_pool(path, short_spec, sample_pool(short_spec, 24, seed=0))
+    # Configurations of the split's evaluation part, as every evaluation uses (sim.configs.config_part).
+    save_pool(path, short_spec, sample_pool(short_spec, 24, seed=0, part="evaluation"))
+    return path
+
+
+@pytest.fixture(scope="session")
+def mixed_pool_file(tmp_path_factory, short_spec):
+    """Seeds 0..59 of every part (25 attack, 3 validation, 32 evaluation), as a policy's own pool holds."""
+    from sim.configs import sample_pool, save_pool
+
+    path = tmp_path_factory.mktemp("mixed_pool") / "pool.json"
+    save_pool(path, short_spec, sample_pool(short_spec, 60, seed=0))
     return path
 
 
@@ -43,6 +54,13 @@ def make_attack_dir(path, mesh=None, seed=0, size=16):
     path.mkdir(parents=True, exist_ok=True)
     np.save(path / "texture.npy", np.random.default_rng(seed).random((size, size, 3)).astype(np.float32))
     (path / "run.json").write_text(json.dumps({"config": {"attack": {"adversarial_mesh": mesh}}}))
+    from attack.outputs import write_config_record
+    from sim.configs import sample_pool
+    from sim.spec import default_scene
+
+    spec = default_scene()
+    spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": MAX_STEPS})
+    write_config_record(path, sample_pool(spec, 4, part="attack"), sample_pool(spec, 2, part="validation"))
     return path
 
 

@@ -131,8 +131,14 @@ def test_end_to_end_cli_short_attack_then_20_paired_episodes(tmp_path, tiny_poli
 
 
 def test_feasible_pool_keeps_only_configs_the_clean_policy_solves(tmp_path, monkeypatch, tiny_policy_dir, short_spec):
-    """Building the pool: candidates are rolled out clean and only goal-reaching ones are kept, in seed order."""
+    """Building the pool: candidates (seeds of the evaluation part only) are rolled out clean and only
+    goal-reaching ones are kept, in seed order."""
+    from sim.configs import part_seeds
+
     goal = short_spec.object_index("goal")
+    seeds = part_seeds("evaluation", 100)
+    cands = [next(seeds) for _ in range(40)]
+    want = [s for s in cands if s % 3 == 0][:4]
 
     def fake_rollout(policy, spec, cond, configs, num_envs, on_done, on_frame=None):
         assert cond.name == "clean" and cond.texture is None
@@ -142,8 +148,8 @@ def test_feasible_pool_keeps_only_configs_the_clean_policy_solves(tmp_path, monk
     monkeypatch.setattr(ev, "rollout_condition", fake_rollout)
     cfg = load_eval_config(policy=str(tiny_policy_dir), episodes=4, max_steps=MAX_STEPS, num_envs=2, seed=100)
     pool, src = ev.resolve_pool(cfg, None, short_spec, tmp_path, progress=False)
-    assert [c.seed for c in pool] == [102, 105, 108, 111] and src == str(tmp_path / "feasible_pool.json")
-    assert [c.seed for c in load_pool(tmp_path / "feasible_pool.json", short_spec)] == [102, 105, 108, 111]
+    assert [c.seed for c in pool] == want and src == str(tmp_path / "feasible_pool.json")
+    assert [c.seed for c in load_pool(tmp_path / "feasible_pool.json", short_spec)] == want
 
     monkeypatch.setattr(ev, "rollout_condition", lambda p, s, c, configs, n, on_done, f=None: [on_done(j, {"reached": -1}) for j in range(len(configs))])
     with pytest.raises(ev.EvalError, match="nothing is task-feasible"):

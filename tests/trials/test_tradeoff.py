@@ -70,8 +70,8 @@ def test_unknown_knobs_rows_and_bad_settings_are_clear_errors():
     assert [r.key for r in select_rows(rows, ["iterations=30"])] == [BASELINE_KEY, "iterations=30"]
 
 
-def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, tiny_policy_dir, pool_file):
-    cfg = _tiny(tiny_policy_dir, pool_file)
+def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, tiny_policy_dir, mixed_pool_file):
+    cfg = _tiny(tiny_policy_dir, mixed_pool_file)
     log = []
     run_sweep(cfg, tmp_path, ["eot_envs=2"], progress=False, log=log.append)
     lines = (tmp_path / "rows.jsonl").read_text().splitlines()
@@ -84,7 +84,7 @@ def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, ti
     assert len(rec["load_start"]) == 3 and rec["git_commit"] and rec["image_size"] == 32
     run_info = json.loads((tmp_path / "attacks" / "eot_envs_2" / "run.json").read_text())
     assert run_info["config"]["attack"]["num_envs"] == 2 and "git_commit" in run_info
-    # the fixed evaluation set: the pool's first 4 configurations; the attack sampled from the rest
+    # the fixed evaluation set: the pool's first 4 evaluation-part configurations; the attack sampled from the attack part
     eval_seeds = json.loads((tmp_path / "evals" / "eot_envs_2" / "run.json").read_text())["config"]["seeds"]
     assert len(eval_seeds) == 4 and (tmp_path / "eval_sets" / "ref.json").is_file()
     assert json.loads((tmp_path / "machine.json").read_text())["runs"][0]["start"]["cpu_count"] >= 1
@@ -107,11 +107,11 @@ def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, ti
     assert bad["status"] == "error" and "not task-feasible" in bad["error"]
     # other settings in the same directory are refused
     with pytest.raises(TradeoffError, match="other settings.*episodes"):
-        run_sweep(_tiny(tiny_policy_dir, pool_file).model_copy(update={"episodes": 3}), tmp_path, ["eot_envs=2"], progress=False)
+        run_sweep(_tiny(tiny_policy_dir, mixed_pool_file).model_copy(update={"episodes": 3}), tmp_path, ["eot_envs=2"], progress=False)
 
 
-def test_iteration_rows_evaluate_snapshots_of_the_baseline_run(tmp_path, tiny_policy_dir, pool_file):
-    cfg = _tiny(tiny_policy_dir, pool_file)
+def test_iteration_rows_evaluate_snapshots_of_the_baseline_run(tmp_path, tiny_policy_dir, mixed_pool_file):
+    cfg = _tiny(tiny_policy_dir, mixed_pool_file)
     res = {r["key"]: r for r in run_sweep(cfg, tmp_path, ["iterations"], progress=False, log=lambda m: None, isolate=False)}
     base, snap = res[BASELINE_KEY], res["iterations=1"]
     assert base["status"] == "ok" and snap["status"] == "ok", (base.get("traceback"), snap.get("traceback"))
@@ -172,7 +172,7 @@ def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
 
 
-def test_cli_help_and_a_tiny_deployment_run(tmp_path, tiny_policy_dir, pool_file):
+def test_cli_help_and_a_tiny_deployment_run(tmp_path, tiny_policy_dir, mixed_pool_file):
     from typer.testing import CliRunner
 
     from trials.cli import app
@@ -181,7 +181,7 @@ def test_cli_help_and_a_tiny_deployment_run(tmp_path, tiny_policy_dir, pool_file
     res = runner.invoke(app, ["bench", "tradeoff", "--help"])
     assert res.exit_code == 0 and "--quick-check" in res.output and "--rows" in res.output
     out = tmp_path / "sweep"
-    res = runner.invoke(app, ["bench", "tradeoff", "--quick-check", "--policy", str(tiny_policy_dir), "--pool", str(pool_file), "--out", str(out),
+    res = runner.invoke(app, ["bench", "tradeoff", "--quick-check", "--policy", str(tiny_policy_dir), "--pool", str(mixed_pool_file), "--out", str(out),
                               "--max-steps", str(MAX_STEPS), "--rows", "deployment=onnx-fp32", "--plot", str(tmp_path / "p.png")])
     assert res.exit_code == 0, res.output
     (rec,) = read_results(out)
