@@ -120,6 +120,7 @@ class Context:
     scene: str | None = None
     progress: bool = True
     log: Callable[[str], None] = print
+    pools: dict = field(default_factory=dict)  # policy dir -> its evaluation pool file (ensure_pool)
 
     def spec(self):
         from trials.scene_tools import load_spec
@@ -175,12 +176,34 @@ def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict) ->
     return d
 
 
+def ensure_pool(ctx: Context, policy_dir: Path) -> str:
+    """The evaluation pool of a policy, built once per recipe run (``<out>/pools/<policy>/``) and
+    shared by all its evaluations, so every arm of every table is paired on the same
+    configurations and the clean rollouts that find them are not repeated per evaluation."""
+    from sim.policies.checkpoint import load_policy
+    from trials.evaluate import load_eval_config, resolve_pool
+
+    c = ctx.cfg
+    if c.pool is not None:
+        return c.pool
+    key = str(policy_dir)
+    if key not in ctx.pools:
+        ecfg = load_eval_config(policy=key, episodes=c.episodes, max_steps=c.max_steps, num_envs=c.num_envs, seed=c.seed, scene=ctx.scene)
+        spec = ctx.spec()
+        spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": c.max_steps})
+        d = ctx.out / "pools" / Path(policy_dir).name
+        d.mkdir(parents=True, exist_ok=True)
+        _, path = resolve_pool(ecfg, load_policy(key), spec, d, ctx.progress)
+        ctx.pools[key] = path
+    return ctx.pools[key]
+
+
 def ensure_eval(ctx: Context, policy_dir: Path, name: str, conditions, attack=None, patch=None, shapes=None) -> dict:
     from trials.evaluate import load_eval_config, run_eval
 
     c = ctx.cfg
     ecfg = load_eval_config(policy=str(policy_dir), conditions=tuple(conditions), episodes=c.episodes, max_steps=c.max_steps,
-                            num_envs=c.num_envs, seed=c.seed, pool=c.pool, scene=ctx.scene, gifs=c.gifs,
+                            num_envs=c.num_envs, seed=c.seed, pool=ensure_pool(ctx, policy_dir), scene=ctx.scene, gifs=c.gifs,
                             attack=None if attack is None else str(attack), patch=None if patch is None else str(patch),
                             shapes={k: str(v) for k, v in (shapes or {}).items()})
     d = ctx.out / "evals" / name

@@ -1,0 +1,141 @@
+"""Run a paper recipe for the committed evidence and collect its raw data under ``results/``.
+
+    .venv/bin/python tools/evidence.py run table1 --episodes 300 --policy runs/evidence/policy-quick
+
+runs ``advobj experiment table1 --preset quick --episodes 300 --policy ... --out runs/evidence/table1``
+(resumable: a re-run continues, and its time is added as another attempt), then copies what a
+reader needs into ``results/table1/``: every evaluation's per-episode rows (``episodes.csv``,
+with the evaluation's name in the first column), ``summary.json``, ``table.md``, the attack
+textures and their training curves' figures (``attacks.json``), and ``run.json`` (the command,
+commit, machine, wall and CPU time of every attempt, n). Checkpoints and policies stay in
+``runs/``. ``collect`` redoes only the copy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RECIPES = ("table1", "table2", "table3", "transfer")
+
+
+def _machine() -> dict:
+    model = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpus": os.cpu_count(), "cpu_model": model, "machine": platform.machine(), "system": platform.system(),
+            "python": platform.python_version(), "load_avg_start": list(os.getloadavg())}
+
+
+def _commit() -> str:
+    sys.path.insert(0, str(ROOT))
+    from sim.runinfo import git_commit
+
+    return git_commit()
+
+
+def run(recipe: str, episodes: int, policy: str | None, work: Path, results: Path, extra: list[str]) -> int:
+    out = work / recipe
+    cmd = [str(ROOT / ".venv" / "bin" / "advobj"), "experiment", recipe, "--preset", "quick", "--episodes", str(episodes), "--out", str(out)]
+    if policy:
+        cmd += ["--policy", policy]
+    cmd += extra
+    record_path = results / recipe / "run.json"
+    record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
+    attempt = {"command": " ".join(["advobj"] + cmd[1:]), "commit": _commit(), "machine": _machine(),
+               "start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    rc = subprocess.call(cmd, cwd=ROOT)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    attempt.update(wall_s=round(time.perf_counter() - t0, 1),
+                   cpu_s=round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1),
+                   exit_code=rc, end_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), load_avg_end=list(os.getloadavg()))
+    record["attempts"].append(attempt)
+    (results / recipe).mkdir(parents=True, exist_ok=True)
+    record_path.write_text(json.dumps(record, indent=2))
+    if rc == 0:
+        collect(recipe, work, results)
+    return rc
+
+
+def collect(recipe: str, work: Path, results: Path) -> Path:
+    src, dst = work / recipe, results / recipe
+    dst.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src / "table.md", dst / "table.md")
+    rows, header, summaries = [], None, {}
+    for ev in sorted((src / "evals").iterdir()):
+        if not (ev / "episodes.csv").is_file():
+            continue
+        with open(ev / "episodes.csv", newline="") as f:
+            reader = csv.DictReader(f)
+            header = header or ["eval"] + list(reader.fieldnames)
+            rows += [{"eval": ev.name, **r} for r in reader]
+        summaries[ev.name] = json.loads((ev / "summary.json").read_text())
+        summaries[ev.name]["overlap"] = json.loads((ev / "manifest.json").read_text())["config"].get("overlap")
+    with open(dst / "episodes.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=header)
+        w.writeheader()
+        w.writerows(rows)
+    (dst / "summary.json").write_text(json.dumps(summaries, indent=1))
+    attacks = {}
+    (dst / "textures").mkdir(exist_ok=True)
+    for at in sorted((src / "attacks").iterdir()):
+        if not (at / "metrics.json").is_file():
+            continue
+        m = json.loads((at / "metrics.json").read_text())
+        cfg = json.loads((at / "run.json").read_text())["config"]["attack"]
+        attacks[at.name] = {"config": cfg, "iterations": m["iterations"], "seconds": m["seconds"],
+                            "validation": m.get("validation"), "initial_loss_pose": m.get("initial_loss_pose"),
+                            "final_loss_pose": m.get("final_loss_pose")}
+        shutil.copyfile(at / "texture.png", dst / "textures" / f"{at.name}.png")
+    (dst / "attacks.json").write_text(json.dumps(attacks, indent=1))
+    policies = {}
+    for card in sorted(src.glob("policies/*/policy.json")):
+        policies[card.parent.name] = json.loads(card.read_text()).get("clean_success")
+    record_path = dst / "run.json"
+    record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
+    record["episodes_rows"] = len(rows)
+    record["trained_policies_clean_success"] = policies
+    record_path.write_text(json.dumps(record, indent=2))
+    return dst
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("recipe", choices=RECIPES)
+    r.add_argument("--episodes", type=int, default=300)
+    r.add_argument("--policy")
+    r.add_argument("--work", type=Path, default=ROOT / "runs" / "evidence")
+    r.add_argument("--results", type=Path, default=ROOT / "results")
+    r.add_argument("extra", nargs="*", help="more arguments for the recipe (after --)")
+    c = sub.add_parser("collect")
+    c.add_argument("recipe", choices=RECIPES)
+    c.add_argument("--work", type=Path, default=ROOT / "runs" / "evidence")
+    c.add_argument("--results", type=Path, default=ROOT / "results")
+    a = ap.parse_args(argv)
+    if a.cmd == "run":
+        return run(a.recipe, a.episodes, a.policy, a.work, a.results, a.extra)
+    collect(a.recipe, a.work, a.results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
