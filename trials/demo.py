@@ -26,7 +26,7 @@ def run_demo(out: Path, seed: int = 0, log=print) -> dict:
     import imageio.v3 as iio
 
     from sim.runinfo import write_run_info
-    from trials.experiments import Context, ensure_attack, ensure_eval, ensure_policy, resolve_experiment, table1_markdown
+    from trials.experiments import Context, ensure_attack, ensure_eval, ensure_policy, eval_rows, resolve_experiment, table1_markdown
     from trials.scene_tools import contact_sheet, expert_rollout, load_spec, write_gif
 
     import torch
@@ -64,6 +64,6 @@ def run_demo(out: Path, seed: int = 0, log=print) -> dict:
             f"evaluation in `{eval_dir.relative_to(out).as_posix()}/`. Quick budget: this is a smoke-scale reproduction, "
             "not the paper's numbers.", "", "![scene](scene.png) ![expert](expert_rollout.gif)", "",
             "## Table I layout (by viewing angle)", ""]
-    table = table1_markdown(summary, ctx).split("\n", 2)[2]
+    table = table1_markdown(summary, ctx, eval_rows(ctx, "demo")).split("\n", 2)[2]
     (out / "report.md").write_text("\n".join(head) + table + "\n" + body)
     return {"summary": summary, "expert_reached": spec.objects[reached].name if reached >= 0 else None, "report": out / "report.md"}

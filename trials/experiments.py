@@ -106,6 +106,10 @@ TABLE2_ROWS = [
     ("c2f_no_pose", "(d)", "C2F", (1, 0, 1), {"schedule": "c2f", "use_pose": False}),
     ("c2f_no_saliency", "(e)", "C2F", (1, 1, 0), {"schedule": "c2f", "use_saliency": False}),
     ("c2f", "(f)", "C2F", (1, 1, 1), {"schedule": "c2f"}),
+    # Not in the paper's table: one schedule stage for the whole run (far only / near only), which
+    # tells whether C2F's gain comes from the ordering or from either end of the distance range.
+    ("coarse", "(g)", "coarse only", (1, 1, 1), {"schedule": "coarse"}),
+    ("fine", "(h)", "fine only", (1, 1, 1), {"schedule": "fine"}),
 ]
 TRANSFER_TARGETS = ("resnet34", "vgg16", "inception_v3")
 
@@ -236,11 +240,21 @@ def table1(ctx: Context) -> str:
     att = ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"})
     pat = ensure_attack(ctx, ref, "patch", {"schedule": "c2f", "adversarial_mesh": "patch"})
     s = ensure_eval(ctx, ref, "table1", ["attack", "patch"], attack=att, patch=pat)
-    return table1_markdown(s, ctx)
+    return table1_markdown(s, ctx, eval_rows(ctx, "table1"))
 
 
-def table1_markdown(s: dict, ctx: Context) -> str:
-    """Table I's layout for an evaluation summary holding the ``attack`` and ``patch`` arms."""
+def eval_rows(ctx: Context, name: str, condition: str | None = None) -> list[dict] | dict[int, dict]:
+    """The episode rows of evaluation ``name`` (``<out>/evals/<name>/episodes.csv``); with
+    ``condition``, that arm's rows keyed by configuration seed (for paired comparisons)."""
+    from trials.storage import read_rows
+
+    rows = read_rows(ctx.out / "evals" / name / "episodes.csv")
+    return rows if condition is None else {r["seed"]: r for r in rows if r["condition"] == condition}
+
+
+def table1_markdown(s: dict, ctx: Context, rows: list[dict] | None = None) -> str:
+    """Table I's layout for an evaluation summary holding the ``attack`` and ``patch`` arms; with
+    the evaluation's ``rows``, the paired 3D-vs-patch test per phi and per distance bin too."""
     lines = _header("Table I: 3D object vs 2D patch by viewing angle phi (deg)", ctx)
     lines += ["| attack type | source | " + " | ".join(f"{b} T-ASR | {b} ASR" for b in PHI_LABELS + ["Avg"]) + " |",
               "|---|---|" + "---|---|" * (len(PHI_LABELS) + 1)]
@@ -257,6 +271,13 @@ def table1_markdown(s: dict, ctx: Context) -> str:
         lines += ["", f"Paired McNemar exact test, 3D object vs 2D patch on the same configurations: T-ASR "
                       f"{pair['tasr']['b']} configs only 3D / {pair['tasr']['c']} only patch, p = {pair['tasr']['p_value']:.2g}; "
                       f"ASR {pair['asr']['b']} / {pair['asr']['c']}, p = {pair['asr']['p_value']:.2g}."]
+    if rows:
+        from trials.findings import paired_markdown
+
+        a = {r["seed"]: r for r in rows if r["condition"] == "attack"}
+        b = {r["seed"]: r for r in rows if r["condition"] == "patch"}
+        lines += ["", "## Paired T-ASR test by viewing angle phi", ""] + paired_markdown("3D", "patch", a, b, "phi")
+        lines += ["", "## Paired T-ASR test by initial distance r", ""] + paired_markdown("3D", "patch", a, b, "r")
     return "\n".join(lines) + "\n"
 
 
@@ -274,12 +295,21 @@ def table2(ctx: Context) -> str:
         rates.append(f"{_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])}")
         errs = [f"{_err(cs['by_distance'][b]['e_trans'], 2)} | {_err(cs['by_distance'][b]['e_rot'], 3)}" for b in DIST_LABELS]
         errs.append(f"{_err(cs['e_trans'], 2)} | {_err(cs['e_rot'], 3)}")
-        pr, pe = PAPER["table2"][key]
-        fmt = lambda xs, d: " | ".join(f"{x:.{d}f}" for x in xs)  # noqa: E731
         lines += [f"| {row} | {strat} | {chk} | ours | " + " | ".join(rates) + " |",
-                  f"| | | | | | ours | " + " | ".join(errs) + " |",
-                  f"| | | | | | paper | " + fmt(pr, 2) + " |",
-                  f"| | | | | | paper | " + " | ".join(f"{pe[i]:.2f} | {pe[i + 1]:.3f}" for i in range(0, len(pe), 2)) + " |"]
+                  f"| | | | | | ours | " + " | ".join(errs) + " |"]
+        if key in PAPER["table2"]:
+            pr, pe = PAPER["table2"][key]
+            lines += [f"| | | | | | paper | " + " | ".join(f"{x:.2f}" for x in pr) + " |",
+                      f"| | | | | | paper | " + " | ".join(f"{pe[i]:.2f} | {pe[i + 1]:.3f}" for i in range(0, len(pe), 2)) + " |"]
+        else:
+            lines.append("| | | | | | paper | " + " | ".join(["-"] * (2 * len(DIST_LABELS) + 2)) + " |")
+    from trials.findings import paired_markdown
+
+    arms = {key: eval_rows(ctx, f"table2_{key}", "attack") for key, *_ in TABLE2_ROWS}
+    for a, b, claim in (("c2f", "ns", ">="), ("ns", "f2c", ">"), ("c2f", "f2c", ">"), ("c2f", "c2f_untargeted", ">"),
+                        ("c2f", "c2f_no_saliency", ">"), ("c2f", "c2f_no_pose", ">"), ("c2f", "coarse", ">="), ("c2f", "fine", ">=")):
+        if arms.get(a) and arms.get(b):
+            lines += ["", f"## Paired T-ASR test: {a} vs {b}, by initial distance r", ""] + paired_markdown(a, b, arms[a], arms[b], "r", claim)
     return "\n".join(lines) + "\n"
 
 

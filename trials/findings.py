@@ -29,7 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sim.stats import wilson_interval
-from trials.metrics import PHI_BINS_DEG, bin_index, bin_labels, mcnemar_exact
+from trials.metrics import DISTANCE_BINS_CM, PHI_BINS_DEG, bin_index, bin_labels, mcnemar_exact
+from trials.storage import read_rows
 
 __all__ = ["ALPHA", "OBLIQUE_PHI_DEG", "Paired", "paired", "verdict", "load_rows", "findings", "render", "write_all", "main"]
 
@@ -44,16 +45,14 @@ TARGETS = {"README.md": ROOT / "README.md", "docs/evaluation.md": ROOT / "docs" 
 def load_rows(results: Path, recipe: str) -> list[dict] | None:
     """The rows of ``results/<recipe>/episodes.csv`` (None when the recipe has not been run)."""
     path = Path(results) / recipe / "episodes.csv"
-    if not path.is_file():
-        return None
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    for r in rows:
-        r["seed"] = int(r["seed"])
-        r["phi_deg"] = math.degrees(float(r["phi_rad"]))
-        r["targeted"] = r["targeted"] == "True"
-        r["success"] = r["success"] == "True"
-    return rows
+    return read_rows(path) if path.is_file() else None
+
+
+def bin_of(row: dict, key: str) -> int:
+    """The row's bin index in the paper's phi (``key="phi"``) or distance (``"r"``) bins, -1 outside."""
+    if key == "phi":
+        return int(bin_index([math.degrees(row["phi_rad"])], PHI_BINS_DEG)[0])
+    return int(bin_index([100.0 * row["r_m"]], DISTANCE_BINS_CM)[0])
 
 
 def arm(rows: list[dict] | None, eval_name: str, condition: str = "attack") -> dict[int, dict]:
@@ -104,6 +103,26 @@ def paired(a: dict[int, dict], b: dict[int, dict], event: str = "targeted", wher
     return Paired(len(seeds), sum(xa), sum(xb), bb, cc, mcnemar_exact(bb, cc).p_value)
 
 
+def paired_by_bin(a: dict[int, dict], b: dict[int, dict], key: str, event: str = "targeted") -> list[tuple[str, Paired]]:
+    """:func:`paired` within each of the paper's phi (``"phi"``) or distance (``"r"``) bins."""
+    labels = bin_labels(PHI_BINS_DEG if key == "phi" else DISTANCE_BINS_CM)
+    return [(lab, paired(a, b, event, where=lambda r, k=k: bin_of(r, key) == k)) for k, lab in enumerate(labels)]
+
+
+def paired_markdown(name_a: str, name_b: str, a: dict[int, dict], b: dict[int, dict], key: str, claim: str = ">") -> list[str]:
+    """Markdown lines: the overall paired T-ASR test of A vs B with its verdict, then one row per bin
+    (discordant counts and p; an empty bin says so instead of showing 0%)."""
+    pr = paired(a, b)
+    lines = [f"**{name_a} vs {name_b}** (claim: {name_a} {claim} {name_b} in T-ASR): {_pair_text(name_a, name_b, pr)}, "
+             f"p = {_p(pr.p)}: **{verdict(pr, claim)}** at alpha = {ALPHA}.", "",
+             f"| {'phi (deg)' if key == 'phi' else 'r (cm)'} | n | {name_a} T-ASR % | {name_b} T-ASR % | only {name_a} / only {name_b} | p | verdict |",
+             "|---|---|---|---|---|---|---|"]
+    for lab, q in paired_by_bin(a, b, key):
+        lines.append(f"| {lab} | {q.n} | {_pct(q.rate_a)} | {_pct(q.rate_b)} | {q.b} / {q.c} | {_p(q.p)} | {verdict(q, claim)} |" if q.n
+                     else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - | - |")
+    return lines
+
+
 def verdict(pr: Paired, claim: str = ">") -> str:
     """``holds`` / ``does not hold`` / ``inconclusive`` for the claim "A > B" (or "A >= B")."""
     if not pr.n:
@@ -145,12 +164,8 @@ def findings(results: Path) -> dict:
     t1 = load_rows(results, "table1")
     a3d, a2d = arm(t1, "table1", "attack"), arm(t1, "table1", "patch")
     f1_all = paired(a3d, a2d)
-    f1_obl = paired(a3d, a2d, where=lambda r: r["phi_deg"] >= OBLIQUE_PHI_DEG)
-    by_bin = []
-    labels = bin_labels(PHI_BINS_DEG)
-    for k, lab in enumerate(labels):
-        pr = paired(a3d, a2d, where=lambda r, k=k: int(bin_index([r["phi_deg"]], PHI_BINS_DEG)[0]) == k)
-        by_bin.append((lab, pr))
+    f1_obl = paired(a3d, a2d, where=lambda r: math.degrees(r["phi_rad"]) >= OBLIQUE_PHI_DEG)
+    by_bin = paired_by_bin(a3d, a2d, "phi")
     out["F1"] = {"claim": f"3D object > 2D patch in T-ASR at oblique views (phi >= {OBLIQUE_PHI_DEG:.0f} deg), the gap widening with phi",
                  "paper": "T-ASR 57.9% vs 39.9% overall; at phi 70-90 deg 34.2% vs 10.6% (Table I)",
                  "test": f1_obl, "overall": f1_all, "by_bin": by_bin, "verdict": verdict(f1_obl), "data": "results/table1/",
@@ -172,6 +187,7 @@ def findings(results: Path) -> dict:
                  "test": p3, "verdict": verdict(p3), "data": "results/table2/", "ours": _pair_text("targeted", "untargeted", p3)}
     nosal = arm(t2, "table2_c2f_no_saliency")
     p4 = paired(c2f, nosal)
+    out["_table2"] = {k: arm(t2, f"table2_{k}") for k in ("c2f", "ns", "f2c", "c2f_untargeted", "c2f_no_saliency", "coarse", "fine")}
     out["F4"] = {"claim": "the saliency term adds T-ASR to the pose term", "paper": "T-ASR 80.4% with vs 78.1% without (Table II, rows f and e)",
                  "test": p4, "verdict": verdict(p4), "data": "results/table2/", "ours": _pair_text("with saliency", "without", p4)}
 
@@ -210,6 +226,8 @@ def render(f: dict) -> str:
     """The findings table (README, docs) in Markdown."""
     lines = ["| finding | paper | ours (held-out, paired) | p (McNemar) | verdict | raw data |", "|---|---|---|---|---|---|"]
     for key, d in f.items():
+        if key.startswith("_"):
+            continue
         if key in ("F1", "F3", "F4"):
             p = _p(d["test"].p) if d["test"].n else "-"
         elif key == "F2":
@@ -230,7 +248,14 @@ def render_details(f: dict) -> str:
     for lab, pr in f["F1"]["by_bin"]:
         lines.append(f"| {lab} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p) if pr.n else '-'} |"
                      if pr.n else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - |")
-    lines += ["", "## F2 parts", ""]
+    lines += ["", "## F2, F3, F4 by initial distance r (cm)", ""]
+    for title, ka, kb, claim in (("C2F vs NS", "c2f", "ns", ">="), ("NS vs F2C", "ns", "f2c", ">"), ("C2F vs F2C", "c2f", "f2c", ">"),
+                                 ("targeted vs untargeted", "c2f", "c2f_untargeted", ">"), ("saliency on vs off", "c2f", "c2f_no_saliency", ">")):
+        a, b = f["_table2"].get(ka), f["_table2"].get(kb)
+        if a and b:
+            na, nb = title.split(" vs ")
+            lines += paired_markdown(na, nb, a, b, "r", claim) + [""]
+    lines += ["## F2 parts", ""]
     for name, pr, v in f["F2"]["parts"]:
         lines.append(f"- {name}: {_pair_text(*name.replace('>=', '>').split(' > '), pr)}, p = {_p(pr.p)}: **{v}**" if pr.n else f"- {name}: not run")
     for name, pr in f["F2"]["extra"]:

@@ -46,7 +46,7 @@ BASE_COLUMNS = (
 
 _INT = {"seed", "reached", "steps"}
 _BOOL = {"success", "targeted"}
-_STR = {"condition", "outcome"}
+_STR = {"condition", "outcome", "eval"}  # "eval": the evaluation a row came from, in results/<recipe>/episodes.csv
 
 
 def config_hash(config: dict) -> str:
