@@ -87,6 +87,9 @@ def export_meshes(out_dir: str | Path, mesh, texture_rgb: np.ndarray, stem: str 
 
 
 def plot_losses(path: str | Path, history) -> Path:
+    """``loss_curves.png``: the held-out validation T-ASR first (the figure that says whether the
+    attack works), then the pose and saliency terms and the gradient norm, with a note on why the
+    pose loss is no measure of progress."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -94,25 +97,51 @@ def plot_losses(path: str | Path, history) -> Path:
 
     h = history
     val = bool(getattr(h, "val_iteration", None))
-    fig, axes = plt.subplots(1, 4 if val else 3, figsize=(16 if val else 12, 3.2))
+    fig, axes = plt.subplots(1, 4 if val else 3, figsize=(16 if val else 12, 3.6))
+    axes = list(axes)
+    if val:
+        ax = axes.pop(0)
+        ax.plot(h.val_iteration, h.val_t_asr, marker="o")
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_title("held-out validation T-ASR")
+        ax.set_xlabel("iteration")
     axes[0].plot(h.iteration, h.loss_pose, label="pose")
     axes[0].plot(h.iteration, h.loss_ori, label="ori", alpha=0.7)
-    axes[0].set_title("pose loss (mean per pair)")
+    axes[0].set_title("pose loss (mean per pair; see note)")
     axes[0].legend()
     axes[1].plot(h.iteration, h.loss_saliency)
     axes[1].set_title("lambda_sal * saliency loss")
     axes[2].semilogy(h.iteration, np.maximum(np.asarray(h.grad_norm), 1e-12))
     axes[2].set_title("|g| (after PCGrad)")
-    if val:
-        axes[3].plot(h.val_iteration, h.val_t_asr, marker="o")
-        axes[3].set_ylim(-0.02, 1.02)
-        axes[3].set_title("held-out validation T-ASR")
     for ax in axes:
         ax.set_xlabel("iteration")
-    fig.tight_layout()
+    fig.text(0.5, 0.01, "Note: " + POSE_LOSS_NOTE, ha="center", va="bottom", fontsize=7)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return Path(path)
+
+
+# Why the pose loss cannot be read as progress: printed with every summary and on the plot.
+POSE_LOSS_NOTE = ("the pose loss is measured on rollouts that move as the attack succeeds (the policy walks towards the object, "
+                  "so the views change), so its level is not comparable across iterations; judge the attack by the held-out "
+                  "validation T-ASR")
+
+
+def summary_lines(metrics: dict) -> list[str]:
+    """The end-of-run summary, the held-out validation T-ASR first."""
+    v = metrics.get("validation")
+    lines = [f"attack done: {metrics['iterations']} iterations in {metrics['seconds']:.0f} s"]
+    if v:
+        best = v.get("best") or {}
+        lines.append(f"held-out validation T-ASR (n = {best.get('episodes', '?')}): {v['t_asr'][0]:.2f} at the start -> "
+                     f"{v['t_asr'][-1]:.2f} at the end; best {best.get('t_asr', float('nan')):.2f} at iteration "
+                     f"{best.get('iteration', '?')} (best/)")
+    else:
+        lines.append("held-out validation: off (validation_every: 0); evaluate the texture with 'advobj eval' to know what it does")
+    lines.append(f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f} (first / last tenth of the run): "
+                 + POSE_LOSS_NOTE)
+    return lines
 
 
 def gradcam_overlay(policy, image: torch.Tensor) -> np.ndarray:

@@ -23,8 +23,9 @@ def run(
     """Run the attack; writes the texture, textured meshes, plots and metrics into OUT."""
     from trials.attack_job import attack_job
 
+    from attack.outputs import summary_lines
+
     metrics = attack_job(policy, preset, config, scene, pool, out, resume)
-    typer.echo(
-        f"attack done: {metrics['iterations']} iterations in {metrics['seconds']:.0f} s; "
-        f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f}; outputs in {out}/"
-    )
+    for line in summary_lines(metrics):
+        typer.echo(line)
+    typer.echo(f"outputs in {out}/")
