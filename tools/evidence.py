@@ -1,8 +1,8 @@
 """Run a paper recipe for the committed evidence and collect its raw data under ``results/``.
 
-    .venv/bin/python tools/evidence.py run table1 --episodes 300 --policy runs/evidence/policy-quick
+    .venv/bin/python tools/evidence.py run table1 --episodes 500 --policy runs/evidence/policy-quick
 
-runs ``advobj experiment table1 --preset quick --episodes 300 --policy ... --out runs/evidence/table1``
+runs ``advobj experiment table1 --preset quick --episodes 500 --policy ... --out runs/evidence/table1``
 (resumable: a re-run continues, and its time is added as another attempt), then copies what a
 reader needs into ``results/table1/``: every evaluation's per-episode rows (``episodes.csv``,
 with the evaluation's name in the first column), ``summary.json``, ``table.md``, the attack
@@ -51,7 +51,9 @@ def _commit() -> str:
 
 def run(recipe: str, episodes: int, policy: str | None, work: Path, results: Path, extra: list[str]) -> int:
     out = work / recipe
-    cmd = [str(ROOT / ".venv" / "bin" / "advobj"), "experiment", recipe, "--preset", "quick", "--episodes", str(episodes), "--out", str(out)]
+    # Paths relative to the checkout, so the recorded command is the one a reader types there.
+    cmd = [str(ROOT / ".venv" / "bin" / "advobj"), "experiment", recipe, "--preset", "quick", "--episodes", str(episodes),
+           "--out", os.path.relpath(out, ROOT)]
     if policy:
         cmd += ["--policy", policy]
     cmd += extra
@@ -121,9 +123,9 @@ def main(argv=None) -> int:
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("recipe", choices=RECIPES)
-    r.add_argument("--episodes", type=int, default=300)
+    r.add_argument("--episodes", type=int, default=500)
     r.add_argument("--policy")
-    r.add_argument("--work", type=Path, default=ROOT / "runs" / "evidence")
+    r.add_argument("--work", type=Path, default=Path("runs") / "evidence")
     r.add_argument("--results", type=Path, default=ROOT / "results")
     r.add_argument("extra", nargs="*", help="more arguments for the recipe (after --)")
     c = sub.add_parser("collect")
