@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-RECIPES = ("table1", "table2", "table3", "transfer")
+RECIPES = ("table1", "table2", "table3", "transfer", "lighting")
 
 
 def _machine() -> dict:

@@ -11,7 +11,7 @@ import typer
 def eval_command(
     policy: Path = typer.Option(..., help="target policy: checkpoint directory or .onnx file (black-box targets welcome)"),
     condition: List[str] = typer.Option(["attack"], "--condition", "-c", help="condition name (repeatable); 'clean' always runs. "
-                                        "Names: clean attack patch light_bright light_dim noise bkg_varied stereo shape_dog shape_duck shape_cube shape_cylinder"),
+                                        "Names: clean attack patch light_bright light_dim light_random noise bkg_varied stereo shape_dog shape_duck shape_cube shape_cylinder"),
     attack: Optional[Path] = typer.Option(None, help="attack run directory (texture for attack/variation/stereo conditions)"),
     patch: Optional[Path] = typer.Option(None, help="attack run directory of the 2D patch baseline (adversarial_mesh 'patch')"),
     shape: List[str] = typer.Option([], help="SHAPE=DIR: attack run optimised on that shape (dog, duck, cube, cylinder); repeatable"),

@@ -62,6 +62,13 @@ def table3(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[P
 
 
 @app.command()
+def lighting(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
+             scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL) -> None:
+    """Lighting randomisation in the attack: its cost and what it buys under bright, dim and held-out lights."""
+    _run("lighting", preset, out, policy, [], episodes, scene, pool)
+
+
+@app.command()
 def transfer(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY,
              target: List[str] = typer.Option([], help="ARCH=PATH target policy (resnet34, vgg16, inception_v3; checkpoint or .onnx); "
                                                        "missing targets are trained"),

@@ -188,6 +188,9 @@ CONDITIONS: dict[str, Callable[[Sources], Condition]] = {
     "patch": _patch,
     "light_bright": _variation("light_bright", light="bright"),
     "light_dim": _variation("light_dim", light="dim"),
+    # Held-out light levels: a random light per episode (intensity, direction, ambient, tint), drawn
+    # from the configuration's seed, so never one the attack's lighting randomisation trained on.
+    "light_random": _variation("light_random", light="random"),
     "noise": _variation("noise", noise_std=NOISE_STD),
     "bkg_varied": _variation("bkg_varied", background="varied"),
     "stereo": _stereo,

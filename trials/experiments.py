@@ -350,6 +350,39 @@ def transfer(ctx: Context) -> str:
     return "\n".join(lines) + "\n"
 
 
+LIGHT_CONDITIONS = ("attack", "light_bright", "light_dim", "light_random")
+
+
+def lighting(ctx: Context) -> str:
+    """Lighting randomisation in the attack (the paper's sim-to-real measure): what it costs (attack
+    time, T-ASR under the nominal light) and what it buys (T-ASR under the bright and dim presets
+    and under held-out random lights), each texture on the same configurations."""
+    from trials.findings import paired_markdown
+
+    ref = ensure_policy(ctx)
+    runs = {"fixed light": ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"}),
+            "light randomisation": ensure_attack(ctx, ref, "c2f_light", {"schedule": "c2f", "light_randomization": True})}
+    evals = {}
+    for label, run in runs.items():
+        name = f"lighting_{run.name}"
+        ensure_eval(ctx, ref, name, LIGHT_CONDITIONS, attack=run)
+        evals[label] = name
+    lines = _header("Lighting randomisation in the attack: cost and benefit", ctx,
+                    "Both textures are evaluated on the same held-out configurations; light_random draws a new light per episode "
+                    "from the configuration's seed (never a light the attack saw).")
+    cost = {k: json.loads((v / "metrics.json").read_text()) for k, v in runs.items()}
+    lines += ["| attack | seconds / iteration | attack wall (s) | final held-out validation T-ASR (nominal light) |", "|---|---|---|---|"]
+    for k, m in cost.items():
+        v = (m.get("validation") or {}).get("t_asr") or [float("nan")]
+        lines.append(f"| {k} | {m['seconds_per_iteration']:.3f} | {m['seconds']:.0f} | {v[-1]:.2f} |")
+    for cond in LIGHT_CONDITIONS:
+        a = eval_rows(ctx, evals["light randomisation"], cond)
+        b = eval_rows(ctx, evals["fixed light"], cond)
+        lines += ["", f"## Condition `{cond}`: with vs without lighting randomisation", ""]
+        lines += paired_markdown("randomised", "fixed", a, b, "phi", ">")
+    return "\n".join(lines) + "\n"
+
+
 def _arch(pdir: Path) -> str:
     try:
         from sim.policies.checkpoint import load_card
@@ -359,7 +392,8 @@ def _arch(pdir: Path) -> str:
         return "onnx" if str(pdir).endswith(".onnx") else "?"
 
 
-RECIPES: dict[str, Callable[[Context], str]] = {"table1": table1, "table2": table2, "table3": table3, "transfer": transfer}
+RECIPES: dict[str, Callable[[Context], str]] = {"table1": table1, "table2": table2, "table3": table3, "transfer": transfer,
+                                                "lighting": lighting}
 
 
 def run_experiment(name: str, cfg: ExperimentConfig, out: str | Path, policy=None, targets=None, scene=None, progress=True, log=print) -> Path:

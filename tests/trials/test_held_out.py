@@ -95,7 +95,7 @@ def test_default_attack_then_eval_gives_overlap_0_and_records_what_the_attack_sa
     assert read_config_record(tmp_path / "atk" / "best") == read_config_record(tmp_path / "atk")  # best/ uses its run's record
 
 
-@pytest.mark.parametrize("recipe", ["table1", "table2", "table3", "transfer"])
+@pytest.mark.parametrize("recipe", ["table1", "table2", "table3", "transfer", "lighting"])
 def test_every_recipe_on_its_default_paths_gives_overlap_0(tmp_path, policy_with_pool, recipe, monkeypatch):
     import trials.experiments as ex
 
