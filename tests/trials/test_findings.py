@@ -37,7 +37,7 @@ def test_bins_without_episodes_are_marked_not_zero():
 
 def test_transfer_ratio_interval_brackets_the_ratio():
     r, lo, hi = fd._ratio_ci(30, 100, 60, 100)
-    assert lo < r == pytest.approx(0.5) < hi and 0 < lo
+    assert r == pytest.approx(0.5) and 0 < lo < r < hi
     r0, lo0, hi0 = fd._ratio_ci(0, 100, 60, 100)  # an empty cell is handled, not a division by zero
     assert 0 <= lo0 <= r0 <= hi0 < 0.2
 
