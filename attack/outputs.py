@@ -165,6 +165,7 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
     import imageio.v3 as iio
 
     from attack.render import render_adversarial
+    from sim.imaging import hstack, labelled, upscale
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -181,20 +182,22 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
     cap = run.hybrid.capture(env.worlds[0])
     before = render_adversarial(cap, texture_before.to(run.device), run.cfg.sampler)
     after = render_adversarial(cap, run.texture, run.cfg.sampler)
-    iio.imwrite(out / "gradcam_before_after.png", np.concatenate([gradcam_overlay(run.policy, before), gradcam_overlay(run.policy, after)], 1))
+    seed = run.pool[0].seed
+    iio.imwrite(out / "gradcam_before_after.png", hstack([labelled(gradcam_overlay(run.policy, before), f"Grad-CAM, starting texture (config {seed})"),
+                                                         labelled(gradcam_overlay(run.policy, after), f"Grad-CAM, final texture (config {seed})")]))
     frames = []
     for _ in range(8):
         if env.done[0]:
             break
         cap = run.hybrid.capture(env.worlds[0])
         img = render_adversarial(cap, run.texture, run.cfg.sampler)
-        frames.append(texture_to_uint8(img))
+        frames.append(labelled(texture_to_uint8(img), f"attack, step {len(frames)}", min_side=128))
         with torch.no_grad():
             a = run.policy(img[None]).cpu().numpy()
         actions = np.zeros((env.num_envs, 6))
         actions[0] = a[0]
         env.step(actions)
-    iio.imwrite(out / "rollout_strip.png", np.concatenate(frames, 1))
+    iio.imwrite(out / "rollout_strip.png", upscale(hstack(frames)))
     h = run.history
     tail = max(1, len(h.loss_pose) // 10)
     metrics = {

@@ -310,6 +310,7 @@ def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: b
     """Run (or resume) an evaluation into ``out``; returns the summary (also ``summary.json``)."""
     from tqdm import tqdm
 
+    from sim.imaging import labelled
     from sim.policies.checkpoint import load_policy
     from sim.runinfo import write_run_info
     from trials.conditions import Sources, build_conditions
@@ -357,9 +358,9 @@ def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: b
         bar.set_postfix(condition=cond.name, refresh=False)
         frames: dict[int, list] = {}
 
-        def on_frame(j, step, adv_rgb, clean_rgb, cfgs=cfgs, frames=frames):
+        def on_frame(j, step, adv_rgb, clean_rgb, cfgs=cfgs, frames=frames, cond=cond):
             if cfgs[j].seed in gif_seeds:
-                frames.setdefault(j, []).append(adv_rgb.copy())
+                frames.setdefault(j, []).append(labelled(adv_rgb, f"{cond.name}  config {cfgs[j].seed}  step {step}"))
 
         def on_done(j, res, cfgs=cfgs, cond=cond, frames=frames):
             if j in frames:

@@ -132,7 +132,7 @@ def _bar_plot(path: Path, summary: dict, key: str, title: str, xlabel: str) -> P
     labels = [k for k in summary["conditions"][conds[0]][key] if k != "outside"]
     x = np.arange(len(labels))
     width = 0.8 / max(1, len(conds))
-    fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.2 * len(labels) * 2), 3.4), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.2 * len(labels) * 2), 4.0), sharey=True)
     for ax, metric, name in zip(axes, ("tasr", "asr"), ("T-ASR", "ASR")):
         for ci, c in enumerate(conds):
             bins = summary["conditions"][c][key]
@@ -140,14 +140,22 @@ def _bar_plot(path: Path, summary: dict, key: str, title: str, xlabel: str) -> P
             lo = np.array([bins[l][metric]["lo"] for l in labels]) * 100
             hi = np.array([bins[l][metric]["hi"] for l in labels]) * 100
             yerr = np.stack([np.nan_to_num(rate - lo), np.nan_to_num(hi - rate)])
-            ax.bar(x + (ci - (len(conds) - 1) / 2) * width, np.nan_to_num(rate), width, yerr=yerr, capsize=2, label=c)
+            xs = x + (ci - (len(conds) - 1) / 2) * width
+            full = ~np.isnan(rate)
+            ax.bar(xs[full], rate[full], width, yerr=yerr[:, full], capsize=2, label=c, color=f"C{ci}")
+            # An empty bin is not a 0% bin: no bar, a hatched outline and "n=0".
+            for xe in xs[~full]:
+                ax.bar(xe, 100, width, fill=False, hatch="//", edgecolor="0.7", linewidth=0.5)
+                ax.text(xe, 50, "n=0", rotation=90, ha="center", va="center", fontsize=6, color="0.4")
         ax.set_xticks(x, labels, rotation=30)
-        ax.set_title(f"{name} by {title} (95% Wilson)")
+        ax.set_title(f"{name} by {title}")
         ax.set_xlabel(xlabel)
         ax.set_ylim(0, 105)
-    axes[0].set_ylabel("%")
-    axes[1].legend(fontsize=7)
-    fig.tight_layout()
+    axes[0].set_ylabel("% (95% Wilson intervals)")
+    # The legend goes below the axes: inside, it covers bars once a table has many conditions.
+    handles, names = axes[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="lower center", ncol=min(6, len(names)), fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.06 + 0.05 * ((len(names) - 1) // 6), 1, 1))
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
