@@ -13,9 +13,10 @@ import math
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator
 
 from calibration.errors import CalibrationFileError
+from sim.configio import StrictModel
 from sim.geometry import make_T, so3_exp, so3_log
 
 __all__ = ["Strict", "PoseModel", "Vec3", "pose_to_T", "T_to_pose", "read_yaml", "load_model", "write_yaml", "check_T", "read_image"]
@@ -23,10 +24,8 @@ __all__ = ["Strict", "PoseModel", "Vec3", "pose_to_T", "T_to_pose", "read_yaml",
 M = TypeVar("M", bound=BaseModel)
 
 
-class Strict(BaseModel):
+class Strict(StrictModel):
     """Base of every file schema: unknown keys are errors, values are immutable."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 def _finite(v: tuple[float, ...]) -> tuple[float, ...]:

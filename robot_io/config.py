@@ -16,8 +16,9 @@ from typing import Annotated, Literal, Union
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
+from sim.configio import StrictModel
 from sim.errors import format_validation_error
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
@@ -46,8 +47,8 @@ Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 Px = Annotated[int, Field(gt=0, le=8192)]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class _Strict(StrictModel):
+    pass
 
 
 # ---------------------------------------------------------------------- cameras

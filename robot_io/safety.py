@@ -34,12 +34,13 @@ from dataclasses import dataclass, field
 from typing import Annotated, Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from robot_io.arms.base import Arm, Fault
 from robot_io.errors import ArmFaultError, RobotIOError, SafetyStop
 from robot_io.poses import is_valid_pose
 from sim.action import next_tcp_pose
+from sim.configio import StrictModel
 from sim.geometry import make_T, so3_exp, so3_log
 
 __all__ = ["SafetyLimits", "SafetyEvent", "StepResult", "SafeArm", "limit_command", "SafetyRefusal"]
@@ -53,10 +54,9 @@ class SafetyRefusal(RobotIOError, ValueError):
     """A positioning command the safety layer will not execute (the message says why)."""
 
 
-class SafetyLimits(BaseModel):
+class SafetyLimits(StrictModel):
     """Limits in the arm's base frame (m, rad, s)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     workspace_min_m: tuple[float, float, float]
     workspace_max_m: tuple[float, float, float]

@@ -15,8 +15,9 @@ from typing import Annotated, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
+from sim.configio import StrictModel
 from sim.geometry import make_T, so3_exp
 
 __all__ = [
@@ -47,8 +48,8 @@ class SpecError(AdvobjError, ValueError):
     """A scene file or dict failed validation; the message names the file and field."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class _Strict(StrictModel):
+    pass
 
 
 def _check_rgb(v: tuple[float, float, float]) -> tuple[float, float, float]:

@@ -38,8 +38,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
+from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 
 __all__ = [
@@ -71,10 +72,9 @@ class TradeoffError(AdvobjError, ValueError):
     """Bad sweep settings, an unknown row or knob, or a sweep directory made with other settings."""
 
 
-class TradeoffConfig(BaseModel):
+class TradeoffConfig(StrictModel):
     """What the sweep measures and on how much (written to ``<out>/manifest.json``)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     policy: str = Field(description="the baseline (reference) policy checkpoint directory")
     resolution_policies: dict[int, str] = Field(default_factory=dict, description="image size -> checkpoint, for policy_resolution rows")

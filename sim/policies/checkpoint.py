@@ -20,8 +20,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 
+from sim.configio import StrictModel
 from sim.policies.interface import PolicyError
 from sim.policies.policy import PolicyArch
 
@@ -44,8 +45,8 @@ WEIGHTS_NAME = "weights.safetensors"
 CARD_FORMAT = "advobj-policy/1"
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _Strict(StrictModel):
+    model_config = ConfigDict(frozen=False)  # cards are completed (hash, time) after validation
 
 
 class ActionScaling(_Strict):

@@ -23,8 +23,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from sim.configio import StrictModel
 from sim.policies.interface import PolicyError
 from sim.policies.rollout import EnvConfig, run_episodes, set_randomization
 
@@ -34,8 +35,7 @@ __all__ = ["DaggerConfig", "train_dagger", "TRAIN_SEED_BASE", "collect"]
 TRAIN_SEED_BASE = 10_000_000
 
 
-class DaggerConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class DaggerConfig(StrictModel):
 
     iterations: int = Field(8, ge=1)
     episodes_per_iter: int = Field(64, ge=1)

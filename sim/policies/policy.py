@@ -17,9 +17,10 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 from torch import nn
 
+from sim.configio import StrictModel
 from sim.policies.backbones import BACKBONES, build_backbone
 from sim.policies.interface import PolicyError, prepare_images
 
@@ -32,10 +33,9 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 ArchName = Literal[tuple(BACKBONES)]  # type: ignore[valid-type]
 
 
-class PolicyArch(BaseModel):
+class PolicyArch(StrictModel):
     """Everything needed to rebuild the network (stored in the policy card)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     arch: ArchName = "resnet18"
     image_size: int = Field(64, ge=32, le=512, description="square input size, px")

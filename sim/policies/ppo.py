@@ -22,8 +22,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from sim.configio import StrictModel
 from sim.policies.interface import PolicyError
 from sim.policies.rollout import EnvConfig, run_episodes, set_randomization
 
@@ -32,8 +33,7 @@ __all__ = ["PPOConfig", "ReachVecEnv", "PolicyExtractor", "train_ppo", "to_visuo
 ACTION_BOUND = 5.0  # pre-tanh action space; tanh(5) = 0.99991
 
 
-class PPOConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class PPOConfig(StrictModel):
 
     total_timesteps: int = Field(200_000, ge=1)
     num_envs: int = Field(8, ge=1)

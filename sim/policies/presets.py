@@ -28,8 +28,9 @@ import hashlib
 import json
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
+from sim.configio import StrictModel
 from sim.policies.dagger import DaggerConfig
 from sim.policies.policy import PolicyArch
 from sim.policies.ppo import PPOConfig
@@ -38,10 +39,9 @@ from sim.policies.rollout import EnvConfig
 __all__ = ["TrainConfig", "PRESETS", "resolve_preset"]
 
 
-class TrainConfig(BaseModel):
+class TrainConfig(StrictModel):
     """Everything a training run depends on (written beside its outputs)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     preset: str
     method: Literal["dagger", "ppo"] = "dagger"

@@ -10,17 +10,17 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from sim.configio import StrictModel
 from sim.stats import Proportion, proportion
 
 __all__ = ["EnvConfig", "make_env", "set_randomization", "EpisodeResults", "run_episodes", "evaluate_policy", "EVAL_SEED_BASE"]
 
 
-class EnvConfig(BaseModel):
+class EnvConfig(StrictModel):
     """How the training/evaluation env renders: image size and appearance randomisation."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     image_size: int = Field(64, ge=32, le=512)
     light: Literal["fixed", "bright", "dim", "random"] = "fixed"

@@ -38,8 +38,9 @@ from typing import Annotated, Literal, Sequence
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
+from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 from sim.paths import SAFE_NAME_RULE, SafeName, name_problem
 
@@ -74,8 +75,8 @@ class PlanError(AdvobjError, ValueError):
     """A trial plan cannot be built or read; the message names the file and field or option."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class _Strict(StrictModel):
+    pass
 
 
 def _finite(v):
