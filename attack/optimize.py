@@ -119,6 +119,10 @@ class History:
     val_t_asr: list[float] = field(default_factory=list)
     val_dist_m: list[float] = field(default_factory=list)
     val_seconds: list[float] = field(default_factory=list)
+    # Pose loss on the validation configurations' first frames: a fixed probe set, so unlike
+    # loss_pose (measured on rollouts that move as the attack succeeds) it is comparable across
+    # iterations. NaN where the pose term is off.
+    val_probe_pose: list[float] = field(default_factory=list)
 
 
 def _benign_texture(mesh, size: int) -> np.ndarray:
@@ -253,11 +257,37 @@ class AttackRun:
         return {"t_asr": float(np.mean(targeted)), "dist_m": float(np.mean(dist)), "episodes": len(configs),
                 "seconds": time.perf_counter() - t0}
 
+    def probe_pose_loss(self) -> float:
+        """Mean pose loss over the first frame of every validation configuration under the
+        current texture (hybrid render, no rollout): the same images at every call, so a change
+        is the texture's doing. NaN when the run has no pose term. Uses no training RNG."""
+        from attack.losses import pose_loss
+        from attack.render import render_adversarial
+
+        cfg = self.cfg
+        if cfg.loss != "targeted" or not cfg.use_pose or not self.val_pool:
+            return float("nan")
+        env, total, n = self.env, 0.0, 0
+        with torch.no_grad():
+            for start in range(0, len(self.val_pool), cfg.num_envs):
+                chunk = self.val_pool[start:start + cfg.num_envs]
+                env.reset_envs(range(len(chunk)), configs=chunk)
+                caps = [self.hybrid.capture(env.worlds[i]) for i in range(len(chunk))]
+                imgs = torch.stack([render_adversarial(c, self.texture, cfg.sampler) for c in caps])
+                a = self.policy(imgs)
+                T = torch.from_numpy(env.T_world_tcp[: len(chunk)]).to(self.device, torch.float32)
+                p_adv = torch.from_numpy(env.object_centers[: len(chunk), self.adv]).to(self.device, torch.float32)
+                lp, _ = pose_loss(T, a, p_adv, self.spec.episode.max_step_m, self.spec.episode.max_step_rad, cfg.lambda_dist)
+                total += float(lp.sum())
+                n += len(chunk)
+        return total / max(n, 1)
+
     def validate_and_keep_best(self) -> bool:
         """Validate, log it in the history and, if the score improved, write ``best/``; returns
         whether it improved."""
         res = self.validate()
         h = self.history
+        h.val_probe_pose.append(self.probe_pose_loss())
         h.val_iteration.append(self.iteration)
         h.val_t_asr.append(res["t_asr"])
         h.val_dist_m.append(res["dist_m"])

@@ -105,6 +105,9 @@ def plot_losses(path: str | Path, history) -> Path:
         ax.set_ylim(-0.02, 1.02)
         ax.set_title("held-out validation T-ASR")
         ax.set_xlabel("iteration")
+        probe = getattr(h, "val_probe_pose", None)
+        if probe and np.isfinite(probe).any():
+            axes[0].plot(h.val_iteration[: len(probe)], probe, marker="o", color="k", label="pose, fixed probe set")
     axes[0].plot(h.iteration, h.loss_pose, label="pose")
     axes[0].plot(h.iteration, h.loss_ori, label="ori", alpha=0.7)
     axes[0].set_title("pose loss (mean per pair; see note)")
@@ -141,6 +144,10 @@ def summary_lines(metrics: dict) -> list[str]:
         lines.append("held-out validation: off (validation_every: 0); evaluate the texture with 'advobj eval' to know what it does")
     lines.append(f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f} (first / last tenth of the run): "
                  + POSE_LOSS_NOTE)
+    probe = [x for x in ((v or {}).get("probe_pose_loss") or []) if x == x]
+    if probe:
+        lines.append(f"pose loss on the fixed probe set (the validation configurations' first frames, comparable across "
+                     f"iterations): {probe[0]:.3f} -> {probe[-1]:.3f}")
     return lines
 
 
@@ -217,6 +224,7 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
             "seconds_per_call": float(np.median(h.val_seconds)),
             "seconds_total": float(np.sum(h.val_seconds)),
             "best": run.best,
+            "probe_pose_loss": h.val_probe_pose,
         },
         "texture_change_l2": float(torch.linalg.vector_norm(tex - texture_before.cpu())),
         "meshes": {k: str(v.relative_to(out)) for k, v in paths.items()},

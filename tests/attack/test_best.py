@@ -187,3 +187,19 @@ def test_attack_and_validation_render_at_the_policy_size(spec_pool):
         assert (run._val_env.height, run._val_env.width) == (32, 32)
     finally:
         run.close()
+
+
+def test_the_probe_pose_loss_is_logged_at_each_validation_and_repeats_for_the_same_texture(spec_pool):
+    spec, pool = spec_pool
+    run = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "iterations": 2}), pool=pool)
+    try:
+        a, b = run.probe_pose_loss(), run.probe_pose_loss()
+        assert np.isfinite(a) and a == b
+        run_attack(run, progress=False)
+        assert len(run.history.val_probe_pose) == len(run.history.val_iteration) == 3
+        assert run.history.val_probe_pose[0] == a
+    finally:
+        run.close()
+    off = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "use_pose": False}), pool=pool)
+    assert np.isnan(off.probe_pose_loss())
+    off.close()
