@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
-from sim.configio import StrictModel
+from sim.configio import StrictModel, merged
 from sim.errors import format_validation_error
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
@@ -154,11 +154,10 @@ def _resolve(cfg: HardwareConfig, base: Path | None) -> HardwareConfig:
         return p if p is None or p.is_absolute() else base / p
 
     cam_updates = {k: fix(getattr(cfg.camera, k)) for k in ("intrinsics", "path") if hasattr(cfg.camera, k)}
-    return cfg.model_copy(update={
-        "camera": cfg.camera.model_copy(update=cam_updates),
-        "T_tcp_cam": fix(cfg.T_tcp_cam),
-        "sim": cfg.sim.model_copy(update={"scene": fix(cfg.sim.scene)}),
-    })
+    camera = {**cfg.camera.model_dump(), **cam_updates}
+    sim = {**cfg.sim.model_dump(), "scene": fix(cfg.sim.scene)}
+    return merged(cfg, {"camera": camera, "T_tcp_cam": fix(cfg.T_tcp_cam), "sim": sim},
+                  what="hardware config", source=str(base), error=HardwareConfigError)
 
 
 def hardware_config_from_dict(data, source: str = "<dict>", base: Path | None = None) -> HardwareConfig:

@@ -57,7 +57,6 @@ class SafetyRefusal(RobotIOError, ValueError):
 class SafetyLimits(StrictModel):
     """Limits in the arm's base frame (m, rad, s)."""
 
-
     workspace_min_m: tuple[float, float, float]
     workspace_max_m: tuple[float, float, float]
     max_step_m: Pos = 0.01
@@ -65,7 +64,7 @@ class SafetyLimits(StrictModel):
     max_speed_mps: Pos = 0.25
     max_speed_radps: Pos = 1.0
     max_accel_mps2: Pos = 2.0
-    control_period_s: Pos = 1.0 / 30.0
+    control_period_s: Annotated[float, Field(ge=0.001, le=2.0)] = 1.0 / 30.0
     max_frame_age_ms: Pos = 100.0
     max_trial_s: Pos = 120.0
     positioning_speed_mps: Pos = 0.05

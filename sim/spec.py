@@ -17,7 +17,7 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from sim.configio import StrictModel
+from sim.configio import StrictModel, merged
 from sim.geometry import make_T, so3_exp
 
 __all__ = [
@@ -172,7 +172,7 @@ class GripperSpec(_Strict):
 
 
 class EpisodeSpec(_Strict):
-    max_steps: Annotated[int, Field(gt=0)] = 60
+    max_steps: Annotated[int, Field(gt=0, le=100_000)] = 60
     success_radius_m: Positive = 0.10
     max_step_m: Positive = 0.02
     max_step_rad: Positive = 0.1
@@ -280,9 +280,9 @@ def _resolve_paths(spec: SceneSpec, source: str) -> SceneSpec:
             return str(base / p)
         return p
 
-    objects = [o.model_copy(update={"mesh": fix(o.mesh), "texture": fix(o.texture)}) for o in spec.objects]
-    table = spec.table.model_copy(update={"texture": fix(spec.table.texture)})
-    return spec.model_copy(update={"objects": objects, "table": table})
+    objects = [{**o.model_dump(), "mesh": fix(o.mesh), "texture": fix(o.texture)} for o in spec.objects]
+    table = {**spec.table.model_dump(), "texture": fix(spec.table.texture)}
+    return merged(spec, {"objects": objects, "table": table}, what="scene spec", source=source, error=SpecError)
 
 
 def load_scene(path: str | Path) -> SceneSpec:

@@ -178,8 +178,9 @@ def _render_views(mesh_name: str, textures: list[np.ndarray], progress: bool = F
     from sim.spec import default_scene
 
     spec = default_scene()
-    objs = [o.model_copy(update={"mesh": mesh_name, "texture": None, "scale": 1.0}) if o.role == "adversarial" else o for o in spec.objects]
-    spec = spec.with_updates(objects=[o.model_dump() for o in objs])
+    objs = [{**o.model_dump(), "mesh": mesh_name, "texture": None, "scale": 1.0} if o.role == "adversarial" else o.model_dump()
+            for o in spec.objects]
+    spec = spec.with_updates(objects=objs)
     k = spec.object_index("adversarial")
     out = [[] for _ in textures]
     with SceneRenderer(spec, RENDER_PX, RENDER_PX) as r:

@@ -75,7 +75,6 @@ class TradeoffError(AdvobjError, ValueError):
 class TradeoffConfig(StrictModel):
     """What the sweep measures and on how much (written to ``<out>/manifest.json``)."""
 
-
     policy: str = Field(description="the baseline (reference) policy checkpoint directory")
     resolution_policies: dict[int, str] = Field(default_factory=dict, description="image size -> checkpoint, for policy_resolution rows")
     attack_preset: str = "quick"

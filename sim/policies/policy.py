@@ -36,7 +36,6 @@ ArchName = Literal[tuple(BACKBONES)]  # type: ignore[valid-type]
 class PolicyArch(StrictModel):
     """Everything needed to rebuild the network (stored in the policy card)."""
 
-
     arch: ArchName = "resnet18"
     image_size: int = Field(64, ge=32, le=512, description="square input size, px")
     small_stem: bool = True

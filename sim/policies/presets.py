@@ -42,7 +42,6 @@ __all__ = ["TrainConfig", "PRESETS", "resolve_preset"]
 class TrainConfig(StrictModel):
     """Everything a training run depends on (written beside its outputs)."""
 
-
     preset: str
     method: Literal["dagger", "ppo"] = "dagger"
     policy: PolicyArch

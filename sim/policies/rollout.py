@@ -21,7 +21,6 @@ __all__ = ["EnvConfig", "make_env", "set_randomization", "EpisodeResults", "run_
 class EnvConfig(StrictModel):
     """How the training/evaluation env renders: image size and appearance randomisation."""
 
-
     image_size: int = Field(64, ge=32, le=512)
     light: Literal["fixed", "bright", "dim", "random"] = "fixed"
     background: Literal["fixed", "varied", "mixed"] = "fixed"

@@ -69,6 +69,8 @@ PLAN_ROLES = ("goal", "adversarial")
 # Names end up in trial ids and file names: keep them to one plain token.
 _NAME = re.compile(r"^[A-Za-z0-9_]+$")
 _MAX_DRAWS = 5000
+#: Plan bounds (see TrialPlan): the policy loop rate and length a session accepts.
+MIN_CONTROL_HZ, MAX_CONTROL_HZ, MAX_STEPS = 0.5, 1000.0, 100_000
 
 
 class PlanError(AdvobjError, ValueError):
@@ -159,11 +161,13 @@ class TrialPlan(_Strict):
     version: Literal[1] = 1
     seed: int
     scene: str | None
-    radius_m: Annotated[float, Field(gt=0)] = 0.10
-    max_steps: Annotated[int, Field(gt=0)] = 60
-    control_hz: Annotated[float, Field(gt=0)] = 10.0
-    placement_tolerance_m: Annotated[float, Field(gt=0)] = 0.01
-    placement_tolerance_rad: Annotated[float, Field(gt=0)] = 0.0873
+    # Bounds a real cell can run (a plan outside them is refused at load, before any device connects).
+    radius_m: Annotated[float, Field(gt=0, le=1.0, description="success radius around an object, m")] = 0.10
+    max_steps: Annotated[int, Field(gt=0, le=MAX_STEPS, description="policy steps per trial at most")] = 60
+    control_hz: Annotated[float, Field(ge=MIN_CONTROL_HZ, le=MAX_CONTROL_HZ, description=(
+        "policy loop rate; its period 1/control_hz (1 ms to 2 s) becomes the safety layer's control_period_s"))] = 10.0
+    placement_tolerance_m: Annotated[float, Field(gt=0, le=0.5, description="object placement check, m")] = 0.01
+    placement_tolerance_rad: Annotated[float, Field(gt=0, le=math.pi, description="object placement check (yaw), rad")] = 0.0873
     envs: list[str]
     shapes: list[str]
     conditions: list[str]

@@ -30,6 +30,7 @@ from typing import Callable
 
 import numpy as np
 
+from sim.configio import merged
 from sim.errors import AdvobjError
 
 __all__ = ["SessionSetupError", "file_sha256", "device_identity", "load_trial_policy", "load_T_base_table", "run_session"]
@@ -136,7 +137,8 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
     policy = load_trial_policy(policy_path, threads)
     S = int(policy.image_size)
     if sim and hw.sim.image_size is None:
-        hw = hw.model_copy(update={"sim": hw.sim.model_copy(update={"image_size": (S, S)})})
+        hw = merged(hw, {"sim": merged(hw.sim, {"image_size": (S, S)}, what="hardware config sim", source=str(policy_path),
+                                       error=SessionSetupError)}, what="hardware config", error=SessionSetupError)
     spec = _scene_spec(plan, hw)
     ep = spec.episode
     action_scale = [ep.max_step_m] * 3 + [ep.max_step_rad] * 3
@@ -215,8 +217,9 @@ def _safety_at_plan_rate(hw, plan, episode, log):
     if not math.isclose(lim.control_period_s, period_s, rel_tol=1e-6):
         log(f"safety: control_period_s {lim.control_period_s * 1000:.1f} ms (hardware YAML) -> {period_s * 1000:.1f} ms, "
             f"the plan's control_hz {plan.control_hz:g}: the speed caps assume the loop's real period")
-        lim = lim.model_copy(update={"control_period_s": period_s})
-        hw = hw.model_copy(update={"safety": lim})
+        # validated again: the plan's rate must give a period the safety limits accept
+        lim = merged(lim, {"control_period_s": period_s}, what="safety limits at the plan's control_hz", error=SessionSetupError)
+        hw = merged(hw, {"safety": lim}, what="hardware config", error=SessionSetupError)
     cap_m, cap_rad = lim.step_caps()
     if cap_m < episode.max_step_m * (1 - 1e-9) or cap_rad < episode.max_step_rad * (1 - 1e-9):
         log(f"warning: at {plan.control_hz:g} Hz the safety layer caps a step at {cap_m * 1000:.1f} mm / "

@@ -82,8 +82,9 @@ class SimStage:
 
     def _scene(self, mesh: str):
         spec = self.base_spec
-        objs = [o.model_copy(update={"mesh": mesh, "texture": None}) if o.role == "adversarial" else o for o in spec.objects]
-        return spec.with_updates(objects=[o.model_dump() for o in objs])
+        # the plan's mesh goes through validation with the rest of the scene (with_updates)
+        objs = [{**o.model_dump(), "mesh": mesh, "texture": None} if o.role == "adversarial" else o.model_dump() for o in spec.objects]
+        return spec.with_updates(objects=objs)
 
     def prepare(self, trial) -> None:
         """Scene and object poses for ``trial`` (the TCP stays where the arm is)."""
