@@ -54,7 +54,8 @@ __all__ = [
     "write_trial_report",
 ]
 
-OUTCOMES = ("goal", "adversarial", "none", "unknown")
+OUTCOMES = ("goal", "adversarial", "none", "unknown", "policy_error")
+UNRATED = ("unknown", "policy_error")  # excluded from both rates, counted apart
 UNTAGGED = "(untagged)"
 
 
@@ -72,14 +73,19 @@ def _final(row: dict) -> str:
 
 
 def rate_cell(rows, confidence: float = 0.95) -> dict:
-    """``{n_trials, n, unknown, tasr, asr}`` of trial rows; rates over the ``n`` rated (not unknown) trials."""
+    """``{n_trials, n, unknown, policy_error, tasr, asr}`` of trial rows; rates over the ``n`` rated trials.
+
+    Neither ``unknown`` trials nor ``policy_error`` ones (the policy gave a non-finite action and the
+    trial stopped there) are rated; both are counted.
+    """
     outs = [_final(r) for r in rows]
-    rated = [o for o in outs if o != "unknown"]
+    rated = [o for o in outs if o not in UNRATED]
     n = len(rated)
     return {
         "n_trials": len(outs),
         "n": n,
-        "unknown": len(outs) - n,
+        "unknown": outs.count("unknown"),
+        "policy_error": outs.count("policy_error"),
         "tasr": proportion(sum(o == "adversarial" for o in rated), n, confidence).to_dict(),
         "asr": proportion(sum(o != "goal" for o in rated), n, confidence).to_dict(),
     }
@@ -255,6 +261,8 @@ def table_iv(rows, sims: dict | None = None, plan_textures: dict | None = None, 
             notes.append(f"sim: {sim['status']}")
         if real["unknown"]:
             notes.append(f"{real['unknown']} unknown excluded")
+        if real["policy_error"]:
+            notes.append(f"{real['policy_error']} policy_error excluded")
         out.append({"env": env, "shape": shape, "sim": sim, "sim_dir": None if sim_eval is None else sim_eval["path"],
                     "real": real, "n": real["n"], "note": "; ".join(notes)})
     return out
@@ -277,7 +285,8 @@ def _cells_md(title: str, cells: dict, key: str) -> list[str]:
 
 def _breakdown_md(b: dict) -> list[str]:
     o = b["overall"]
-    lines = [f"All trials: n = {o['n']} rated ({o['unknown']} unknown), T-ASR {_pct(o['tasr'])} %, ASR {_pct(o['asr'])} %", ""]
+    errors = f", {o['policy_error']} policy_error" if o["policy_error"] else ""
+    lines = [f"All trials: n = {o['n']} rated ({o['unknown']} unknown{errors}), T-ASR {_pct(o['tasr'])} %, ASR {_pct(o['asr'])} %", ""]
     for key, title in (("by_env", "env"), ("by_shape", "shape"), ("by_condition", "condition"), ("by_tag", "tag")):
         lines += _cells_md(f"By {title}", b[key], title)
     lines += _cells_md("By env / shape / condition / tag", b["cells"], "cell")

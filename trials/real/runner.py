@@ -14,7 +14,9 @@ Per trial, in this order:
    at most ``plan.max_steps`` steps: camera -> policy -> ``SafeArm.step_delta`` (the scene's action
    scaling) -> record. Like the simulator's episodes, the loop ends early when the criterion says
    an object is reached (TCP against the checked placement poses). It ends too on a refused
-   command, a safety stop or an arm fault (the reason is stored).
+   command, a safety stop or an arm fault (the reason is stored). A non-finite action (NaN/inf)
+   is never sent to the arm: the trial stops there with outcome ``policy_error`` (step 6 is
+   skipped: there is nothing to confirm), is committed, and the session goes on.
 5. Outcome: the objects are located again from the final pose and
    :func:`calibration.outcome.measure_reach` applies the paper's criterion (roles as names, so the
    outcome is ``goal``, ``adversarial``, ``none`` or ``unknown``). An object not seen from the final
@@ -31,6 +33,7 @@ sha256 differs from the one it started with.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -48,6 +51,7 @@ from trials.real.store import (EventRecord, ObjectPoseRecord, SessionInfo, StepR
 __all__ = ["TrialRunner", "RunSummary", "TrialTiming", "ROLES"]
 
 ROLES = ("goal", "adversarial")
+POLICY_ERROR = "policy_error"  # outcome and stop reason of a trial whose policy gave a non-finite action
 _SIM_GUIDANCE_ROUNDS = 5  # the simulated operator follows the guidance this often before asking the real one
 
 
@@ -253,6 +257,7 @@ class TrialRunner:
 
         n_ev = len(self.arm.events)
         steps, stop_reason, t_loop = self._loop(trial, placed, fdir, rel_dir, events, t0)
+        policy_error = stop_reason.startswith(POLICY_ERROR)
         t4 = self.clock()
         self.arm.stop("trial ended")
         if self.on_trial_end is not None:
@@ -265,7 +270,14 @@ class TrialRunner:
         info = (f"  outcome: {result.reached} ({reason}); distances "
                 + ", ".join(f"{k} {'?' if v is None else f'{v * 100:.1f} cm'}" for k, v in result.distances_m.items()))
         t5 = self.clock()
-        decision: Decision = self.operator.confirm(trial, result, info)
+        if policy_error:
+            # the policy broke, the arm was stopped before that action: no outcome to confirm
+            self.operator.show(f"  {stop_reason}; trial stopped, recorded as {POLICY_ERROR}")
+            result = dataclasses.replace(result, reached=POLICY_ERROR, reason=stop_reason)
+            reason = stop_reason
+            decision = Decision()
+        else:
+            decision: Decision = self.operator.confirm(trial, result, info)
         if decision.abort:
             raise _Abort()
         if decision.outcome is not None and decision.outcome != result.reached:
@@ -353,6 +365,13 @@ class TrialRunner:
                 raise _Restart()
             frame = self.camera.read()
             action = np.asarray(self.policy.act(self._policy_image(frame.rgb)[None]), dtype=np.float64).reshape(-1, 6)[0]
+            if not np.isfinite(action).all():
+                # never sent to the arm (the safety layer would refuse it too) and not a step record:
+                # the action columns hold numbers only
+                stop_reason = (f"{POLICY_ERROR}: the policy output a non-finite action at step {k} "
+                               f"([{', '.join(f'{a:g}' for a in action)}])")
+                events.append(EventRecord(self.clock() - t0, "policy", "error", stop_reason))
+                break
             try:
                 res = self.arm.step_delta(action * self.action_scale, frame)
             except SafetyStop as err:

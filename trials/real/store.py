@@ -69,8 +69,10 @@ __all__ = [
     "EXPORT_TABLES",
 ]
 
-SCHEMA_VERSION = 2
-OUTCOMES = ("goal", "adversarial", "none", "unknown")
+SCHEMA_VERSION = 3
+#: A trial's outcome. ``policy_error``: the policy gave a non-finite action; the trial stopped there
+#: (the runner sets it, never the operator; reports count it apart from the rated trials).
+OUTCOMES = ("goal", "adversarial", "none", "unknown", "policy_error")
 EXPORT_TABLES = ("trials", "steps", "object_poses", "events", "sessions", "runs")
 
 
@@ -195,7 +197,27 @@ INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware
     SELECT id, created_at, software_version, git_commit, hardware_text, devices_json, config_json FROM sessions ORDER BY id;
 UPDATE trials SET run_id = (SELECT r.id FROM runs r WHERE r.session_id = trials.session_id);
 """,
+    3: "policy_error",  # the outcome CHECKs of trials gain 'policy_error': a table rebuild (_allow_policy_error)
 }
+_OLD_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown')"
+_NEW_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown', 'policy_error')"
+
+
+def _allow_policy_error(con: sqlite3.Connection) -> None:
+    """Version 3: rebuild ``trials`` with 'policy_error' in its outcome CHECKs (SQLite cannot alter a CHECK).
+
+    SQLite's documented procedure: a new table from the old one's own DDL (so every later column is
+    kept), rows copied with their ids (the steps/object_poses/events references stay valid), the old
+    one dropped and the new one renamed. Runs inside the caller's transaction, foreign keys off.
+    """
+    ddl = con.execute("SELECT sql FROM sqlite_master WHERE type='table' AND name='trials'").fetchone()[0]
+    if _OLD_OUTCOMES_SQL not in ddl:
+        raise sqlite3.DatabaseError("trials table: outcome constraint not the version-2 one")
+    new = ddl.replace(_OLD_OUTCOMES_SQL, _NEW_OUTCOMES_SQL).replace("CREATE TABLE trials", "CREATE TABLE trials_v3", 1)
+    con.execute(new)
+    con.execute("INSERT INTO trials_v3 SELECT * FROM trials")
+    con.execute("DROP TABLE trials")
+    con.execute("ALTER TABLE trials_v3 RENAME TO trials")
 
 
 # ---------------------------------------------------------------------- records
@@ -378,15 +400,22 @@ class TrialStore:
 
     def _write_schema(self, base: str | None, version: int) -> None:
         """Create the version-1 schema (``base``) and/or migrate from ``version`` to the current one, in one transaction."""
-        statements = [] if base is None else [base]
-        statements += [_MIGRATIONS[v] for v in range(version + 1, SCHEMA_VERSION + 1)]
+        steps = [] if base is None else [base]
+        steps += [_MIGRATIONS[v] for v in range(version + 1, SCHEMA_VERSION + 1)]
+        self.con.execute("PRAGMA foreign_keys=OFF")  # a table rebuild drops a referenced table (checked below)
         self.con.execute("BEGIN IMMEDIATE")
         try:
             if base is None and self.con.execute("SELECT version FROM schema_version").fetchone()[0] == SCHEMA_VERSION:
-                statements = []  # another process migrated it while this one waited for the lock
-            for stmt in ";".join(statements).split(";"):
-                if stmt.strip():
-                    self.con.execute(stmt)
+                steps = []  # another process migrated it while this one waited for the lock
+            for step in steps:
+                if step == "policy_error":
+                    _allow_policy_error(self.con)
+                    continue
+                for stmt in step.split(";"):
+                    if stmt.strip():
+                        self.con.execute(stmt)
+            if self.con.execute("PRAGMA foreign_key_check").fetchone() is not None:
+                raise sqlite3.DatabaseError("foreign key check failed after the schema migration")
             if base is not None:
                 self.con.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION,))
             else:
@@ -395,6 +424,8 @@ class TrialStore:
         except BaseException:
             self.con.execute("ROLLBACK")
             raise
+        finally:
+            self.con.execute("PRAGMA foreign_keys=ON")
 
     def close(self) -> None:
         self.con.close()
