@@ -111,11 +111,13 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
     from trials.real.operator import AutoOperator, ScriptedOperator, TerminalOperator
     from trials.real.plan import load_plan, plan_sha256
     from trials.real.runner import TrialRunner
-    from trials.real.store import SessionInfo, TrialStore, session_frames_dir
+    from trials.real.store import SessionInfo, TrialStore, check_database, session_frames_dir
 
     # First of all, before anything is read or written: the session name becomes the directory
-    # frames/<session> beside the database, which must stay inside frames/ (no symlink out of it).
+    # frames/<session> beside the database, which must stay inside frames/ (no symlink out of it);
+    # and an existing database must pass SQLite's quick_check (a damaged one is never written to).
     session_dir = session_frames_dir(db, session, "--session")
+    check_database(db)
     hardware, plan_path, policy_path = Path(hardware), Path(plan_path), Path(policy_path)
     log = log or (lambda _text: None)
     if answers is not None and auto_confirm:

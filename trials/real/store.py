@@ -66,6 +66,7 @@ __all__ = [
     "frames_dir",
     "frames_ref",
     "clear_frames",
+    "check_database",
     "EXPORT_TABLES",
 ]
 
@@ -355,6 +356,42 @@ def _now_iso() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
+def _one_line(err) -> str:
+    return " ".join(str(err).split())
+
+
+def _quick_check(con: sqlite3.Connection, path: Path) -> None:
+    """``PRAGMA quick_check`` of an open database; a damaged one raises :class:`StoreError` (one line, nothing written)."""
+    rows = [str(r[0]) for r in con.execute("PRAGMA quick_check").fetchall()]
+    if rows != ["ok"]:
+        more = f" (and {len(rows) - 1} more problems)" if len(rows) > 1 else ""
+        raise StoreError(f"{path}: damaged trial database, refused without writing to it (SQLite quick_check: "
+                         f"{_one_line(rows[0] if rows else 'no answer')}{more}); restore it from a backup or give another --db")
+
+
+def check_database(path: str | Path) -> None:
+    """Refuse an existing damaged or non-SQLite file at ``path`` (only read: nothing is created or written).
+
+    Lets a command check its ``--db`` before any other work; :class:`TrialStore` checks again when it opens.
+    """
+    path = Path(path)
+    if not path.exists():
+        return
+    if not path.is_file():
+        raise StoreError(f"{path}: not a file (--db names the trial database file)")
+    try:
+        # read-write but only read: a read-only connection to a WAL database leaves its -wal/-shm behind
+        con = sqlite3.connect(path, timeout=30.0)
+    except sqlite3.DatabaseError as err:
+        raise StoreError(f"{path}: not a usable trial database ({_one_line(err)})") from None
+    try:
+        _quick_check(con, path)
+    except sqlite3.DatabaseError as err:
+        raise StoreError(f"{path}: not a usable trial database ({_one_line(err)})") from None
+    finally:
+        con.close()
+
+
 # ---------------------------------------------------------------------- store
 class TrialStore:
     """The SQLite trial database at ``path`` (created on first use).
@@ -370,6 +407,10 @@ class TrialStore:
         try:
             # isolation_level=None: no implicit transactions; every write transaction is explicit.
             self.con = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
+        except sqlite3.DatabaseError as err:
+            raise StoreError(f"{self.path}: not a usable trial database ({_one_line(err)})") from None
+        try:
+            _quick_check(self.con, self.path)  # before the first write (the journal mode is one)
             self._runs: dict[int, int] = {}  # session id -> the run this process recorded (open_session)
             self.con.row_factory = sqlite3.Row
             mode = self.con.execute("PRAGMA journal_mode=WAL").fetchone()[0]
@@ -377,7 +418,11 @@ class TrialStore:
             self.con.execute("PRAGMA foreign_keys=ON")
             self._init_schema()
         except sqlite3.DatabaseError as err:
-            raise StoreError(f"{self.path}: not a usable trial database ({err})") from None
+            self.con.close()
+            raise StoreError(f"{self.path}: not a usable trial database ({_one_line(err)})") from None
+        except BaseException:
+            self.con.close()
+            raise
         if mode.lower() != "wal":
             raise StoreError(f"{self.path}: cannot switch to WAL journal mode (got {mode!r}); is it on a network file system?")
 
