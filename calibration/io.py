@@ -17,6 +17,7 @@ from pydantic import BaseModel, Field, ValidationError, field_validator
 
 from calibration.errors import CalibrationFileError
 from sim.configio import StrictModel
+from sim.configio import read_yaml as _read_yaml
 from sim.geometry import make_T, so3_exp, so3_log
 
 __all__ = ["Strict", "PoseModel", "Vec3", "pose_to_T", "T_to_pose", "read_yaml", "load_model", "write_yaml", "check_T", "read_image"]
@@ -81,17 +82,11 @@ def check_T(T, name: str, tol: float = 1e-6) -> np.ndarray:
 
 def read_yaml(path) -> object:
     """Parsed YAML of ``path``; missing or malformed files raise :class:`CalibrationFileError`."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise CalibrationFileError(path, "<file>", f"cannot read ({err.strerror or err})") from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise CalibrationFileError(path, "<yaml>", f"not valid YAML{where}") from None
+    def error(p, problem: str) -> CalibrationFileError:
+        unreadable = problem.startswith(("cannot read", "is a directory"))
+        return CalibrationFileError(p, "<file>" if unreadable else "<yaml>", problem)
+
+    return _read_yaml(path, "calibration file", mapping=False, error=error)
 
 
 def load_model(path, model: type[M], data: object | None = None) -> M:

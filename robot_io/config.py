@@ -15,10 +15,9 @@ from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
-import yaml
 from pydantic import Field, ValidationError, model_validator
 
-from sim.configio import StrictModel, merged
+from sim.configio import StrictModel, file_error, merged, read_yaml
 from sim.errors import format_validation_error
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
@@ -173,14 +172,7 @@ def hardware_config_from_dict(data, source: str = "<dict>", base: Path | None = 
 def load_hardware_config(path: str | Path) -> HardwareConfig:
     """Load and validate a hardware YAML; errors name the file and the field."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise HardwareConfigError(f"{path}: cannot read hardware config ({err.strerror or err})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise HardwareConfigError(f"{path}: not valid YAML ({err})") from None
+    data = read_yaml(path, "hardware config", error=file_error(HardwareConfigError))
     return hardware_config_from_dict(data, source=str(path), base=path.resolve().parent)
 
 

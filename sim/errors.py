@@ -10,8 +10,8 @@ class AdvobjError(Exception):
 def format_validation_error(err, what: str, source: str | None = None) -> str:
     """One message for a pydantic ``ValidationError``: the source, then ``field.path: problem``.
 
-    One problem gives one line (``source: invalid what: field.path: problem``); several give the
-    head line and one indented line per problem.
+    Always one line (the CLI prints it as the whole error): ``source: invalid what: field.path:
+    problem``; several problems are joined with ``; `` (the first three, then how many more).
 
     ``what`` names the kind of input ("scene spec", "attack config"); ``source`` the file it
     came from, when there is one.
@@ -20,8 +20,7 @@ def format_validation_error(err, what: str, source: str | None = None) -> str:
     problems = []
     for e in err.errors():
         loc = ".".join(str(p) for p in e["loc"]) or "<root>"
-        msg = e["msg"].removeprefix("Value error, ")  # a validator's own ValueError text
+        msg = " ".join(e["msg"].removeprefix("Value error, ").split())  # a validator's own ValueError text
         problems.append(f"{loc}: {msg}")
-    if len(problems) == 1:  # the common case: one line, the CLI prints nothing else
-        return f"{head}: {problems[0]}"
-    return "\n".join([head] + [f"  {p}" for p in problems])
+    shown = "; ".join(problems[:3]) + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else "")
+    return f"{head}: {shown}"

@@ -17,7 +17,7 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from sim.configio import StrictModel, merged
+from sim.configio import StrictModel, file_error, merged, read_yaml
 from sim.geometry import make_T, so3_exp
 
 __all__ = [
@@ -288,15 +288,7 @@ def _resolve_paths(spec: SceneSpec, source: str) -> SceneSpec:
 def load_scene(path: str | Path) -> SceneSpec:
     """Load and validate a scene YAML file."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise SpecError(f"{path}: cannot read scene file ({err.strerror})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise SpecError(f"{path}: not valid YAML ({err})") from None
-    return scene_from_dict(data, source=str(path))
+    return scene_from_dict(read_yaml(path, "scene file", error=file_error(SpecError)), source=str(path))
 
 
 def default_scene() -> SceneSpec:

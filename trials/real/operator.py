@@ -105,15 +105,10 @@ class AutoOperator:
 
 def load_answers(path: str | Path):
     """``{trial_id: Decision}`` or ``[Decision, ...]`` from an answers YAML (errors name the entry)."""
-    import yaml
+    from sim.configio import file_error, read_yaml
 
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as err:
-        raise AnswersError(f"{p}: cannot read answers ({err.strerror or err})") from None
-    except yaml.YAMLError as err:
-        raise AnswersError(f"{p}: not valid YAML ({err})") from None
+    data = read_yaml(p, "answers file", error=file_error(AnswersError), mapping=False)
 
     def entry(where: str, v) -> Decision:
         if isinstance(v, str):

@@ -195,8 +195,10 @@ def load_sim_eval(eval_dir) -> dict:
         conditions = summary["conditions"]
     except OSError:
         raise ReportError(f"{d / 'summary.json'}: missing; is {d} an 'advobj eval' directory?") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as err:
-        raise ReportError(f"{d / 'summary.json'}: not an eval summary ({type(err).__name__}: {err})") from None
+    except UnicodeDecodeError:
+        raise ReportError(f"{d / 'summary.json'}: not an eval summary (a binary file, not UTF-8 JSON)") from None
+    except (json.JSONDecodeError, KeyError, TypeError, RecursionError) as err:
+        raise ReportError(f"{d / 'summary.json'}: not an eval summary ({type(err).__name__}: {' '.join(str(err).split())})") from None
     sources, adv_mesh = {}, None
     try:
         cfg = json.loads((d / "run.json").read_text())["config"]
