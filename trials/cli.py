@@ -57,16 +57,51 @@ from trials import cli_trial  # noqa: E402
 app.add_typer(cli_trial.app, name="trial")
 
 
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
 def main() -> None:
+    """Run the CLI; every input error ends as one line on stderr (``error: ...``) and exit code 2.
+
+    Errors of the project (:class:`~sim.errors.AdvobjError`), the command line's own usage errors
+    (a bad flag value, a missing option: typer would draw a multi-line box), a pydantic validation
+    of options that reached a model, and an OS error naming a file (``--out`` naming a directory,
+    a read-only folder) all print one line naming the flag, field or file.
+    """
     import sys
 
-    from sim.errors import AdvobjError
+    from pydantic import ValidationError
+    from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
+
+    from sim.errors import AdvobjError, format_validation_error
+
+    def fail(message: str, code: int = 2):
+        typer.secho(f"error: {_one_line(message)}", err=True, fg=typer.colors.RED)
+        sys.exit(code)
 
     try:
-        app()
+        rc = app(standalone_mode=False)
     except AdvobjError as err:
-        typer.secho(f"error: {err}", err=True, fg=typer.colors.RED)
+        fail(str(err))
+    except NoArgsIsHelpError as err:  # 'advobj' or 'advobj trial' alone: the help, as before
+        err.show()
         sys.exit(2)
+    except UsageError as err:
+        where = err.ctx.command_path if err.ctx is not None else "advobj"
+        fail(f"{where}: {err.format_message()}", err.exit_code if err.exit_code else 2)
+    except ClickException as err:
+        fail(err.format_message(), err.exit_code or 1)
+    except typer.Abort:
+        typer.echo("Aborted!", err=True)
+        sys.exit(1)
+    except ValidationError as err:
+        fail(format_validation_error(err, "options"))
+    except OSError as err:
+        if err.filename is None:
+            raise
+        fail(f"{err.filename}: {err.strerror or err}")
+    sys.exit(rc if isinstance(rc, int) else 0)
 
 
 if __name__ == "__main__":

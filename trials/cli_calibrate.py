@@ -12,6 +12,8 @@ app = typer.Typer(no_args_is_help=True, help="Calibrate cameras, tags and hand-e
 
 
 def _board(board: Optional[Path], squares_x: int, squares_y: int, square_mm: float, marker_mm: float, dictionary: str, legacy: bool):
+    from pydantic import ValidationError
+
     from calibration.intrinsics import BoardSpec, load_board_yaml
 
     if board is not None:
@@ -19,8 +21,10 @@ def _board(board: Optional[Path], squares_x: int, squares_y: int, square_mm: flo
     try:
         return BoardSpec(squares_x=squares_x, squares_y=squares_y, square_size_m=square_mm / 1000, marker_size_m=marker_mm / 1000,
                          dictionary=dictionary, legacy_pattern=legacy)
-    except ValueError as err:
-        raise typer.BadParameter(str(err)) from None
+    except ValidationError as err:
+        from sim.errors import AdvobjError, format_validation_error
+
+        raise AdvobjError(format_validation_error(err, "board (--squares-x/--squares-y/--square-mm/--marker-mm/--dictionary)")) from None
 
 
 def _read_image(path: Path):
