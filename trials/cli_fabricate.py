@@ -13,7 +13,7 @@ def fabricate_command(
     out: Path = typer.Option(..., "--out", help="output directory"),
     shape: Optional[str] = typer.Option(None, help="sheet shape: cube or cylinder (default: the run's mesh, if it has a net)"),
     page: str = typer.Option("a4", help="paper: a4, letter or a3"),
-    dpi: int = typer.Option(300, help="print resolution of the texture images"),
+    dpi: int = typer.Option(300, min=30, max=1200, help="print resolution of the texture images, 30-1200"),
     tag_id: Optional[int] = typer.Option(None, "--tag-id", help="add a tag card with this tag36h11 id"),
     tag_size_mm: float = typer.Option(30.0, "--tag-size-mm", help="tag black-square side, mm"),
     no_check: bool = typer.Option(False, "--no-check", help="skip the pre-print check"),

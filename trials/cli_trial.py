@@ -42,8 +42,19 @@ def plan_command(
     object_poses: int = typer.Option(6, "--object-poses", min=1, help="object layouts"),
     pool: Optional[Path] = typer.Option(None, help="draw poses and layouts only from this (task-feasible) config pool JSON"),
     sheet: Optional[Path] = typer.Option(None, help="also write the printable placement sheet PDF here"),
+    force: bool = typer.Option(False, "--force", help="overwrite an existing plan at --out"),
 ) -> None:
     """Write the randomized real-trial plan (paper design: TCP poses x object layouts per env, shape, condition)."""
+    from trials.real.plan import PlanError
+
+    # before any work: a session's trials are tied to its plan's sha256, a silent overwrite orphans them
+    if out.is_dir():
+        raise PlanError(f"--out: {out} is a directory; give the plan's file name (plan.yaml)")
+    if out.exists() and not force:
+        raise PlanError(f"--out: {out} exists; a plan is never overwritten (sessions are tied to its sha256): "
+                        "choose another file or pass --force")
+    if sheet is not None and sheet.is_dir():
+        raise PlanError(f"--sheet: {sheet} is a directory; give the PDF's file name")
     from sim.configs import load_pool
     from sim.runinfo import write_run_info
     from trials.real.plan import design_summary, make_plan, plan_sha256, save_plan, texture_ref

@@ -880,6 +880,13 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
     from sim.runinfo import write_run_info
 
     t0 = time.perf_counter()
+    # every option first: nothing is written for a run that would be refused later (build_layout checks again)
+    if not (isinstance(dpi, int) and 30 <= dpi <= 1200):
+        raise FabricationError(f"--dpi: must be in 30..1200, got {dpi}")
+    if page not in PAGES_MM:
+        raise FabricationError(f"--page: {page!r} is not one of {', '.join(PAGES_MM)}")
+    if Path(out_dir).is_file():
+        raise FabricationError(f"--out: {out_dir} is a file; give an output directory")
     src = load_run(run_dir)
     out = Path(out_dir)
     try:

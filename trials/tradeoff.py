@@ -751,6 +751,14 @@ def run_tradeoff(policy, out, res_policy=(), train_missing=False, train_iteratio
     fields.update({k: v for k, v in dict(episodes=episodes, big_episodes=big_episodes, pool=pool, scene=scene, max_steps=max_steps).items() if v is not None})
     cfg = load_tradeoff_config(policy=str(policy), resolution_policies=res, **fields)
     if not report_only:
+        # every policy's card before any row runs: a bad --policy fails now, not as 17 failed rows
+        from sim.policies.checkpoint import load_card
+
+        for flag, d in [("--policy", cfg.policy)] + [(f"--res-policy {s}", v) for s, v in sorted(cfg.resolution_policies.items())]:
+            try:
+                load_card(d)
+            except AdvobjError as err:
+                raise TradeoffError(f"{flag}: {err}") from None
         wanted = [r for item in rows for r in item.split(",") if r] or None
         selected = select_rows(build_rows(cfg), wanted)
         missing = sorted({int(r.value) for r in selected if r.knob == "policy_resolution"} - set(res))

@@ -245,4 +245,14 @@ def test_cli_errors_name_the_file_or_shape(monkeypatch, capsys, tmp_path, runs):
     assert code == 2 and "--shape duck: no flat net" in err
 
     code, err = _main(monkeypatch, capsys, ["fabricate", runs["cube"], "--out", tmp_path / "o4", "--page", "b5", "--no-check"])
-    assert code == 2 and "page 'b5'" in err
+    assert code == 2 and "--page: 'b5'" in err and not (tmp_path / "o4").exists()  # refused before writing
+
+
+def test_bad_dpi_is_refused_before_anything_is_written(tmp_path, monkeypatch, capsys):
+    code, err = _main(monkeypatch, capsys, ["fabricate", tmp_path / "no_run", "--out", tmp_path / "o", "--dpi", "0"])
+    assert code == 2 and "--dpi" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+    from trials.fabricate import FabricationError, fabricate
+
+    with pytest.raises(FabricationError, match="--dpi"):
+        fabricate(tmp_path / "no_run", tmp_path / "o", dpi=0)
+    assert not (tmp_path / "o").exists()

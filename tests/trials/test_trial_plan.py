@@ -208,5 +208,22 @@ def test_cli_plan_writes_plan_sheet_and_run_info(tmp_path):
     plan = load_plan(out)
     assert plan.seed == 4 and len(plan.trials) == 8
     assert (tmp_path / "plan.run.json").is_file() and (tmp_path / "sheet.pdf").stat().st_size > 0
-    res = CliRunner().invoke(app, ["trial", "plan", "--out", str(out), "--condition", "adv3d"])
+    res = CliRunner().invoke(app, ["trial", "plan", "--out", str(tmp_path / "other.yaml"), "--condition", "adv3d"])
     assert res.exit_code != 0 and "--texture cube/adv3d=RUN_DIR" in str(res.exception)
+
+
+def test_cli_plan_never_overwrites_a_plan_unless_forced(tmp_path):
+    from typer.testing import CliRunner
+
+    from trials.cli import app
+
+    out = tmp_path / "plan.yaml"
+    args = ["trial", "plan", "--out", str(out), "--shape", "cube", "--condition", "clean", "--tcp-poses", "1", "--object-poses", "1"]
+    assert CliRunner().invoke(app, args).exit_code == 0
+    before = out.read_bytes()
+    res = CliRunner().invoke(app, args + ["--seed", "9"])
+    assert res.exit_code != 0 and "--out" in str(res.exception) and "--force" in str(res.exception)
+    assert out.read_bytes() == before
+    assert CliRunner().invoke(app, args + ["--seed", "9", "--force"]).exit_code == 0 and out.read_bytes() != before
+    res = CliRunner().invoke(app, ["trial", "plan", "--out", str(tmp_path)])
+    assert res.exit_code != 0 and "is a directory" in str(res.exception)
