@@ -11,7 +11,7 @@ app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments 
 
 
 def _run(name: str, preset: str, out: Optional[Path], policy: Optional[Path], target: List[str], episodes: Optional[int],
-         scene: Optional[Path], pool: Optional[Path]) -> None:
+         scene: Optional[Path], pool: Optional[Path], archs: Optional[str] = None) -> None:
     import torch
 
     from trials.experiments import ExperimentError, resolve_experiment, run_experiment
@@ -26,7 +26,8 @@ def _run(name: str, preset: str, out: Optional[Path], policy: Optional[Path], ta
         if not sep or not arch or not d:
             raise ExperimentError(f"--target: expected ARCH=PATH, got {item!r}")
         targets[arch] = Path(d)
-    cfg = resolve_experiment(preset, episodes=episodes, pool=None if pool is None else str(pool))
+    cfg = resolve_experiment(preset, episodes=episodes, pool=None if pool is None else str(pool),
+                             transfer_targets=None if archs is None else tuple(a.strip() for a in archs.split(",") if a.strip()))
     path = run_experiment(name, cfg, out or Path("runs") / f"{name}-{preset}", policy, targets, scene, log=typer.echo)
     typer.echo(path.read_text())
     typer.echo(f"table: {path}")
@@ -72,6 +73,8 @@ def lighting(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional
 def transfer(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY,
              target: List[str] = typer.Option([], help="ARCH=PATH target policy (resnet34, vgg16, inception_v3; checkpoint or .onnx); "
                                                        "missing targets are trained"),
-             episodes: Optional[int] = _EPISODES, scene: Optional[Path] = _SCENE) -> None:
+             episodes: Optional[int] = _EPISODES, scene: Optional[Path] = _SCENE,
+             archs: Optional[str] = typer.Option(None, "--archs", help="comma-separated target architectures to run (default: "
+                                                 "resnet34,vgg16,inception_v3)")) -> None:
     """Black-box transfer: source attack against ResNet34, VGG16 and Inception-v3 (Table V)."""
-    _run("transfer", preset, out, policy, target, episodes, scene, None)
+    _run("transfer", preset, out, policy, target, episodes, scene, None, archs)

@@ -193,7 +193,7 @@ def findings(results: Path) -> dict:
                  "test": p4, "verdict": verdict(p4), "data": "results/table2/", "ours": _pair_text("with saliency", "without", p4)}
 
     tr = load_rows(results, "transfer")
-    src = arm(tr, "transfer_resnet18")
+    src = arm(tr, "transfer_source")
     parts, texts = [], []
     k_s, n_s = sum(r["targeted"] for r in src.values()), len(src)
     for target in ("resnet34", "vgg16", "inception_v3"):

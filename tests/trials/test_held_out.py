@@ -101,9 +101,9 @@ def test_every_recipe_on_its_default_paths_gives_overlap_0(tmp_path, policy_with
 
     # One attack and one short evaluation per recipe keeps this fast; the orchestration is the real one.
     monkeypatch.setattr(ex, "TABLE2_ROWS", ex.TABLE2_ROWS[:1])
-    monkeypatch.setattr(ex, "TRANSFER_TARGETS", ("vgg16",))
     # The policy's pool is made for the scene's own episode length, so the evaluations use it too.
-    cfg = ex.resolve_experiment("quick", attack_overrides=TINY_ATTACK, episodes=2, num_envs=2, gifs=0, shapes=("duck",))
+    cfg = ex.resolve_experiment("quick", attack_overrides=TINY_ATTACK, episodes=2, num_envs=2, gifs=0, shapes=("duck",),
+                                transfer_targets=("vgg16",))
     targets = {"vgg16": policy_with_pool} if recipe == "transfer" else None
     ex.run_experiment(recipe, cfg, tmp_path / "out", policy=policy_with_pool, targets=targets, progress=False, log=lambda m: None)
     manifests = list((tmp_path / "out" / "evals").glob("*/manifest.json"))
