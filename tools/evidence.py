@@ -49,15 +49,16 @@ def _commit() -> str:
     return git_commit()
 
 
-def run(recipe: str, episodes: int, policy: str | None, work: Path, results: Path, extra: list[str]) -> int:
-    out = work / recipe
+def run(recipe: str, episodes: int, policy: str | None, work: Path, results: Path, extra: list[str], name: str | None = None) -> int:
+    name = name or recipe
+    out = work / name
     # Paths relative to the checkout, so the recorded command is the one a reader types there.
     cmd = [str(ROOT / ".venv" / "bin" / "advobj"), "experiment", recipe, "--preset", "quick", "--episodes", str(episodes),
            "--out", os.path.relpath(out, ROOT)]
     if policy:
         cmd += ["--policy", policy]
     cmd += extra
-    record_path = results / recipe / "run.json"
+    record_path = results / name / "run.json"
     record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
     attempt = {"command": " ".join(["advobj"] + cmd[1:]), "commit": _commit(), "machine": _machine(),
                "start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
@@ -69,15 +70,16 @@ def run(recipe: str, episodes: int, policy: str | None, work: Path, results: Pat
                    cpu_s=round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1),
                    exit_code=rc, end_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), load_avg_end=list(os.getloadavg()))
     record["attempts"].append(attempt)
-    (results / recipe).mkdir(parents=True, exist_ok=True)
+    (results / name).mkdir(parents=True, exist_ok=True)
     record_path.write_text(json.dumps(record, indent=2))
     if rc == 0:
-        collect(recipe, work, results)
+        collect(name, work, results)
     return rc
 
 
-def collect(recipe: str, work: Path, results: Path) -> Path:
-    src, dst = work / recipe, results / recipe
+def collect(name: str, work: Path, results: Path) -> Path:
+    """Copy the finished run ``work/<name>`` into ``results/<name>``."""
+    src, dst = work / name, results / name
     dst.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src / "table.md", dst / "table.md")
     rows, header, summaries = [], None, {}
@@ -125,17 +127,18 @@ def main(argv=None) -> int:
     r.add_argument("recipe", choices=RECIPES)
     r.add_argument("--episodes", type=int, default=500)
     r.add_argument("--policy")
+    r.add_argument("--name", help="run and results folder name (default: the recipe's), e.g. table2-40 for a variant")
     r.add_argument("--work", type=Path, default=Path("runs") / "evidence")
     r.add_argument("--results", type=Path, default=ROOT / "results")
     r.add_argument("extra", nargs="*", help="more arguments for the recipe (after --)")
     c = sub.add_parser("collect")
-    c.add_argument("recipe", choices=RECIPES)
+    c.add_argument("name", help="run folder under --work")
     c.add_argument("--work", type=Path, default=ROOT / "runs" / "evidence")
     c.add_argument("--results", type=Path, default=ROOT / "results")
     a = ap.parse_args(argv)
     if a.cmd == "run":
-        return run(a.recipe, a.episodes, a.policy, a.work, a.results, a.extra)
-    collect(a.recipe, a.work, a.results)
+        return run(a.recipe, a.episodes, a.policy, a.work, a.results, a.extra, a.name)
+    collect(a.name, a.work, a.results)
     return 0
 
 

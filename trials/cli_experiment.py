@@ -11,7 +11,7 @@ app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments 
 
 
 def _run(name: str, preset: str, out: Optional[Path], policy: Optional[Path], target: List[str], episodes: Optional[int],
-         scene: Optional[Path], pool: Optional[Path], archs: Optional[str] = None) -> None:
+         scene: Optional[Path], pool: Optional[Path], archs: Optional[str] = None, iterations: Optional[int] = None) -> None:
     import torch
 
     from trials.experiments import ExperimentError, resolve_experiment, run_experiment
@@ -27,6 +27,7 @@ def _run(name: str, preset: str, out: Optional[Path], policy: Optional[Path], ta
             raise ExperimentError(f"--target: expected ARCH=PATH, got {item!r}")
         targets[arch] = Path(d)
     cfg = resolve_experiment(preset, episodes=episodes, pool=None if pool is None else str(pool),
+                             attack_overrides=None if iterations is None else {"iterations": iterations},
                              transfer_targets=None if archs is None else tuple(a.strip() for a in archs.split(",") if a.strip()))
     path = run_experiment(name, cfg, out or Path("runs") / f"{name}-{preset}", policy, targets, scene, log=typer.echo)
     typer.echo(path.read_text())
@@ -50,9 +51,11 @@ def table1(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[P
 
 @app.command()
 def table2(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
-           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL) -> None:
+           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL,
+           iterations: Optional[int] = typer.Option(None, min=1, help="attack iterations (default: the attack preset's); a smaller "
+                                                    "budget shows the strategies before they saturate")) -> None:
     """C2F vs F2C vs NS and the targeted / pose / saliency ablations, by distance (Table II)."""
-    _run("table2", preset, out, policy, [], episodes, scene, pool)
+    _run("table2", preset, out, policy, [], episodes, scene, pool, iterations=iterations)
 
 
 @app.command()

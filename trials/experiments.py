@@ -113,6 +113,11 @@ TABLE2_ROWS = [
     # tells whether C2F's gain comes from the ordering or from either end of the distance range.
     ("coarse", "(g)", "coarse only", (1, 1, 1), {"schedule": "coarse"}),
     ("fine", "(h)", "fine only", (1, 1, 1), {"schedule": "fine"}),
+    # Controls, not attacks: the starting texture left as it is (one step of 1e-9 moves no 8-bit
+    # texel), uniform noise or mid grey. They separate "any unfamiliar look draws the policy" from
+    # what the optimisation adds.
+    ("random_texture", "(ctl)", "none", (0, 0, 0), {"init_texture": "random", "iterations": 1, "lr": 1e-9, "validation_every": 0}),
+    ("gray_texture", "(ctl)", "none", (0, 0, 0), {"init_texture": "gray", "iterations": 1, "lr": 1e-9, "validation_every": 0}),
 ]
 TRANSFER_TARGETS = ("resnet34", "vgg16", "inception_v3")
 
