@@ -864,6 +864,14 @@ def draw_pages(layout: SheetLayout, texture: np.ndarray, pdf_path=None, raster: 
 
 
 # ============================================================================ orchestration
+def _attack_field(run_dir, name: str):
+    """A field of the attack config in ``run_dir/run.json`` (None when absent or unreadable)."""
+    try:
+        return json.loads((Path(run_dir) / "run.json").read_text())["config"]["attack"].get(name)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
 def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi: int = 300, tag: tuple[int, float] | None = None,
               check: bool = True, tweak: LayoutTweak = LayoutTweak(), log=print, progress: bool = True) -> dict:
     """Everything ``advobj fabricate`` writes into ``out_dir``; returns a summary dict.
@@ -889,6 +897,12 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
         raise FabricationError(f"--out: {out_dir} is a file; give an output directory")
     src = load_run(run_dir)
     out = Path(out_dir)
+    light_dr = _attack_field(run_dir, "light_randomization")
+    if light_dr is False:
+        # The paper optimises under lighting randomisation for the real cell; a fixed-light texture
+        # may lose much of its effect under the cell's own lights (experiment lighting measures it).
+        log("fabricate: warning: this texture was optimised under the scene's fixed light (light_randomization: false); "
+            "for a real cell, optimise with light_randomization: true ('advobj experiment lighting' measures the difference)")
     try:
         mesh = build_mesh(src.mesh, src.scale)
     except AssetError as err:
@@ -901,6 +915,7 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
                                "its UV layout would not fit the net")
     config = {"job": "fabricate", "run_dir": str(run_dir), "mesh": src.mesh, "scale": src.scale, "shape": sheet_shape, "page": page,
               "dpi": dpi, "tag": list(tag) if tag else None, "check": check, "texture_sha256": src.sha256,
+              "light_randomization": light_dr,
               "tweak": asdict(tweak) if tweak != LayoutTweak() else None}
     write_run_info(out, config, None)
     paths = export_meshes(out, mesh, src.texture)

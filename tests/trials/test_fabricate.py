@@ -220,6 +220,14 @@ def test_cli_mesh_without_a_net_gets_meshes_only(tmp_path):
     assert res.exit_code == 0, res.output
     assert "no flat net" in res.output and "mustard_bottle" in res.output
     assert (tmp_path / "out" / "adversarial.glb").is_file() and not (tmp_path / "out" / "sheet.pdf").exists()
+    assert "light_randomization" not in res.output  # the run does not say: nothing to warn about
+    # A texture optimised under the fixed light is printed, with a warning that says what to do.
+    doc = json.loads((run / "run.json").read_text())
+    doc["config"]["attack"]["light_randomization"] = False
+    (run / "run.json").write_text(json.dumps(doc))
+    res = _invoke(["fabricate", run, "--out", tmp_path / "out2", "--dpi", DPI])
+    assert res.exit_code == 0 and "warning: this texture was optimised under the scene's fixed light" in res.output
+    assert json.loads((tmp_path / "out2" / "run.json").read_text())["config"]["light_randomization"] is False
 
 
 def _main(monkeypatch, capsys, args):
