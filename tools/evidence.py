@@ -120,6 +120,18 @@ def collect(name: str, work: Path, results: Path) -> Path:
     return dst
 
 
+def card(policy_dir: Path, results: Path, command: str) -> Path:
+    """Copy a trained policy's card (``policy.json``: config, training time, clean success with
+    its interval; no weights) to ``results/policies/<name>.json`` with the command that trained it."""
+    doc = json.loads((Path(policy_dir) / "policy.json").read_text())
+    doc["command"] = command
+    doc["machine"] = _machine()
+    dst = results / "policies" / f"{Path(policy_dir).name}.json"
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_text(json.dumps(doc, indent=1))
+    return dst
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -135,7 +147,14 @@ def main(argv=None) -> int:
     c.add_argument("name", help="run folder under --work")
     c.add_argument("--work", type=Path, default=ROOT / "runs" / "evidence")
     c.add_argument("--results", type=Path, default=ROOT / "results")
+    k = sub.add_parser("card", help="copy a trained policy's card into results/policies/")
+    k.add_argument("policy_dir", type=Path)
+    k.add_argument("--command", required=True, help="the command that trained it")
+    k.add_argument("--results", type=Path, default=ROOT / "results")
     a = ap.parse_args(argv)
+    if a.cmd == "card":
+        print(card(a.policy_dir, a.results, a.command))
+        return 0
     if a.cmd == "run":
         return run(a.recipe, a.episodes, a.policy, a.work, a.results, a.extra, a.name)
     collect(a.name, a.work, a.results)

@@ -63,3 +63,14 @@ def test_every_committed_result_has_provenance_held_out_rows_and_at_least_300_pa
         for cond, cs in s["conditions"].items():
             n = sum(1 for r in rows if r["eval"] == name and r["condition"] == cond)
             assert n == cs["n"] >= 300, (name, cond, n)
+
+
+def test_the_readme_policy_figure_is_the_committed_card():
+    import re
+
+    card = json.loads((RESULTS / "policies" / "policy-quick.json").read_text())
+    c, t = card["clean_success"], card["training"]
+    want = (f"**{100 * c['rate']:.1f}% clean success ({c['k']}/{c['n']}, 95% CI {100 * c['lo']:.1f}-{100 * c['hi']:.1f}%) after "
+            f"{t['train_time_s'] / 60:.1f} min of training ({t['train_cpu_s'] / 60:.1f} min CPU)**")
+    block = re.search(r"<!-- policy:start[^>]*-->\n(.*?)\n<!-- policy:end -->", (ROOT / "README.md").read_text(), re.S).group(1)
+    assert block == want
