@@ -30,8 +30,9 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
+from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 
 __all__ = ["AttackConfig", "AttackError", "AttackWarning", "PRESETS", "resolve_config", "AttackRun", "run_attack", "find_checkpoint",
@@ -46,10 +47,8 @@ class AttackWarning(UserWarning):
     """A setting the attack had to adapt (e.g. a validation pool cut to what the pool allows)."""
 
 
-class AttackConfig(BaseModel):
+class AttackConfig(StrictModel):
     """All knobs of one attack run (see ``docs/configuration.md``)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     iterations: int = Field(10_000, ge=1)
     num_envs: int = Field(4, ge=1, description="EOT: initial configurations per iteration")

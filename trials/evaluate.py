@@ -19,8 +19,9 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
+from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 
 __all__ = ["EvalError", "EvalWarning", "EvalConfig", "rollout_condition", "build_feasible", "resolve_pool", "overlap_with_training", "run_eval", "load_eval_config"]
@@ -34,10 +35,8 @@ class EvalWarning(UserWarning):
     """Something the evaluation cannot check (e.g. a texture without a configuration record)."""
 
 
-class EvalConfig(BaseModel):
+class EvalConfig(StrictModel):
     """Everything that defines an evaluation (stored in ``manifest.json``; resume must match)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     policy: str = Field(description="target policy: checkpoint directory or .onnx file")
     conditions: tuple[str, ...] = ("clean", "attack")

@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
+from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 
 __all__ = ["ExperimentError", "ExperimentConfig", "PRESETS", "RECIPES", "resolve_experiment", "run_experiment", "PAPER", "table1_markdown"]
@@ -28,10 +29,8 @@ class ExperimentError(AdvobjError, ValueError):
     """Bad recipe name, preset or inputs."""
 
 
-class ExperimentConfig(BaseModel):
+class ExperimentConfig(StrictModel):
     """The budget of a recipe run (a preset plus overrides)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     preset: str
     policy_preset: str = Field(description="training preset of the reference (source) policy when none is given")
