@@ -27,7 +27,7 @@ app.add_typer(cli_experiment.app, name="experiment")
 
 
 @app.command()
-def demo(out: Path = typer.Option(Path("runs/demo"), help="output directory"), seed: int = typer.Option(0)) -> None:
+def demo(out: Path = typer.Option(Path("runs/demo"), help="output directory"), seed: int = typer.Option(0, min=0)) -> None:
     """The main job on the built-in scene, with quick settings."""
     from trials.demo import run_demo
 

@@ -179,7 +179,7 @@ def handeye(
 
 
 @app.command()
-def selfcheck(seed: int = typer.Option(0, help="random seed")) -> None:
+def selfcheck(seed: int = typer.Option(0, min=0, help="random seed")) -> None:
     """Run the pipeline on synthetic OpenGL renders with known ground truth and print the errors."""
     from calibration.selfcheck import handeye_check, intrinsics_check, tag_check
 

@@ -61,7 +61,7 @@ def check(
 
 
 @app.command("serial-sim")
-def serial_sim(boot_delay_ms: float = typer.Option(1000.0, help="time to the boot banner")) -> None:
+def serial_sim(boot_delay_ms: float = typer.Option(1000.0, min=0.0, max=60000.0, help="time to the boot banner, 0-60000 ms")) -> None:
     """Run the serial arm simulator on a pseudo-terminal and print its port (Ctrl-C to stop)."""
     import time
 

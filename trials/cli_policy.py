@@ -30,7 +30,7 @@ def train(
     method: Optional[str] = typer.Option(None, help="dagger or ppo (default: the preset's, dagger)"),
     out: Path = typer.Option(..., help="output checkpoint directory; an interrupted run there resumes"),
     scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     episodes: Optional[int] = typer.Option(None, help="final clean evaluation episodes (default: the preset's)"),
     curve_episodes: int = typer.Option(0, min=0, help="clean episodes after each iteration/chunk, for a learning curve (time excluded from the budget)"),
     stop_at: Optional[float] = typer.Option(None, help="stop once the learning-curve success reaches this (needs --curve-episodes)"),
@@ -69,7 +69,7 @@ def train(
 def evaluate(
     policy: Path = typer.Argument(..., help="checkpoint directory or .onnx file"),
     episodes: int = typer.Option(200, min=1),
-    seed: int = typer.Option(0, help="first initial-configuration seed"),
+    seed: int = typer.Option(0, min=0, help="first initial-configuration seed"),
     num_envs: int = typer.Option(16, min=1),
     scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
     light: str = typer.Option("fixed", help="fixed, bright, dim or random"),
