@@ -232,9 +232,15 @@ def load_pool(path: str | Path, spec=None) -> list[InitialConfig]:
     """Read a pool; with ``spec``, refuse a pool made for a different scene."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except IsADirectoryError:
+        raise PoolError(f"{path}: is a directory, expected a config pool JSON file") from None
     except OSError as err:
         raise PoolError(f"{path}: cannot read config pool ({err.strerror})") from None
+    except UnicodeDecodeError as err:
+        raise PoolError(f"{path}: not a JSON config pool: not UTF-8 text (byte {err.start}), is it a binary file?") from None
+    except RecursionError:
+        raise PoolError(f"{path}: not a usable JSON config pool: nested too deeply") from None
     except json.JSONDecodeError as err:
         raise PoolError(f"{path}: not a JSON config pool ({err})") from None
     if not isinstance(doc, dict) or doc.get("format") != "advobj-config-pool/1":

@@ -44,10 +44,9 @@ def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool 
 
 
 def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True) -> dict:
-    import yaml
-
     from attack.optimize import AttackError, AttackRun, find_checkpoint, resolve_config, run_attack
     from attack.outputs import write_config_record, write_outputs
+    from sim.configio import file_error, read_yaml
     from sim.configs import load_pool
     from sim.policies.checkpoint import load_policy
     from sim.runinfo import write_run_info
@@ -55,10 +54,9 @@ def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out,
 
     overrides = {}
     if config_path is not None:
-        try:
-            overrides = yaml.safe_load(Path(config_path).read_text()) or {}
-        except (OSError, yaml.YAMLError) as err:
-            raise AttackError(f"{config_path}: cannot read attack config ({err})") from None
+        # An empty file is an empty set of overrides; anything else not a mapping is refused.
+        overrides = read_yaml(config_path, "attack config", error=file_error(AttackError), mapping=False)
+        overrides = {} if overrides is None else overrides
         if not isinstance(overrides, dict):
             raise AttackError(f"{config_path}: an attack config must be a mapping of fields")
     cfg = resolve_config(preset, overrides, source=str(config_path or "<preset>"))

@@ -412,6 +412,24 @@ RECIPES: dict[str, Callable[[Context], str]] = {"table1": table1, "table2": tabl
                                                 "lighting": lighting}
 
 
+def _check_inputs(ctx: Context) -> None:
+    """Every input the recipe was given, checked before the first (long) job starts: the scene, the
+    pool, the source policy and every target (a checkpoint's card, or an ONNX file that loads)."""
+    from sim.configs import load_pool
+    from sim.policies.checkpoint import load_card, load_policy
+
+    spec = ctx.spec()
+    if ctx.cfg.pool is not None:
+        load_pool(ctx.cfg.pool, spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": ctx.cfg.max_steps}))
+    for flag, path in [("--policy", ctx.policy)] + [(f"--target {k}", v) for k, v in ctx.targets.items()]:
+        if path is None:
+            continue
+        try:
+            load_policy(path) if str(path).lower().endswith(".onnx") else load_card(path)
+        except AdvobjError as err:
+            raise ExperimentError(f"{flag}: {err}") from None
+
+
 def run_experiment(name: str, cfg: ExperimentConfig, out: str | Path, policy=None, targets=None, scene=None, progress=True, log=print) -> Path:
     """Run recipe ``name``; returns the path of its ``table.md``."""
     from sim.runinfo import write_run_info
@@ -423,6 +441,7 @@ def run_experiment(name: str, cfg: ExperimentConfig, out: str | Path, policy=Non
         raise ExperimentError(f"--target: unknown target {sorted(unknown)[0]!r}; choose from {', '.join(cfg.transfer_targets)}")
     out = Path(out)
     ctx = Context(cfg, out, None if policy is None else Path(policy), dict(targets or {}), None if scene is None else str(scene), progress, log)
+    _check_inputs(ctx)
     write_run_info(out, {"job": f"experiment {name}", "experiment": cfg.model_dump(mode="json"), "policy": None if policy is None else str(policy),
                          "targets": {k: str(v) for k, v in (targets or {}).items()}, "scene": ctx.scene}, cfg.seed)
     table = RECIPES[name](ctx)

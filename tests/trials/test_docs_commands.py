@@ -465,9 +465,12 @@ TINY: dict[str, Tiny] = {
         Tiny("experiment table2 --preset quick --policy {policy} --out {tmp}/table2", ("{tmp}/table2/table.md",), slow=True, setup=_tiny_experiments),
     "advobj experiment table3 --preset paper":
         Tiny("experiment table3 --preset paper --policy {policy} --out {tmp}/table3", ("{tmp}/table3/table.md",), slow=True, setup=_tiny_experiments),
-    "advobj experiment transfer --preset quick --target resnet34=runs/policy-r34":
-        Tiny("experiment transfer --preset quick --policy {policy} " + TRANSFER_TARGETS + " --out {tmp}/transfer", ("{tmp}/transfer/table.md",),
-             slow=True, setup=_tiny_experiments),
+    "advobj experiment transfer --preset quick --target resnet34=runs/policy-r34 --archs resnet34":
+        Tiny("experiment transfer --preset quick --policy {policy} --target resnet34={policy} --archs resnet34 --out {tmp}/transfer",
+             ("{tmp}/transfer/table.md",), slow=True, setup=_tiny_experiments),
+    "advobj experiment lighting --preset quick":
+        Tiny("experiment lighting --preset quick --policy {policy} --out {tmp}/lighting", ("{tmp}/lighting/table.md",), slow=True,
+             setup=_tiny_experiments),
     # ---- fabrication (a cube run: it has a flat net and a tag card footprint)
     "advobj fabricate runs/attack-cube --out runs/fab-cube --tag-id 3":
         Tiny("fabricate {attack_cube} --out {tmp}/fab-cube --tag-id 3 --dpi 60",
