@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     r.add_argument("--name", help="run and results folder name (default: the recipe's), e.g. table2-40 for a variant")
     r.add_argument("--work", type=Path, default=Path("runs") / "evidence")
     r.add_argument("--results", type=Path, default=ROOT / "results")
-    r.add_argument("extra", nargs="*", help="more arguments for the recipe (after --)")
+    # More arguments for the recipe go after "--" (split off before parsing: argparse would read them as its own).
     c = sub.add_parser("collect")
     c.add_argument("name", help="run folder under --work")
     c.add_argument("--work", type=Path, default=ROOT / "runs" / "evidence")
@@ -151,7 +151,10 @@ def main(argv=None) -> int:
     k.add_argument("policy_dir", type=Path)
     k.add_argument("--command", required=True, help="the command that trained it")
     k.add_argument("--results", type=Path, default=ROOT / "results")
-    a = ap.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    a = ap.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
+    a.extra = extra
     if a.cmd == "card":
         print(card(a.policy_dir, a.results, a.command))
         return 0
