@@ -624,6 +624,32 @@ def ensure_uv(mesh: trimesh.Trimesh, name: str) -> trimesh.Trimesh:
     return _make_trimesh(name, new_v, new_f, new_uv, img, opt)
 
 
+def _check_obj_references(path: Path) -> None:
+    """Refuse an OBJ whose ``mtllib`` (or whose material's ``map_*`` images) lie outside the OBJ's
+    folder: the loader would read whatever file they name."""
+    base = path.resolve().parent
+
+    def inside(name: str, what: str) -> Path:
+        target = (base / name).resolve()
+        if base not in target.parents:
+            raise AssetError(f"{path}: {what} {name!r} lies outside the mesh's folder {base}; keep materials and images beside the mesh")
+        return target
+
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError as err:
+        raise AssetError(f"{path}: cannot read mesh ({err.strerror})") from None
+    for line in lines:
+        if line.startswith("mtllib"):
+            for name in line.split(None, 1)[1:]:
+                mtl = inside(name.strip(), "mtllib")
+                if mtl.is_file():
+                    for m in mtl.read_text(encoding="utf-8", errors="replace").splitlines():
+                        key, _, rest = m.strip().partition(" ")
+                        if key.lower().startswith("map_") and rest.strip():
+                            inside(rest.split()[-1], f"{mtl.name}: {key}")
+
+
 def load_mesh_file(path: str | os.PathLike, recenter: bool = False) -> trimesh.Trimesh:
     """Load a mesh file (OBJ / GLB / GLTF / PLY / STL / OFF via trimesh) and validate it.
 
@@ -637,6 +663,8 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False) -> trimesh.T
     label = str(path)
     if not path.is_file():
         raise AssetError(f"{label}: mesh file not found")
+    if path.suffix.lower() == ".obj":
+        _check_obj_references(path)
     try:
         loaded = trimesh.load(str(path), process=False)
     except ImportError:

@@ -268,7 +268,12 @@ def scene_from_dict(data: dict, source: str = "<dict>") -> SceneSpec:
 
 
 def _resolve_paths(spec: SceneSpec, source: str) -> SceneSpec:
-    """Make relative mesh/texture paths relative to the YAML file that named them."""
+    """Make relative mesh/texture paths relative to the YAML file that named them.
+
+    A texture image named in a scene file must lie inside the scene file's folder (relative, or
+    absolute but inside it): a scene is data that may come from elsewhere, and its texture field
+    would otherwise read any local image.
+    """
     if source.startswith("<"):
         return spec
     base = Path(source).resolve().parent
@@ -280,8 +285,18 @@ def _resolve_paths(spec: SceneSpec, source: str) -> SceneSpec:
             return str(base / p)
         return p
 
-    objects = [{**o.model_dump(), "mesh": fix(o.mesh), "texture": fix(o.texture)} for o in spec.objects]
-    table = {**spec.table.model_dump(), "texture": fix(spec.table.texture)}
+    def texture(p, field: str):
+        if not isinstance(p, str) or p == "default":
+            return p
+        target = (base / p).resolve()
+        if base not in target.parents:
+            raise SpecError(f"{source}: {field}: texture {p!r} lies outside the scene file's folder {base}; "
+                            "put the image next to the scene (or below it) and name it relatively")
+        return str(target)
+
+    objects = [{**o.model_dump(), "mesh": fix(o.mesh), "texture": texture(o.texture, f"objects.{i}.texture")}
+               for i, o in enumerate(spec.objects)]
+    table = {**spec.table.model_dump(), "texture": texture(spec.table.texture, "table.texture")}
     return merged(spec, {"objects": objects, "table": table}, what="scene spec", source=source, error=SpecError)
 
 

@@ -60,3 +60,40 @@ def test_read_yaml_names_the_kind_of_file(tmp_path):
         read_yaml(p, "widget config")
     p.write_text("a: 1\n")
     assert read_yaml(p, "widget config") == {"a": 1}
+
+
+def test_a_scene_texture_outside_the_scene_folder_is_refused(tmp_path):
+    import yaml
+
+    from sim.spec import SpecError, default_scene, load_scene
+
+    outside = tmp_path / "secret.png"
+    outside.write_bytes(b"\x89PNG")
+    d = tmp_path / "scene"
+    d.mkdir()
+    doc = default_scene().model_dump(mode="json")
+    for bad in ("../secret.png", str(outside)):
+        doc["table"]["texture"] = bad
+        (d / "scene.yaml").write_text(yaml.safe_dump(doc))
+        with pytest.raises(SpecError, match=r"table.texture: texture .* lies outside the scene file's folder"):
+            load_scene(d / "scene.yaml")
+    (d / "wood.png").write_bytes(b"\x89PNG")
+    doc["table"]["texture"] = "wood.png"
+    (d / "scene.yaml").write_text(yaml.safe_dump(doc))
+    assert load_scene(d / "scene.yaml").table.texture == str((d / "wood.png").resolve())
+
+
+def test_an_obj_whose_mtllib_or_texture_leaves_its_folder_is_refused(tmp_path):
+    from sim.assets import AssetError, load_mesh_file
+
+    (tmp_path / "evil.mtl").write_text("newmtl m\nmap_Kd tex.png\n")
+    d = tmp_path / "mesh"
+    d.mkdir()
+    body = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+    (d / "a.obj").write_text("mtllib ../evil.mtl\n" + body)
+    with pytest.raises(AssetError, match="mtllib '../evil.mtl' lies outside the mesh's folder"):
+        load_mesh_file(d / "a.obj")
+    (d / "ok.mtl").write_text("newmtl m\nmap_Kd /etc/hostname\n")
+    (d / "b.obj").write_text("mtllib ok.mtl\n" + body)
+    with pytest.raises(AssetError, match="map_Kd '/etc/hostname' lies outside"):
+        load_mesh_file(d / "b.obj")
