@@ -104,11 +104,19 @@ class _State:
         import torch
         from safetensors.torch import load_file
 
-        progress = json.loads((self.dir / "progress.json").read_text())
-        policy.load_state_dict(load_file(str(self.dir / "model.safetensors")))
-        optimizer.load_state_dict(torch.load(self.dir / "optim.pt", weights_only=True))
-        with np.load(self.dir / "data.npz", allow_pickle=False) as d:
-            images, actions = d["images"], d["actions"]
+        from sim.policies.interface import PolicyError
+
+        try:
+            progress = json.loads((self.dir / "progress.json").read_text())
+            policy.load_state_dict(load_file(str(self.dir / "model.safetensors")))
+            # weights_only: a pickle that builds any object is refused, never executed.
+            optimizer.load_state_dict(torch.load(self.dir / "optim.pt", weights_only=True))
+            with np.load(self.dir / "data.npz", allow_pickle=False) as d:
+                images, actions = d["images"], d["actions"]
+        except Exception as err:  # any damaged or foreign file: refuse to resume, in one line
+            msg = " ".join(str(err).split())[:300]
+            raise PolicyError(f"{self.dir}: cannot resume training from this state ({type(err).__name__}: {msg}); "
+                              "move the directory away to start over") from None
         return images, actions, progress
 
 

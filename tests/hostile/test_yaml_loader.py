@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from calibration.errors import CalibrationFileError
@@ -97,3 +98,28 @@ def test_an_obj_whose_mtllib_or_texture_leaves_its_folder_is_refused(tmp_path):
     (d / "b.obj").write_text("mtllib ok.mtl\n" + body)
     with pytest.raises(AssetError, match="map_Kd '/etc/hostname' lies outside"):
         load_mesh_file(d / "b.obj")
+
+
+def test_a_training_state_holding_a_pickle_is_refused_in_one_line_and_never_run(tmp_path):
+    import pickle
+
+    import torch
+
+    from sim.policies.dagger import _State
+    from sim.policies.interface import PolicyError
+    from sim.policies.policy import VisuomotorPolicy
+
+    policy = VisuomotorPolicy(arch="small_cnn", image_size=32)
+    opt = torch.optim.Adam(policy.parameters())
+    state = _State(tmp_path)
+    state.save(policy, opt, np.zeros((1, 32, 32, 3), np.uint8), np.zeros((1, 6), np.float32), {"iteration": 1})
+    marker = tmp_path / "ran"
+
+    class Evil:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    (state.dir / "optim.pt").write_bytes(pickle.dumps(Evil()))
+    with pytest.raises(PolicyError, match="cannot resume training from this state") as exc:
+        state.load(policy, opt)
+    assert "\n" not in str(exc.value) and not marker.exists()
