@@ -36,6 +36,8 @@ def _finite(v: tuple[float, ...]) -> tuple[float, ...]:
 
 
 Vec3 = Annotated[tuple[float, float, float], Field(description="3-vector")]
+MAX_TRANSLATION_M = 1000.0
+MAX_ROTVEC_RAD = 100.0
 
 
 class PoseModel(Strict):
@@ -45,6 +47,23 @@ class PoseModel(Strict):
     rotvec_rad: Vec3 = (0.0, 0.0, 0.0)
 
     _check = field_validator("translation_m", "rotvec_rad")(_finite)
+
+    @field_validator("translation_m")
+    @classmethod
+    def _bounded_translation(cls, v):
+        # A cell is metres across; 1 km catches unit mistakes (mm given as m) and overflowing values.
+        if max(abs(x) for x in v) > MAX_TRANSLATION_M:
+            raise ValueError(f"each component must lie within +-{MAX_TRANSLATION_M:g} m")
+        return v
+
+    @field_validator("rotvec_rad")
+    @classmethod
+    def _bounded_rotvec(cls, v):
+        # Any rotation has an axis-angle of norm <= pi; allow wound-up values, refuse absurd ones
+        # (1e200 overflows the exponential map to NaN).
+        if math.sqrt(sum(x * x for x in v)) > MAX_ROTVEC_RAD:
+            raise ValueError(f"norm must be at most {MAX_ROTVEC_RAD:g} rad (a rotation needs at most pi)")
+        return v
 
     @property
     def T(self) -> np.ndarray:
@@ -103,9 +122,10 @@ def load_model(path, model: type[M], data: object | None = None) -> M:
     except ValidationError as err:
         errs = err.errors()
         locs = [".".join(str(p) for p in e["loc"]) or "<root>" for e in errs]
-        msg = errs[0]["msg"]
+        text = [e["msg"].removeprefix("Value error, ") for e in errs]  # a validator's own ValueError text
+        msg = text[0]
         if len(errs) > 1:
-            msg += "; also: " + "; ".join(f"{l}: {e['msg']}" for l, e in zip(locs[1:], errs[1:]))
+            msg += "; also: " + "; ".join(f"{l}: {t}" for l, t in zip(locs[1:], text[1:]))
         raise CalibrationFileError(path, locs[0], msg) from None
 
 

@@ -123,3 +123,18 @@ def test_a_training_state_holding_a_pickle_is_refused_in_one_line_and_never_run(
     with pytest.raises(PolicyError, match="cannot resume training from this state") as exc:
         state.load(policy, opt)
     assert "\n" not in str(exc.value) and not marker.exists()
+
+
+def test_a_hand_eye_rotation_vector_of_1e200_is_refused_naming_the_field(tmp_path):
+    import yaml
+
+    from calibration.handeye import load_samples_yaml
+    from calibration.io import CalibrationFileError
+
+    from pathlib import Path
+
+    doc = yaml.safe_load((Path(__file__).resolve().parents[2] / "examples" / "calibration" / "handeye_samples.yaml").read_text())
+    doc["samples"][0]["T_base_tcp"]["rotvec_rad"] = [1e200, 0.0, 0.0]
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(CalibrationFileError, match=r"samples.0.T_base_tcp.rotvec_rad: norm must be at most 100 rad"):
+        load_samples_yaml(tmp_path / "s.yaml")
