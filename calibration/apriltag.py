@@ -26,6 +26,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from calibration.errors import CalibrationError
 from calibration.intrinsics import CameraIntrinsics, to_gray
 from calibration.io import Strict
 from sim.geometry import invert_T, make_T, rotation_angle, so3_exp, so3_log, transform_points
@@ -302,7 +303,10 @@ def detect_tags(image, camera: CameraIntrinsics, tag_size_m: float | Mapping[int
     gray = to_gray(image)
     if gray.shape != (camera.height, camera.width):
         # Intrinsics belong to one resolution; poses from another would be silently wrong.
-        raise ValueError(f"image: size {gray.shape[1]}x{gray.shape[0]} does not match the camera's {camera.width}x{camera.height}")
+        aspect = "" if gray.shape[1] * camera.height != gray.shape[0] * camera.width else (
+            " (same aspect ratio: resize the photo to the camera's size, or calibrate the camera at this size)")
+        raise CalibrationError(f"image: size {gray.shape[1]}x{gray.shape[0]} does not match the camera file's "
+                               f"{camera.width}x{camera.height}; intrinsics hold for one resolution{aspect}")
     if callable(tag_size_m):
         size_of = tag_size_m
     elif isinstance(tag_size_m, Mapping):

@@ -123,7 +123,12 @@ def detect(
         s = reg.tag_size(i) if reg else None
         return s if s is not None else default
 
-    dets = detect_tags(_read_image(image), cam, size_of)
+    from calibration.errors import CalibrationError
+
+    try:
+        dets = detect_tags(_read_image(image), cam, size_of)
+    except CalibrationError as err:
+        raise CalibrationError(f"{image}: {err}") from None  # name the photo: the detector does not know it
     objects, missing = {}, []
     if reg is not None:
         obs = locate_objects(dets, reg, cam)

@@ -138,3 +138,21 @@ def test_a_hand_eye_rotation_vector_of_1e200_is_refused_naming_the_field(tmp_pat
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(doc))
     with pytest.raises(CalibrationFileError, match=r"samples.0.T_base_tcp.rotvec_rad: norm must be at most 100 rad"):
         load_samples_yaml(tmp_path / "s.yaml")
+
+
+def test_a_photo_of_another_size_than_the_camera_file_is_one_line_naming_it(tmp_path, monkeypatch, capsys):
+    from pathlib import Path
+
+    import imageio.v3 as iio
+
+    from trials.cli import main
+
+    root = Path(__file__).resolve().parents[2] / "examples" / "calibration"
+    iio.imwrite(tmp_path / "small.png", np.zeros((240, 320, 3), np.uint8))
+    monkeypatch.setattr("sys.argv", ["advobj", "calibrate", "detect", str(tmp_path / "small.png"), "--camera", str(root / "cam.yaml"),
+                                     "--registry", str(root / "objects.yaml")])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    err = [l for l in capsys.readouterr().err.splitlines() if l.strip()]
+    assert exc.value.code == 2 and len(err) == 1 and "small.png" in err[0] and "320x240 does not match the camera file's 640x480" in err[0]
+    assert "same aspect ratio" in err[0]
