@@ -199,6 +199,18 @@ def findings(results: Path) -> dict:
     out["_table2_40"] = {k: arm(t240, f"table2_{k}") for k in ("c2f", "ns", "f2c", "c2f_untargeted", "c2f_no_saliency", "c2f_no_pose",
                                                               "coarse", "fine", "random_texture", "gray_texture")}
 
+    lt = load_rows(results, "lighting")
+    out["_lighting"] = None
+    if lt:
+        import json
+
+        attacks = json.loads((results / "lighting" / "attacks.json").read_text())
+        out["_lighting"] = {
+            "cost": {k: attacks[k]["seconds"] / max(1, attacks[k]["iterations"]) for k in ("c2f", "c2f_light") if k in attacks},
+            "by_condition": {c: paired(arm(lt, "lighting_c2f_light", c), arm(lt, "lighting_c2f", c))
+                             for c in ("attack", "light_bright", "light_dim", "light_random")},
+        }
+
     tr = load_rows(results, "transfer")
     src = arm(tr, "transfer_source")
     parts, texts = [], []
@@ -310,6 +322,17 @@ def render_details(f: dict) -> str:
             if a and b:
                 pr = paired(a, b)
                 lines.append(f"- {title}: {_pair_text(*title.split(' vs '), pr)}, p = {_p(pr.p)}: **{verdict(pr, claim)}**")
+        lines.append("")
+    lt = f.get("_lighting")
+    if lt:
+        c = lt["cost"]
+        lines += ["## Lighting randomisation in the attack (results/lighting/)", "",
+                  f"Attack cost: {c.get('c2f_light', float('nan')):.3f} s / iteration with lighting randomisation vs "
+                  f"{c.get('c2f', float('nan')):.3f} s without (one run each, wall time). T-ASR of the two textures on the same held-out "
+                  "configurations, per evaluation light (claim: randomised > fixed):", "",
+                  "| evaluation light | n | randomised % | fixed % | only randomised / only fixed | p | verdict |", "|---|---|---|---|---|---|---|"]
+        for cond, pr in lt["by_condition"].items():
+            lines.append(f"| {cond} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p)} | {verdict(pr)} |")
         lines.append("")
     lines += ["## F2 parts", ""]
     for name, pr, v in f["F2"]["parts"]:
