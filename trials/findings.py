@@ -226,9 +226,12 @@ def findings(results: Path) -> dict:
         v = "holds" if lo > 0.5 else ("does not hold" if hi < 0.5 else "inconclusive")
         parts.append((target, {"k": k_t, "n": n_t, "ratio": ratio, "lo": lo, "hi": hi, "vs_clean": vs_clean}, v))
         texts.append(f"{target} {_pct(k_t / n_t)}% (n = {n_t}) = {ratio:.2f} x white-box [{lo:.2f}, {hi:.2f}]")
-    out["F5"] = {"claim": "black-box transfer keeps more than half of the white-box T-ASR (ResNet-34, VGG-16, Inception-v3)",
-                 "paper": "T-ASR 79.1% white-box; 71.2% / 59.7% / 56.7% black-box (Table V)",
-                 "parts": parts, "verdict": _combine([v for _, _, v in parts]) if n_s else "not measured", "data": "results/transfer/",
+    measured = [(t, v) for t, d, v in parts if d is not None]
+    missing = [t for t, d, _ in parts if d is None]
+    out["F5"] = {"claim": "black-box transfer keeps more than half of the white-box T-ASR"
+                          + (f" ({', '.join(t for t, _ in measured)}; not measured: {', '.join(missing)})" if measured and missing else ""),
+                 "paper": "T-ASR 79.1% white-box; 71.2% / 59.7% / 56.7% black-box (ResNet-34 / VGG-16 / Inception-v3, Table V)",
+                 "parts": parts, "verdict": _combine([v for _, v in measured]) if measured else "not measured", "data": "results/transfer/",
                  "ours": (f"white-box {_pct(k_s / n_s)}% (n = {n_s}); " + "; ".join(texts)) if n_s else "not run"}
     return out
 

@@ -18,6 +18,7 @@ import hashlib
 import inspect
 import json
 import os
+import re
 import signal
 import sys
 import typing
@@ -150,6 +151,14 @@ def _argv(path, cmd, target: str, kind: str, work: Path) -> list[str]:
     return argv
 
 
+def _names_an_input(line: str, target: str, argv: list[str]) -> bool:
+    """Does the error line name the hostile parameter (flag or field) or one of the files given?"""
+    names = {target, target.replace("_", "-"), f"--{target.replace('_', '-')}"}
+    names |= {Path(a).name for a in argv if "/" in a} | {a for a in argv if a.startswith("--")}
+    # or another flag the command needs first (eval refuses a missing --attack before it reads --policy)
+    return any(n and n in line for n in names) or re.search(r"(^|\s)--[a-z][a-z-]+", line) is not None
+
+
 class _Timeout(BaseException):
     pass
 
@@ -223,6 +232,8 @@ def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
             problems.append(f"{len(lines)} stderr lines")
         if any("Traceback" in line for line in lines):
             problems.append("traceback on stderr")
+        if not crash and len(lines) == 1 and not _names_an_input(lines[0], target, argv):
+            problems.append("the line names no flag, field or file")
         if touched:
             problems.append(f"touched outside: {touched[:3]}")
         key = (" ".join(path), target, kind)
@@ -238,6 +249,7 @@ def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
         "timeouts": sum(any("still running" in p for p in r["problems"]) for r in results),
         "not_one_line_exit_2": sum(bool(r["problems"]) for r in results),
         "files_touched_outside": sum(len(r["touched"]) for r in results),
+        "lines_naming_nothing": sum(any(p.startswith("the line names no") for p in r["problems"]) for r in results),
         "known_open_not_run": len(KNOWN),
     }
     (work / "campaign.json").write_text(json.dumps({"figures": figures, "results": results}, indent=1))
