@@ -184,7 +184,9 @@ def findings(results: Path) -> dict:
                  "extra": [(f"C2F vs {k}-only", pr) for k, pr in extra.items() if pr.n]}
     unt = arm(t2, "table2_c2f_untargeted")
     p3 = paired(c2f, unt)
-    out["F3"] = {"claim": "targeted >> untargeted in T-ASR", "paper": "T-ASR 80.4% vs 0.04% (Table II, rows f and c)",
+    diverted = [r for r in unt.values() if not r["success"]]
+    out["_untargeted"] = {"n": len(unt), "diverted": len(diverted), "to_adv": sum(r["targeted"] for r in diverted)}
+    out["F3"] = {"claim": "targeted > untargeted in T-ASR (the paper: far greater)", "paper": "T-ASR 80.4% vs 0.04% (Table II, rows f and c)",
                  "test": p3, "verdict": verdict(p3), "data": "results/table2/", "ours": _pair_text("targeted", "untargeted", p3)}
     nosal = arm(t2, "table2_c2f_no_saliency")
     p4 = paired(c2f, nosal)
@@ -337,6 +339,13 @@ def render_details(f: dict) -> str:
         for cond, pr in lt["by_condition"].items():
             lines.append(f"| {cond} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p)} | {verdict(pr)} |")
         lines.append("")
+    u = f.get("_untargeted") or {}
+    if u.get("n"):
+        lines += ["## Why the untargeted attack scores a high T-ASR here", "",
+                  f"The untargeted attack diverts {u['diverted']} of {u['n']} episodes from the goal, and {u['to_adv']} of those "
+                  f"({100 * u['to_adv'] / max(1, u['diverted']):.0f}%) end at the adversarial object: the built-in scene has only "
+                  "two objects, so a policy pushed off the goal mostly reaches the other one. The paper's near-zero untargeted "
+                  "T-ASR needs a scene where leaving the goal does not mean reaching the adversarial object.", ""]
     lines += ["## F2 parts", ""]
     for name, pr, v in f["F2"]["parts"]:
         lines.append(f"- {name}: {_pair_text(*name.replace('>=', '>').split(' > '), pr)}, p = {_p(pr.p)}: **{v}**" if pr.n else f"- {name}: not run")
