@@ -12,6 +12,7 @@ crash and continues where it stopped.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -138,6 +139,11 @@ class Context:
 
         return load_spec(self.scene)
 
+    def eval_spec(self):
+        """The scene with the recipe's episode length: what its evaluations (and pools) are made for."""
+        spec = self.spec()
+        return spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": self.cfg.max_steps})
+
 
 def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None, preset: str | None = None) -> Path:
     """A policy checkpoint: the one given, a cached one under ``out/policies``, or a trained one."""
@@ -200,11 +206,11 @@ def ensure_pool(ctx: Context, policy_dir: Path) -> str:
     key = str(policy_dir)
     if key not in ctx.pools:
         ecfg = load_eval_config(policy=key, episodes=c.episodes, max_steps=c.max_steps, num_envs=c.num_envs, seed=c.seed, scene=ctx.scene)
-        spec = ctx.spec()
-        spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": c.max_steps})
-        d = ctx.out / "pools" / Path(policy_dir).name
+        # Keyed by the resolved path too: two policies in folders of the same name must not share a pool.
+        digest = hashlib.sha256(str(Path(policy_dir).resolve()).encode()).hexdigest()[:8]
+        d = ctx.out / "pools" / f"{Path(policy_dir).name}-{digest}"
         d.mkdir(parents=True, exist_ok=True)
-        _, path = resolve_pool(ecfg, load_policy(key), spec, d, ctx.progress)
+        _, path = resolve_pool(ecfg, load_policy(key), ctx.eval_spec(), d, ctx.progress)
         ctx.pools[key] = path
     return ctx.pools[key]
 
@@ -418,9 +424,9 @@ def _check_inputs(ctx: Context) -> None:
     from sim.configs import load_pool
     from sim.policies.checkpoint import load_card, load_policy
 
-    spec = ctx.spec()
+    spec = ctx.eval_spec()  # also loads the scene: a bad --scene fails here
     if ctx.cfg.pool is not None:
-        load_pool(ctx.cfg.pool, spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": ctx.cfg.max_steps}))
+        load_pool(ctx.cfg.pool, spec)
     for flag, path in [("--policy", ctx.policy)] + [(f"--target {k}", v) for k, v in ctx.targets.items()]:
         if path is None:
             continue
