@@ -21,7 +21,7 @@ __all__ = ["run_demo", "DEMO_BUDGET"]
 DEMO_BUDGET = dict(attack_overrides={"iterations": 60}, episodes=40, max_steps=60, num_envs=8, gifs=2)
 
 
-def run_demo(out: Path, seed: int = 0, log=print) -> dict:
+def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
     """Run the demo into ``out``; returns the evaluation summary plus the expert's outcome."""
     import imageio.v3 as iio
 
@@ -47,14 +47,15 @@ def run_demo(out: Path, seed: int = 0, log=print) -> dict:
     iio.imwrite(out / "scene.png", frames[0])
     reached = int(info["reached"][0])
 
-    ctx = Context(cfg, out, log=log)
-    log("[2/4] reference policy")
+    ctx = Context(cfg, out, log=log, executor=executor)
+    log("[2/4] jobs: the reference policy, the 3D object and 2D patch attacks, the evaluation")
     policy = ensure_policy(ctx, "reference")
-    log("[3/4] attacks: 3D object and 2D patch")
     att = ensure_attack(ctx, policy, "c2f", {"schedule": "c2f"})
     pat = ensure_attack(ctx, policy, "patch", {"schedule": "c2f", "adversarial_mesh": "patch"})
-    log("[4/4] evaluation: clean vs 3D object vs 2D patch")
     summary = ensure_eval(ctx, policy, "demo", ["attack", "patch"], attack=att, patch=pat)
+    log(f"[3/4] running {len(ctx.grid.jobs)} jobs (finished ones are reused; logs in {out / 'logs'})")
+    ctx.run_jobs()
+    log("[4/4] report: clean vs 3D object vs 2D patch")
     eval_dir = out / "evals" / "demo"
     body = (eval_dir / "report.md").read_text()
     body = re.sub(r"\]\((?!http)([^)]+)\)", lambda m: f"]({eval_dir.relative_to(out).as_posix()}/{m.group(1)})", body)

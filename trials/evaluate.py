@@ -15,6 +15,7 @@ resumes without redoing anything (:mod:`trials.storage`).
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Callable
 
@@ -24,7 +25,7 @@ from pydantic import Field, ValidationError
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 
-__all__ = ["EvalError", "EvalWarning", "EvalConfig", "rollout_condition", "build_feasible", "resolve_pool", "overlap_with_training", "run_eval", "load_eval_config"]
+__all__ = ["EvalError", "EvalWarning", "EvalConfig", "rollout_condition", "build_feasible", "resolve_pool", "overlap_with_training", "run_eval", "merge_eval", "load_eval_config"]
 
 
 class EvalError(AdvobjError, ValueError):
@@ -153,8 +154,15 @@ def rollout_condition(policy, spec, cond, configs, num_envs: int, on_done: Calla
             if active:
                 views = [obs.views(i) for i in active]
                 V = views[0]["adv"].shape[0]
-                batch = [v["adv"] for v in views] + ([v["clean"] for v in views] if obs.attacked else [])
-                a = np.asarray(policy.act(np.concatenate(batch)), dtype=np.float64).reshape(len(batch), V, 6).mean(1)
+                batch = np.concatenate([v["adv"] for v in views] + ([v["clean"] for v in views] if obs.attacked else []))
+                # A fixed batch size: conv kernels pick their blocking by batch size, so an
+                # image's action would otherwise depend (in the last bits) on which other episodes
+                # share its step, and an episode's row on how the evaluation was sharded.
+                B = len(batch)
+                fixed = int(num_envs) * V * (2 if obs.attacked else 1)
+                if B < fixed:
+                    batch = np.concatenate([batch, np.zeros((fixed - B, *batch.shape[1:]), batch.dtype)])
+                a = np.asarray(policy.act(batch), dtype=np.float64)[:B].reshape(B // V, V, 6).mean(1)
                 a_adv = a[: len(active)]
                 a_clean = a[len(active):] if obs.attacked else a_adv
                 e_t, e_r = action_errors(a_adv, a_clean, spec_c.episode.max_step_rad)
@@ -226,7 +234,7 @@ def build_feasible(policy, spec, part: str, n: int, start_seed: int = 0, num_env
     return feasible, tried
 
 
-def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True) -> tuple[list, str]:
+def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True, final: bool = False) -> tuple[list, str]:
     """The task-feasible configurations of the split's "evaluation" part, and where they came from.
 
     Only evaluation-part configurations are ever used (:func:`sim.configs.config_part`): attacks
@@ -236,7 +244,8 @@ def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True
     length; its evaluation-part configurations are used as they are. When they are fewer than
     ``cfg.episodes``, more are built here (:func:`build_feasible`, candidate seeds of the
     evaluation part from ``cfg.seed`` on) and the result is saved as ``out/feasible_pool.json``,
-    which a resumed evaluation reuses.
+    which a resumed evaluation reuses. ``final``: ``cfg.pool`` is the pool to use as it is, even
+    short (a grid's pool job already built it; its shards must not build more each).
     """
     from sim.configs import PoolError, in_part, load_pool, save_pool
     from trials.attack_job import feasible_pool_path
@@ -255,7 +264,7 @@ def resolve_pool(cfg: EvalConfig, policy, spec, out: Path, progress: bool = True
             except PoolError:
                 base = []  # made for another scene or episode length: build one for this evaluation
     configs = in_part(base, "evaluation")
-    if len(configs) >= cfg.episodes:
+    if len(configs) >= cfg.episodes or (final and cfg.pool is not None):
         return configs, src
     extra, tried = build_feasible(policy, spec, "evaluation", cfg.episodes - len(configs), cfg.seed, cfg.num_envs,
                                   exclude=[c.seed for c in base], max_candidates=cfg.episodes * cfg.pool_factor, progress=progress)
@@ -305,24 +314,17 @@ def _row(cond_name: str, config, res: dict, spec) -> dict:
     return row
 
 
-def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: bool = True, report: bool = True) -> dict:
-    """Run (or resume) an evaluation into ``out``; returns the summary (also ``summary.json``)."""
-    from tqdm import tqdm
-
-    from sim.imaging import labelled
-    from sim.policies.checkpoint import load_policy
-    from sim.runinfo import write_run_info
+def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: bool):
+    """The conditions, scene, configurations, pool source, overlap and resolved config of an
+    evaluation (refusing an in-sample one): what every shard and the merge share."""
     from trials.conditions import Sources, build_conditions
     from trials.scene_tools import load_spec
-    from trials.storage import EpisodeStore
 
-    out = Path(out)
     conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes)))
     base = load_spec(cfg.scene)
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
-    policy = load_policy(cfg.policy, cfg.device)
     out.mkdir(parents=True, exist_ok=True)
-    configs, pool_src = resolve_pool(cfg, policy, spec, out, progress)
+    configs, pool_src = resolve_pool(cfg, policy, spec, out, progress, final=final_pool)
     configs = configs[: cfg.episodes]
     overlap = overlap_with_training(configs, conds)
     leaked = {k: v for k, v in overlap.items() if v}
@@ -335,7 +337,7 @@ def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: b
         import warnings
 
         warnings.warn(f"condition(s) {', '.join(unknown)}: the texture directory records no training configurations (configs.json), "
-                      "so its overlap with the evaluation cannot be checked", EvalWarning, stacklevel=2)
+                      "so its overlap with the evaluation cannot be checked", EvalWarning, stacklevel=3)
     resolved = {
         "job": "eval",
         "eval": cfg.model_dump(mode="json"),
@@ -345,9 +347,51 @@ def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: b
         "overlap": overlap,
         "scene": spec.model_dump(mode="json"),
     }
+    return conds, spec, configs, pool_src, overlap, resolved
+
+
+def _finish(cfg: EvalConfig, out: Path, rows: list, spec, conds, configs, pool_src, overlap, report: bool) -> dict:
+    from trials.report import summarize, write_report
+
+    summary = summarize(rows, spec, [c.name for c in conds], meta={"pool": pool_src, "episodes_requested": cfg.episodes,
+                                                                    "episodes_available": len(configs), "policy": cfg.policy,
+                                                                    "max_steps": cfg.max_steps, "overlap": overlap})
+    tmp = out / "summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=2, default=_json_default))
+    tmp.replace(out / "summary.json")
+    if report:
+        write_report(out, summary, conds)
+    return summary
+
+
+def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: bool = True, report: bool = True,
+             shard: tuple[int, int] | None = None, final_pool: bool = False) -> dict:
+    """Run (or resume) an evaluation into ``out``; returns the summary (also ``summary.json``).
+
+    ``shard=(k, K)`` runs only configurations ``k, k + K, ...`` of the evaluation (a job of a
+    sharded evaluation, merged by :func:`merge_eval`). Sharding changes no configuration, noise
+    draw or seed: each episode depends on its configuration alone (the policy acts on fixed-size
+    batches, :func:`rollout_condition`), so its row is the same in any shard.
+    """
+    from tqdm import tqdm
+
+    from sim.imaging import labelled
+    from sim.policies.checkpoint import load_policy
+    from sim.runinfo import write_run_info
+    from trials.storage import EpisodeStore
+
+    out = Path(out)
+    policy = load_policy(cfg.policy, cfg.device)
+    conds, spec, configs, pool_src, overlap, resolved = _prepare(cfg, out, policy, progress, final_pool)
+    gif_seeds = {int(c.seed) for c in configs[: cfg.gifs]}
+    if shard is not None:
+        k, n = (int(x) for x in shard)
+        if not 0 <= k < n:
+            raise EvalError(f"shard: index {k} not in 0..{n - 1}")
+        configs = configs[k::n]
+        resolved = {**resolved, "shard": [k, n], "seeds": [int(c.seed) for c in configs]}
     store = EpisodeStore(out, resolved, [o.name for o in spec.objects], resume=resume)
     write_run_info(out, resolved, cfg.seed)
-    gif_seeds = {int(c.seed) for c in configs[: cfg.gifs]}
     todo = {c.name: [x for x in configs if not store.is_done(c.name, x.seed)] for c in conds}
     bar = tqdm(total=sum(len(v) for v in todo.values()), desc="eval", disable=not progress, dynamic_ncols=True)
     for cond in conds:
@@ -367,17 +411,35 @@ def run_eval(cfg: EvalConfig, out: str | Path, resume: bool = False, progress: b
             store.append([_row(cond.name, cfgs[j], res, spec)])
             bar.update(1)
 
-        rollout_condition(policy, spec, cond, cfgs, cfg.num_envs, on_done, on_frame if gif_seeds else None)
+        rollout_condition(policy, spec, cond, cfgs, cfg.num_envs, on_done, on_frame if gif_seeds & {c.seed for c in cfgs} else None)
     bar.close()
-    from trials.report import summarize, write_report
+    return _finish(cfg, out, store.rows, spec, conds, configs, pool_src, overlap, report and shard is None)
 
-    summary = summarize(store.rows, spec, [c.name for c in conds], meta={"pool": pool_src, "episodes_requested": cfg.episodes,
-                                                                          "episodes_available": len(configs), "policy": cfg.policy,
-                                                                          "max_steps": cfg.max_steps, "overlap": overlap})
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
-    if report:
-        write_report(out, summary, conds)
-    return summary
+
+def merge_eval(cfg: EvalConfig, out: str | Path, shard_dirs) -> dict:
+    """Merge the shards of one evaluation (:func:`run_eval` with ``shard``) into ``out``: the
+    episodes, GIFs, manifest, summary and report the evaluation run whole writes there."""
+    from sim.runinfo import write_run_info
+    from trials.storage import EpisodeStore, read_rows
+
+    out = Path(out)
+    conds, spec, configs, pool_src, overlap, resolved = _prepare(cfg, out, None, False, True)
+    store = EpisodeStore(out, resolved, [o.name for o in spec.objects], resume=True)
+    write_run_info(out, resolved, cfg.seed)
+    want = {(c.name, int(x.seed)) for c in conds for x in configs}
+    rows = []
+    for d in shard_dirs:
+        d = Path(d)
+        rows += [r for r in read_rows(d / "episodes.csv") if not store.is_done(r["condition"], r["seed"])]
+        for gif in sorted((d / "gifs").glob("*.gif")) if (d / "gifs").is_dir() else []:
+            (out / "gifs").mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(gif, out / "gifs" / gif.name)
+    got = {(r["condition"], r["seed"]) for r in store.rows} | {(r["condition"], r["seed"]) for r in rows}
+    if got != want:
+        raise EvalError(f"{out}: the shards hold {len(got)} of the {len(want)} episodes (missing e.g. {sorted(want - got)[:1]})")
+    order = {(c.name, int(x.seed)): i for i, (c, x) in enumerate((c, x) for c in conds for x in configs)}
+    store.append(sorted(rows, key=lambda r: order[(r["condition"], r["seed"])]))
+    return _finish(cfg, out, store.rows, spec, conds, configs, pool_src, overlap, True)
 
 
 def _json_default(o):

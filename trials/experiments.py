@@ -46,6 +46,7 @@ class ExperimentConfig(StrictModel):
     pool: str | None = Field(None, description="task-feasible pool for every evaluation (default: each policy's)")
     transfer_targets: tuple[Literal["resnet34", "vgg16", "inception_v3"], ...] = Field(
         ("resnet34", "vgg16", "inception_v3"), description="black-box target architectures of the transfer recipe")
+    device: str = Field("cpu", description="torch device of every job (cuda jobs ask the executor for a GPU)")
     seed: int = 0
 
 
@@ -125,6 +126,13 @@ TRANSFER_TARGETS = ("resnet34", "vgg16", "inception_v3")
 # ----------------------------------------------------------------------------- orchestration
 @dataclass
 class Context:
+    """A recipe run: its config, output folder, inputs and the grid of jobs it declares.
+
+    The ``ensure_*`` functions declare jobs (:mod:`trials.jobs`) and return where their outputs
+    will be; reading an evaluation's summary runs every job declared so far (``run_jobs``), so a
+    recipe declares all its work first and the executor runs it serially or on Ray.
+    """
+
     cfg: ExperimentConfig
     out: Path
     policy: Path | None = None
@@ -133,6 +141,15 @@ class Context:
     progress: bool = True
     log: Callable[[str], None] = print
     pools: dict = field(default_factory=dict)  # policy dir -> its evaluation pool file (ensure_pool)
+    executor: object = None
+    shards: int = 1
+    grid: object = None
+
+    def __post_init__(self):
+        from trials.jobs import Grid, SerialExecutor
+
+        self.grid = self.grid or Grid(self.out)
+        self.executor = self.executor or SerialExecutor(self.log, tee=self.progress)
 
     def spec(self):
         from trials.scene_tools import load_spec
@@ -144,88 +161,187 @@ class Context:
         spec = self.spec()
         return spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": self.cfg.max_steps})
 
+    def resources(self) -> dict:
+        """What one job asks the executor for: a CPU (torch threads follow it), a GPU on CUDA."""
+        return {"num_cpus": 1.0, "num_gpus": 1.0 if str(self.cfg.device).startswith("cuda") else 0.0}
+
+    def run_jobs(self) -> None:
+        self.executor.run(self.grid)
+
+
+class EvalResult(dict):
+    """An evaluation's summary, read from ``summary.json`` once the grid has run."""
+
+    def __init__(self, ctx: Context, path: Path):
+        super().__init__()
+        self._ctx, self._path = ctx, path
+
+    def _load(self):
+        if not dict.__len__(self):
+            self._ctx.run_jobs()
+            self.update(json.loads((self._path / "summary.json").read_text()))
+
+    def __getitem__(self, k):
+        self._load()
+        return super().__getitem__(k)
+
+    def get(self, k, default=None):
+        self._load()
+        return super().get(k, default)
+
+
+def _scene_input(ctx: Context) -> dict:
+    return {} if ctx.scene is None else {"scene": ctx.scene}
+
 
 def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None, preset: str | None = None) -> Path:
-    """A policy checkpoint: the one given, a cached one under ``out/policies``, or a trained one."""
+    """A policy checkpoint: the one given, else a ``train-policy`` job into ``out/policies/<name>``."""
     if name == "reference" and ctx.policy is not None:
         return ctx.policy
     if name in ctx.targets:
         return Path(ctx.targets[name])
     d = ctx.out / "policies" / name
-    if (d / "policy.json").is_file():
-        ctx.log(f"policy {name}: reusing {d}")
-        return d
-    from sim.policies.presets import resolve_preset
-    from sim.policies.train import train_policy
-
     preset = preset or ctx.cfg.policy_preset
-    ctx.log(f"policy {name}: training ({preset} preset{', ' + arch if arch else ''}) into {d}")
+    from sim.policies.presets import resolve_preset
+
     try:
-        tcfg = resolve_preset(preset, arch=arch, seed=ctx.cfg.seed)
+        resolve_preset(preset, arch=arch, seed=ctx.cfg.seed)
     except ValueError as err:
         raise ExperimentError(str(err)) from None
-    train_policy(tcfg, d, ctx.spec(), progress=ctx.progress, log=ctx.log)
+    ctx.grid.add(f"policy-{name}", "train-policy", "trials.experiments:job_train_policy", d,
+                 {"preset": preset, "arch": arch, "seed": ctx.cfg.seed, "device": ctx.cfg.device}, _scene_input(ctx), **ctx.resources())
     return d
 
 
+def job_train_policy(out: Path, inputs: dict, preset: str, arch: str | None, seed: int, device: str = "cpu") -> None:
+    """The ``train-policy`` job: train (or resume, or reuse a finished) policy into ``out``."""
+    from sim.policies.presets import resolve_preset
+    from sim.policies.train import train_policy
+    from trials.scene_tools import load_spec
+
+    if (out / "policy.json").is_file():
+        print(f"policy: reusing {out}")
+        return
+    from trials.jobs import show_progress
+
+    train_policy(resolve_preset(preset, arch=arch, seed=seed), out, load_spec(inputs.get("scene")), device=device, progress=show_progress())
+
+
 def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict) -> Path:
-    """An attack run directory: reused when finished with the same config, resumed if interrupted."""
+    """An ``attack`` job into ``out/attacks/<name>``: reused when finished with the same config,
+    resumed if interrupted."""
+    from attack.optimize import resolve_config
+
+    fields = {**ctx.cfg.attack_overrides, **overrides}
+    if str(ctx.cfg.device) != "cpu":
+        fields.setdefault("device", ctx.cfg.device)
+    resolve_config(ctx.cfg.attack_preset, fields)  # a bad override fails now, not inside the grid
+    d = ctx.out / "attacks" / name
+    ctx.grid.add(f"attack-{name}", "attack", "trials.experiments:job_attack", d, {"preset": ctx.cfg.attack_preset, "fields": fields},
+                 {"policy": policy_dir, **_scene_input(ctx)}, **ctx.resources())
+    return d
+
+
+def job_attack(out: Path, inputs: dict, preset: str, fields: dict) -> None:
+    """The ``attack`` job: run, resume or reuse the attack of ``fields`` into ``out``."""
     import yaml
 
     from attack.optimize import find_checkpoint, resolve_config
     from trials.attack_job import attack_job
 
-    d = ctx.out / "attacks" / name
-    fields = {**ctx.cfg.attack_overrides, **overrides}
-    want = resolve_config(ctx.cfg.attack_preset, fields).model_dump()
-    if (d / "metrics.json").is_file() and (d / "texture.npy").is_file():
-        have = json.loads((d / "run.json").read_text())["config"]["attack"]
+    want = resolve_config(preset, fields).model_dump()
+    if (out / "metrics.json").is_file() and (out / "texture.npy").is_file():
+        have = json.loads((out / "run.json").read_text())["config"]["attack"]
         if have != json.loads(json.dumps(want)):
-            raise ExperimentError(f"{d}: holds an attack with a different config; use another --out")
-        ctx.log(f"attack {name}: reusing {d}")
-        return d
-    d.mkdir(parents=True, exist_ok=True)
-    cfg_path = d / "attack_config.yaml"
+            raise ExperimentError(f"{out}: holds an attack with a different config; use another --out")
+        print(f"attack: reusing {out}")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    cfg_path = out / "attack_config.yaml"
     cfg_path.write_text(yaml.safe_dump(fields))
-    resume = find_checkpoint(d) is not None
-    ctx.log(f"attack {name}: {'resuming' if resume else 'running'} ({ctx.cfg.attack_preset} preset) into {d}")
-    attack_job(policy_dir, ctx.cfg.attack_preset, cfg_path, ctx.scene, None, d, resume, progress=ctx.progress)
-    return d
+    resume = find_checkpoint(out) is not None
+    from trials.jobs import show_progress
+
+    attack_job(inputs["policy"], preset, cfg_path, inputs.get("scene"), None, out, resume, progress=show_progress())
+
+
+def _eval_fields(ctx: Context) -> dict:
+    c = ctx.cfg
+    return {"episodes": c.episodes, "max_steps": c.max_steps, "num_envs": c.num_envs, "seed": c.seed, "gifs": c.gifs, "device": c.device}
 
 
 def ensure_pool(ctx: Context, policy_dir: Path) -> str:
-    """The evaluation pool of a policy, built once per recipe run (``<out>/pools/<policy>/``) and
-    shared by all its evaluations, so every arm of every table is paired on the same
-    configurations and the clean rollouts that find them are not repeated per evaluation."""
-    from sim.policies.checkpoint import load_policy
-    from trials.evaluate import load_eval_config, resolve_pool
-
+    """The evaluation pool of a policy: a ``pool`` job (``<out>/pools/<policy>-<hash>/``) built once
+    per recipe run and shared by all its evaluations, so every arm of every table is paired on the
+    same configurations and the clean rollouts that find them are not repeated per evaluation."""
     c = ctx.cfg
     if c.pool is not None:
         return c.pool
     key = str(policy_dir)
     if key not in ctx.pools:
-        ecfg = load_eval_config(policy=key, episodes=c.episodes, max_steps=c.max_steps, num_envs=c.num_envs, seed=c.seed, scene=ctx.scene)
         # Keyed by the resolved path too: two policies in folders of the same name must not share a pool.
         digest = hashlib.sha256(str(Path(policy_dir).resolve()).encode()).hexdigest()[:8]
         d = ctx.out / "pools" / f"{Path(policy_dir).name}-{digest}"
-        d.mkdir(parents=True, exist_ok=True)
-        _, path = resolve_pool(ecfg, load_policy(key), ctx.eval_spec(), d, ctx.progress)
-        ctx.pools[key] = path
+        ctx.grid.add(f"pool-{d.name}", "pool", "trials.experiments:job_pool", d, {"fields": _eval_fields(ctx)},
+                     {"policy": policy_dir, **_scene_input(ctx)}, **ctx.resources())
+        ctx.pools[key] = str(d / "feasible_pool.json")
     return ctx.pools[key]
 
 
-def ensure_eval(ctx: Context, policy_dir: Path, name: str, conditions, attack=None, patch=None, shapes=None) -> dict:
-    from trials.evaluate import load_eval_config, run_eval
+def job_pool(out: Path, inputs: dict, fields: dict) -> None:
+    """The ``pool`` job: the policy's task-feasible evaluation-part configurations, saved as
+    ``out/feasible_pool.json`` (from the policy's own pool, topped up as ``advobj eval`` does)."""
+    from sim.configs import save_pool
+    from sim.policies.checkpoint import load_policy
+    from trials.evaluate import load_eval_config, resolve_pool
+    from trials.jobs import show_progress
+    from trials.scene_tools import load_spec
 
-    c = ctx.cfg
-    ecfg = load_eval_config(policy=str(policy_dir), conditions=tuple(conditions), episodes=c.episodes, max_steps=c.max_steps,
-                            num_envs=c.num_envs, seed=c.seed, pool=ensure_pool(ctx, policy_dir), scene=ctx.scene, gifs=c.gifs,
-                            attack=None if attack is None else str(attack), patch=None if patch is None else str(patch),
-                            shapes={k: str(v) for k, v in (shapes or {}).items()})
+    ecfg = load_eval_config(policy=str(inputs["policy"]), scene=None if "scene" not in inputs else str(inputs["scene"]), **fields)
+    base = load_spec(ecfg.scene)
+    spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": ecfg.max_steps})
+    out.mkdir(parents=True, exist_ok=True)
+    configs, src = resolve_pool(ecfg, load_policy(ecfg.policy, ecfg.device), spec, out, progress=show_progress())
+    if Path(src) != out / "feasible_pool.json":  # the policy's own pool sufficed: keep a copy as this job's output
+        save_pool(out / "feasible_pool.json", spec, configs, meta={"definition": "configs where the clean policy reaches the goal",
+                                                                   "part": "evaluation", "base": src, "from_base": len(configs)})
+
+
+def ensure_eval(ctx: Context, policy_dir: Path, name: str, conditions, attack=None, patch=None, shapes=None) -> EvalResult:
+    """An evaluation into ``out/evals/<name>``: one ``eval-shard`` job, or ``ctx.shards`` of them
+    merged by an ``eval-merge`` job; returns its summary (read once the grid has run)."""
+    pool = ensure_pool(ctx, policy_dir)
+    inputs = {"policy": policy_dir, "pool": pool, "attack": attack, "patch": patch, **_scene_input(ctx)}
+    inputs.update({f"shape_{k}": v for k, v in (shapes or {}).items()})
+    fields = {**_eval_fields(ctx), "conditions": list(conditions)}
     d = ctx.out / "evals" / name
-    ctx.log(f"eval {name}: {', '.join(conditions)} x {c.episodes} episodes into {d}")
-    return run_eval(ecfg, d, resume=(d / "manifest.json").is_file(), progress=ctx.progress)
+    ctx.log(f"eval {name}: {', '.join(conditions)} x {ctx.cfg.episodes} episodes into {d}")
+    key = {"fields": fields}
+    if ctx.shards <= 1:
+        ctx.grid.add(f"eval-{name}", "eval", "trials.experiments:job_eval", d, {"fields": fields}, inputs, key_params=key, **ctx.resources())
+    else:
+        n = int(ctx.shards)
+        shards = [ctx.grid.add(f"eval-{name}-shard{k}of{n}", "eval-shard", "trials.experiments:job_eval", d / "shards" / f"{k}-of-{n}",
+                               {"fields": fields, "shard": [k, n]}, inputs, **ctx.resources()) for k in range(n)]
+        ctx.grid.add(f"eval-{name}", "eval", "trials.experiments:job_eval", d, {"fields": fields, "merge": n}, inputs, local=True,
+                     after=tuple(shards), key_params=key)
+    return EvalResult(ctx, d)
+
+
+def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, merge: int = 0) -> None:
+    """The ``eval-shard`` job (the whole evaluation, or configurations ``k::K`` with ``shard``) and
+    the ``eval-merge`` job (``merge=K``: the K shards under ``out/shards`` into ``out``)."""
+    from trials.evaluate import load_eval_config, merge_eval, run_eval
+    from trials.jobs import show_progress
+
+    sv = lambda k: None if k not in inputs else str(inputs[k])  # noqa: E731
+    cfg = load_eval_config(**fields, policy=str(inputs["policy"]), pool=sv("pool"), scene=sv("scene"), attack=sv("attack"), patch=sv("patch"),
+                           shapes={k[len("shape_"):]: str(v) for k, v in inputs.items() if k.startswith("shape_")})
+    if merge:
+        merge_eval(cfg, out, [out / "shards" / f"{k}-of-{merge}" for k in range(merge)])
+    else:
+        run_eval(cfg, out, resume=(out / "manifest.json").is_file(), progress=show_progress(), shard=None if shard is None else tuple(shard),
+                 final_pool=True)
 
 
 # ----------------------------------------------------------------------------- tables
@@ -261,6 +377,7 @@ def eval_rows(ctx: Context, name: str, condition: str | None = None) -> list[dic
     ``condition``, that arm's rows keyed by configuration seed (for paired comparisons)."""
     from trials.storage import read_rows
 
+    ctx.run_jobs()
     rows = read_rows(ctx.out / "evals" / name / "episodes.csv")
     return rows if condition is None else {r["seed"]: r for r in rows if r["condition"] == condition}
 
@@ -300,9 +417,10 @@ def table2(ctx: Context) -> str:
                     "Second line of each row: E_trans (normalised action units) and E_rot (rad), defined in docs/evaluation.md.")
     lines += ["| row | strategy | targeted | pose | saliency | source | " + " | ".join(f"{b} T-ASR/E_trans | {b} ASR/E_rot" for b in DIST_LABELS + ["Avg"]) + " |",
               "|---|---|---|---|---|---|" + "---|---|" * (len(DIST_LABELS) + 1)]
+    evals = {key: ensure_eval(ctx, ref, f"table2_{key}", ["attack"], attack=ensure_attack(ctx, ref, key, overrides))
+             for key, *_, overrides in TABLE2_ROWS}
     for key, row, strat, flags, overrides in TABLE2_ROWS:
-        run = ensure_attack(ctx, ref, key, overrides)
-        cs = ensure_eval(ctx, ref, f"table2_{key}", ["attack"], attack=run)["conditions"]["attack"]
+        cs = evals[key]["conditions"]["attack"]
         chk = " | ".join("x" if f else "" for f in flags)
         rates = [f"{_pct(cs['by_distance'][b]['tasr'])} | {_pct(cs['by_distance'][b]['asr'])}" for b in DIST_LABELS]
         rates.append(f"{_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])}")
@@ -359,9 +477,9 @@ def transfer(ctx: Context) -> str:
     lines += ["| policy | role | checkpoint arch | T-ASR (ours) | ASR (ours) | McNemar p vs clean (T-ASR) | T-ASR (paper) | ASR (paper) |",
               "|---|---|---|---|---|---|---|---|"]
     missing = [a for a in TRANSFER_TARGETS if a not in ctx.cfg.transfer_targets]
+    evals = {name: ensure_eval(ctx, pdir, f"transfer_{name}", ["attack"], attack=att) for name, pdir, *_ in rows}
     for name, pdir, role, paper_row in rows:
-        s = ensure_eval(ctx, pdir, f"transfer_{name}", ["attack"], attack=att)
-        cs = s["conditions"]["attack"]
+        cs = evals[name]["conditions"]["attack"]
         pt, pa = PAPER["transfer"][paper_row]
         p = cs.get("vs_clean", {}).get("tasr", {}).get("p_value")
         lines.append(f"| {name} | {role} | {_arch(pdir)} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])} | "
@@ -392,6 +510,7 @@ def lighting(ctx: Context) -> str:
     lines = _header("Lighting randomisation in the attack: cost and benefit", ctx,
                     "Both textures are evaluated on the same held-out configurations; light_random draws a new light per episode "
                     "from the configuration's seed (never a light the attack saw).")
+    ctx.run_jobs()
     cost = {k: json.loads((v / "metrics.json").read_text()) for k, v in runs.items()}
     lines += ["| attack | seconds / iteration | attack wall (s) | final held-out validation T-ASR (nominal light) |", "|---|---|---|---|"]
     for k, m in cost.items():

@@ -29,7 +29,7 @@ def test_table1_runs_the_3d_and_patch_attacks_then_writes_the_paper_layout(tmp_p
     # a second run reuses every finished piece
     log.clear()
     run_experiment("table1", _cfg(pool_file), tmp_path, policy=tiny_policy_dir, progress=False, log=log.append)
-    assert any("attack c2f: reusing" in m for m in log) and any("attack patch: reusing" in m for m in log)
+    assert any("attack-c2f: finished earlier, reused" in m for m in log) and any("attack-patch: finished earlier, reused" in m for m in log)
 
 
 @pytest.mark.slow
