@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
+
+from trials import cli_grid
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="Red-team wrist-camera visuomotor policies with 3D adversarial objects.")
 
@@ -27,13 +30,14 @@ app.add_typer(cli_experiment.app, name="experiment")
 
 
 @app.command()
-def demo(out: Path = typer.Option(Path("runs/demo"), help="output directory"), seed: int = typer.Option(0, min=0)) -> None:
+def demo(out: Path = typer.Option(Path("runs/demo"), help="output directory"), seed: int = typer.Option(0, min=0),
+         workers: Optional[int] = cli_grid.WORKERS, address: Optional[str] = cli_grid.ADDRESS) -> None:
     """The main job on the built-in scene, with quick settings."""
+    from trials.cli_eval import format_summary
     from trials.demo import run_demo
 
-    from trials.cli_eval import format_summary
-
-    result = run_demo(out, seed, log=typer.echo)
+    ex, _ = cli_grid.executor(workers, address, typer.echo)
+    result = run_demo(out, seed, log=typer.echo, executor=ex)
     typer.echo(format_summary(result["summary"]))
     typer.echo(f"demo: report in {result['report']}")
 
@@ -83,7 +87,7 @@ def main() -> None:
     try:
         rc = app(standalone_mode=False)
     except AdvobjError as err:
-        fail(str(err))
+        fail(str(err), getattr(err, "exit_code", None) or 2)
     except NoArgsIsHelpError as err:  # 'advobj' or 'advobj trial' alone: the help, as before
         err.show()
         sys.exit(2)

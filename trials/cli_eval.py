@@ -7,6 +7,8 @@ from typing import List, Optional
 
 import typer
 
+from trials import cli_grid
+
 
 def eval_command(
     policy: Path = typer.Option(..., help="target policy: checkpoint directory or .onnx file (black-box targets welcome)"),
@@ -27,6 +29,7 @@ def eval_command(
     allow_overlap: bool = typer.Option(False, "--allow-overlap", help="score a texture on configurations it was optimised or selected on "
                                        "(in-sample; refused by default). The overlap is written to manifest.json and report.md either way"),
     threads: int = typer.Option(1, min=0, help="torch threads; 1 (default) avoids OpenMP spin-waits stealing the CPU renderer's cores, 0 = torch's default"),
+    workers: Optional[int] = cli_grid.WORKERS, address: Optional[str] = cli_grid.ADDRESS, shards: Optional[int] = cli_grid.SHARDS,
 ) -> None:
     """Run E episodes per condition on the same task-feasible configurations; write rows, summary and report."""
     from trials.evaluate import EvalError, load_eval_config, run_eval
@@ -48,7 +51,13 @@ def eval_command(
         attack=None if attack is None else str(attack), patch=None if patch is None else str(patch), shapes=shapes,
         allow_overlap=allow_overlap,
     )
-    summary = run_eval(cfg, out, resume=resume)
+    if workers is None and address is None and shards is None:
+        summary = run_eval(cfg, out, resume=resume)
+    else:  # the job layer: a pool job, eval-shard jobs, their merge (a re-run resumes; --resume is implied)
+        from trials.experiments import run_eval_grid
+
+        ex, default_shards = cli_grid.executor(workers, address, typer.echo)
+        summary = run_eval_grid(cfg, out, ex, shards or default_shards, log=typer.echo)
     typer.echo(format_summary(summary))
     typer.echo(f"report: {out / 'report.md'}")
 

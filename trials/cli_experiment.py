@@ -7,13 +7,17 @@ from typing import List, Optional
 
 import typer
 
+from trials.cli_grid import ADDRESS, SHARDS, WORKERS
+
 app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
 
 
 def _run(name: str, preset: str, out: Optional[Path], policy: Optional[Path], target: List[str], episodes: Optional[int],
-         scene: Optional[Path], pool: Optional[Path], archs: Optional[str] = None, iterations: Optional[int] = None) -> None:
+         scene: Optional[Path], pool: Optional[Path], archs: Optional[str] = None, iterations: Optional[int] = None,
+         grid: tuple = (None, None, None, "cpu")) -> None:
     import torch
 
+    from trials.cli_grid import executor
     from trials.experiments import ExperimentError, resolve_experiment, run_experiment
 
     # One torch thread, as 'advobj policy train' and 'advobj eval' default to: OpenMP spin-waits
@@ -26,10 +30,13 @@ def _run(name: str, preset: str, out: Optional[Path], policy: Optional[Path], ta
         if not sep or not arch or not d:
             raise ExperimentError(f"--target: expected ARCH=PATH, got {item!r}")
         targets[arch] = Path(d)
-    cfg = resolve_experiment(preset, episodes=episodes, pool=None if pool is None else str(pool),
+    workers, address, shards, device = grid
+    ex, default_shards = executor(workers, address, typer.echo)
+    cfg = resolve_experiment(preset, episodes=episodes, pool=None if pool is None else str(pool), device=device,
                              attack_overrides=None if iterations is None else {"iterations": iterations},
                              transfer_targets=None if archs is None else tuple(a.strip() for a in archs.split(",") if a.strip()))
-    path = run_experiment(name, cfg, out or Path("runs") / f"{name}-{preset}", policy, targets, scene, log=typer.echo)
+    path = run_experiment(name, cfg, out or Path("runs") / f"{name}-{preset}", policy, targets, scene, log=typer.echo, executor=ex,
+                          shards=shards or default_shards)
     typer.echo(path.read_text())
     typer.echo(f"table: {path}")
 
@@ -40,36 +47,41 @@ _POLICY = typer.Option(None, help="reference (source) policy checkpoint; default
 _EPISODES = typer.Option(None, min=1, help="override the preset's episodes per condition")
 _SCENE = typer.Option(None, help="scene YAML (default: the built-in paper scene)")
 _POOL = typer.Option(None, help="task-feasible pool JSON for every evaluation (default: each policy's own)")
+_DEVICE = typer.Option("cpu", help="torch device of every job; 'cuda' jobs ask Ray for a GPU each")
 
 
 @app.command()
 def table1(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
-           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL) -> None:
+           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL,
+           workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """3D adversarial object vs 2D patch, by viewing angle (Table I)."""
-    _run("table1", preset, out, policy, [], episodes, scene, pool)
+    _run("table1", preset, out, policy, [], episodes, scene, pool, grid=(workers, address, shards, device))
 
 
 @app.command()
 def table2(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
            scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL,
            iterations: Optional[int] = typer.Option(None, min=1, help="attack iterations (default: the attack preset's); a smaller "
-                                                    "budget shows the strategies before they saturate")) -> None:
+                                                    "budget shows the strategies before they saturate"),
+           workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """C2F vs F2C vs NS and the targeted / pose / saliency ablations, by distance (Table II)."""
-    _run("table2", preset, out, policy, [], episodes, scene, pool, iterations=iterations)
+    _run("table2", preset, out, policy, [], episodes, scene, pool, iterations=iterations, grid=(workers, address, shards, device))
 
 
 @app.command()
 def table3(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
-           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL) -> None:
+           scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL,
+           workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """Shapes, stereo camera, lighting, noise and background (Table III)."""
-    _run("table3", preset, out, policy, [], episodes, scene, pool)
+    _run("table3", preset, out, policy, [], episodes, scene, pool, grid=(workers, address, shards, device))
 
 
 @app.command()
 def lighting(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
-             scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL) -> None:
+             scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL,
+           workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """Lighting randomisation in the attack: its cost and what it buys under bright, dim and held-out lights."""
-    _run("lighting", preset, out, policy, [], episodes, scene, pool)
+    _run("lighting", preset, out, policy, [], episodes, scene, pool, grid=(workers, address, shards, device))
 
 
 @app.command()
@@ -78,6 +90,7 @@ def transfer(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional
                                                        "missing targets are trained"),
              episodes: Optional[int] = _EPISODES, scene: Optional[Path] = _SCENE,
              archs: Optional[str] = typer.Option(None, "--archs", help="comma-separated target architectures to run (default: "
-                                                 "resnet34,vgg16,inception_v3)")) -> None:
+                                                 "resnet34,vgg16,inception_v3)"),
+             workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """Black-box transfer: source attack against ResNet34, VGG16 and Inception-v3 (Table V)."""
-    _run("transfer", preset, out, policy, target, episodes, scene, None, archs)
+    _run("transfer", preset, out, policy, target, episodes, scene, None, archs, grid=(workers, address, shards, device))

@@ -353,6 +353,8 @@ def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: boo
 def _finish(cfg: EvalConfig, out: Path, rows: list, spec, conds, configs, pool_src, overlap, report: bool) -> dict:
     from trials.report import summarize, write_report
 
+    # In a fixed order: means and intervals then do not depend on the order episodes finished in.
+    rows = sorted(rows, key=lambda r: (r["condition"], r["seed"]))
     summary = summarize(rows, spec, [c.name for c in conds], meta={"pool": pool_src, "episodes_requested": cfg.episodes,
                                                                     "episodes_available": len(configs), "policy": cfg.policy,
                                                                     "max_steps": cfg.max_steps, "overlap": overlap})

@@ -344,6 +344,32 @@ def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, m
                  final_pool=True)
 
 
+def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dict:
+    """``advobj eval`` through the job layer: a ``pool`` job (unless ``cfg.pool`` is given), then
+    ``shards`` ``eval-shard`` jobs and their merge into ``out`` (the folder ``run_eval`` writes)."""
+    from trials.jobs import Grid
+
+    out = Path(out)
+    grid = Grid(out)
+    res = {"num_cpus": 1.0, "num_gpus": 1.0 if str(cfg.device).startswith("cuda") else 0.0}
+    fields = {k: v for k, v in cfg.model_dump(mode="json").items() if k not in ("policy", "pool", "scene", "attack", "patch", "shapes")}
+    scene = {} if cfg.scene is None else {"scene": cfg.scene}
+    pool = cfg.pool
+    if pool is None:
+        pf = {k: fields[k] for k in ("episodes", "max_steps", "num_envs", "seed", "pool_factor", "device")}
+        grid.add("pool", "pool", "trials.experiments:job_pool", out / "pool", {"fields": pf}, {"policy": cfg.policy, **scene}, **res)
+        pool = str(out / "pool" / "feasible_pool.json")
+    inputs = {"policy": cfg.policy, "pool": pool, "attack": cfg.attack, "patch": cfg.patch, **scene,
+              **{f"shape_{k}": v for k, v in cfg.shapes.items()}}
+    n = max(1, int(shards))
+    parts = [grid.add(f"eval-shard{k}of{n}", "eval-shard", "trials.experiments:job_eval", out / "shards" / f"{k}-of-{n}",
+                      {"fields": fields, "shard": [k, n]}, inputs, **res) for k in range(n)]
+    grid.add("eval", "eval", "trials.experiments:job_eval", out, {"fields": fields, "merge": n}, inputs, local=True, after=tuple(parts),
+             key_params={"fields": fields})
+    executor.run(grid)
+    return json.loads((out / "summary.json").read_text())
+
+
 # ----------------------------------------------------------------------------- tables
 def _pct(p: dict) -> str:
     return "n/a" if not p["n"] else f"{100 * p['rate']:.2f}"
@@ -555,8 +581,10 @@ def _check_inputs(ctx: Context) -> None:
             raise ExperimentError(f"{flag}: {err}") from None
 
 
-def run_experiment(name: str, cfg: ExperimentConfig, out: str | Path, policy=None, targets=None, scene=None, progress=True, log=print) -> Path:
-    """Run recipe ``name``; returns the path of its ``table.md``."""
+def run_experiment(name: str, cfg: ExperimentConfig, out: str | Path, policy=None, targets=None, scene=None, progress=True, log=print,
+                   executor=None, shards: int = 1) -> Path:
+    """Run recipe ``name`` (its jobs on ``executor``, serial by default, each evaluation in
+    ``shards`` jobs); returns the path of its ``table.md``."""
     from sim.runinfo import write_run_info
 
     if name not in RECIPES:
@@ -565,7 +593,8 @@ def run_experiment(name: str, cfg: ExperimentConfig, out: str | Path, policy=Non
     if unknown:
         raise ExperimentError(f"--target: unknown target {sorted(unknown)[0]!r}; choose from {', '.join(cfg.transfer_targets)}")
     out = Path(out)
-    ctx = Context(cfg, out, None if policy is None else Path(policy), dict(targets or {}), None if scene is None else str(scene), progress, log)
+    ctx = Context(cfg, out, None if policy is None else Path(policy), dict(targets or {}), None if scene is None else str(scene), progress, log,
+                  executor=executor, shards=int(shards))
     _check_inputs(ctx)
     write_run_info(out, {"job": f"experiment {name}", "experiment": cfg.model_dump(mode="json"), "policy": None if policy is None else str(policy),
                          "targets": {k: str(v) for k, v in (targets or {}).items()}, "scene": ctx.scene}, cfg.seed)
