@@ -7,6 +7,8 @@ from typing import List, Optional
 
 import typer
 
+from trials import cli_grid
+
 app = typer.Typer(no_args_is_help=True, help="Benchmarks that answer 'what does this knob buy and what does it cost'.")
 
 
@@ -27,10 +29,12 @@ def tradeoff(
     plot: Optional[Path] = typer.Option(None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)"),
     report_only: bool = typer.Option(False, "--report-only", help="only rebuild the report and plot from OUT/rows.jsonl"),
     redo: bool = typer.Option(False, "--redo", help="measure the selected --rows again even if done (the newest record is reported)"),
+    workers: Optional[int] = cli_grid.WORKERS, address: Optional[str] = cli_grid.ADDRESS,
 ) -> None:
     """Sweep attack, evaluation and deployment knobs one at a time; table, Pareto plot and report in OUT."""
     from trials.tradeoff import run_tradeoff
 
+    ex, _ = cli_grid.executor(workers, address, typer.echo)
     run_tradeoff(policy, out, res_policy, train_missing, train_iterations, rows, episodes, big_episodes,
                  None if pool is None else str(pool), None if scene is None else str(scene), quick_check, plot, report_only, log=typer.echo,
-                 max_steps=max_steps, redo=redo)
+                 max_steps=max_steps, redo=redo, executor=None if workers is None and address is None else ex)

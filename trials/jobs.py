@@ -93,6 +93,7 @@ class Job:
     num_cpus: float = 1.0
     num_gpus: float = 0.0
     local: bool = False  # cheap bookkeeping (merges): always runs in the driver
+    fresh_process: bool = False  # a new worker process (measurements of the job's own peak memory)
     key: str = ""
 
     @property
@@ -166,7 +167,8 @@ class Grid:
         self._digests: dict[str, str] = {}
 
     def add(self, name: str, kind: str, fn: str, out: str | Path, params: dict | None = None, inputs: dict | None = None,
-            num_cpus: float = 1.0, num_gpus: float = 0.0, local: bool = False, after: tuple = (), key_params: dict | None = None) -> Job:
+            num_cpus: float = 1.0, num_gpus: float = 0.0, local: bool = False, after: tuple = (), key_params: dict | None = None,
+            fresh_process: bool = False) -> Job:
         """Add a job (or return the same one added before). ``inputs`` maps a role to a path or to
         a :class:`Job` of this grid (then a dependency). ``after`` adds dependencies that are not
         part of the key, and ``key_params`` replaces ``params`` in the key: an evaluation merged
@@ -191,7 +193,7 @@ class Grid:
                     paths[role], keys[role] = p, self._digests[p]
         for a in after:
             deps.append(a.name if isinstance(a, Job) else str(a))
-        job = Job(name, kind, fn, str(out), params, paths, tuple(dict.fromkeys(deps)), float(num_cpus), float(num_gpus), local)
+        job = Job(name, kind, fn, str(out), params, paths, tuple(dict.fromkeys(deps)), float(num_cpus), float(num_gpus), local, fresh_process)
         job.key = job_key(kind, fn, params if key_params is None else json.loads(json.dumps(key_params, default=str)), keys)
         old = self.jobs.get(name)
         if old is not None:
@@ -269,6 +271,7 @@ def execute(job: Job, log_path: str | Path, tee: bool = False) -> dict:
     """Run ``job`` in this process: torch threads = its CPUs, output to its log (and, with
     ``tee``, to the terminal too), marker last."""
     global _SHOW_PROGRESS
+    start_unix = time.time()
     log_path = Path(log_path)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     threads = max(1, int(job.num_cpus))
@@ -291,7 +294,7 @@ def execute(job: Job, log_path: str | Path, tee: bool = False) -> dict:
         dt, dc = time.perf_counter() - t0, _cpu_seconds() - c0
         print(f"== finished in {dt:.1f} s wall, {dc:.1f} s CPU", file=log)
     _write_marker(job, dt, dc)
-    return {"name": job.name, "seconds": dt, "cpu_s": dc}
+    return {"name": job.name, "seconds": dt, "cpu_s": dc, "start_unix": start_unix, "end_unix": time.time()}
 
 
 def _one_line(err: BaseException) -> str:
@@ -404,8 +407,10 @@ def _staged_task(doc: dict, blobs: dict) -> dict:
 
 
 def _shared_task(doc: dict) -> dict:
+    doc = dict(doc)
+    log = doc.pop("_log")
     job = Job(**{**doc, "deps": tuple(doc["deps"])})
-    res = execute(job, doc["_log"]) if "_log" in doc else execute(job, Path(job.out) / "job.log")
+    res = execute(job, log)
     res["node"] = _node_id()
     return res
 
@@ -417,6 +422,19 @@ def _node_id() -> str:
         return ray.get_runtime_context().get_node_id()
     except Exception:
         return "local"
+
+
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """``HOST:PORT`` accepts a TCP connection, else one line (``ray.init`` would retry for minutes)."""
+    import socket
+
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise GridError(f"--address: expected 'auto' or HOST:PORT, got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as err:
+        raise GridError(f"--address {address}: no Ray cluster answers there ({err.strerror or err})") from None
 
 
 def _sees(path: str, token: str) -> bool:
@@ -453,11 +471,13 @@ class RayExecutor:
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         kw = dict(include_dashboard=False, logging_level="ERROR", log_to_driver=False, runtime_env={"env_vars": env})
+        if self.address not in (None, "auto"):
+            _check_reachable(self.address)
         try:
             if self.address is not None:
                 ray.init(address=self.address, **kw)
-            else:
-                ray.init(num_cpus=self.workers, _node_ip_address="127.0.0.1", **kw)
+            else:  # "local": a new Ray for this run, never a cluster that happens to be running
+                ray.init(address="local", num_cpus=self.workers, **kw)
         except (ConnectionError, RuntimeError, ValueError) as err:
             raise GridError(f"--address {self.address}: cannot join the Ray cluster ({' '.join(str(err).split())[:200]})") from None
         self.slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
@@ -485,6 +505,10 @@ class RayExecutor:
         if not grid.pending():
             _report_reused(grid, [], self.echo)
             return {}
+        if self.address is None and "ray" not in sys.modules:
+            # A Ray started for this run is single-machine: keep it on the loopback interface (Ray
+            # otherwise advertises the machine's outward address). Read when ray is imported.
+            os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
         import ray
 
         started = self._init()
@@ -507,6 +531,7 @@ class RayExecutor:
         results, first_error = {}, None
         staged = ray.remote(_staged_task)
         direct = ray.remote(_shared_task)
+        direct_fresh = ray.remote(max_calls=1)(_shared_task)
         last = 0.0
         while waiting or running:
             if first_error is None:
@@ -529,11 +554,11 @@ class RayExecutor:
                         doc["_log"] = str(log_path.resolve())
                         doc["out"] = str(Path(job.out).resolve())
                         doc["inputs"] = {k: str(Path(v).resolve()) for k, v in job.inputs.items()}
-                        ref = direct.options(**opts).remote(doc)
+                        ref = (direct_fresh if job.fresh_process else direct).options(**opts).remote(doc)
                     else:
                         blobs = {r: ("file" if Path(p).is_file() else "dir", Path(p).name, _pack(p)) for r, p in job.inputs.items()}
                         ref = staged.options(**opts).remote(doc, blobs)
-                    running[ref] = (job, time.perf_counter())
+                    running[ref] = (job, time.time())
             if not running:
                 if waiting and first_error is None:
                     raise GridError(f"jobs {', '.join(waiting)}: wait for jobs that never run")
@@ -542,7 +567,6 @@ class RayExecutor:
             for ref in done:
                 job, t_sub = running.pop(ref)
                 log_path = grid.root / "logs" / f"{job.log_name}.log"
-                t_get = time.perf_counter()
                 try:
                     res = ray.get(ref)
                 except Exception as err:
@@ -554,10 +578,13 @@ class RayExecutor:
                     continue
                 if not shared:
                     self._land(job, res, log_path)
-                res["collect_s"] = time.perf_counter() - t_get
-                res["queue_to_done_s"] = time.perf_counter() - t_sub
+                now = time.time()
+                # Scheduling overhead: submission to the job's start on its worker, and its end
+                # to the driver holding the result (output landed, for a staged job).
+                res["start_delay_s"] = res["start_unix"] - t_sub
+                res["collect_s"] = now - res["end_unix"]
                 self.placements[job.name] = res.get("node", "?")
-                self.timings[job.name] = {k: res[k] for k in ("seconds", "cpu_s", "collect_s", "queue_to_done_s") if k in res}
+                self.timings[job.name] = {k: res[k] for k in ("seconds", "cpu_s", "start_delay_s", "collect_s") if k in res}
                 results[job.name] = {k: v for k, v in res.items() if k not in ("out_blob", "log")}
                 finished.add(job.name)
                 prog.done += 1

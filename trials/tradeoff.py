@@ -309,7 +309,7 @@ def _settings_hash(cfg: TradeoffConfig) -> str:
 
 # ----------------------------------------------------------------------------- the sweep driver
 def run_sweep(cfg: TradeoffConfig, out: str | Path, rows: list[str] | None = None, progress: bool = True,
-              log: Callable[[str], None] = print, isolate: bool = True, redo: bool = False) -> list[dict]:
+              log: Callable[[str], None] = print, isolate: bool = True, redo: bool = False, executor=None) -> list[dict]:
     """Run the selected rows not yet done into ``out``; returns all result records.
 
     ``redo``: measure the selected rows again even if done (the new record supersedes the old one
@@ -317,6 +317,11 @@ def run_sweep(cfg: TradeoffConfig, out: str | Path, rows: list[str] | None = Non
 
     ``isolate``: run each row in a child process (peak RSS per row, crash isolation); ``False``
     runs in-process (peak RSS is then the process's so far, noted in the row).
+
+    ``executor``: a :mod:`trials.jobs` executor (Ray); each row is then a ``tradeoff-row`` job in
+    a fresh worker process (so its peak RSS is its own), a snapshot row waiting for the row whose
+    texture it reads. Rows read each other's outputs under ``out``: on a cluster, ``out`` must be
+    on a filesystem every node shares.
     """
     from tqdm import tqdm
 
@@ -351,6 +356,9 @@ def run_sweep(cfg: TradeoffConfig, out: str | Path, rows: list[str] | None = Non
     machine["runs"].append({"start": machine_info(cfg.threads)})
     info_path.write_text(json.dumps(machine, indent=2))
     write_run_info(out, {"job": "tradeoff", "settings": settings, "rows": [r.key for r in todo]}, cfg.seed)
+    if executor is not None:
+        _run_rows_as_jobs(cfg, todo, out, executor, log)
+        todo = []
     bar = tqdm(total=len(todo), desc="tradeoff rows", disable=not progress, dynamic_ncols=True)
     for r in todo:
         bar.set_postfix(row=r.key, refresh=True)
@@ -363,6 +371,46 @@ def run_sweep(cfg: TradeoffConfig, out: str | Path, rows: list[str] | None = Non
     machine["runs"][-1]["end"] = machine_info(cfg.threads)
     info_path.write_text(json.dumps(machine, indent=2))
     return read_results(out)
+
+
+def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor, log) -> None:
+    """The rows as ``tradeoff-row`` jobs; every finished row's record appended in table order."""
+    from trials.jobs import Grid, GridError
+
+    grid = Grid(out)
+    jobs = {}
+    settings = cfg.model_dump(mode="json")
+    for r in todo:
+        pdir = _policy_dir(cfg, r.policy)
+        after = (jobs[r.depends],) if r.depends in jobs else ()
+        d = out / "rows" / _slug(r.key)
+        (d / "job.json").unlink(missing_ok=True)  # a row is re-measured whenever it is selected to run
+        jobs[r.key] = grid.add(f"row-{_slug(r.key)}", "tradeoff-row", "trials.tradeoff:job_row", d,
+                               {"cfg": settings, "row": asdict(r), "root": str(out.resolve())}, {"policy": pdir}, after=after,
+                               num_cpus=max(1, cfg.threads), fresh_process=True)
+    err = None
+    try:
+        executor.run(grid)
+    except GridError as e:
+        err = e
+    for r in todo:
+        res = out / "rows" / _slug(r.key) / "result.json"
+        if res.is_file():
+            rec = json.loads(res.read_text())
+            _append(out, rec)
+            log(f"{r.key}: {rec['status']}" + (f" ({rec.get('error')})" if rec["status"] != "ok" else ""))
+    if err is not None:
+        raise err
+
+
+def job_row(out: Path, inputs: dict, cfg: dict, row: dict, root: str) -> None:
+    """The ``tradeoff-row`` job: measure one row in this (fresh) process into ``out/result.json``."""
+    c = TradeoffConfig(**cfg)
+    rec = _measure_row(c, Row(**row), Path(root))
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / "result.json.tmp"
+    tmp.write_text(json.dumps(rec, default=_json_default))
+    tmp.replace(out / "result.json")
 
 
 def _base_record(cfg: TradeoffConfig, row: Row) -> dict:
@@ -734,7 +782,7 @@ def train_resolution_policy(size: int, out_dir: str | Path, scene: str | None = 
 # ----------------------------------------------------------------------------- the benchmark
 def run_tradeoff(policy, out, res_policy=(), train_missing=False, train_iterations=None, rows=(), episodes=None, big_episodes=None,
                  pool=None, scene=None, quick_check=False, plot=None, report_only=False, log=print, progress=True, max_steps=None,
-                 redo=False) -> Path:
+                 redo=False, executor=None) -> Path:
     """The whole benchmark behind ``advobj bench tradeoff`` and ``benchmarks/bench_tradeoff.py``: sweep
     (resumable), optionally train the missing per-resolution policies, then the report; returns its path."""
     import torch
@@ -766,12 +814,12 @@ def run_tradeoff(policy, out, res_policy=(), train_missing=False, train_iteratio
         if train_missing:  # everything else first, then train, then the rows of the new policies
             first = [r.key for r in selected if not (r.knob == "policy_resolution" and int(r.value) in missing)]
         if first is None or first:
-            run_sweep(cfg, out, first, progress=progress, log=log, redo=redo)
+            run_sweep(cfg, out, first, progress=progress, log=log, redo=redo, executor=executor)
         if train_missing and missing:
             for s in missing:
                 res[s] = str(train_resolution_policy(s, out / "policies" / f"px{s}", scene, progress=progress, log=log, dagger_iterations=train_iterations))
             cfg = load_tradeoff_config(**{**cfg.model_dump(), "resolution_policies": res})
-            run_sweep(cfg, out, [f"policy_resolution={s}" for s in missing], progress=progress, log=log, redo=redo)
+            run_sweep(cfg, out, [f"policy_resolution={s}" for s in missing], progress=progress, log=log, redo=redo, executor=executor)
     from trials.tradeoff_report import write_report
 
     report = write_report(out, plot=Path(plot) if plot else None)

@@ -147,3 +147,16 @@ def test_a_sharded_evaluation_writes_the_same_rows_and_summary_as_the_whole_one(
     log = []
     run_eval_grid(cfg, tmp_path / "sharded", SerialExecutor(log.append, tee=False), shards=2)
     assert any("eval: finished earlier, reused" in m for m in log) and not (tmp_path / "sharded" / "shards" / "0-of-2").exists()
+
+
+def test_the_scale_out_docs_quote_the_committed_grid_benchmark():
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("bench_grid", root / "benchmarks" / "bench_grid.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    rec = json.loads((root / "results" / "bench-grid" / "bench_grid.json").read_text())
+    assert bench.docs_block(rec) in (root / "docs" / "scale-out.md").read_text()
+    assert rec["same_rows"] is True
