@@ -115,6 +115,8 @@ def collect(name: str, work: Path, results: Path) -> Path:
     record_path = dst / "run.json"
     record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
     record["episodes_rows"] = len(rows)
+    # Jobs that ran on Ray workers are not this process's children: their CPU time is in their job.json.
+    record["jobs_cpu_s"] = round(sum(json.loads(p.read_text()).get("cpu_s", 0.0) for p in src.rglob("job.json")), 1)
     record["trained_policies_clean_success"] = policies
     record_path.write_text(json.dumps(record, indent=2))
     return dst

@@ -584,7 +584,9 @@ class RayExecutor:
                 res["start_delay_s"] = res["start_unix"] - t_sub
                 res["collect_s"] = now - res["end_unix"]
                 self.placements[job.name] = res.get("node", "?")
-                self.timings[job.name] = {k: res[k] for k in ("seconds", "cpu_s", "start_delay_s", "collect_s") if k in res}
+                res["submit_unix"] = t_sub
+                self.timings[job.name] = {k: res[k] for k in ("seconds", "cpu_s", "start_delay_s", "collect_s", "submit_unix", "start_unix",
+                                                               "end_unix") if k in res}
                 results[job.name] = {k: v for k, v in res.items() if k not in ("out_blob", "log")}
                 finished.add(job.name)
                 prog.done += 1
