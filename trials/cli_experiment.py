@@ -47,15 +47,16 @@ _POLICY = typer.Option(None, help="reference (source) policy checkpoint; default
 _EPISODES = typer.Option(None, min=1, help="override the preset's episodes per condition")
 _SCENE = typer.Option(None, help="scene YAML (default: the built-in paper scene)")
 _POOL = typer.Option(None, help="task-feasible pool JSON for every evaluation (default: each policy's own)")
+_ITERATIONS = typer.Option(None, min=1, help="attack iterations of every attack (default: the attack preset's)")
 _DEVICE = typer.Option("cpu", help="torch device of every job; 'cuda' jobs ask Ray for a GPU each")
 
 
 @app.command()
 def table1(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
            scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL,
-           workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
+           iterations: Optional[int] = _ITERATIONS, workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """3D adversarial object vs 2D patch, by viewing angle (Table I)."""
-    _run("table1", preset, out, policy, [], episodes, scene, pool, grid=(workers, address, shards, device))
+    _run("table1", preset, out, policy, [], episodes, scene, pool, iterations=iterations, grid=(workers, address, shards, device))
 
 
 @app.command()
@@ -71,17 +72,17 @@ def table2(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[P
 @app.command()
 def table3(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
            scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL,
-           workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
+           iterations: Optional[int] = _ITERATIONS, workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """Shapes, stereo camera, lighting, noise and background (Table III)."""
-    _run("table3", preset, out, policy, [], episodes, scene, pool, grid=(workers, address, shards, device))
+    _run("table3", preset, out, policy, [], episodes, scene, pool, iterations=iterations, grid=(workers, address, shards, device))
 
 
 @app.command()
 def lighting(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional[Path] = _POLICY, episodes: Optional[int] = _EPISODES,
              scene: Optional[Path] = _SCENE, pool: Optional[Path] = _POOL,
-           workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
+           iterations: Optional[int] = _ITERATIONS, workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """Lighting randomisation in the attack: its cost and what it buys under bright, dim and held-out lights."""
-    _run("lighting", preset, out, policy, [], episodes, scene, pool, grid=(workers, address, shards, device))
+    _run("lighting", preset, out, policy, [], episodes, scene, pool, iterations=iterations, grid=(workers, address, shards, device))
 
 
 @app.command()
@@ -91,6 +92,6 @@ def transfer(preset: str = _PRESET, out: Optional[Path] = _OUT, policy: Optional
              episodes: Optional[int] = _EPISODES, scene: Optional[Path] = _SCENE,
              archs: Optional[str] = typer.Option(None, "--archs", help="comma-separated target architectures to run (default: "
                                                  "resnet34,vgg16,inception_v3)"),
-             workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
+             iterations: Optional[int] = _ITERATIONS, workers: Optional[int] = WORKERS, address: Optional[str] = ADDRESS, shards: Optional[int] = SHARDS, device: str = _DEVICE) -> None:
     """Black-box transfer: source attack against ResNet34, VGG16 and Inception-v3 (Table V)."""
-    _run("transfer", preset, out, policy, target, episodes, scene, None, archs, grid=(workers, address, shards, device))
+    _run("transfer", preset, out, policy, target, episodes, scene, None, archs, iterations=iterations, grid=(workers, address, shards, device))

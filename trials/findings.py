@@ -172,6 +172,16 @@ def findings(results: Path) -> dict:
                  "test": f1_obl, "overall": f1_all, "by_bin": by_bin, "verdict": verdict(f1_obl), "data": "results/table1/",
                  "ours": _pair_text("3D", "patch", f1_obl), "ours_overall": _pair_text("3D", "patch", f1_all)}
 
+    # The same test against the paper's policy (ResNet-18 at 128 px), at the budget that fitted a session.
+    t1p = load_rows(results, "table1-paper")
+    if t1p:
+        b3d, b2d = arm(t1p, "table1", "attack"), arm(t1p, "table1", "patch")
+        obl = paired(b3d, b2d, where=lambda r: math.degrees(r["phi_rad"]) >= OBLIQUE_PHI_DEG)
+        out["F1-paper"] = {"claim": f"as F1, against the ResNet-18 policy at 128 px ({_budget(results, 'table1-paper')})",
+                           "paper": out["F1"]["paper"], "test": obl, "overall": paired(b3d, b2d), "by_bin": paired_by_bin(b3d, b2d, "phi"),
+                           "verdict": verdict(obl), "data": "results/table1-paper/", "ours": _pair_text("3D", "patch", obl),
+                           "ours_overall": _pair_text("3D", "patch", paired(b3d, b2d))}
+
     t2 = load_rows(results, "table2")
     c2f, ns, f2c = arm(t2, "table2_c2f"), arm(t2, "table2_ns"), arm(t2, "table2_f2c")
     p_cn, p_nf = paired(c2f, ns), paired(ns, f2c)
@@ -238,6 +248,15 @@ def findings(results: Path) -> dict:
     return out
 
 
+def _budget(results: Path, name: str) -> str:
+    """The attack budget of a committed recipe run, from its attacks.json."""
+    import json
+
+    attacks = json.loads((results / name / "attacks.json").read_text())
+    its = sorted({a["iterations"] for a in attacks.values()})
+    return f"{'/'.join(str(i) for i in its)}-iteration attacks"
+
+
 def _saturation(rows: list[dict] | None, recipe: str) -> dict | None:
     """T-ASR of every table2 arm, and how many configurations any optimised attack reaches."""
     if not rows:
@@ -274,7 +293,7 @@ def render(f: dict, prefix: str = "") -> str:
     for key, d in f.items():
         if key.startswith("_"):
             continue
-        if key in ("F1", "F3", "F4"):
+        if key in ("F1", "F1-paper", "F3", "F4"):
             p = _p(d["test"].p) if d["test"].n else "-"
         elif key == "F2":
             p = ", ".join(f"{name}: {_p(pr.p)}" for name, pr, _ in d["parts"] if pr.n) or "-"
@@ -298,6 +317,15 @@ def render_details(f: dict) -> str:
     for lab, pr in f["F1"]["by_bin"]:
         lines.append(f"| {lab} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p) if pr.n else '-'} |"
                      if pr.n else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - |")
+    if "F1-paper" in f:
+        fp = f["F1-paper"]
+        lines += ["", "## F1 against the ResNet-18 policy at 128 px (results/table1-paper/)", "",
+                  f"Overall: {fp['ours_overall']}, p = {_p(fp['overall'].p)}; at phi >= {OBLIQUE_PHI_DEG:.0f} deg: {fp['ours']}, "
+                  f"p = {_p(fp['test'].p)}.", "",
+                  "| phi bin | n | 3D T-ASR % | patch T-ASR % | only 3D / only patch | p |", "|---|---|---|---|---|---|"]
+        for lab, pr in fp["by_bin"]:
+            lines.append(f"| {lab} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p)} |"
+                         if pr.n else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - |")
     lines += ["", "## F2, F3, F4 by initial distance r (cm)", ""]
     for title, ka, kb, claim in (("C2F vs NS", "c2f", "ns", ">="), ("NS vs F2C", "ns", "f2c", ">"), ("C2F vs F2C", "c2f", "f2c", ">"),
                                  ("targeted vs untargeted", "c2f", "c2f_untargeted", ">"), ("saliency on vs off", "c2f", "c2f_no_saliency", ">")):
