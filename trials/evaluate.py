@@ -436,8 +436,12 @@ def merge_eval(cfg: EvalConfig, out: str | Path, shard_dirs) -> dict:
         for gif in sorted((d / "gifs").glob("*.gif")) if (d / "gifs").is_dir() else []:
             (out / "gifs").mkdir(parents=True, exist_ok=True)
             shutil.copyfile(gif, out / "gifs" / gif.name)
-    got = {(r["condition"], r["seed"]) for r in store.rows} | {(r["condition"], r["seed"]) for r in rows}
-    if got != want:
+    unique = {}
+    for r in rows:  # one row per (condition, seed), whatever a retried shard left behind
+        unique.setdefault((r["condition"], r["seed"]), r)
+    rows = list(unique.values())
+    got = {(r["condition"], r["seed"]) for r in store.rows} | set(unique)
+    if got != want or len(store.rows) + len(rows) != len(want):
         raise EvalError(f"{out}: the shards hold {len(got)} of the {len(want)} episodes (missing e.g. {sorted(want - got)[:1]})")
     order = {(c.name, int(x.seed)): i for i, (c, x) in enumerate((c, x) for c in conds for x in configs)}
     store.append(sorted(rows, key=lambda r: order[(r["condition"], r["seed"])]))

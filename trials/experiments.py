@@ -177,7 +177,7 @@ class EvalResult(dict):
         self._ctx, self._path = ctx, path
 
     def _load(self):
-        if not dict.__len__(self):
+        if not dict.__len__(self):  # dict's own length: not the override below
             self._ctx.run_jobs()
             self.update(json.loads((self._path / "summary.json").read_text()))
 
@@ -188,6 +188,30 @@ class EvalResult(dict):
     def get(self, k, default=None):
         self._load()
         return super().get(k, default)
+
+    def __contains__(self, k):
+        self._load()
+        return super().__contains__(k)
+
+    def __iter__(self):
+        self._load()
+        return super().__iter__()
+
+    def __len__(self):
+        self._load()
+        return super().__len__()
+
+    def keys(self):
+        self._load()
+        return super().keys()
+
+    def items(self):
+        self._load()
+        return super().items()
+
+    def values(self):
+        self._load()
+        return super().values()
 
 
 def _scene_input(ctx: Context) -> dict:

@@ -3,14 +3,15 @@
 Jobs
     A :class:`Job` is one call ``fn(out, inputs, **params)`` of a module-level function (named
     ``"module:function"``, so any node with advobj installed can import it): ``train-policy``,
-    ``pool``, ``attack``, ``eval-shard`` and ``eval-merge`` in the recipes, ``tradeoff-row`` in the
+    ``pool``, ``attack``, ``eval`` (whole, or the merge of its shards) and ``eval-shard`` in the recipes, ``tradeoff-row`` in the
     speed-vs-accuracy sweep. ``inputs`` maps a role to a path; an input that another job produces
     makes that job a dependency, so an evaluation waits for its texture.
 
 Keys
     A job's key is the SHA-256 of its kind, function, parameters, its inputs' keys and
     :data:`CODE_VERSION`. An input's key is the key of the job that produces it, or the digest of
-    an external file or folder (its top-level files' names and bytes, plus ``best/``).
+    an external file or folder (its top-level files' names and bytes, plus ``best/``; a scene's
+    YAML, not the meshes it names).
 
 Finished
     A job is finished when ``<out>/job.json`` holds its key. That file is written last, through a
@@ -31,9 +32,9 @@ Outputs
     On one machine, or a cluster whose nodes share the output folder, jobs write straight into
     ``--out``. Without a shared filesystem (detected by a token file every node must see, or forced
     with ``shared_fs=False``) a job's inputs travel to its worker as Ray objects (gzipped tar
-    bytes), the job runs in a temporary folder there, and its output folder comes back to the
-    driver as a Ray object, unpacked under ``--out`` (into a temporary name, then renamed). Resumable
-    partial state is then per attempt: a retried job starts over on its new worker.
+    bytes) with its own partial output, the job runs in a temporary folder there, and its output
+    folder comes back to the driver as a Ray object, unpacked beside its place, checked for its
+    finished marker and renamed into place.
 
 Logs
     Each job's stdout, stderr and log lines go to ``<root>/logs/<job>.log``; the terminal shows one
@@ -182,7 +183,9 @@ class Grid:
                 paths[role], keys[role] = v.out, v.key
                 deps.append(v.name)
             else:
-                p = str(v)
+                # Absolute: a job's recorded config must not depend on which executor (or working
+                # directory) ran it, or a run interrupted under one could not resume under another.
+                p = str(Path(v).resolve())
                 producer = self.producer(p)
                 if producer is not None:
                     paths[role], keys[role] = p, producer.key
@@ -193,6 +196,7 @@ class Grid:
                     paths[role], keys[role] = p, self._digests[p]
         for a in after:
             deps.append(a.name if isinstance(a, Job) else str(a))
+        out = Path(out).resolve()
         job = Job(name, kind, fn, str(out), params, paths, tuple(dict.fromkeys(deps)), float(num_cpus), float(num_gpus), local, fresh_process)
         job.key = job_key(kind, fn, params if key_params is None else json.loads(json.dumps(key_params, default=str)), keys)
         old = self.jobs.get(name)
@@ -200,10 +204,10 @@ class Grid:
             if old.key != job.key:
                 raise GridError(f"job {name}: added twice with different parameters")
             return old
-        if str(Path(job.out)) in self._by_out:
+        if job.out in self._by_out:
             raise GridError(f"{job.out}: two jobs write there ({self._by_out[str(Path(job.out))]}, {name})")
         self.jobs[name] = job
-        self._by_out[str(Path(job.out))] = name
+        self._by_out[job.out] = name
         return job
 
     def order(self) -> list[Job]:
@@ -225,7 +229,7 @@ class Grid:
 
     def producer(self, path: str | Path) -> Job | None:
         """The job whose output folder holds ``path`` (itself or a parent), if any."""
-        p = Path(path)
+        p = Path(path).resolve()
         for q in (p, *p.parents):
             name = self._by_out.get(str(q))
             if name is not None:
@@ -279,7 +283,9 @@ def execute(job: Job, log_path: str | Path, tee: bool = False) -> dict:
 
     torch.set_num_threads(threads)
     t0, c0 = time.perf_counter(), _cpu_seconds()
-    with open(log_path, "a", buffering=1) as log:
+    Path(job.out).mkdir(parents=True, exist_ok=True)
+    lock = _lock(job)
+    with lock, open(log_path, "a", buffering=1) as log:
         out, err = (_Tee(log, sys.stdout), _Tee(log, sys.stderr)) if tee else (log, log)
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             print(f"== {job.name} ({job.kind}) key {job.key} on pid {os.getpid()}, {threads} torch thread(s)", file=log)
@@ -295,6 +301,24 @@ def execute(job: Job, log_path: str | Path, tee: bool = False) -> dict:
         print(f"== finished in {dt:.1f} s wall, {dc:.1f} s CPU", file=log)
     _write_marker(job, dt, dc)
     return {"name": job.name, "seconds": dt, "cpu_s": dc, "start_unix": start_unix, "end_unix": time.time()}
+
+
+@contextlib.contextmanager
+def _lock(job: Job):
+    """An exclusive lock on the job's output folder while it runs: two runs sharing an ``--out``
+    never write one folder at once (the second fails in one line; re-run it afterwards)."""
+    import fcntl
+
+    path = Path(job.out) / ".job.lock"
+    with open(path, "w") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise GridError(f"{job.out}: another run is writing there now (job {job.name}); wait for it or use another --out") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _one_line(err: BaseException) -> str:
@@ -319,6 +343,7 @@ class _Progress:
         self.t0 = time.perf_counter()
 
     def line(self, running: int, queued: int) -> str:
+        # "running": handed to the executor (on Ray, possibly waiting there for a free CPU)
         eta = "?"
         if self.durations:
             left = running + queued
@@ -369,15 +394,17 @@ class SerialExecutor:
         return results
 
 
-def _pack(path: str | Path) -> bytes:
-    """A file or folder as gzipped tar bytes (private resumable state left out)."""
+def _pack(path: str | Path, private: bool = False) -> bytes:
+    """A file or folder as gzipped tar bytes; links are stored as what they point to. Private
+    resumable state is left out unless ``private`` (a job's own partial output, to resume from)."""
     p = Path(path)
     buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+    skip = () if private else _PRIVATE_DIRS
+    with tarfile.open(fileobj=buf, mode="w:gz", dereference=True) as tar:
         if p.is_file():
             tar.add(p, arcname=p.name)
         else:
-            tar.add(p, arcname=".", filter=lambda ti: None if any(part in _PRIVATE_DIRS for part in Path(ti.name).parts) else ti)
+            tar.add(p, arcname=".", filter=lambda ti: None if any(part in skip for part in Path(ti.name).parts) else ti)
     return buf.getvalue()
 
 
@@ -393,6 +420,9 @@ def _staged_task(doc: dict, blobs: dict) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="advobj-job-"))
     try:
         inputs = {}
+        own = blobs.pop("__out__", None)
+        if own is not None:  # the job's partial output on the driver: resume from it
+            _unpack(own[2], tmp / "out")
         for role, (kind, name, blob) in blobs.items():
             d = tmp / "in" / role
             _unpack(blob, d)
@@ -422,6 +452,18 @@ def _node_id() -> str:
         return ray.get_runtime_context().get_node_id()
     except Exception:
         return "local"
+
+
+def _check_placeable(jobs: list, ray) -> None:
+    """A job that asks for more CPUs or GPUs than any node has would wait forever: one line now."""
+    nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
+    for job in jobs:
+        if job.local:
+            continue
+        if not any(r.get("CPU", 0) >= job.num_cpus and r.get("GPU", 0) >= job.num_gpus for r in nodes):
+            what = f"{job.num_gpus:g} GPU(s)" if job.num_gpus else f"{job.num_cpus:g} CPU(s)"
+            raise GridError(f"job {job.name}: asks for {what} with {job.num_cpus:g} CPU(s), and no node of the cluster has that"
+                            + (" (--device cuda on a cluster without GPUs?)" if job.num_gpus else ""))
 
 
 def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
@@ -490,13 +532,16 @@ class RayExecutor:
         if self.shared_fs is not None:
             return self.shared_fs
         root.mkdir(parents=True, exist_ok=True)
-        token_path = root / ".grid-token"
         token = uuid.uuid4().hex
+        token_path = root / f".grid-token-{token[:12]}"
         token_path.write_text(token)
         probe = ray.remote(num_cpus=0)(_sees)
         nodes = [n["NodeID"] for n in ray.nodes() if n.get("Alive")]
-        seen = ray.get([probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n, soft=False)).remote(str(token_path.resolve()), token)
-                        for n in nodes])
+        try:
+            seen = ray.get([probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n, soft=False)).remote(str(token_path.resolve()), token)
+                            for n in nodes], timeout=120)
+        except ray.exceptions.GetTimeoutError:
+            raise GridError("the cluster's nodes did not answer the shared-filesystem probe within 120 s") from None
         token_path.unlink(missing_ok=True)
         return all(seen)
 
@@ -523,6 +568,7 @@ class RayExecutor:
         _report_reused(grid, todo, self.echo)
         if not todo:
             return {}
+        _check_placeable(todo, ray)
         shared = self._detect_shared(grid.root)
         prog = _Progress(len(grid.jobs), len(grid.jobs) - len(todo), self.slots, self.echo)
         waiting = {j.name: j for j in todo}
@@ -533,32 +579,41 @@ class RayExecutor:
         direct = ray.remote(_shared_task)
         direct_fresh = ray.remote(max_calls=1)(_shared_task)
         last = 0.0
+
+        def log_of(job):
+            return grid.root / "logs" / f"{job.log_name}.log"
+
+        def submit(job):
+            opts = dict(num_cpus=job.num_cpus, num_gpus=job.num_gpus, max_retries=self.max_retries, retry_exceptions=False)
+            doc = asdict(job)
+            if shared:
+                doc["_log"] = str(log_of(job).resolve())
+                doc["out"] = str(Path(job.out).resolve())
+                doc["inputs"] = {k: str(Path(v).resolve()) for k, v in job.inputs.items()}
+                return (direct_fresh if job.fresh_process else direct).options(**opts).remote(doc)
+            blobs = {r: ("file" if Path(p).is_file() else "dir", Path(p).name, _pack(p)) for r, p in job.inputs.items()}
+            if Path(job.out).is_dir():
+                blobs["__out__"] = ("dir", "out", _pack(job.out, private=True))
+            return staged.options(**opts).remote(doc, blobs)
+
         while waiting or running:
-            if first_error is None:
+            progressed = True
+            while first_error is None and progressed:  # a local job finishing can make others ready
+                progressed = False
                 for name in [n for n, j in waiting.items() if all(d in finished for d in j.deps)]:
                     job = waiting.pop(name)
-                    log_path = grid.root / "logs" / f"{job.log_name}.log"
-                    if job.local:
-                        try:
-                            results[name] = execute(job, log_path)
-                        except Exception as err:
-                            first_error = first_error or _job_error(job, err, log_path)
-                            break
-                        finished.add(name)
-                        prog.done += 1
-                        prog.durations.append(results[name]["seconds"])
-                        continue
-                    opts = dict(num_cpus=job.num_cpus, num_gpus=job.num_gpus, max_retries=self.max_retries, retry_exceptions=False)
-                    doc = asdict(job)
-                    if shared:
-                        doc["_log"] = str(log_path.resolve())
-                        doc["out"] = str(Path(job.out).resolve())
-                        doc["inputs"] = {k: str(Path(v).resolve()) for k, v in job.inputs.items()}
-                        ref = (direct_fresh if job.fresh_process else direct).options(**opts).remote(doc)
-                    else:
-                        blobs = {r: ("file" if Path(p).is_file() else "dir", Path(p).name, _pack(p)) for r, p in job.inputs.items()}
-                        ref = staged.options(**opts).remote(doc, blobs)
-                    running[ref] = (job, time.time())
+                    try:
+                        if job.local:
+                            results[name] = execute(job, log_of(job))
+                            finished.add(name)
+                            prog.done += 1
+                            prog.durations.append(results[name]["seconds"])
+                            progressed = True
+                        else:
+                            running[submit(job)] = (job, time.time())
+                    except Exception as err:  # the driver's own part failed (packing, a local merge)
+                        first_error = first_error or _job_error(job, err, log_of(job))
+                        break
             if not running:
                 if waiting and first_error is None:
                     raise GridError(f"jobs {', '.join(waiting)}: wait for jobs that never run")
@@ -566,32 +621,32 @@ class RayExecutor:
             done, _ = ray.wait(list(running), num_returns=1, timeout=self.poll_s)
             for ref in done:
                 job, t_sub = running.pop(ref)
-                log_path = grid.root / "logs" / f"{job.log_name}.log"
                 try:
                     res = ray.get(ref)
+                    if not shared:
+                        self._land(job, res, log_of(job))
                 except Exception as err:
                     if not shared:
                         tb = getattr(err, "traceback_str", None) or "".join(traceback.format_exception(err))
-                        log_path.parent.mkdir(parents=True, exist_ok=True)
-                        log_path.write_text(tb)
-                    first_error = first_error or _job_error(job, err, log_path)
+                        log_of(job).parent.mkdir(parents=True, exist_ok=True)
+                        with open(log_of(job), "a") as f:
+                            f.write(tb)
+                    first_error = first_error or _job_error(job, err, log_of(job))
                     continue
-                if not shared:
-                    self._land(job, res, log_path)
                 now = time.time()
                 # Scheduling overhead: submission to the job's start on its worker, and its end
                 # to the driver holding the result (output landed, for a staged job).
                 res["start_delay_s"] = res["start_unix"] - t_sub
                 res["collect_s"] = now - res["end_unix"]
-                self.placements[job.name] = res.get("node", "?")
                 res["submit_unix"] = t_sub
+                self.placements[job.name] = res.get("node", "?")
                 self.timings[job.name] = {k: res[k] for k in ("seconds", "cpu_s", "start_delay_s", "collect_s", "submit_unix", "start_unix",
                                                                "end_unix") if k in res}
                 results[job.name] = {k: v for k, v in res.items() if k not in ("out_blob", "log")}
                 finished.add(job.name)
                 prog.done += 1
                 prog.durations.append(res["seconds"])
-            now = time.perf_counter()
+            now = time.time()
             if done or now - last > 30:
                 prog.show(len(running), len(waiting))
                 last = now
@@ -606,10 +661,19 @@ class RayExecutor:
         out = Path(job.out)
         incoming = out.with_name(f".{out.name}.incoming-{uuid.uuid4().hex[:8]}")
         _unpack(res["out_blob"], incoming)
+        try:
+            landed = json.loads((incoming / "job.json").read_text()).get("key")
+        except (OSError, json.JSONDecodeError):
+            landed = None
+        if landed != job.key:
+            shutil.rmtree(incoming, ignore_errors=True)
+            raise GridError(f"job {job.name}: its output came back without its finished marker; re-run to resume")
+        old = out.with_name(f".{out.name}.replaced-{uuid.uuid4().hex[:8]}")
         if out.exists():
-            shutil.rmtree(out)
+            out.rename(old)  # aside first: the folder is never missing, nor half-replaced
         out.parent.mkdir(parents=True, exist_ok=True)
         incoming.rename(out)
+        shutil.rmtree(old, ignore_errors=True)
         log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(log_path, "a") as f:
             f.write(res.get("log", ""))

@@ -461,6 +461,8 @@ TINY: dict[str, Tiny] = {
         Tiny("experiment table1 --preset quick --policy {policy} --out {tmp}/table1", ("{tmp}/table1/table.md",), slow=True, setup=_tiny_experiments),
     "advobj experiment table1 --preset quick --policy runs/policy-quick --out runs/table1-quick":
         Tiny("experiment table1 --preset quick --policy {policy} --out {tmp}/table1", ("{tmp}/table1/table.md",), slow=True, setup=_tiny_experiments),
+    "advobj experiment table2 --preset paper --address HEAD_HOST:6379 --device cuda --out runs/table2-paper":
+        Tiny(None, reason="needs a Ray cluster with GPU nodes; the job layer on a real local cluster is tests/trials/test_jobs_ray.py"),
     "advobj experiment table2 --preset quick":
         Tiny("experiment table2 --preset quick --policy {policy} --out {tmp}/table2", ("{tmp}/table2/table.md",), slow=True, setup=_tiny_experiments),
     "advobj experiment table3 --preset paper":

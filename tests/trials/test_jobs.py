@@ -160,3 +160,17 @@ def test_the_scale_out_docs_quote_the_committed_grid_benchmark():
     rec = json.loads((root / "results" / "bench-grid" / "bench_grid.json").read_text())
     assert bench.docs_block(rec) in (root / "docs" / "scale-out.md").read_text()
     assert rec["same_rows"] is True
+
+
+def test_a_second_run_writing_the_same_folder_at_once_fails_in_one_line(tmp_path):
+    import fcntl
+
+    g = Grid(tmp_path)
+    job = g.add("a", "k", f"{H}:write_value", tmp_path / "a", {"value": 1})
+    (tmp_path / "a").mkdir()
+    with open(tmp_path / "a" / ".job.lock", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        with pytest.raises(GridError, match=r"another run is writing there now \(job a\)"):
+            SerialExecutor(None).run(g)
+    SerialExecutor(None).run(g)
+    assert is_finished(job)

@@ -146,6 +146,8 @@ def test_without_a_shared_filesystem_outputs_come_back_to_out(cluster, tmp_path)
     ext = tmp_path / "external"
     ext.mkdir()
     (ext / "value.json").write_text('{"total": 10}')
+    (tmp_path / "out" / "a").mkdir(parents=True)
+    (tmp_path / "out" / "a" / "attempts.txt").write_text("earlier\n")  # a partial output it resumes from
     g = Grid(tmp_path / "out")
     a = g.add("a", "k", f"{H}:write_value", tmp_path / "out" / "a", {"value": 1}, {"ext": ext})
     g.add("b", "k", f"{H}:write_value", tmp_path / "out" / "b", {"value": 2}, {"a": a, "ext": ext})
@@ -153,7 +155,15 @@ def test_without_a_shared_filesystem_outputs_come_back_to_out(cluster, tmp_path)
     assert json.loads((tmp_path / "out" / "b" / "value.json").read_text())["total"] == 2 + 11 + 10
     assert all(is_finished(j) for j in g.order())
     assert "== finished" in (tmp_path / "out" / "logs" / "b.log").read_text()
-    assert not list((tmp_path / "out").glob(".*incoming*"))
+    assert not list((tmp_path / "out").glob(".*incoming*")) and not list((tmp_path / "out").glob(".*replaced*"))
+    assert (tmp_path / "out" / "a" / "attempts.txt").read_text().split()[0] == "earlier"
+
+
+def test_a_job_no_node_can_take_is_refused_in_one_line(cluster, tmp_path):
+    g = Grid(tmp_path)
+    g.add("greedy", "k", f"{H}:node_of", tmp_path / "greedy", num_cpus=1, num_gpus=4)
+    with pytest.raises(GridError, match=r"^job greedy: asks for 4 GPU\(s\) with 1 CPU\(s\), and no node of the cluster has that"):
+        _ex(cluster).run(g)
 
 
 def test_eval_with_workers_starts_and_stops_its_own_ray_and_matches_serial(cluster, tmp_path, tiny_policy_dir, pool_file, attack_dir):
