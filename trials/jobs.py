@@ -115,8 +115,12 @@ def input_digest(path: str | Path) -> str:
         return h.hexdigest()
     if not p.is_dir():
         raise GridError(f"{p}: no such file or folder (a job input)")
-    files = [f for f in sorted(p.iterdir()) if f.is_file()]
-    files += [f for d in _HASHED_DIRS if (p / d).is_dir() for f in sorted((p / d).iterdir()) if f.is_file()]
+    # Not the job layer's own bookkeeping (job.json holds timings, .job.lock is the run lock).
+    def mine(f):
+        return f.is_file() and f.name != "job.json" and not f.name.startswith(".")
+
+    files = [f for f in sorted(p.iterdir()) if mine(f)]
+    files += [f for d in _HASHED_DIRS if (p / d).is_dir() for f in sorted((p / d).iterdir()) if mine(f)]
     for f in files:
         h.update(str(f.relative_to(p)).encode() + b"\0")
         h.update(hashlib.sha256(f.read_bytes()).digest())

@@ -323,8 +323,6 @@ def run_sweep(cfg: TradeoffConfig, out: str | Path, rows: list[str] | None = Non
     texture it reads. Rows read each other's outputs under ``out``: on a cluster, ``out`` must be
     on a filesystem every node shares.
     """
-    from tqdm import tqdm
-
     from sim.runinfo import write_run_info
 
     out = Path(out)
@@ -356,25 +354,19 @@ def run_sweep(cfg: TradeoffConfig, out: str | Path, rows: list[str] | None = Non
     machine["runs"].append({"start": machine_info(cfg.threads)})
     info_path.write_text(json.dumps(machine, indent=2))
     write_run_info(out, {"job": "tradeoff", "settings": settings, "rows": [r.key for r in todo]}, cfg.seed)
-    if executor is not None:
-        _run_rows_as_jobs(cfg, todo, out, executor, log)
-        todo = []
-    bar = tqdm(total=len(todo), desc="tradeoff rows", disable=not progress, dynamic_ncols=True)
-    for r in todo:
-        bar.set_postfix(row=r.key, refresh=True)
-        log(f"{r.key}: running ({r.kind})")
-        rec = _run_isolated(cfg, r, out) if isolate else _run_inline(cfg, r, out)
-        _append(out, rec)
-        log(f"{r.key}: {rec['status']}" + (f" ({rec.get('error')})" if rec["status"] != "ok" else ""))
-        bar.update(1)
-    bar.close()
+    from trials.jobs import SerialExecutor
+
+    # Serially each row runs in a child process (isolate) or in-process; on Ray in a fresh worker.
+    mode = "worker" if executor is not None else ("child" if isolate else "inline")
+    _run_rows_as_jobs(cfg, todo, out, executor or SerialExecutor(log, tee=progress), log, mode)
     machine["runs"][-1]["end"] = machine_info(cfg.threads)
     info_path.write_text(json.dumps(machine, indent=2))
     return read_results(out)
 
 
-def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor, log) -> None:
-    """The rows as ``tradeoff-row`` jobs; every finished row's record appended in table order."""
+def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor, log, mode: str = "worker") -> None:
+    """The rows as ``tradeoff-row`` jobs; every finished row's record appended in table order
+    (a row that measured an error is recorded and runs again next time)."""
     from trials.jobs import Grid, GridError
 
     grid = Grid(out)
@@ -386,8 +378,8 @@ def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor,
         d = out / "rows" / _slug(r.key)
         (d / "job.json").unlink(missing_ok=True)  # a row is re-measured whenever it is selected to run
         jobs[r.key] = grid.add(f"row-{_slug(r.key)}", "tradeoff-row", "trials.tradeoff:job_row", d,
-                               {"cfg": settings, "row": asdict(r), "root": str(out.resolve())}, {"policy": pdir}, after=after,
-                               num_cpus=max(1, cfg.threads), fresh_process=True)
+                               {"cfg": settings, "row": asdict(r), "root": str(out.resolve()), "mode": mode}, {"policy": pdir},
+                               after=after, num_cpus=max(1, cfg.threads), fresh_process=True)
     err = None
     try:
         executor.run(grid)
@@ -395,18 +387,26 @@ def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor,
         err = e
     for r in todo:
         res = out / "rows" / _slug(r.key) / "result.json"
-        if res.is_file():
+        if res.is_file() and (res.parent / "job.json").is_file():
             rec = json.loads(res.read_text())
             _append(out, rec)
             log(f"{r.key}: {rec['status']}" + (f" ({rec.get('error')})" if rec["status"] != "ok" else ""))
+            if rec["status"] != "ok":
+                (res.parent / "job.json").unlink()
     if err is not None:
         raise err
 
 
-def job_row(out: Path, inputs: dict, cfg: dict, row: dict, root: str) -> None:
-    """The ``tradeoff-row`` job: measure one row in this (fresh) process into ``out/result.json``."""
-    c = TradeoffConfig(**cfg)
-    rec = _measure_row(c, Row(**row), Path(root))
+def job_row(out: Path, inputs: dict, cfg: dict, row: dict, root: str, mode: str = "worker") -> None:
+    """The ``tradeoff-row`` job: measure one row into ``out/result.json``, in a child process
+    (``child``), in this process (``inline``) or in this fresh Ray worker (``worker``)."""
+    c, r = TradeoffConfig(**cfg), Row(**row)
+    if mode == "child":
+        rec = _run_isolated(c, r, Path(root))
+    elif mode == "inline":
+        rec = _run_inline(c, r, Path(root))
+    else:
+        rec = _measure_row(c, r, Path(root))
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "result.json.tmp"
     tmp.write_text(json.dumps(rec, default=_json_default))
