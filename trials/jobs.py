@@ -395,6 +395,7 @@ class SerialExecutor:
             prog.durations.append(results[job.name]["seconds"])
         if todo:
             prog.show(0, 0, "all finished")
+        grid.__dict__.setdefault("_reported", set()).update(results)  # ran now: not "reused" on the next call
         return results
 
 
@@ -654,6 +655,7 @@ class RayExecutor:
             if done or now - last > 30:
                 prog.show(len(running), len(waiting))
                 last = now
+        grid.__dict__.setdefault("_reported", set()).update(results)  # ran now: not "reused" on the next call
         if first_error is not None:
             raise first_error
         prog.show(0, 0, "all finished")
