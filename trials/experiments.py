@@ -162,11 +162,29 @@ class Context:
         return spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": self.cfg.max_steps})
 
     def resources(self) -> dict:
-        """What one job asks the executor for: a CPU (torch threads follow it), a GPU on CUDA."""
-        return {"num_cpus": 1.0, "num_gpus": 1.0 if str(self.cfg.device).startswith("cuda") else 0.0}
+        return job_resources(self.cfg.device)
 
     def run_jobs(self) -> None:
         self.executor.run(self.grid)
+
+
+def job_resources(device: str) -> dict:
+    """What one job asks the executor for: a CPU (torch threads follow it), a GPU on CUDA."""
+    return {"num_cpus": 1.0, "num_gpus": 1.0 if str(device).startswith("cuda") else 0.0}
+
+
+def add_eval_jobs(grid, prefix: str, d: Path, fields: dict, inputs: dict, shards: int, resources: dict) -> None:
+    """An evaluation into ``d``: one ``eval`` job, or ``shards`` ``eval-shard`` jobs under
+    ``d/shards`` plus their merge (an ``eval`` job run in the driver, with the whole one's key)."""
+    key = {"fields": fields}
+    if shards <= 1:
+        grid.add(prefix, "eval", "trials.experiments:job_eval", d, {"fields": fields}, inputs, key_params=key, **resources)
+        return
+    n = int(shards)
+    parts = [grid.add(f"{prefix}-shard{k}of{n}", "eval-shard", "trials.experiments:job_eval", d / "shards" / f"{k}-of-{n}",
+                      {"fields": fields, "shard": [k, n]}, inputs, **resources) for k in range(n)]
+    grid.add(prefix, "eval", "trials.experiments:job_eval", d, {"fields": fields, "merge": n}, inputs, local=True, after=tuple(parts),
+             key_params=key)
 
 
 class EvalResult(dict):
@@ -333,28 +351,20 @@ def job_pool(out: Path, inputs: dict, fields: dict) -> None:
 
 def ensure_eval(ctx: Context, policy_dir: Path, name: str, conditions, attack=None, patch=None, shapes=None) -> EvalResult:
     """An evaluation into ``out/evals/<name>``: one ``eval-shard`` job, or ``ctx.shards`` of them
-    merged by an ``eval-merge`` job; returns its summary (read once the grid has run)."""
+    merged by an ``eval`` job; returns its summary (read once the grid has run)."""
     pool = ensure_pool(ctx, policy_dir)
     inputs = {"policy": policy_dir, "pool": pool, "attack": attack, "patch": patch, **_scene_input(ctx)}
     inputs.update({f"shape_{k}": v for k, v in (shapes or {}).items()})
     fields = {**_eval_fields(ctx), "conditions": list(conditions)}
     d = ctx.out / "evals" / name
     ctx.log(f"eval {name}: {', '.join(conditions)} x {ctx.cfg.episodes} episodes into {d}")
-    key = {"fields": fields}
-    if ctx.shards <= 1:
-        ctx.grid.add(f"eval-{name}", "eval", "trials.experiments:job_eval", d, {"fields": fields}, inputs, key_params=key, **ctx.resources())
-    else:
-        n = int(ctx.shards)
-        shards = [ctx.grid.add(f"eval-{name}-shard{k}of{n}", "eval-shard", "trials.experiments:job_eval", d / "shards" / f"{k}-of-{n}",
-                               {"fields": fields, "shard": [k, n]}, inputs, **ctx.resources()) for k in range(n)]
-        ctx.grid.add(f"eval-{name}", "eval", "trials.experiments:job_eval", d, {"fields": fields, "merge": n}, inputs, local=True,
-                     after=tuple(shards), key_params=key)
+    add_eval_jobs(ctx.grid, f"eval-{name}", d, fields, inputs, ctx.shards, ctx.resources())
     return EvalResult(ctx, d)
 
 
 def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, merge: int = 0) -> None:
     """The ``eval-shard`` job (the whole evaluation, or configurations ``k::K`` with ``shard``) and
-    the ``eval-merge`` job (``merge=K``: the K shards under ``out/shards`` into ``out``)."""
+    their merge (``merge=K``: the K shards under ``out/shards`` into ``out``)."""
     from trials.evaluate import load_eval_config, merge_eval, run_eval
     from trials.jobs import show_progress
 
@@ -370,12 +380,12 @@ def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, m
 
 def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dict:
     """``advobj eval`` through the job layer: a ``pool`` job (unless ``cfg.pool`` is given), then
-    ``shards`` ``eval-shard`` jobs and their merge into ``out`` (the folder ``run_eval`` writes)."""
+    the evaluation into ``out`` (the folder ``run_eval`` writes), in ``shards`` jobs merged there."""
     from trials.jobs import Grid
 
     out = Path(out)
     grid = Grid(out)
-    res = {"num_cpus": 1.0, "num_gpus": 1.0 if str(cfg.device).startswith("cuda") else 0.0}
+    res = job_resources(cfg.device)
     fields = {k: v for k, v in cfg.model_dump(mode="json").items() if k not in ("policy", "pool", "scene", "attack", "patch", "shapes")}
     scene = {} if cfg.scene is None else {"scene": cfg.scene}
     pool = cfg.pool
@@ -385,11 +395,7 @@ def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dic
         pool = str(out / "pool" / "feasible_pool.json")
     inputs = {"policy": cfg.policy, "pool": pool, "attack": cfg.attack, "patch": cfg.patch, **scene,
               **{f"shape_{k}": v for k, v in cfg.shapes.items()}}
-    n = max(1, int(shards))
-    parts = [grid.add(f"eval-shard{k}of{n}", "eval-shard", "trials.experiments:job_eval", out / "shards" / f"{k}-of-{n}",
-                      {"fields": fields, "shard": [k, n]}, inputs, **res) for k in range(n)]
-    grid.add("eval", "eval", "trials.experiments:job_eval", out, {"fields": fields, "merge": n}, inputs, local=True, after=tuple(parts),
-             key_params={"fields": fields})
+    add_eval_jobs(grid, "eval", out, fields, inputs, shards, res)
     executor.run(grid)
     return json.loads((out / "summary.json").read_text())
 

@@ -170,6 +170,7 @@ class Grid:
         self.jobs: dict[str, Job] = {}
         self._by_out: dict[str, str] = {}
         self._digests: dict[str, str] = {}
+        self.reported: set[str] = set()  # jobs already named on the terminal (reused, or run by this grid)
 
     def add(self, name: str, kind: str, fn: str, out: str | Path, params: dict | None = None, inputs: dict | None = None,
             num_cpus: float = 1.0, num_gpus: float = 0.0, local: bool = False, after: tuple = (), key_params: dict | None = None,
@@ -209,7 +210,7 @@ class Grid:
                 raise GridError(f"job {name}: added twice with different parameters")
             return old
         if job.out in self._by_out:
-            raise GridError(f"{job.out}: two jobs write there ({self._by_out[str(Path(job.out))]}, {name})")
+            raise GridError(f"{job.out}: two jobs write there ({self._by_out[job.out]}, {name})")
         self.jobs[name] = job
         self._by_out[job.out] = name
         return job
@@ -366,9 +367,9 @@ def _report_reused(grid: Grid, todo: list, echo) -> None:
         return
     left = {j.name for j in todo}
     for j in grid.order():
-        if j.name not in left and j.name not in getattr(grid, "_reported", set()):
+        if j.name not in left and j.name not in grid.reported:
             echo(f"[grid] {j.name}: finished earlier, reused" if is_finished(j) else f"[grid] {j.name}: not needed (its consumers are finished)")
-            grid.__dict__.setdefault("_reported", set()).add(j.name)
+            grid.reported.add(j.name)
 
 
 class SerialExecutor:
@@ -395,7 +396,7 @@ class SerialExecutor:
             prog.durations.append(results[job.name]["seconds"])
         if todo:
             prog.show(0, 0, "all finished")
-        grid.__dict__.setdefault("_reported", set()).update(results)  # ran now: not "reused" on the next call
+        grid.reported.update(results)  # ran now: not "reused" on the next call
         return results
 
 
@@ -655,7 +656,7 @@ class RayExecutor:
             if done or now - last > 30:
                 prog.show(len(running), len(waiting))
                 last = now
-        grid.__dict__.setdefault("_reported", set()).update(results)  # ran now: not "reused" on the next call
+        grid.reported.update(results)  # ran now: not "reused" on the next call
         if first_error is not None:
             raise first_error
         prog.show(0, 0, "all finished")
