@@ -1,8 +1,11 @@
 """AprilTag (tag36h11) detection and pose, with the IPPE two-fold ambiguity made explicit.
 
-Detection is ``cv2.aruco`` with ``CORNER_REFINE_APRILTAG``. That refinement reports corners in
-the AprilTag library's pixel convention (pixel centres at +0.5), half a pixel off OpenCV's
-(pixel centres at integers); we shift them back. It is also off by up to ~0.5 px when tag edges
+tag36h11 is detected by AprilTag 3 (the C library, through ``pupil-apriltags``), the field's
+reference detector: on small tags (under ~25 px a side) it finds far more than ``cv2.aruco``
+(``benchmarks/bench_tags.py`` measures both). ArUco dictionaries, and tag36h11 with
+``backend="aruco"``, go through ``cv2.aruco`` with ``CORNER_REFINE_APRILTAG``. Both report
+corners in the AprilTag pixel convention (pixel centres at +0.5), half a pixel off OpenCV's
+(pixel centres at integers); we shift them back. Corners are off by up to ~0.5 px when tag edges
 align with the pixel grid, so by default each corner is re-fit as the intersection of sub-pixel
 edge lines (:func:`refine_corners_edges`).
 
@@ -22,17 +25,19 @@ bottom-right, bottom-left): (-s/2, s/2, 0), (s/2, s/2, 0), (s/2, -s/2, 0), (-s/2
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Literal, Mapping, Sequence
 
 import numpy as np
 
 from calibration.errors import CalibrationError
-from calibration.intrinsics import CameraIntrinsics, to_gray
+from calibration.intrinsics import ARUCO_DICTS, CameraIntrinsics, to_gray
 from calibration.io import Strict
 from sim.geometry import invert_T, make_T, rotation_angle, so3_exp, so3_log, transform_points
 
 __all__ = [
     "APRILTAG_PIXEL_OFFSET",
+    "TAG_DICTIONARIES",
+    "resolve_dictionary",
     "TagDetectorOptions",
     "PoseSolution",
     "TagDetection",
@@ -48,6 +53,9 @@ __all__ = [
 ]
 
 APRILTAG_PIXEL_OFFSET = 0.5  # px; AprilTag pixel-centre convention minus OpenCV's
+TAG36H11 = "tag36h11"
+# Names a user may give (``--dictionary``): tag36h11 plus the ArUco dictionaries of the boards.
+TAG_DICTIONARIES = (TAG36H11, *ARUCO_DICTS)
 
 
 class TagDetectorOptions(Strict):
@@ -63,6 +71,8 @@ class TagDetectorOptions(Strict):
     edge_refinement: bool = True
     corner_noise_px: float = 0.05  # assumed corner std after edge refinement, for the reported pose uncertainty
     max_orientation_std_deg: float = 1.0  # larger 1-sigma orientation uncertainty -> "uncertain_orientation"
+    # tag36h11 detector: AprilTag 3 (the reference; far better recall on small tags) or cv2.aruco.
+    backend: Literal["apriltag3", "aruco"] = "apriltag3"
 
 
 def tag_object_points(tag_size_m: float) -> np.ndarray:
@@ -140,11 +150,94 @@ def reprojection_rms(T_cam_obj: np.ndarray, points_obj: np.ndarray, pixels: np.n
     return float(np.sqrt(np.mean(np.sum((proj - pixels) ** 2, -1))))
 
 
-def detect_tag_corners(gray: np.ndarray, dictionary: int | None = None):
-    """Raw detections -> list of ``(tag_id, corners_px (4, 2))``; [] when nothing (or nothing sane) is found."""
+def resolve_dictionary(dictionary: str | int | None) -> str:
+    """A dictionary name of :data:`TAG_DICTIONARIES` from a name (case-insensitive, ``DICT_`` prefix
+    optional), an OpenCV dictionary id, or None (tag36h11); ValueError names the choices."""
     import cv2
 
-    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11 if dictionary is None else dictionary)
+    if dictionary is None:
+        return TAG36H11
+    if isinstance(dictionary, (int, np.integer)) and not isinstance(dictionary, bool):
+        if int(dictionary) == cv2.aruco.DICT_APRILTAG_36h11:
+            return TAG36H11
+        for name, attr in ARUCO_DICTS.items():
+            if getattr(cv2.aruco, attr) == int(dictionary):
+                return name
+        raise ValueError(f"dictionary: OpenCV dictionary id {int(dictionary)} is not supported; choose from {', '.join(TAG_DICTIONARIES)}")
+    name = str(dictionary).strip().upper().removeprefix("DICT_")
+    if name in ("TAG36H11", "APRILTAG_36H11", "36H11"):
+        return TAG36H11
+    if name in ARUCO_DICTS:
+        return name
+    raise ValueError(f"dictionary: unknown {dictionary!r}; choose from {', '.join(TAG_DICTIONARIES)}")
+
+
+class _AprilTag3:
+    """One AprilTag 3 detector per process (the C detector is costly to build).
+
+    ``pupil-apriltags``' own ``__del__`` frees the tag family before the detector that still
+    points at it, which segfaults at interpreter exit; we free them in the library's order
+    (detector, then family) at exit and disarm its ``__del__``.
+    """
+
+    _det = None
+
+    @classmethod
+    def get(cls):
+        if cls._det is None:
+            import atexit
+
+            import pupil_apriltags
+
+            # Full resolution (quad_decimate 1): decimation loses the small tags this backend is for.
+            cls._det = pupil_apriltags.Detector(families=TAG36H11, nthreads=1, quad_decimate=1.0, refine_edges=1)
+            atexit.register(cls.release)
+        return cls._det
+
+    @classmethod
+    def release(cls):
+        det, cls._det = cls._det, None
+        if det is None or getattr(det, "tag_detector_ptr", None) is None:
+            return
+        det.libc.apriltag_detector_destroy.restype = None
+        det.libc.apriltag_detector_destroy(det.tag_detector_ptr)
+        for tf in det.tag_families.values():
+            det.libc.tag36h11_destroy.restype = None
+            det.libc.tag36h11_destroy(tf)
+        det.tag_detector_ptr = None  # its __del__ now does nothing
+
+
+# pupil-apriltags' corner order (counter-clockwise from the tag's bottom-left in its own image
+# frame) -> ours (top-left, top-right, bottom-right, bottom-left as printed).
+_APRILTAG3_ORDER = [1, 0, 3, 2]
+# tag36h11 has Hamming distance 11; the library corrects up to 2 bits, we keep 1 so that a
+# blurred background patch is not read as a tag (a false object position is worse than none).
+APRILTAG3_MAX_HAMMING = 1
+
+
+def detect_tag_corners(gray: np.ndarray, dictionary: str | int | None = None, backend: str = "apriltag3"):
+    """Raw detections -> list of ``(tag_id, corners_px (4, 2))``; [] when nothing (or nothing sane) is found.
+
+    ``dictionary``: a name of :data:`TAG_DICTIONARIES` (or an OpenCV id); None is tag36h11.
+    ``backend`` picks the tag36h11 detector; ArUco dictionaries always use ``cv2.aruco``.
+    """
+    import cv2
+
+    name = resolve_dictionary(dictionary)
+    gray = np.ascontiguousarray(gray, dtype=np.uint8)
+    if gray.ndim != 2 or min(gray.shape) < 8:
+        return []  # nothing a detector could decode (and AprilTag 3 asserts on degenerate sizes)
+    if name == TAG36H11 and backend == "apriltag3":
+        out = []
+        for d in _AprilTag3.get().detect(gray):
+            c = np.asarray(d.corners, dtype=np.float64)[_APRILTAG3_ORDER] - APRILTAG_PIXEL_OFFSET
+            if d.hamming <= APRILTAG3_MAX_HAMMING and np.all(np.isfinite(c)):
+                out.append((int(d.tag_id), c))
+        return out
+    if backend not in ("apriltag3", "aruco"):
+        raise ValueError(f"backend: expected 'apriltag3' or 'aruco', got {backend!r}")
+    cv_id = cv2.aruco.DICT_APRILTAG_36h11 if name == TAG36H11 else getattr(cv2.aruco, ARUCO_DICTS[name])
+    d = cv2.aruco.getPredefinedDictionary(cv_id)
     p = cv2.aruco.DetectorParameters()
     p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
     try:
@@ -292,7 +385,7 @@ def _flags(sols, corners_px, opt: TagDetectorOptions):
 
 
 def detect_tags(image, camera: CameraIntrinsics, tag_size_m: float | Mapping[int, float] | Callable[[int], float | None] | None = None,
-                options: TagDetectorOptions | None = None, dictionary: int | None = None) -> list[TagDetection]:
+                options: TagDetectorOptions | None = None, dictionary: str | int | None = None) -> list[TagDetection]:
     """Every tag in ``image`` with both pose solutions (if its size is known), sorted by id.
 
     ``tag_size_m``: one size for all tags, a mapping id -> size, a function id -> size or None, or
@@ -304,7 +397,7 @@ def detect_tags(image, camera: CameraIntrinsics, tag_size_m: float | Mapping[int
     if gray.shape != (camera.height, camera.width):
         # Intrinsics belong to one resolution; poses from another would be silently wrong.
         aspect = "" if gray.shape[1] * camera.height != gray.shape[0] * camera.width else (
-            " (same aspect ratio: resize the photo to the camera's size, or calibrate the camera at this size)")
+            " (same aspect ratio: pass --rescale to rescale the intrinsics, or calibrate the camera at this size)")
         raise CalibrationError(f"image: size {gray.shape[1]}x{gray.shape[0]} does not match the camera file's "
                                f"{camera.width}x{camera.height}; intrinsics hold for one resolution{aspect}")
     if callable(tag_size_m):
@@ -314,7 +407,7 @@ def detect_tags(image, camera: CameraIntrinsics, tag_size_m: float | Mapping[int
     else:
         size_of = lambda i: tag_size_m  # noqa: E731
     out = []
-    for tag_id, corners in detect_tag_corners(gray, dictionary):
+    for tag_id, corners in detect_tag_corners(gray, dictionary, opt.backend):
         if opt.edge_refinement:
             corners = refine_corners_edges(gray, corners)
         size = size_of(tag_id)

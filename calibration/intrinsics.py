@@ -1,9 +1,19 @@
-"""Camera intrinsics: the ChArUco board, calibration from board images, and the camera YAML file.
+"""Camera intrinsics: the boards, calibration from board images, and the camera file.
 
-Calibration detects ChArUco corners (``cv2.aruco.CharucoDetector``), rejects images that are
-blurred (edge blur measured at the corners), too sparse or of another size (saying which and why), runs ``calibrateCameraExtended``
-and reports the per-image and overall RMS reprojection error in pixels. Images whose error is far
+Two boards: ChArUco (:class:`BoardSpec`, corners found through their markers, so a partly
+visible board still counts) and the plain chessboard (:class:`ChessboardSpec`, counted by inner
+corners as OpenCV's ``patternSize``; the whole board must be in view). :func:`identify_board`
+tells which one a set of photos shows and names it.
+
+Calibration detects the corners (sub-pixel), rejects images that are blurred (edge blur measured
+at the corners), too sparse, of another size or near-duplicates of an earlier view (saying which
+and why), runs ``calibrateCameraExtended`` and reports the per-image and overall RMS reprojection
+error in pixels, the standard deviations of fx, fy, cx, cy, and how much of the image area and of
+the tilt range the views cover, with a warning where the set is weak. Images whose error is far
 above the rest (a mis-detection, motion blur) are rejected in a second pass.
+
+Camera files in three formats load alike (:func:`load_camera_yaml`): ours, ROS ``camera_info``
+YAML, and OpenCV ``FileStorage`` YAML/JSON; :func:`save_camera_yaml` writes ours or ROS's.
 """
 
 from __future__ import annotations
@@ -15,11 +25,15 @@ from typing import Annotated, Literal, Sequence
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from calibration.errors import CalibrationError
-from calibration.io import Strict, load_model, write_yaml
+from calibration.errors import CalibrationError, CalibrationFileError
+from calibration.io import Strict, load_model, read_yaml, write_yaml
 
 __all__ = [
     "BoardSpec",
+    "ChessboardSpec",
+    "Board",
+    "identify_board",
+    "detect_board",
     "CameraIntrinsics",
     "ImageReport",
     "IntrinsicsResult",
@@ -45,6 +59,7 @@ ARUCO_DICTS = {
 class BoardSpec(Strict):
     """A ChArUco board. Defaults fit A4 landscape at true scale (240 x 180 mm)."""
 
+    kind: Literal["charuco"] = "charuco"
     squares_x: Annotated[int, Field(ge=3, le=40)] = 8
     squares_y: Annotated[int, Field(ge=3, le=40)] = 6
     square_size_m: Annotated[float, Field(gt=0.0, le=1.0)] = 0.030
@@ -85,6 +100,37 @@ class BoardSpec(Strict):
         return (self.squares_x - 1) * (self.squares_y - 1)
 
 
+class ChessboardSpec(Strict):
+    """A plain chessboard, counted by its *inner* corners (OpenCV's ``patternSize``): the classic
+    OpenCV sample board of 10 x 7 squares is ``inner_cols=9, inner_rows=6``. The square size sets
+    the scale of board poses only; intrinsics do not depend on it."""
+
+    kind: Literal["chessboard"] = "chessboard"
+    inner_cols: Annotated[int, Field(ge=3, le=60)] = 9
+    inner_rows: Annotated[int, Field(ge=3, le=60)] = 6
+    square_size_m: Annotated[float, Field(gt=0.0, le=1.0)] = 0.025
+
+    @property
+    def n_corners(self) -> int:
+        return self.inner_cols * self.inner_rows
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.inner_cols, self.inner_rows)
+
+    def object_points(self) -> np.ndarray:
+        """Inner corners ``(rows * cols, 3)`` m in OpenCV's order (row-major, x along a row), z = 0."""
+        g = np.mgrid[0 : self.inner_cols, 0 : self.inner_rows].T.reshape(-1, 2).astype(np.float64)
+        return np.concatenate([g * self.square_size_m, np.zeros((len(g), 1))], 1)
+
+
+Board = BoardSpec | ChessboardSpec
+
+# Inner-corner counts of boards people print (OpenCV's samples, ROS camera_calibration, calib.io),
+# tried in this order when a plain chessboard's size is not given.
+COMMON_CHESSBOARDS = ((9, 6), (8, 6), (7, 6), (9, 7), (7, 5), (8, 5), (6, 4), (10, 7), (11, 8), (6, 5), (5, 4), (11, 7), (12, 9))
+
+
 @dataclass(frozen=True)
 class CameraIntrinsics:
     """Pinhole + OpenCV distortion. K: (3, 3) px; dist: (n,) (k1, k2, p1, p2[, k3, ...]); size in px."""
@@ -108,6 +154,22 @@ class CameraIntrinsics:
             raise ValueError("width/height must be positive")
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
+
+    def scaled(self, width: int, height: int) -> "CameraIntrinsics":
+        """The same camera at another resolution of the same aspect ratio (a resized image).
+
+        Pixel centres sit at integers, so a pixel edge maps as ``x' = (x + 0.5) s - 0.5``.
+        Distortion coefficients act on normalised coordinates and are unchanged.
+        """
+        if width <= 0 or height <= 0 or width * self.height != height * self.width:
+            raise ValueError(f"scaled: {width}x{height} does not have the aspect ratio of {self.width}x{self.height}")
+        s = width / self.width
+        K = self.K.copy()
+        K[0, 0] *= s
+        K[1, 1] *= s
+        K[0, 2] = (K[0, 2] + 0.5) * s - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * s - 0.5
+        return CameraIntrinsics(K, self.dist, int(width), int(height), None if self.rms_px is None else self.rms_px * s)
 
     def project(self, points_cam) -> np.ndarray:
         """Pixels ``(N, 2)`` of camera-frame points ``(N, 3)`` m, with distortion."""
@@ -136,6 +198,11 @@ class IntrinsicsResult:
     rms_px: float
     images: tuple[ImageReport, ...]
     T_cam_board: np.ndarray = field(repr=False)  # (n_accepted, 4, 4), in the order of accepted images
+    # 1-sigma uncertainty of fx, fy, cx, cy (px), from calibrateCameraExtended.
+    std_px: dict = field(default_factory=dict)
+    coverage: float = float("nan")  # fraction of an 8x6 grid of image cells that hold a corner
+    tilt_deg: tuple[float, float] = (float("nan"), float("nan"))  # least and most board tilt vs the optical axis
+    warnings: tuple[str, ...] = ()
 
     @property
     def rejected(self) -> tuple[ImageReport, ...]:
@@ -149,6 +216,12 @@ class CalibrationOptions(Strict):
     outlier_factor: Annotated[float, Field(gt=1.0)] = 3.0  # per-image RMS > factor * median -> rejected
     fix_k3: bool = True  # k3 is poorly determined without strong distortion and wide coverage
     zero_tangential: bool = False
+    # A view whose corners lie within this mean distance of an accepted view's is a duplicate: it
+    # adds no constraint, yet weights that pose as if it had been seen twice.
+    duplicate_px: Annotated[float, Field(ge=0.0)] = 2.0
+    max_focal_std_pct: Annotated[float, Field(gt=0.0)] = 0.5  # warn when std(fx or fy) / f is above this
+    min_coverage: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5  # warn below this image-area coverage
+    min_tilt_range_deg: Annotated[float, Field(ge=0.0)] = 20.0  # warn when the views' tilts span less
 
 
 def to_gray(image) -> np.ndarray:
@@ -219,7 +292,98 @@ def detect_charuco(gray: np.ndarray, board: BoardSpec):
     return corners.reshape(-1, 2).astype(np.float64), ids.reshape(-1).astype(np.int64)
 
 
-def _object_points(board: BoardSpec, ids: np.ndarray) -> np.ndarray:
+def detect_chessboard(gray: np.ndarray, board: ChessboardSpec):
+    """Inner corners of a plain chessboard -> (corners_px (N, 2), ids (N,)) with N = all corners,
+    refined to sub-pixel; empty arrays unless the whole pattern is found."""
+    import cv2
+
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    empty = np.zeros((0, 2)), np.zeros((0,), dtype=np.int64)
+    try:
+        ok, c = cv2.findChessboardCorners(gray, board.pattern_size, flags=flags | cv2.CALIB_CB_FAST_CHECK)
+        if ok:
+            c = c.reshape(-1, 2).astype(np.float32)
+            # Search window: up to 11 px (the OpenCV sample's), never wider than ~40 % of the
+            # corner spacing or the search would reach the next corner.
+            grid = c.reshape(board.inner_rows, board.inner_cols, 2)
+            spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(), np.linalg.norm(np.diff(grid, axis=0), axis=-1).min())
+            win = int(max(2, min(5, 0.4 * spacing)))
+            crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
+            c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (win, win), (-1, -1), crit).reshape(-1, 2)
+        else:
+            # The sector-based detector finds boards the classic one misses (strong blur, low
+            # contrast); its corners are sub-pixel already.
+            ok, c = cv2.findChessboardCornersSB(gray, board.pattern_size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)
+            if not ok:
+                return empty
+            c = c.reshape(-1, 2)
+    except cv2.error:
+        return empty
+    c = np.asarray(c, dtype=np.float64)
+    if len(c) != board.n_corners or not np.all(np.isfinite(c)):
+        return empty
+    return c, np.arange(board.n_corners, dtype=np.int64)
+
+
+def detect_board(gray: np.ndarray, board: Board):
+    """Corners of either board -> (corners_px (N, 2), ids (N,)); empty arrays if none."""
+    return detect_chessboard(gray, board) if isinstance(board, ChessboardSpec) else detect_charuco(gray, board)
+
+
+def count_aruco_markers(gray: np.ndarray, dictionary: str) -> int:
+    """How many markers of an ArUco ``dictionary`` (a key of ``ARUCO_DICTS``) ``gray`` shows."""
+    import cv2
+
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, ARUCO_DICTS[dictionary]))
+    try:
+        _, ids, _ = cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters()).detectMarkers(gray)
+    except cv2.error:
+        return 0
+    return 0 if ids is None else len(ids)
+
+
+def identify_board(grays: Sequence[np.ndarray], charuco: BoardSpec, inner_corners: tuple[int, int] | None = None,
+                   square_size_m: float | None = None, max_images: int = 4) -> tuple[Board, str]:
+    """Which board the photos show: ``(board, sentence naming it)``, or :class:`CalibrationError`.
+
+    ChArUco markers of ``charuco.dictionary`` -> that board. Markers of another dictionary -> an
+    error naming it. Otherwise a plain chessboard of ``inner_corners`` (or of the first common
+    size that is found whole) -> a :class:`ChessboardSpec`. Up to ``max_images`` photos are looked at.
+    """
+    import cv2
+
+    sample = list(grays)[:max_images]
+    if any(count_aruco_markers(g, charuco.dictionary) >= 4 for g in sample):
+        return charuco, f"ChArUco board ({charuco.squares_x}x{charuco.squares_y} squares, dictionary {charuco.dictionary})"
+    counts = {name: max(count_aruco_markers(g, name) for g in sample) for name in ARUCO_DICTS if name != charuco.dictionary}
+    best = max(counts.values(), default=0)
+    if best >= 4:
+        # A smaller dictionary is the start of a larger one (5X5_50 within 5X5_100): name every fit.
+        fits = [n for n, c in counts.items() if c == best]
+        raise CalibrationError(f"board: the photos show ChArUco markers of dictionary {' or '.join(fits)}, not {charuco.dictionary}; "
+                               f"pass --dictionary {fits[-1] if len(fits) == 1 else fits[0]} or the one printed "
+                               "(and the board's --squares-x/--squares-y)")
+    sizes = [tuple(inner_corners)] if inner_corners else list(COMMON_CHESSBOARDS)
+    for cols, rows in sizes:
+        for g in sample:
+            for pattern in ((cols, rows), (rows, cols)):
+                try:
+                    ok, _ = cv2.findChessboardCorners(g, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_FAST_CHECK)
+                except cv2.error:
+                    ok = False
+                if ok:
+                    spec = ChessboardSpec(inner_cols=pattern[0], inner_rows=pattern[1],
+                                          **({} if square_size_m is None else {"square_size_m": square_size_m}))
+                    how = "as given" if inner_corners else "found automatically"
+                    return spec, f"plain chessboard, {pattern[0]}x{pattern[1]} inner corners ({how})"
+    what = f"{inner_corners[0]}x{inner_corners[1]} chessboard" if inner_corners else "chessboard of a common size"
+    raise CalibrationError(f"board: no ChArUco markers (dictionary {charuco.dictionary}) and no {what} found in "
+                           f"{len(sample)} photo(s); pass --board chessboard --inner-corners COLSxROWS, or the ChArUco board's options")
+
+
+def _object_points(board: Board, ids: np.ndarray) -> np.ndarray:
+    if isinstance(board, ChessboardSpec):
+        return board.object_points()[ids]
     return np.asarray(board.cv_board().getChessboardCorners(), dtype=np.float64)[ids]
 
 
@@ -231,7 +395,7 @@ def _collinear(points: np.ndarray, tol: float = 1e-3) -> bool:
     return s[1] <= tol * max(s[0], 1e-12)
 
 
-def estimate_board_pose(gray: np.ndarray, board: BoardSpec, camera: CameraIntrinsics, min_corners: int = 6):
+def estimate_board_pose(gray: np.ndarray, board: Board, camera: CameraIntrinsics, min_corners: int = 6):
     """``(T_cam_board (4, 4), rms_px, n_corners)`` from one image, or ``None`` if the board is not usable.
 
     The board frame is OpenCV's: origin at the top-left board corner, +x right, +y down the printed
@@ -239,7 +403,7 @@ def estimate_board_pose(gray: np.ndarray, board: BoardSpec, camera: CameraIntrin
     """
     import cv2
 
-    corners, ids = detect_charuco(gray, board)
+    corners, ids = detect_board(gray, board)
     if len(ids) < min_corners:
         return None
     obj = _object_points(board, ids)
@@ -256,9 +420,9 @@ def estimate_board_pose(gray: np.ndarray, board: BoardSpec, camera: CameraIntrin
     return make_T(so3_exp(rvec.reshape(3)), tvec.reshape(3)), rms, len(ids)
 
 
-def calibrate_intrinsics(images: Sequence, board: BoardSpec, names: Sequence[str] | None = None,
+def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | None = None,
                          options: CalibrationOptions | None = None) -> IntrinsicsResult:
-    """Calibrate from ChArUco ``images`` (arrays, any layout :func:`to_gray` accepts).
+    """Calibrate from board ``images`` (arrays, any layout :func:`to_gray` accepts).
 
     Raises :class:`CalibrationError` if fewer than ``options.min_images`` images survive; the
     message lists every rejected image with its reason.
@@ -279,7 +443,13 @@ def calibrate_intrinsics(images: Sequence, board: BoardSpec, names: Sequence[str
         if gray.shape[::-1] != size:
             reports[i] = ImageReport(name, False, f"size {gray.shape[1]}x{gray.shape[0]} differs from the first image's {size[0]}x{size[1]}")
             continue
-        corners, ids = detect_charuco(gray, board)
+        corners, ids = detect_board(gray, board)
+        if isinstance(board, ChessboardSpec) and len(ids) == 0:
+            reports[i] = ImageReport(name, False, f"no {board.inner_cols}x{board.inner_rows} chessboard found whole")
+            continue
+        if isinstance(board, BoardSpec) and len(ids) == 0 and count_aruco_markers(gray, board.dictionary) == 0:
+            reports[i] = ImageReport(name, False, f"no ChArUco markers (dictionary {board.dictionary}) found")
+            continue
         if len(ids) < opt.min_corners:
             reports[i] = ImageReport(name, False, f"too few corners ({len(ids)} < {opt.min_corners})", len(ids))
             continue
@@ -291,7 +461,11 @@ def calibrate_intrinsics(images: Sequence, board: BoardSpec, names: Sequence[str
         if _collinear(obj[:, :2]):
             reports[i] = ImageReport(name, False, "corners lie on one line", len(ids), blur)
             continue
-        views.append((i, obj.astype(np.float32), corners.astype(np.float32)))
+        dup = _duplicate_of(ids, corners, views, opt.duplicate_px)
+        if dup is not None:
+            reports[i] = ImageReport(name, False, f"near-duplicate of {names[dup]} (corners within {opt.duplicate_px:g} px)", len(ids), blur)
+            continue
+        views.append((i, obj.astype(np.float32), corners.astype(np.float32), ids))
         reports[i] = ImageReport(name, True, "", len(ids), blur)
 
     flags = (cv2.CALIB_FIX_K3 if opt.fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if opt.zero_tangential else 0)
@@ -306,7 +480,7 @@ def calibrate_intrinsics(images: Sequence, board: BoardSpec, names: Sequence[str
     for _ in range(2):  # second pass only if outliers were dropped
         if len(views) < opt.min_images:
             _fail(len(views))
-        rms, K, dist, rvecs, tvecs, _, _, per_view = cv2.calibrateCameraExtended(
+        rms, K, dist, rvecs, tvecs, std_intr, _, per_view = cv2.calibrateCameraExtended(
             [v[1] for v in views], [v[2] for v in views], size, None, None, flags=flags)
         per_view = np.asarray(per_view).reshape(-1)
         med = float(np.median(per_view))
@@ -327,7 +501,44 @@ def calibrate_intrinsics(images: Sequence, board: BoardSpec, names: Sequence[str
 
     T = make_T(so3_exp(np.stack([np.asarray(r).reshape(3) for r in rvecs])), np.stack([np.asarray(t).reshape(3) for t in tvecs]))
     cam = CameraIntrinsics(K, np.asarray(dist).reshape(-1)[:5], int(size[0]), int(size[1]), float(rms))
-    return IntrinsicsResult(cam, float(rms), tuple(reports[k] for k in range(len(images))), T)
+    sd = np.asarray(std_intr, dtype=np.float64).reshape(-1)
+    std = {k: float(sd[j]) for j, k in enumerate(("fx", "fy", "cx", "cy"))} if sd.size >= 4 else {}
+    coverage = _coverage([v[2] for v in views], size)
+    tilts = np.degrees(np.arccos(np.clip(np.abs(T[:, 2, 2]), 0.0, 1.0)))  # board normal vs optical axis
+    tilt = (float(tilts.min()), float(tilts.max()))
+    warn = []
+    for k in ("fx", "fy"):
+        if k in std and 100 * std[k] / K[0 if k == "fx" else 1, 0 if k == "fx" else 1] > opt.max_focal_std_pct:
+            warn.append(f"{k} is uncertain: std {std[k]:.2f} px ({100 * std[k] / K[0 if k == 'fx' else 1, 0 if k == 'fx' else 1]:.2f} %, "
+                        f"threshold {opt.max_focal_std_pct:g} %); add views at other tilts and distances")
+    if coverage < opt.min_coverage:
+        warn.append(f"the corners cover {100 * coverage:.0f} % of the image area (threshold {100 * opt.min_coverage:.0f} %); "
+                    "add views with the board near the edges and corners of the frame, where distortion is strongest")
+    if tilt[1] - tilt[0] < opt.min_tilt_range_deg:
+        warn.append(f"the board's tilt spans only {tilt[0]:.0f}-{tilt[1]:.0f} deg (threshold {opt.min_tilt_range_deg:g} deg); "
+                    "add views tilted 20-45 deg about both axes: frontal views leave the focal length poorly determined")
+    return IntrinsicsResult(cam, float(rms), tuple(reports[k] for k in range(len(images))), T, std, coverage, tilt, tuple(warn))
+
+
+def _duplicate_of(ids: np.ndarray, corners: np.ndarray, views: list, tol_px: float) -> int | None:
+    """Index (into the images) of an accepted view whose shared corners lie within ``tol_px`` on average."""
+    for v in views:
+        common, a, b = np.intersect1d(ids, v[3], return_indices=True)
+        if len(common) >= 0.8 * max(len(ids), len(v[3])):
+            if float(np.linalg.norm(corners[a] - v[2][b], axis=1).mean()) <= tol_px:
+                return v[0]
+    return None
+
+
+def _coverage(corner_sets: Sequence[np.ndarray], size: tuple[int, int], cells: tuple[int, int] = (8, 6)) -> float:
+    """Fraction of a ``cells`` grid over the image in which some view has a corner."""
+    hit = np.zeros(cells[::-1], dtype=bool)
+    for c in corner_sets:
+        c = np.asarray(c, dtype=np.float64).reshape(-1, 2)
+        ix = np.clip((c[:, 0] / size[0] * cells[0]).astype(int), 0, cells[0] - 1)
+        iy = np.clip((c[:, 1] / size[1] * cells[1]).astype(int), 0, cells[1] - 1)
+        hit[iy, ix] = True
+    return float(hit.mean())
 
 
 # ---- files ---------------------------------------------------------------------------------
@@ -340,6 +551,7 @@ class _CameraFile(Strict):
     rms_px: Annotated[float, Field(ge=0.0)] | None = None
     model: Literal["opencv_pinhole"] = "opencv_pinhole"
     image_reprojection_rms_px: dict[str, float] | None = None
+    intrinsics_std_px: dict[Literal["fx", "fy", "cx", "cy"], Annotated[float, Field(ge=0.0, allow_inf_nan=False)]] | None = None
 
     @field_validator("K")
     @classmethod
@@ -370,8 +582,60 @@ class _CameraFile(Strict):
         return self
 
 
-def save_camera_yaml(path, camera: CameraIntrinsics, images: Sequence[ImageReport] = ()) -> Path:
-    """Write ``camera`` (and per-image reprojection RMS of accepted images) to ``path``."""
+class _RosMatrix(Strict):
+    rows: Annotated[int, Field(ge=1)]
+    cols: Annotated[int, Field(ge=1)]
+    data: tuple[Annotated[float, Field(allow_inf_nan=False)], ...]
+
+    @model_validator(mode="after")
+    def _count(self):
+        if len(self.data) != self.rows * self.cols:
+            raise ValueError(f"data: {len(self.data)} values for a {self.rows}x{self.cols} matrix")
+        return self
+
+
+class _RosCameraInfo(Strict):
+    """ROS ``camera_info`` YAML (``camera_calibration_parsers``; what ROS 1 and 2 calibrators write)."""
+
+    image_width: Annotated[int, Field(gt=0)]
+    image_height: Annotated[int, Field(gt=0)]
+    camera_name: str | None = None
+    camera_matrix: _RosMatrix
+    distortion_model: Literal["plumb_bob", "rational_polynomial", "equidistant", "fisheye"] = "plumb_bob"
+    distortion_coefficients: _RosMatrix
+    rectification_matrix: _RosMatrix | None = None
+    projection_matrix: _RosMatrix | None = None
+
+    @field_validator("distortion_model")
+    @classmethod
+    def _pinhole(cls, v):
+        if v in ("equidistant", "fisheye"):
+            raise ValueError("the fisheye (equidistant) model is not supported; calibrate with plumb_bob or rational_polynomial")
+        return v
+
+
+CAMERA_FORMATS = ("advobj", "ros")
+
+
+def save_camera_yaml(path, camera: CameraIntrinsics, images: Sequence[ImageReport] = (), fmt: str = "advobj",
+                     std_px: dict | None = None, camera_name: str = "camera") -> Path:
+    """Write ``camera`` to ``path``: ``fmt="advobj"`` (ours, with the per-image reprojection RMS
+    of accepted images and the intrinsics' standard deviations) or ``"ros"`` (``camera_info``)."""
+    if fmt == "ros":
+        K = camera.K
+        dist = [float(x) for x in camera.dist] or [0.0] * 5
+        model = "plumb_bob" if len(dist) <= 5 else "rational_polynomial"
+        dist = (dist + [0.0] * 5)[:5] if model == "plumb_bob" else (dist + [0.0] * 8)[:8]
+        # Monocular, unrectified: R = I, P = [K | 0] (ROS's calibrator would put an optimal new K there).
+        P = [float(K[0, 0]), 0.0, float(K[0, 2]), 0.0, 0.0, float(K[1, 1]), float(K[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
+        data = {"image_width": int(camera.width), "image_height": int(camera.height), "camera_name": camera_name,
+                "camera_matrix": {"rows": 3, "cols": 3, "data": [float(x) for x in K.reshape(-1)]},
+                "distortion_model": model, "distortion_coefficients": {"rows": 1, "cols": len(dist), "data": dist},
+                "rectification_matrix": {"rows": 3, "cols": 3, "data": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]},
+                "projection_matrix": {"rows": 3, "cols": 4, "data": P}}
+        return write_yaml(path, data)
+    if fmt != "advobj":
+        raise ValueError(f"format: expected one of {', '.join(CAMERA_FORMATS)}, got {fmt!r}")
     data = {
         "model": "opencv_pinhole",
         "width": int(camera.width),
@@ -383,18 +647,103 @@ def save_camera_yaml(path, camera: CameraIntrinsics, images: Sequence[ImageRepor
     per = {r.name: float(r.reprojection_rms_px) for r in images if r.accepted}
     if per:
         data["image_reprojection_rms_px"] = per
+    if std_px:
+        data["intrinsics_std_px"] = {k: float(v) for k, v in std_px.items()}
     return write_yaml(path, data, header="Camera intrinsics (OpenCV pinhole; K in px, dist = k1 k2 p1 p2 k3)")
 
 
+def camera_file_format(path) -> str:
+    """``"opencv"`` (FileStorage YAML/JSON), ``"ros"`` (camera_info) or ``"advobj"``, from the file's content."""
+    p = Path(path)
+    try:
+        head = p.read_text(errors="replace")[:4096]
+    except OSError as err:
+        raise CalibrationFileError(p, "<file>", f"cannot read ({err.strerror or err})") from None
+    if head.lstrip().startswith("%YAML") or "opencv-matrix" in head:
+        return "opencv"
+    if "camera_matrix" in head and "image_width" in head and "opencv-matrix" not in head:
+        return "ros"
+    return "advobj"
+
+
+def _cam(path, field: str, K, dist, width, height, rms=None) -> CameraIntrinsics:
+    """Validate through our own schema, so every format gets the same checks and messages."""
+    data = {"width": width, "height": height, "K": np.asarray(K, dtype=np.float64).reshape(3, 3).tolist(),
+            "dist": [float(x) for x in np.asarray(dist, dtype=np.float64).reshape(-1)], "rms_px": rms}
+    try:
+        m = load_model(path, _CameraFile, data)
+    except CalibrationFileError as err:
+        raise CalibrationFileError(path, field, str(err).split(": ", 2)[-1]) from None
+    return CameraIntrinsics(np.asarray(m.K), np.asarray(m.dist), m.width, m.height, m.rms_px)
+
+
+# Names OpenCV programs use for the same things (samples, calibration tools, ROS's converter).
+_CV_K = ("camera_matrix", "cameraMatrix", "K", "intrinsic", "intrinsics", "M", "mtx")
+_CV_D = ("distortion_coefficients", "dist_coeffs", "distCoeffs", "D", "distortion", "dist")
+_CV_W = ("image_width", "width", "imageWidth")
+_CV_H = ("image_height", "height", "imageHeight")
+
+
+def _load_opencv(path) -> CameraIntrinsics:
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        if not fs.isOpened():
+            raise CalibrationFileError(path, "<file>", "not a readable OpenCV FileStorage file")
+
+        def first(names):
+            for n in names:
+                node = fs.getNode(n)
+                if not node.empty():
+                    return n, node
+            return None, None
+
+        kname, knode = first(_CV_K)
+        if knode is None or knode.mat() is None or knode.mat().size != 9:
+            raise CalibrationFileError(path, "camera_matrix", f"no 3x3 camera matrix under any of {', '.join(_CV_K)}")
+        dname, dnode = first(_CV_D)
+        dist = np.zeros(0) if dnode is None or dnode.mat() is None else dnode.mat().reshape(-1)
+        wname, w = first(_CV_W)
+        hname, h = first(_CV_H)
+        if w is None or h is None:
+            size = fs.getNode("image_size")
+            if size.empty() or size.size() != 2:
+                raise CalibrationFileError(path, "image_width", "no image size (image_width/image_height, width/height or image_size)")
+            width, height = int(size.at(0).real()), int(size.at(1).real())
+        else:
+            width, height = int(w.real()), int(h.real())
+        rnode = fs.getNode("avg_reprojection_error")
+        rms = None if rnode.empty() else float(rnode.real())
+        return _cam(path, kname, knode.mat(), dist, width, height, rms)
+    finally:
+        fs.release()
+
+
 def load_camera_yaml(path) -> CameraIntrinsics:
-    """The :class:`CameraIntrinsics` in ``path``; a :class:`CalibrationFileError` names the file and field."""
+    """The :class:`CameraIntrinsics` in ``path``: our camera YAML, a ROS ``camera_info`` YAML, or
+    an OpenCV ``FileStorage`` YAML/JSON (told apart by content). A :class:`CalibrationFileError`
+    names the file and field."""
+    fmt = camera_file_format(path)
+    if fmt == "opencv" or str(path).lower().endswith(".json"):
+        return _load_opencv(path)
+    if fmt == "ros":
+        m = load_model(path, _RosCameraInfo)
+        if (m.camera_matrix.rows, m.camera_matrix.cols) != (3, 3):
+            raise CalibrationFileError(path, "camera_matrix", f"expected 3x3, got {m.camera_matrix.rows}x{m.camera_matrix.cols}")
+        return _cam(path, "camera_matrix", m.camera_matrix.data, m.distortion_coefficients.data, m.image_width, m.image_height)
     m = load_model(path, _CameraFile)
     return CameraIntrinsics(np.asarray(m.K), np.asarray(m.dist), m.width, m.height, m.rms_px)
 
 
-def save_board_yaml(path, board: BoardSpec) -> Path:
-    return write_yaml(path, board.model_dump(), header="ChArUco board (sizes in metres as printed)")
+def load_board_yaml(path) -> Board:
+    """A board YAML: ChArUco (``kind: charuco``, the default) or plain chessboard (``kind: chessboard``)."""
+    data = read_yaml(path)
+    if isinstance(data, dict) and data.get("kind") == "chessboard":
+        return load_model(path, ChessboardSpec, data)
+    return load_model(path, BoardSpec, data)
 
 
-def load_board_yaml(path) -> BoardSpec:
-    return load_model(path, BoardSpec)
+def save_board_yaml(path, board: Board) -> Path:
+    what = "Plain chessboard (counted by inner corners" if isinstance(board, ChessboardSpec) else "ChArUco board ("
+    return write_yaml(path, board.model_dump(), header=f"{what}{'; ' if isinstance(board, ChessboardSpec) else ''}sizes in metres as printed)")

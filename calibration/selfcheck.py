@@ -18,13 +18,16 @@ from sim.geometry import make_T, rotation_angle, so3_exp
 __all__ = ["intrinsics_check", "tag_check", "handeye_check", "handeye_images_check"]
 
 
-def _board_views(board: BoardSpec, n: int, seed: int):
-    """``T_cam_board: (n, 4, 4)`` with the printed face toward the camera, board centre near the optical axis."""
-    w = board.squares_x * board.square_size_m
-    h = board.squares_y * board.square_size_m
+def _board_views(board, n: int, seed: int, distance_range_m=(0.3, 0.45), max_tilt_deg: float = 40.0):
+    """``T_cam_board: (n, 4, 4)`` with the printed face toward the camera, board centre near the
+    optical axis; ``board`` is a ChArUco ``BoardSpec`` or a ``ChessboardSpec``."""
+    if hasattr(board, "inner_cols"):  # a chessboard's frame starts at its first inner corner
+        w, h = (board.inner_cols - 1) * board.square_size_m, (board.inner_rows - 1) * board.square_size_m
+    else:
+        w, h = board.squares_x * board.square_size_m, board.squares_y * board.square_size_m
     centre = make_T(np.eye(3), [-w / 2, -h / 2, 0.0])
     face = np.diag([1.0, -1.0, -1.0, 1.0])  # camera_facing gives a tag-like frame (+z out); the board's +z is into it
-    return np.stack([T @ face @ centre for T in S.random_view_poses(n, (0.3, 0.45), 40.0, seed)])
+    return np.stack([T @ face @ centre for T in S.random_view_poses(n, distance_range_m, max_tilt_deg, seed)])
 
 
 def intrinsics_check(n_images: int = 12, width: int = 640, height: int = 480, blur_px: float = 0.6, noise: float = 2.0,

@@ -108,6 +108,21 @@ def board_plane(board, T_cam_board: np.ndarray, px_per_square: int = 80, margin_
     return TexturedPlane(img, corners, np.asarray(T_cam_board, dtype=np.float64))
 
 
+def chessboard_plane(board, T_cam_board: np.ndarray, px_per_square: int = 60, margin_squares: float = 0.5) -> TexturedPlane:
+    """A printed plain chessboard (:class:`~calibration.intrinsics.ChessboardSpec`) with a white
+    margin, in the board frame (origin at the first inner corner, +x along a row, +y down)."""
+    cols, rows = board.inner_cols + 1, board.inner_rows + 1  # squares
+    sq = board.square_size_m
+    cells = (np.add.outer(np.arange(rows), np.arange(cols)) % 2 == 0)
+    img = np.where(np.kron(cells, np.ones((px_per_square, px_per_square), dtype=bool)), 0, 255).astype(np.uint8)
+    pad = int(round(margin_squares * px_per_square))
+    img = np.pad(img, pad, constant_values=255)
+    m = margin_squares * sq
+    x0, y0, x1, y1 = -sq - m, -sq - m, (cols - 1) * sq + m, (rows - 1) * sq + m
+    corners = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    return TexturedPlane(img, corners, np.asarray(T_cam_board, dtype=np.float64))
+
+
 _RENDERER = None  # one offscreen context per process, resized on demand (see render_planes)
 
 

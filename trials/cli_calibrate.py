@@ -74,29 +74,100 @@ def tags(
     typer.echo(f"wrote {out}: {len(id_list)} tag(s) of {size_mm:g} mm; print at 100 % and check the 50 mm scale bar")
 
 
+def _inner_corners(text: Optional[str]):
+    if text is None:
+        return None
+    try:
+        cols, rows = (int(x) for x in text.lower().split("x"))
+        if cols < 3 or rows < 3:
+            raise ValueError
+    except ValueError:
+        raise typer.BadParameter(f"expected COLSxROWS inner corners, each >= 3 (e.g. 9x6), got {text!r}", param_hint="--inner-corners") from None
+    return cols, rows
+
+
 @app.command()
 def intrinsics(
-    images: List[Path] = typer.Argument(..., help="ChArUco board photos"),
+    images: List[Path] = typer.Argument(..., help="board photos (ChArUco or plain chessboard)"),
     out: Path = typer.Option(Path("cam.yaml"), help="output camera YAML"),
-    board: Optional[Path] = typer.Option(None, help="board YAML (from 'calibrate board'); default: the options below"),
+    board: str = typer.Option("auto", help="auto (tell from the photos), charuco, chessboard, or a board YAML from 'calibrate board'"),
+    inner_corners: Optional[str] = typer.Option(None, "--inner-corners", help="plain chessboard: inner corners COLSxROWS, e.g. 9x6 "
+                                                "(default with auto: the first common size found)"),
     squares_x: int = _SQX, squares_y: int = _SQY, square_mm: float = _SQ, marker_mm: float = _MK, dictionary: str = _DICT,
     legacy: bool = _LEG,
-    min_corners: int = typer.Option(12, help="reject images with fewer ChArUco corners"),
+    min_corners: int = typer.Option(12, help="reject images with fewer board corners"),
     max_blur_px: float = typer.Option(1.5, help="reject images whose board edges are blurrier than this (px)"),
+    fmt: str = typer.Option("advobj", "--format", help="camera file format: advobj or ros (camera_info YAML)"),
 ) -> None:
-    """Calibrate K and distortion from ChArUco photos; report per-image and RMS reprojection error."""
-    from calibration.intrinsics import CalibrationOptions, calibrate_intrinsics, save_camera_yaml
+    """Calibrate K and distortion from board photos; report per-image and RMS reprojection error,
+    the intrinsics' standard deviations, and the views' coverage of the image and of tilt."""
+    from calibration.intrinsics import CAMERA_FORMATS, ChessboardSpec, CalibrationOptions, calibrate_intrinsics, identify_board
+    from calibration.intrinsics import save_camera_yaml, to_gray
 
-    spec = _board(board, squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
-    res = calibrate_intrinsics([_read_image(p) for p in images], spec, [str(p) for p in images],
-                               CalibrationOptions(min_corners=min_corners, max_blur_px=max_blur_px))
+    if fmt not in CAMERA_FORMATS:
+        raise typer.BadParameter(f"expected one of {', '.join(CAMERA_FORMATS)}, got {fmt!r}", param_hint="--format")
+    corners = _inner_corners(inner_corners)
+    arrays = [_read_image(p) for p in images]
+    if board in ("auto", "charuco", "chessboard"):
+        charuco = _board(None, squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
+        if board == "charuco":
+            spec, how = charuco, "ChArUco board (as given)"
+        elif board == "chessboard" and corners is not None:
+            spec, how = ChessboardSpec(inner_cols=corners[0], inner_rows=corners[1], square_size_m=square_mm / 1000), \
+                f"plain chessboard, {corners[0]}x{corners[1]} inner corners (as given)"
+        else:  # auto, or a chessboard of unknown size
+            from calibration.errors import CalibrationError
+
+            grays = [to_gray(a) for a in arrays]
+            spec, how = identify_board(grays, charuco, corners, square_mm / 1000)
+            if board == "chessboard" and not isinstance(spec, ChessboardSpec):
+                raise CalibrationError("board: --board chessboard, but the photos show a ChArUco board; pass --board charuco or auto")
+    else:
+        spec = _board(Path(board), squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
+        how = f"from {board}"
+    typer.echo(f"board: {how}")
+    res = calibrate_intrinsics(arrays, spec, [str(p) for p in images], CalibrationOptions(min_corners=min_corners, max_blur_px=max_blur_px))
     for r in res.images:
         status = f"{r.reprojection_rms_px:.3f} px" if r.accepted else f"REJECTED: {r.reason}"
         typer.echo(f"  {r.name}: {r.n_corners} corners, blur {r.blur_px:.2f} px, {status}")
-    save_camera_yaml(out, res.camera, res.images)
+    save_camera_yaml(out, res.camera, res.images, fmt=fmt, std_px=res.std_px)
     K = res.camera.K
+    sd = res.std_px
     typer.echo(f"RMS {res.rms_px:.3f} px over {len(res.images) - len(res.rejected)} image(s); fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
                f"cx={K[0, 2]:.2f} cy={K[1, 2]:.2f}; wrote {out}")
+    if sd:
+        typer.echo(f"1-sigma: fx {sd['fx']:.2f} fy {sd['fy']:.2f} cx {sd['cx']:.2f} cy {sd['cy']:.2f} px; "
+                   f"coverage {100 * res.coverage:.0f} % of the image; tilt {res.tilt_deg[0]:.0f}-{res.tilt_deg[1]:.0f} deg")
+    for w in res.warnings:
+        typer.echo(f"WARNING: {w}")
+
+
+@app.command()
+def convert(
+    camera: Path = typer.Argument(..., help="a camera file: ours, ROS camera_info YAML, or OpenCV FileStorage YAML/JSON"),
+    out: Path = typer.Option(..., help="output camera file"),
+    fmt: str = typer.Option("advobj", "--format", help="advobj or ros"),
+    rescale: Optional[str] = typer.Option(None, help="also rescale to WIDTHxHEIGHT (same aspect ratio)"),
+) -> None:
+    """Convert a camera file between formats (and optionally resolutions)."""
+    from calibration.intrinsics import CAMERA_FORMATS, camera_file_format, load_camera_yaml, save_camera_yaml
+
+    if fmt not in CAMERA_FORMATS:
+        raise typer.BadParameter(f"expected one of {', '.join(CAMERA_FORMATS)}, got {fmt!r}", param_hint="--format")
+    cam = load_camera_yaml(camera)
+    if rescale is not None:
+        cam = _rescaled(cam, rescale, "--rescale")
+    save_camera_yaml(out, cam, fmt=fmt)
+    typer.echo(f"read {camera} ({camera_file_format(camera)}), {cam.width}x{cam.height}; wrote {out} ({fmt})")
+
+
+def _rescaled(cam, size: str, flag: str):
+    try:
+        w, h = (int(x) for x in size.lower().split("x"))
+        return cam.scaled(w, h)
+    except ValueError as err:
+        msg = str(err) if "aspect" in str(err) else f"expected WIDTHxHEIGHT, got {size!r}"
+        raise typer.BadParameter(msg, param_hint=flag) from None
 
 
 @app.command()
@@ -105,6 +176,9 @@ def detect(
     camera: Path = typer.Option(..., help="camera YAML"),
     registry: Optional[Path] = typer.Option(None, help="object registry YAML (tag id -> object)"),
     size_mm: Optional[float] = typer.Option(None, "--size-mm", help="tag size for tags not in the registry"),
+    dictionary: str = typer.Option("tag36h11", "--dictionary", help="tag36h11 (AprilTag 3) or an ArUco dictionary, e.g. 4X4_50"),
+    rescale: bool = typer.Option(False, "--rescale", help="if the photo's size differs from the camera file's but has its aspect "
+                                 "ratio, rescale the intrinsics to the photo"),
     as_json: bool = typer.Option(False, "--json", help="print JSON"),
 ) -> None:
     """Print every detected tag (both pose solutions, errors, ambiguity) and every registered object's position."""
@@ -115,7 +189,21 @@ def detect(
     from calibration.registry import TABLE, load_registry, locate_objects
     from sim.geometry import invert_T, transform_points
 
+    from calibration.apriltag import resolve_dictionary
+
+    try:
+        dictionary = resolve_dictionary(dictionary)
+    except ValueError as err:
+        raise typer.BadParameter(str(err).removeprefix("dictionary: "), param_hint="--dictionary") from None
     cam = load_camera_yaml(camera)
+    photo = _read_image(image)
+    h, w = photo.shape[:2]
+    if (w, h) != (cam.width, cam.height) and rescale:
+        if w * cam.height != h * cam.width:
+            raise typer.BadParameter(f"{image} is {w}x{h}, the camera file {camera} is {cam.width}x{cam.height}: another aspect ratio "
+                                     "(a crop), so the intrinsics cannot be rescaled; calibrate at this size", param_hint="--rescale")
+        typer.echo(f"rescaled the intrinsics from {cam.width}x{cam.height} to {w}x{h}")
+        cam = cam.scaled(w, h)
     reg = load_registry(registry) if registry else None
     default = size_mm / 1000 if size_mm else None
 
@@ -126,7 +214,7 @@ def detect(
     from calibration.errors import CalibrationError
 
     try:
-        dets = detect_tags(_read_image(image), cam, size_of)
+        dets = detect_tags(photo, cam, size_of, dictionary=dictionary)
     except CalibrationError as err:
         raise CalibrationError(f"{image}: {err}") from None  # name the photo: the detector does not know it
     objects, missing = {}, []

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from calibration import synthetic as S
-from calibration.errors import CalibrationFileError
+from calibration.errors import CalibrationError, CalibrationFileError
 from calibration.intrinsics import BoardSpec, CameraIntrinsics, save_camera_yaml
 from calibration.printables import board_pdf, parse_id_ranges, tag_sheet_pdf
 from trials.cli import app
@@ -86,11 +86,50 @@ def test_cli_intrinsics_writes_camera_yaml_and_reports_errors(tmp_path, board_im
     out = tmp_path / "cam.yaml"
     r = runner.invoke(app, ["calibrate", "intrinsics", *map(str, paths), str(tmp_path / "blank.png"), "--out", str(out)])
     assert r.exit_code == 0, r.output
-    assert "blank.png: 0 corners" in r.output and "REJECTED: too few corners" in r.output and "RMS" in r.output
+    assert r.output.startswith("board: ChArUco board (8x6 squares, dictionary 5X5_100)")
+    assert "blank.png: 0 corners" in r.output and "REJECTED: no ChArUco markers" in r.output and "RMS" in r.output
+    assert "1-sigma: fx" in r.output
     from calibration.intrinsics import load_camera_yaml
 
     assert abs(load_camera_yaml(out).K[0, 0] - K[0, 0]) / K[0, 0] < 0.01
 
+
+def test_cli_intrinsics_on_plain_chessboard_photos_finds_the_board_and_writes_ros(tmp_path, K):
+    from calibration.intrinsics import ChessboardSpec, load_camera_yaml
+    from calibration.selfcheck import _board_views
+
+    b = ChessboardSpec()
+    paths = []
+    for i, t in enumerate(_board_views(b, 6, seed=2)):
+        paths.append(tmp_path / f"left{i:02d}.jpg")
+        cv2.imwrite(str(paths[-1]), S.degrade(S.render_planes([S.chessboard_plane(b, t)], K, W, H), 0.6, 2.0, seed=i)[..., ::-1])
+    out = tmp_path / "ost.yaml"
+    r = runner.invoke(app, ["calibrate", "intrinsics", *map(str, paths), "--out", str(out), "--format", "ros"])
+    assert r.exit_code == 0, r.output
+    assert r.output.startswith("board: plain chessboard, 9x6 inner corners (found automatically)")
+    assert "camera_matrix:" in out.read_text() and abs(load_camera_yaml(out).K[0, 0] - K[0, 0]) / K[0, 0] < 0.01
+    r = runner.invoke(app, ["calibrate", "intrinsics", *map(str, paths), "--board", "chessboard", "--inner-corners", "9x", "--out", str(out)])
+    assert r.exit_code == 2 and "--inner-corners" in r.output and "COLSxROWS" in r.output
+    r = runner.invoke(app, ["calibrate", "intrinsics", *map(str, paths), "--board", "charuco", "--out", str(out)])
+    assert isinstance(r.exception, CalibrationError) and "no ChArUco markers (dictionary 5X5_100) found" in str(r.exception)
+
+
+def test_cli_wrong_image_size_is_one_line_and_rescale_fixes_it(tmp_path, K, monkeypatch, capsys):
+    from trials.cli import main
+
+    img = S.render_planes([S.tag_plane(3, 0.04, S.camera_facing(0.5))], K, W, H)
+    cv2.imwrite(str(tmp_path / "half.png"), cv2.resize(img, (W // 2, H // 2), interpolation=cv2.INTER_AREA)[..., ::-1])
+    save_camera_yaml(tmp_path / "cam.yaml", CameraIntrinsics(K, np.zeros(5), W, H))
+    argv = ["advobj", "calibrate", "detect", str(tmp_path / "half.png"), "--camera", str(tmp_path / "cam.yaml"), "--size-mm", "40"]
+    monkeypatch.setattr("sys.argv", argv)
+    with pytest.raises(SystemExit) as exc:
+        main()
+    err = [l for l in capsys.readouterr().err.splitlines() if l.strip()]
+    assert exc.value.code == 2 and len(err) == 1 and "half.png" in err[0] and "320x240" in err[0] and "--rescale" in err[0]
+    r = runner.invoke(app, argv[1:] + ["--rescale", "--json"])
+    assert r.exit_code == 0, r.output
+    t = json.loads(r.output[r.output.index("{"):])["tags"][0]["solutions"][0]["translation_m"]
+    assert abs(t[2] - 0.5) < 0.005  # the rescaled intrinsics give the true distance
 
 def test_cli_detect_json_lists_tags_and_objects(tmp_path, K):
     from pathlib import Path
