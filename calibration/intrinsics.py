@@ -222,6 +222,9 @@ class CalibrationOptions(Strict):
     max_focal_std_pct: Annotated[float, Field(gt=0.0)] = 0.5  # warn when std(fx or fy) / f is above this
     min_coverage: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5  # warn below this image-area coverage
     min_tilt_range_deg: Annotated[float, Field(ge=0.0)] = 20.0  # warn when the views' tilts span less
+    # Plain chessboards: cornerSubPix half-window (px); None = min(11, 0.4 x the corner spacing)
+    # per image. 11 reproduces OpenCV's sample, whose window outgrows a distant board's squares.
+    subpix_half_window_px: Annotated[int, Field(ge=1, le=50)] | None = None
 
 
 def to_gray(image) -> np.ndarray:
@@ -292,9 +295,11 @@ def detect_charuco(gray: np.ndarray, board: BoardSpec):
     return corners.reshape(-1, 2).astype(np.float64), ids.reshape(-1).astype(np.int64)
 
 
-def detect_chessboard(gray: np.ndarray, board: ChessboardSpec):
+def detect_chessboard(gray: np.ndarray, board: ChessboardSpec, half_window_px: int | None = None):
     """Inner corners of a plain chessboard -> (corners_px (N, 2), ids (N,)) with N = all corners,
-    refined to sub-pixel; empty arrays unless the whole pattern is found."""
+    refined to sub-pixel; empty arrays unless the whole pattern is found.
+
+    ``half_window_px``: the ``cornerSubPix`` half-window; None adapts it per image (see below)."""
     import cv2
 
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
@@ -303,11 +308,12 @@ def detect_chessboard(gray: np.ndarray, board: ChessboardSpec):
         ok, c = cv2.findChessboardCorners(gray, board.pattern_size, flags=flags | cv2.CALIB_CB_FAST_CHECK)
         if ok:
             c = c.reshape(-1, 2).astype(np.float32)
-            # Search window: up to 11 px (the OpenCV sample's), never wider than ~40 % of the
-            # corner spacing or the search would reach the next corner.
+            # Search half-window: OpenCV's calibration sample's 11 px (renders with known K say a
+            # wide window is the more accurate), but under 40 % of the corner spacing, so that a
+            # small or distant board's window never reaches the next corner.
             grid = c.reshape(board.inner_rows, board.inner_cols, 2)
             spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(), np.linalg.norm(np.diff(grid, axis=0), axis=-1).min())
-            win = int(max(2, min(5, 0.4 * spacing)))
+            win = int(max(2, min(11, 0.4 * spacing))) if half_window_px is None else int(half_window_px)
             crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
             c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (win, win), (-1, -1), crit).reshape(-1, 2)
         else:
@@ -325,9 +331,9 @@ def detect_chessboard(gray: np.ndarray, board: ChessboardSpec):
     return c, np.arange(board.n_corners, dtype=np.int64)
 
 
-def detect_board(gray: np.ndarray, board: Board):
+def detect_board(gray: np.ndarray, board: Board, half_window_px: int | None = None):
     """Corners of either board -> (corners_px (N, 2), ids (N,)); empty arrays if none."""
-    return detect_chessboard(gray, board) if isinstance(board, ChessboardSpec) else detect_charuco(gray, board)
+    return detect_chessboard(gray, board, half_window_px) if isinstance(board, ChessboardSpec) else detect_charuco(gray, board)
 
 
 def count_aruco_markers(gray: np.ndarray, dictionary: str) -> int:
@@ -443,7 +449,7 @@ def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | 
         if gray.shape[::-1] != size:
             reports[i] = ImageReport(name, False, f"size {gray.shape[1]}x{gray.shape[0]} differs from the first image's {size[0]}x{size[1]}")
             continue
-        corners, ids = detect_board(gray, board)
+        corners, ids = detect_board(gray, board, opt.subpix_half_window_px)
         if isinstance(board, ChessboardSpec) and len(ids) == 0:
             reports[i] = ImageReport(name, False, f"no {board.inner_cols}x{board.inner_rows} chessboard found whole")
             continue

@@ -18,9 +18,11 @@ import numpy as np
 from calibration.errors import CalibrationError
 from calibration.intrinsics import BoardSpec
 
-__all__ = ["A4_MM", "MM_PER_INCH", "SCALE_BAR_MM", "page_figure", "scale_bar", "image_mm", "tag_sheet_pdf", "board_pdf", "parse_id_ranges"]
+__all__ = ["A4_MM", "PAGES_MM", "MM_PER_INCH", "SCALE_BAR_MM", "page_figure", "scale_bar", "image_mm", "tag_sheet_pdf", "board_pdf",
+           "parse_id_ranges", "parse_page"]
 
 A4_MM = (210.0, 297.0)
+PAGES_MM = {"A4": A4_MM, "A3": (297.0, 420.0), "A2": (420.0, 594.0), "letter": (215.9, 279.4), "tabloid": (279.4, 431.8)}
 MM_PER_INCH = 25.4
 SCALE_BAR_MM = 50.0
 
@@ -45,6 +47,29 @@ def parse_id_ranges(text: str) -> list[int]:
     if not ids:
         raise ValueError("ids: empty")
     return ids
+
+
+def parse_page(page: str) -> tuple[float, float]:
+    """A page name of :data:`PAGES_MM` (case-insensitive) or ``WxH`` in mm -> (width, height) mm."""
+    for name, size in PAGES_MM.items():
+        if page.strip().lower() == name.lower():
+            return size
+    try:
+        w, h = (float(x) for x in page.lower().split("x"))
+        if not (math.isfinite(w) and math.isfinite(h) and 50.0 <= w <= 5000.0 and 50.0 <= h <= 5000.0):
+            raise ValueError
+    except ValueError:
+        raise ValueError(f"page: expected {', '.join(PAGES_MM)} or WIDTHxHEIGHT in mm (50-5000 each), got {page!r}") from None
+    return (w, h)
+
+
+def cut_marks(ax, x_mm: float, y_mm: float, w_mm: float, h_mm: float, length_mm: float = 2.0):
+    """Thin L-shaped marks just outside each corner of a rectangle: cut along them."""
+    kw = dict(color="0.45", linewidth=0.25)
+    for cx, sx in ((x_mm, -1.0), (x_mm + w_mm, 1.0)):
+        for cy, sy in ((y_mm, -1.0), (y_mm + h_mm, 1.0)):
+            ax.plot([cx, cx + sx * length_mm], [cy, cy], **kw)
+            ax.plot([cx, cx], [cy, cy + sy * length_mm], **kw)
 
 
 def page_figure(width_mm: float, height_mm: float):
@@ -79,10 +104,12 @@ def image_mm(ax, img: np.ndarray, x_mm: float, y_mm: float, w_mm: float, h_mm: f
               aspect="auto")
 
 
-def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_MM, margin_mm: float = 12.0) -> Path:
+def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_MM, margin_mm: float = 8.0, gap_mm: float = 4.0) -> Path:
     """AprilTags (tag36h11) ``tag_ids`` at ``tag_size_mm`` (black square side) on as many pages as needed.
 
-    Each tag keeps a white quiet zone of two cells and is labelled with its id and size.
+    Tags sit in a dense grid: each keeps a white quiet zone of two cells and a label strip (id and
+    size) below it, inside a cut box marked at its corners; boxes are ``gap_mm`` apart, room for
+    the marks and a blade.
     """
     import cv2
     from matplotlib.backends.backend_pdf import PdfPages
@@ -96,11 +123,12 @@ def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_M
     cells = d.markerSize + 2
     cell_mm = tag_size_mm / cells
     quiet_mm = 2 * cell_mm
-    pitch_x = tag_size_mm + 2 * quiet_mm + 4.0
-    pitch_y = pitch_x + 5.0  # room for the label
+    label_mm = 3.5
+    box_w, box_h = tag_size_mm + 2 * quiet_mm, tag_size_mm + 2 * quiet_mm + label_mm
+    pitch_x, pitch_y = box_w + gap_mm, box_h + gap_mm
     W, H = page_mm
     usable_w, usable_h = W - 2 * margin_mm, H - 2 * margin_mm - 10.0  # bottom strip: scale bar
-    cols, rows = int(usable_w // pitch_x), int(usable_h // pitch_y)
+    cols, rows = int((usable_w + gap_mm) // pitch_x), int((usable_h + gap_mm) // pitch_y)
     if cols < 1 or rows < 1:
         raise CalibrationError(f"size_mm: a {tag_size_mm:g} mm tag does not fit a {W:g} x {H:g} mm page with {margin_mm:g} mm margins")
     per_page = cols * rows
@@ -111,28 +139,38 @@ def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_M
             fig, ax = page_figure(W, H)
             for k, tag_id in enumerate(tag_ids[start : start + per_page]):
                 r, c = divmod(k, cols)
-                x = margin_mm + c * pitch_x + quiet_mm
-                y = margin_mm + r * pitch_y + quiet_mm
+                bx, by = margin_mm + c * pitch_x, margin_mm + r * pitch_y
+                x, y = bx + quiet_mm, by + quiet_mm
                 img = cv2.aruco.generateImageMarker(d, int(tag_id), cells, borderBits=1)  # 1 px per cell
                 image_mm(ax, img, x, y, tag_size_mm, tag_size_mm)
-                ax.text(x + tag_size_mm / 2, y + tag_size_mm + quiet_mm + 1.0, f"tag36h11 id {tag_id}  {tag_size_mm:g} mm",
-                        fontsize=6, ha="center", va="top")
+                ax.text(x + tag_size_mm / 2, y + tag_size_mm + quiet_mm + 0.3, f"tag36h11 id {tag_id}  {tag_size_mm:g} mm",
+                        fontsize=5, ha="center", va="top")
+                cut_marks(ax, bx, by, box_w, box_h)
             scale_bar(ax, margin_mm, H - margin_mm)
             pdf.savefig(fig)
     return path
 
 
-def board_pdf(path, board: BoardSpec, margin_mm: float = 8.0, px_per_square: int = 120) -> Path:
-    """One page with the ChArUco ``board`` at true scale: A4 (either orientation) if it fits, else a custom page."""
+def board_pdf(path, board: BoardSpec, margin_mm: float = 8.0, px_per_square: int = 120, page: str = "A4") -> Path:
+    """One ``page`` (a name of :data:`PAGES_MM` or ``WxH`` mm, either orientation) with the ChArUco
+    ``board`` at true scale; a board that does not fit is refused, saying what would."""
     w_mm = board.squares_x * board.square_size_m * 1000.0
     h_mm = board.squares_y * board.square_size_m * 1000.0
     need = (w_mm + 2 * margin_mm, h_mm + 2 * margin_mm + 12.0)
-    if need[0] <= A4_MM[0] and need[1] <= A4_MM[1]:
-        W, H = A4_MM
-    elif need[0] <= A4_MM[1] and need[1] <= A4_MM[0]:
-        W, H = A4_MM[1], A4_MM[0]
+    try:
+        pw, ph = parse_page(page)
+    except ValueError as err:
+        raise CalibrationError(str(err)) from None
+    if need[0] <= pw and need[1] <= ph:
+        W, H = pw, ph
+    elif need[0] <= ph and need[1] <= pw:
+        W, H = ph, pw
     else:
-        W, H = math.ceil(need[0]), math.ceil(need[1])
+        fits = [n for n, (a, b) in PAGES_MM.items() if (need[0] <= a and need[1] <= b) or (need[0] <= b and need[1] <= a)]
+        hint = f"--page {fits[0]}" if fits else f"--page {math.ceil(need[0])}x{math.ceil(need[1])} (a print service's size)"
+        raise CalibrationError(f"board: {w_mm:g} x {h_mm:g} mm ({need[0]:g} x {need[1]:g} with margins and label) does not fit a "
+                               f"{pw:g} x {ph:g} mm page ({page}) in either orientation; use fewer or smaller squares "
+                               f"(--squares-x/--squares-y/--square-mm) or {hint}")
     img = board.cv_board().generateImage((board.squares_x * px_per_square, board.squares_y * px_per_square), marginSize=0, borderBits=1)
     fig, ax = page_figure(W, H)
     x, y = (W - w_mm) / 2, margin_mm

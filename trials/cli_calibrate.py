@@ -46,13 +46,14 @@ def board(
     out: Path = typer.Option(Path("board.pdf"), help="output PDF; the board YAML is written next to it"),
     squares_x: int = _SQX, squares_y: int = _SQY, square_mm: float = _SQ, marker_mm: float = _MK, dictionary: str = _DICT,
     legacy: bool = _LEG,
+    page: str = typer.Option("A4", help="paper: A4, A3, A2, letter, tabloid, or WIDTHxHEIGHT in mm; a board that does not fit is refused"),
 ) -> None:
     """Write a true-scale printable ChArUco board (PDF) and its description (YAML)."""
     from calibration.intrinsics import save_board_yaml
     from calibration.printables import board_pdf
 
     spec = _board(None, squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
-    board_pdf(out, spec)
+    board_pdf(out, spec, page=page)
     y = save_board_yaml(out.with_suffix(".yaml"), spec)
     typer.echo(f"wrote {out} and {y}; print at 100 % and check the 50 mm scale bar")
 

@@ -38,7 +38,8 @@ def _pdf_pages_and_images(path):
 def test_tag_sheet_is_true_scale(tmp_path):
     p = tag_sheet_pdf(tmp_path / "tags.pdf", list(range(8)), 40.0)
     boxes, sizes = _pdf_pages_and_images(p)
-    assert len(boxes) == 2  # 6 tags of 40 mm per A4 page
+    assert len(boxes) == 1  # 12 tags of 40 mm per A4 page, in cut boxes 4 mm apart
+    assert len(_pdf_pages_and_images(tag_sheet_pdf(tmp_path / "t13.pdf", list(range(13)), 40.0))[0]) == 2
     assert boxes[0][2:] == pytest.approx((210 * PT_PER_MM, 297 * PT_PER_MM), abs=0.01)
     assert len(sizes) == 8
     for w, h in sizes:
@@ -51,8 +52,19 @@ def test_board_pdf_is_true_scale(tmp_path):
     assert boxes[0][2:] == pytest.approx((297 * PT_PER_MM, 210 * PT_PER_MM), abs=0.01)  # A4 landscape
     assert sizes == [pytest.approx((240 * PT_PER_MM, 180 * PT_PER_MM), abs=0.01)]
     big = BoardSpec(squares_x=12, squares_y=9, square_size_m=0.03)
-    boxes, sizes = _pdf_pages_and_images(board_pdf(tmp_path / "big.pdf", big))
-    assert boxes[0][2] >= 360 * PT_PER_MM and sizes == [pytest.approx((360 * PT_PER_MM, 270 * PT_PER_MM), abs=0.01)]
+    with pytest.raises(CalibrationError, match=r"board: 360 x 270 mm .* does not fit a 210 x 297 mm page \(A4\).*--page A2") as e:
+        board_pdf(tmp_path / "big.pdf", big)
+    assert "\n" not in str(e.value) and not (tmp_path / "big.pdf").exists()
+    boxes, sizes = _pdf_pages_and_images(board_pdf(tmp_path / "big.pdf", big, page="A2"))
+    assert boxes[0][2:] == pytest.approx((420 * PT_PER_MM, 594 * PT_PER_MM), abs=0.01)  # A2 portrait
+    assert sizes == [pytest.approx((360 * PT_PER_MM, 270 * PT_PER_MM), abs=0.01)]
+    huge = BoardSpec(squares_x=20, squares_y=7, square_size_m=0.0308, marker_size_m=0.02)  # 616 x 216 mm
+    with pytest.raises(CalibrationError, match=r"616 x 215.6 mm .*--page 632x244 \(a print service"):
+        board_pdf(tmp_path / "huge.pdf", huge)
+    boxes, _ = _pdf_pages_and_images(board_pdf(tmp_path / "huge.pdf", huge, page="700x300"))
+    assert boxes[0][2:] == pytest.approx((700 * PT_PER_MM, 300 * PT_PER_MM), abs=0.01)
+    with pytest.raises(CalibrationError, match="page: expected A4"):
+        board_pdf(tmp_path / "x.pdf", b, page="napkin")
 
 
 def test_id_ranges_parse_and_errors():
