@@ -141,7 +141,7 @@ def test_cli_wrong_image_size_is_one_line_and_rescale_fixes_it(tmp_path, K, monk
     r = runner.invoke(app, argv[1:] + ["--rescale", "--json"])
     assert r.exit_code == 0, r.output
     t = json.loads(r.output[r.output.index("{"):])["tags"][0]["solutions"][0]["translation_m"]
-    assert abs(t[2] - 0.5) < 0.005  # the rescaled intrinsics give the true distance
+    assert abs(t[2] - 0.5) < 0.015  # the true distance (unrescaled intrinsics would say 1 m); an 18 px tag
 
 def test_cli_detect_json_lists_tags_and_objects(tmp_path, K):
     from pathlib import Path
