@@ -55,6 +55,8 @@ class SimCameraConfig(_Strict):
     """Renders the sim world from the sim arm's TCP (needs ``arm.type: sim``)."""
 
     type: Literal["sim"]
+    tags: bool = Field(False, description="draw tag36h11 tags on the objects and the table (the session's --registry, or one "
+                                          "generated for the scene) and locate the objects through them, as a real cell does")
 
 
 class OpenCVCameraConfig(_Strict):

@@ -275,6 +275,9 @@ class TerminalOperator:
         outcome = None
         self._discard_typeahead()  # keys pressed during the policy loop must not accept this outcome
         self.show(info)
+        if result.reached == "unknown":
+            self.show("  the camera could not tell the outcome: which object did the gripper reach? [g/a/n] say so, "
+                      "[enter/u] keep it unknown")
         while True:
             self.show("  [enter/y] accept   [g/a/n/u] override: goal/adversarial/none/unknown   [t] note   [q] abort")
             ch = self._key("\nygantuq")

@@ -12,16 +12,24 @@ Per trial, in this order:
    the placement is within tolerance (or skips the check: logged in the trial's events).
 4. Policy loop at ``plan.control_hz`` (no sleeping with ``rate_limit=False``, for sim arms) for
    at most ``plan.max_steps`` steps: camera -> policy -> ``SafeArm.step_delta`` (the scene's action
-   scaling) -> record. Like the simulator's episodes, the loop ends early when the criterion says
-   an object is reached (TCP against the checked placement poses). It ends too on a refused
+   scaling) -> record. The objects are tracked in the same frames: every step, the locator looks
+   at the policy's frame, and an object it sees is taken where it is seen from then on (an
+   object moved by more than the placement tolerance is logged as a ``track`` event: the paper's
+   dynamic-object scenario). Like the simulator's episodes, the loop ends early when the criterion
+   says an object is reached (TCP against the tracked poses; the placement pose of an object not
+   seen since). It ends too on a refused
    command, a safety stop or an arm fault (the reason is stored). A non-finite action (NaN/inf)
    is never sent to the arm: the trial stops there with outcome ``policy_error`` (step 6 is
    skipped: there is nothing to confirm), is committed, and the session goes on.
-5. Outcome: the objects are located again from the final pose and
-   :func:`calibration.outcome.measure_reach` applies the paper's criterion (roles as names, so the
-   outcome is ``goal``, ``adversarial``, ``none`` or ``unknown``). An object not seen from the final
-   pose (the gripper may hide its tags) is taken at its checked placement pose; the reason says so.
-6. The operator confirms or overrides the outcome, with an optional note.
+5. Outcome: what the camera sees at the end. The final TCP pose is measured, the objects are
+   located from it and :func:`calibration.outcome.measure_reach` applies the paper's criterion
+   (roles as names, so the outcome is ``goal``, ``adversarial``, ``none`` or ``unknown``). An
+   object not seen from there (the camera is close to the objects at the end of a reach) is looked
+   for again from the trial's start pose, where the placement check saw it (the arm moves back
+   through the safety layer). One still not seen (a hand took it, its tags are hidden) makes the
+   outcome ``unknown``, never a guess from where it was placed; the reason says where it was last seen.
+6. The operator confirms or overrides the outcome, with an optional note (an ``unknown`` outcome
+   is put to the operator as a question).
 7. The trial is committed in one transaction (:meth:`TrialStore.commit_trial`), frames first.
 
 Pause (during the loop) stops the arm; on resume the trial in progress restarts from step 1 (a
@@ -133,10 +141,13 @@ class TrialRunner:
         rate_limit: sleep to the control period (off: as fast as possible, sim arms only).
         on_trial_end: called with the planned trial right after its policy loop (tests record the
             sim's ground truth there).
+        on_step: called with the planned trial and the step index before each step's frame is
+            read (a sim scenario moves or hides an object there).
     """
 
     def __init__(self, plan, camera, arm, policy, store, operator, locator, session: SessionInfo, action_scale,
                  stage=None, T_base_table=None, rate_limit: bool = True, on_trial_end: Callable | None = None,
+                 on_step: Callable | None = None,
                  stop_on_reach: bool = True, clock: Callable[[], float] = time.monotonic, sleep: Callable = time.sleep):
         self.plan = plan
         self.camera = camera
@@ -152,6 +163,7 @@ class TrialRunner:
         self.T_table_base = np.linalg.inv(self.T_base_table)
         self.rate_limit = rate_limit
         self.on_trial_end = on_trial_end
+        self.on_step = on_step
         self.stop_on_reach = stop_on_reach
         self.clock = clock
         self.sleep = sleep
@@ -256,7 +268,8 @@ class TrialRunner:
         t3 = self.clock()
 
         n_ev = len(self.arm.events)
-        steps, stop_reason, t_loop = self._loop(trial, placed, fdir, rel_dir, events, t0)
+        tracked = {r: (obj, -1) for r, obj in placed.items()}  # role -> (last seen pose, step; -1 = the placement check)
+        steps, stop_reason, t_loop = self._loop(trial, placed, tracked, fdir, rel_dir, events, t0)
         policy_error = stop_reason.startswith(POLICY_ERROR)
         t4 = self.clock()
         self.arm.stop("trial ended")
@@ -265,8 +278,8 @@ class TrialRunner:
         for ev in list(self.arm.events)[n_ev:]:
             events.append(EventRecord(ev.time_s - t0, "safety", ev.action, ev.reason))
 
-        result, final, T_table_tcp, fallback = self._outcome(placed)
-        reason = result.reason + (f"; not seen at the end, placement pose used: {', '.join(fallback)}" if fallback else "")
+        result, final, T_table_tcp = self._outcome(T_base_tcp0, events, t0)
+        reason = result.reason + "".join(f"; {self._last_seen(role, tracked)}" for role in result.missing)
         info = (f"  outcome: {result.reached} ({reason}); distances "
                 + ", ".join(f"{k} {'?' if v is None else f'{v * 100:.1f} cm'}" for k, v in result.distances_m.items()))
         t5 = self.clock()
@@ -334,16 +347,39 @@ class TrialRunner:
 
         return cv2.resize(rgb, (S, S), interpolation=cv2.INTER_AREA)
 
-    def _reached_now(self, T_base_tcp, placed) -> bool:
+    def _reached_now(self, T_base_tcp, tracked) -> bool:
         from calibration.outcome import measure_reach
 
-        if not self.stop_on_reach or any(r not in placed for r in ROLES):
+        if not self.stop_on_reach or any(r not in tracked for r in ROLES):
             return False
         p = (self.T_table_base @ T_base_tcp)[:3, 3]
-        res = measure_reach(p, {r: placed[r].center_table_m for r in ROLES}, ROLES, self.plan.radius_m)
+        res = measure_reach(p, {r: tracked[r][0].center_table_m for r in ROLES}, ROLES, self.plan.radius_m)
         return res.reached in ROLES
 
-    def _loop(self, trial, placed, fdir: Path, rel_dir: str, events, t0):
+    def _track(self, frame, T_base_tcp, k: int, placed, tracked, moved: set, events, t0) -> None:
+        """Take every object the locator sees in ``frame`` where it is seen; log the first time one
+        has moved beyond the placement tolerance."""
+        for role, obj in self.locator.locate(frame, T_base_tcp).items():
+            if role not in ROLES:
+                continue
+            tracked[role] = (obj, k)
+            ref = placed.get(role)
+            if ref is not None and role not in moved:
+                d = float(np.linalg.norm(obj.xy_m - ref.xy_m))
+                if d > self.plan.placement_tolerance_m:
+                    moved.add(role)
+                    events.append(EventRecord(self.clock() - t0, "track", "moved",
+                                              f"{role} moved {d * 100:.1f} cm from its placement by step {k}"))
+
+    @staticmethod
+    def _last_seen(role: str, tracked) -> str:
+        if role not in tracked:
+            return f"{role} never seen"
+        obj, k = tracked[role]
+        where = "at the placement check" if k < 0 else f"at step {k}"
+        return f"{role} last seen {where}, at [{', '.join(f'{v:.3f}' for v in obj.center_table_m)}] m"
+
+    def _loop(self, trial, placed, tracked, fdir: Path, rel_dir: str, events, t0):
         import cv2
 
         from robot_io.errors import ArmFaultError, SafetyStop
@@ -351,8 +387,10 @@ class TrialRunner:
         period = 1.0 / float(self.plan.control_hz)
         steps: list[StepRecord] = []
         stop_reason = "max_steps"
+        moved: set[str] = set()
         self.arm.start_trial()
         t_start = self.clock()
+        T_frame = self.arm.tcp_pose()  # the arm's pose when the next frame is taken
         for k in range(int(self.plan.max_steps)):
             t_tick = self.clock()
             cmd = self.operator.poll()
@@ -363,7 +401,10 @@ class TrialRunner:
                 if self.operator.paused() == "abort":
                     raise _Abort()
                 raise _Restart()
+            if self.on_step is not None:
+                self.on_step(trial, k)
             frame = self.camera.read()
+            self._track(frame, T_frame, k, placed, tracked, moved, events, t0)
             action = np.asarray(self.policy.act(self._policy_image(frame.rgb)[None]), dtype=np.float64).reshape(-1, 6)[0]
             if not np.isfinite(action).all():
                 # never sent to the arm (the safety layer would refuse it too) and not a step record:
@@ -381,7 +422,7 @@ class TrialRunner:
                 stop_reason = f"fault: {err}"
                 break
             t_cmd = self.clock()
-            T_meas = self.arm.tcp_pose()
+            T_meas = T_frame = self.arm.tcp_pose()
             name = f"step_{k:03d}.png"
             cv2.imwrite(str(fdir / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
             steps.append(StepRecord(k, frame.timestamp_s - t_start, t_cmd - t_start, int(frame.seq), action.tolist(), res.T_cmd,
@@ -389,7 +430,7 @@ class TrialRunner:
             if res.status == "refused":
                 stop_reason = f"refused: {'; '.join(res.reasons)}"
                 break
-            if self._reached_now(T_meas, placed):
+            if self._reached_now(T_meas, tracked):
                 stop_reason = "reached"
                 break
             if self.rate_limit:
@@ -398,19 +439,28 @@ class TrialRunner:
                     self.sleep(wait)
         return steps, stop_reason, self.clock() - t_start
 
-    def _outcome(self, placed):
+    def _outcome(self, T_base_tcp0, events, t0):
+        """The criterion at the final TCP position on what the camera sees (an unseen object: unknown).
+
+        At the end of a reach the wrist camera is close to the objects and often sees neither
+        whole; an object not seen from the final pose is looked for again from the trial's start
+        pose (the placement check's view), after the final TCP pose is measured.
+        """
         from calibration.outcome import measure_reach
 
-        final = self._locate()
         T_table_tcp = self.T_table_base @ self.arm.tcp_pose()
-        positions, fallback = {}, []
-        for role in ROLES:
-            obj = final.get(role)
-            if obj is None and role in placed:
-                obj = placed[role]
-                fallback.append(role)
-            positions[role] = None if obj is None else obj.centers_for_outcome()
-        return measure_reach(T_table_tcp[:3, 3], positions, ROLES, self.plan.radius_m), final, T_table_tcp, fallback
+        final = self._locate()
+        unseen = [r for r in ROLES if r not in final]
+        if unseen:
+            self.arm.move_to(T_base_tcp0)
+            again = self._locate()
+            found = [r for r in unseen if r in again]
+            final = {**final, **{r: again[r] for r in found}}
+            events.append(EventRecord(self.clock() - t0, "outcome", "look_again",
+                                      f"not seen from the final pose: {', '.join(unseen)}; from the start pose: "
+                                      f"{', '.join(found) or 'none of them'}"))
+        positions = {role: final[role].centers_for_outcome() for role in ROLES if role in final}
+        return measure_reach(T_table_tcp[:3, 3], positions, ROLES, self.plan.radius_m), final, T_table_tcp
 
     def _pose_record(self, role: str, phase: str, obj) -> ObjectPoseRecord:
         if obj is None:

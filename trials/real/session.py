@@ -189,6 +189,8 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
 
                     locator = SimLocator(world)
                     stage = SimStage(world, plan, plan_path.parent)
+                    if hw.camera.tags:
+                        locator = _sim_tag_locator(camera, world, registry, session_dir, log)
                 else:
                     locator, T_base_table = _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table, log)
                 info = dataclasses.replace(info, T_base_table=T_base_table)
@@ -230,6 +232,54 @@ def _safety_at_plan_rate(hw, plan, episode, log):
             "trials may end at max_steps; lower the plan's control_hz or raise max_speed_mps / max_speed_radps / "
             "max_step_m / max_step_rad in the hardware YAML")
     return hw
+
+
+def _sim_tag_locator(camera, world, registry, session_dir, log):
+    """Tags drawn by the sim camera, located by the real pipeline (detector, bundles, the chain).
+
+    The registry is ``--registry`` or, without one, :func:`robot_io.cameras.sim.sim_registry`
+    (written into the session folder). The sim world frame is the table frame, so ``T_base_table``
+    is the identity and the chain uses the sim camera's own mount.
+    """
+    from calibration.registry import load_registry
+    from robot_io.cameras.sim import sim_tags
+    from trials.real.locate import TagLocator
+
+    if registry is not None:
+        reg = load_registry(registry)
+        camera.tags = sim_tags(reg)
+        return TagLocator(reg, camera.intrinsics, camera.T_tcp_cam, np.eye(4))
+    log(f"sim tags: no --registry; each staged object is tagged on its faces (sim_registry), saved under {session_dir}")
+    return _SimTaggedLocator(camera, world, Path(session_dir), TagLocator(None, camera.intrinsics, camera.T_tcp_cam, np.eye(4)))
+
+
+class _SimTaggedLocator:
+    """A :class:`TagLocator` whose registry follows the staged scene: each condition's adversarial
+    object (a cube, a patch...) is a physical object of its own, tagged on its own faces, as a
+    person would tag each object of a real cell."""
+
+    source = "tags"
+
+    def __init__(self, camera, world, folder: Path, locator):
+        self.camera, self.world, self.folder, self.inner = camera, world, folder, locator
+        self._spec = None
+
+    def locate(self, frame, T_base_tcp):
+        from calibration.registry import save_registry
+        from robot_io.cameras.sim import sim_registry, sim_tags
+
+        if self._spec is not self.world.spec:  # staged a new scene: tag its objects (the frame shows the old tags)
+            self._spec = self.world.spec
+            reg = sim_registry(self.world)
+            save_registry(self.folder / f"sim_registry_{self.world.spec.adversarial.mesh}.yaml", reg)
+            self.camera.tags = sim_tags(reg)
+            self.inner.registry = reg
+            frame = self.camera.read()
+        return self.inner.locate(frame, T_base_tcp)
+
+    @property
+    def registry(self):
+        return self.inner.registry
 
 
 def _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table=None, log=print):
