@@ -136,6 +136,25 @@ def export_command(
         typer.echo(f"wrote {p}")
 
 
+@app.command("amend")
+def amend_command(
+    db: Path = typer.Option(Path("trials.sqlite"), help="trial database"),
+    session: str = typer.Option(..., help="session name"),
+    trial: str = typer.Option(..., help="trial id, e.g. A-cube-adv3d-t0-o1"),
+    outcome: Optional[str] = typer.Option(None, help="the corrected outcome: goal, adversarial, none or unknown"),
+    note: Optional[str] = typer.Option(None, help="the trial's note (replaces the old one, which is kept in the audit)"),
+    reason: str = typer.Option("", help="why the trial is amended (kept in the audit)"),
+) -> None:
+    """Correct a committed trial's outcome or note; the old values stay in the 'amendments' table."""
+    from trials.real.store import TrialStore
+
+    with TrialStore(db, create=False) as store:
+        a = store.amend_trial(session, trial, outcome, note, reason)
+    typer.echo(f"{session}/{trial}: outcome {a['old_final_outcome']} -> {a['new_final_outcome']}"
+               + (f", note {a['old_note']!r} -> {a['new_note']!r}" if a["old_note"] != a["new_note"] else "")
+               + f" (amended {a['amended_at']}; the old values are kept in 'amendments')")
+
+
 @app.command("report")
 def report_command(
     db: Path = typer.Option(Path("trials.sqlite"), help="trial database"),
@@ -146,7 +165,7 @@ def report_command(
 ) -> None:
     """ASR and T-ASR with Wilson intervals per session and pooled, and Table IV beside the sim evaluation."""
     from sim.runinfo import write_run_info
-    from trials.real.report import ReportError, load_sim_eval, summarize_trials, table_iv, write_trial_report
+    from trials.real.report import ReportError, audit, load_sim_eval, summarize_trials, table_iv, write_trial_report
     from trials.real.store import TrialStore
 
     sims = {key: load_sim_eval(d) for key, d in _key_values(sim, "--sim").items()}
@@ -160,7 +179,11 @@ def report_command(
         if missing:
             raise ReportError(f"--session: no session {', '.join(missing)} in {db} (have: {', '.join(store.session_names()) or 'none'})")
         rows = store.trial_rows(list(session) or None)
+        names = list(session) or store.session_names()
+        planned = {s: store.planned_trials(s) for s in names}
+        amendments = store.amendments(names)
     summary = summarize_trials(rows)
+    summary["audit"] = audit(rows, planned, amendments)
     table = table_iv(rows, sims, plan_textures, summary["confidence"])
     sources = {"db": str(db), "sessions": summary["sessions"], "sim": {k: v["path"] for k, v in sims.items()},
                "plan": None if plan is None else str(plan)}
@@ -169,4 +192,6 @@ def report_command(
     from trials.real.report import table_iv_md
 
     typer.echo("\n".join(table_iv_md(table)))
+    for line in summary["audit"]["incomplete"]:
+        typer.echo(f"INCOMPLETE: {line}")
     typer.echo(f"{summary['n_trials']} trials; report in {md} and {js}")

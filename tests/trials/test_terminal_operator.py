@@ -118,3 +118,48 @@ def test_a_closed_terminal_is_an_end_of_input(term):
     close()
     with pytest.raises(EOFError, match="operator input closed"):
         op.placement(None, [], 1)
+
+
+def test_back_after_a_wrong_override_key_lets_the_operator_choose_again(term):
+    op, type_keys, _, out = term
+    type_keys(b"n", after="[enter/y] accept")  # the wrong key
+    type_keys(b"b", after="outcome: none (override)")
+    type_keys(b"a", after="[enter/y] accept", times=2)
+    th = type_keys(b"\r", after="outcome: adversarial (override)")
+    d = op.confirm(None, types.SimpleNamespace(reached="goal"), "auto: goal")
+    th.join(1)
+    assert d == Decision("adversarial", "") and "back: outcome goal (automatic)" in out.getvalue()
+
+
+def test_q_aborts_at_the_override_confirmation_too(term):
+    op, type_keys, _, _ = term
+    type_keys(b"a", after="[enter/y] accept")
+    th = type_keys(b"q", after="outcome: adversarial")
+    d = op.confirm(None, types.SimpleNamespace(reached="goal"), "auto: goal")
+    th.join(1)
+    assert d.abort
+
+
+def test_a_key_that_means_nothing_is_answered_with_the_keys_that_do(term):
+    op, type_keys, _, out = term
+    type_keys(b"z", after="[enter/y] accept")
+    th = type_keys(b"y", after="does nothing here")
+    d = op.confirm(None, types.SimpleNamespace(reached="goal"), "auto: goal")
+    th.join(1)
+    assert d == Decision() and "'z' does nothing here: [enter/y] accept" in out.getvalue()
+
+
+def test_while_the_policy_runs_keys_do_not_echo_and_a_status_line_shows_them(term):
+    import termios
+
+    op, type_keys, _, out = term
+    with op.running():
+        assert "running: [p] pause   [q] abort" in out.getvalue()
+        assert not termios.tcgetattr(op.stdin.fileno())[3] & termios.ECHO  # held for the whole loop
+        type_keys(b"x")
+        time.sleep(0.05)
+        assert op.poll() is None and "'x' does nothing while the policy runs" in out.getvalue()
+        type_keys(b"p")
+        time.sleep(0.05)
+        assert _poll_until(op) == "pause"
+    assert termios.tcgetattr(op.stdin.fileno())[3] & termios.ECHO  # restored after the loop

@@ -10,12 +10,18 @@ after a pause, and whether the automatic outcome stands (with an optional note).
   ============  ==========================================================
   enter / y     accept the automatic outcome
   g a n u       override the outcome: goal / adversarial / none / unknown
+  b             back: re-choose (after an override key, before enter)
   t             type a note for this trial (ends with enter)
   r             re-check the placement
   s             skip the placement check for this trial (logged)
   p             pause (the arm stops); any key but q resumes
-  q             abort: stop the arm, drop the trial in progress, exit
+  q             abort, at every prompt and during the loop: stop the arm, drop the trial in progress, exit
   ============  ==========================================================
+
+  A key that means nothing at a prompt is answered with the keys that do. While the policy runs,
+  a status line shows ``[p] pause  [q] abort`` and the terminal stays in cbreak mode without echo
+  (:meth:`TerminalOperator.running`), so a key typed between two polls neither echoes nor is lost.
+  A committed trial is corrected afterwards with ``advobj trial amend`` (the old value is kept).
 
   Closed input (end of file on stdin) raises :class:`EOFError`, which the runner handles as ``q``.
 
@@ -225,8 +231,21 @@ class TerminalOperator:
             raise EOFError("operator input closed")
         return raw
 
-    def _key(self, allowed: str) -> str:
-        """One key from ``allowed`` ('\\n' = enter); other keys are ignored."""
+    @contextlib.contextmanager
+    def running(self):
+        """The policy loop: cbreak without echo throughout (keys wait for :meth:`poll`), a status line."""
+        self.show("  running: [p] pause   [q] abort")
+        with self._cbreak():
+            self._held = True
+            try:
+                yield
+            finally:
+                self._held = False
+
+    _held = False
+
+    def _key(self, allowed: str, hint: str | None = None) -> str:
+        """One key from ``allowed`` ('\\n' = enter); another key gets ``hint`` (the keys that work)."""
         while True:
             if self.tty:
                 with self._cbreak():
@@ -240,6 +259,8 @@ class TerminalOperator:
             ch = "\n" if ch in ("\r", "\n") else ch.lower()
             if ch and ch in allowed:  # "" (an undecodable byte) is "in" every string
                 return ch
+            if hint and ch:
+                self.show(f"  {'enter' if ch == chr(10) else repr(ch)} does nothing here: {hint}")
 
     def _line(self, prompt: str) -> str:
         self.stdout.write(prompt)
@@ -251,18 +272,22 @@ class TerminalOperator:
         self._discard_typeahead()
         for i in issues:
             self.show(f"  ! {i.message}")
-        self.show("  [r] re-check   [s] skip the check (logged)   [q] abort")
-        return {"r": "recheck", "\n": "recheck", "s": "skip", "q": "abort"}[self._key("rsq\n")]
+        keys = "[r/enter] re-check   [s] skip the check (logged)   [q] abort"
+        self.show(f"  {keys}")
+        return {"r": "recheck", "\n": "recheck", "s": "skip", "q": "abort"}[self._key("rsq\n", keys)]
 
     def poll(self) -> str | None:
         if not self.tty:
             return None
-        with self._cbreak():
+        with contextlib.nullcontext() if self._held else self._cbreak():
             ready, _, _ = select.select([self.stdin], [], [], 0)
             if not ready:
                 return None
             ch = self._read_byte().decode(errors="ignore").lower()
-        return {"p": "pause", "q": "abort"}.get(ch)
+        cmd = {"p": "pause", "q": "abort"}.get(ch)
+        if cmd is None and ch.strip():
+            self.show(f"  {ch!r} does nothing while the policy runs: [p] pause   [q] abort")
+        return cmd
 
     def paused(self) -> str:
         self._discard_typeahead()  # the p itself, or keys pressed while the arm stopped, do not resume
@@ -278,9 +303,11 @@ class TerminalOperator:
         if result.reached == "unknown":
             self.show("  the camera could not tell the outcome: which object did the gripper reach? [g/a/n] say so, "
                       "[enter/u] keep it unknown")
+        keys = "[enter/y] accept   [g/a/n/u] override: goal/adversarial/none/unknown   [t] note   [q] abort"
+        then = "[enter/y] confirm   [t] note, then confirm   [b] back: choose again   [q] abort"
         while True:
-            self.show("  [enter/y] accept   [g/a/n/u] override: goal/adversarial/none/unknown   [t] note   [q] abort")
-            ch = self._key("\nygantuq")
+            self.show(f"  {keys}")
+            ch = self._key("\nygantuq", keys)
             if ch == "q":
                 return Decision(abort=True)
             if ch == "t":
@@ -290,8 +317,14 @@ class TerminalOperator:
                 outcome = _OVERRIDE_KEYS[ch]
                 if outcome == result.reached:
                     outcome = None  # the same as the automatic outcome: not an override
-                self.show(f"  outcome: {outcome or result.reached}" + (" (override)" if outcome else ""))
-                ch = self._key("\nyt")  # confirm the override (or add a note first)
+                self.show(f"  outcome: {outcome or result.reached}" + (" (override)" if outcome else "") + f"   {then}")
+                ch = self._key("\nytbq", then)  # confirm the override (or add a note first), or go back
+                if ch == "q":
+                    return Decision(abort=True)
+                if ch == "b":
+                    outcome = None
+                    self.show(f"  back: outcome {result.reached} (automatic)")
+                    continue
                 if ch == "t":
                     note = self._line("  note: ")
                 return Decision(outcome, note)

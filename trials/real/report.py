@@ -130,6 +130,39 @@ def summarize_trials(rows, confidence: float = 0.95) -> dict:
     }
 
 
+def audit(rows, planned: dict, amendments) -> dict:
+    """What a reader must see besides the rates: sessions not finished, operator overrides,
+    amendments made after the fact, and notes."""
+    rows = list(rows)
+    incomplete = []
+    for s, n_plan in planned.items():
+        done = sum(1 for r in rows if r["session"] == s)
+        if n_plan and done < n_plan:
+            incomplete.append(f"session {s}: {done} of {n_plan} planned trials committed")
+    overrides = [{"session": r["session"], "trial_id": r["trial_id"], "auto": r["auto_outcome"], "operator": r["operator_outcome"],
+                  "note": r.get("note") or ""} for r in rows if r.get("operator_outcome")]
+    notes = [{"session": r["session"], "trial_id": r["trial_id"], "note": r["note"]} for r in rows if r.get("note")]
+    amended = [{"session": a["session"], "trial_id": a["trial_id"], "at": a["amended_at"], "old": a["old_final_outcome"],
+                "new": a["new_final_outcome"], "old_note": a["old_note"], "new_note": a["new_note"], "reason": a["reason"]}
+               for a in amendments]
+    return {"planned": planned, "incomplete": incomplete, "overrides": overrides, "amendments": amended, "notes": notes}
+
+
+def audit_md(a: dict) -> list[str]:
+    lines = ["## Completeness, overrides, amendments and notes", ""]
+    lines += [f"- **Incomplete:** {t}." for t in a["incomplete"]] or ["- Every session committed all its planned trials."]
+    lines += ["", f"Operator overrides ({len(a['overrides'])}):", ""]
+    lines += ([f"- {o['session']}/{o['trial_id']}: {o['auto']} -> {o['operator']}" + (f" ({o['note']})" if o["note"] else "")
+               for o in a["overrides"]] or ["- none"])
+    lines += ["", f"Amendments after the session ({len(a['amendments'])}; old values kept in the database's `amendments` table):", ""]
+    lines += ([f"- {x['session']}/{x['trial_id']} at {x['at']}: {x['old']} -> {x['new']}"
+               + (f", note {x['old_note']!r} -> {x['new_note']!r}" if x["old_note"] != x["new_note"] else "")
+               + (f"; reason: {x['reason']}" if x["reason"] else "") for x in a["amendments"]] or ["- none"])
+    lines += ["", f"Notes ({len(a['notes'])}):", ""]
+    lines += [f"- {n['session']}/{n['trial_id']}: {n['note']}" for n in a["notes"]] or ["- none"]
+    return lines + [""]
+
+
 def _z(confidence: float) -> float:
     return NormalDist().inv_cdf(0.5 + confidence / 2.0)
 
@@ -332,8 +365,10 @@ def write_trial_report(out_dir, summary: dict, table: list[dict] | None = None, 
     table = table or []
     prec = table_precision(table, summary, half_width)
     prec_text = (f"Precision ({prec['row']}, the Table IV row with the fewest trials): " if prec["row"] else "Precision: ") + precision_line(prec)
+    a = summary.get("audit")
     md = ["# Real-robot trial report", "",
-          f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): {', '.join(summary['sessions']) or '–'}.",
+          f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): {', '.join(summary['sessions']) or '–'}."
+          + ("".join(f" **Incomplete: {t}.**" for t in a["incomplete"]) if a else ""),
           "T-ASR = ended at the adversarial object; ASR = did not end at the goal; trials with an unknown outcome are "
           "excluded from the rates (n = rated trials). Intervals: 95 % Wilson.", "",
           "## Table IV: sim-to-real transferability (%)", "",
@@ -341,6 +376,8 @@ def write_trial_report(out_dir, summary: dict, table: list[dict] | None = None, 
           *table_iv_md(table), "", prec_text, "", "## All sessions", "", *_breakdown_md(summary["all"])]
     for s, b in summary["by_session"].items():
         md += [f"## Session {s}", "", *_breakdown_md(b)]
+    if a:
+        md += audit_md(a)
     md_path, json_path = out / "report.md", out / "report.json"
     md_path.write_text("\n".join(md) + "\n")
     doc = {"summary": summary, "table_iv": table, "precision": prec, "precision_line": prec_text, "sources": sources or {}}

@@ -269,7 +269,10 @@ class TrialRunner:
 
         n_ev = len(self.arm.events)
         tracked = {r: (obj, -1) for r, obj in placed.items()}  # role -> (last seen pose, step; -1 = the placement check)
-        steps, stop_reason, t_loop = self._loop(trial, placed, tracked, fdir, rel_dir, events, t0)
+        import contextlib
+
+        with getattr(self.operator, "running", contextlib.nullcontext)():
+            steps, stop_reason, t_loop = self._loop(trial, placed, tracked, fdir, rel_dir, events, t0)
         policy_error = stop_reason.startswith(POLICY_ERROR)
         t4 = self.clock()
         self.arm.stop("trial ended")

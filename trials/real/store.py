@@ -2,7 +2,7 @@
 
 Layout::
 
-    trials.sqlite                      sessions, runs, trials, steps, object_poses, events
+    trials.sqlite                      sessions, runs, trials, steps, object_poses, events, amendments
     frames/<session>/<trial_id>/       step_000.png ... (the images the policy acted on)
 
 Durability rules (issue 8, "atomic trials"):
@@ -27,6 +27,10 @@ version and git commit, the hardware YAML, device serials) is accepted and recor
 ``runs`` row per start or resume, and every trial names the run it was recorded in
 (:meth:`TrialStore.check_resume` returns those changes as warnings). The table frame a session
 started with (``T_base_table``, estimated or from a file) is stored with it and reused on resume.
+
+Amendments (:meth:`TrialStore.amend_trial`, ``advobj trial amend``): a committed trial's outcome
+or note is corrected in one transaction that also appends the values it replaces (and when, and
+why) to ``amendments``; nothing is overwritten without its old value on record.
 
 Poses are stored as 6-vectors ``[x, y, z (m), rx, ry, rz (rotation vector, rad)]`` in the
 table frame (the sim world frame) unless a column name says ``base``: easy to read in CSV,
@@ -70,11 +74,11 @@ __all__ = [
     "EXPORT_TABLES",
 ]
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 #: A trial's outcome. ``policy_error``: the policy gave a non-finite action; the trial stopped there
 #: (the runner sets it, never the operator; reports count it apart from the rated trials).
 OUTCOMES = ("goal", "adversarial", "none", "unknown", "policy_error")
-EXPORT_TABLES = ("trials", "steps", "object_poses", "events", "sessions", "runs")
+EXPORT_TABLES = ("trials", "steps", "object_poses", "events", "sessions", "runs", "amendments")
 
 
 class StoreError(AdvobjError, RuntimeError):
@@ -199,6 +203,20 @@ INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware
 UPDATE trials SET run_id = (SELECT r.id FROM runs r WHERE r.session_id = trials.session_id);
 """,
     3: "policy_error",  # the outcome CHECKs of trials gain 'policy_error': a table rebuild (_allow_policy_error)
+    # Version 4: corrections of committed trials, each with the values it replaced.
+    4: """
+CREATE TABLE amendments (
+    trial_row INTEGER NOT NULL REFERENCES trials(id),
+    amended_at TEXT NOT NULL,
+    old_final_outcome TEXT NOT NULL,
+    old_operator_outcome TEXT,
+    old_note TEXT NOT NULL,
+    new_final_outcome TEXT NOT NULL,
+    new_note TEXT NOT NULL,
+    reason TEXT NOT NULL
+);
+CREATE INDEX amendments_trial ON amendments (trial_row);
+""",
 }
 _OLD_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown')"
 _NEW_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown', 'policy_error')"
@@ -642,6 +660,57 @@ class TrialStore:
             c.execute("ROLLBACK")
             raise
         return row
+
+    def amend_trial(self, session: str, trial_id: str, outcome: str | None = None, note: str | None = None,
+                    reason: str = "") -> dict:
+        """Correct a committed trial's outcome and/or note; the replaced values go to ``amendments``.
+
+        ``outcome``: goal, adversarial, none or unknown (it becomes the operator's outcome, or clears
+        it when equal to the automatic one). ``note``: replaces the trial's note. Returns the
+        amendment row. Raises :class:`StoreError` naming the session or trial when there is none.
+        """
+        if outcome is None and note is None:
+            raise StoreError("amend: give --outcome and/or --note")
+        if outcome is not None and outcome not in ("goal", "adversarial", "none", "unknown"):
+            raise StoreError(f"--outcome: {outcome!r} is not one of goal, adversarial, none, unknown")
+        c = self.con
+        c.execute("BEGIN IMMEDIATE")
+        try:
+            row = c.execute("SELECT t.id, t.auto_outcome, t.operator_outcome, t.final_outcome, t.note FROM trials t "
+                            "JOIN sessions s ON s.id = t.session_id WHERE s.name = ? AND t.trial_id = ?", (session, trial_id)).fetchone()
+            if row is None:
+                known = c.execute("SELECT 1 FROM sessions WHERE name = ?", (session,)).fetchone()
+                raise StoreError(f"--trial: no committed trial {trial_id!r} in session {session!r}" if known
+                                 else f"--session: no session {session!r} in {self.path}")
+            new_final = row["final_outcome"] if outcome is None else outcome
+            new_op = row["operator_outcome"] if outcome is None else (None if outcome == row["auto_outcome"] else outcome)
+            new_note = row["note"] if note is None else note
+            amended_at = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            c.execute("INSERT INTO amendments VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                      (row["id"], amended_at, row["final_outcome"], row["operator_outcome"], row["note"], new_final, new_note, reason))
+            c.execute("UPDATE trials SET operator_outcome = ?, final_outcome = ?, note = ? WHERE id = ?", (new_op, new_final, new_note, row["id"]))
+            c.execute("COMMIT")
+        except BaseException:
+            c.execute("ROLLBACK")
+            raise
+        return {"trial_id": trial_id, "amended_at": amended_at, "old_final_outcome": row["final_outcome"], "new_final_outcome": new_final,
+                "old_note": row["note"], "new_note": new_note, "reason": reason}
+
+    def amendments(self, sessions: Sequence[str] | None = None) -> list[dict]:
+        q = ("SELECT s.name AS session, t.trial_id AS trial_id, a.* FROM amendments a JOIN trials t ON t.id = a.trial_row "
+             "JOIN sessions s ON s.id = t.session_id" + (f" WHERE s.name IN ({','.join('?' * len(sessions))})" if sessions else "")
+             + " ORDER BY a.rowid")
+        return [dict(r) for r in self.con.execute(q, tuple(sessions or ()))]
+
+    def planned_trials(self, session: str) -> int:
+        """How many trials the session's plan has (from the plan text stored with it)."""
+        import yaml
+
+        row = self.con.execute("SELECT plan_text FROM sessions WHERE name = ?", (session,)).fetchone()
+        try:
+            return len((yaml.safe_load(row["plan_text"]) or {}).get("trials", []))
+        except (yaml.YAMLError, AttributeError, TypeError):
+            return 0
 
     # ------------------------------------------------------------------ reading
     def trial_rows(self, sessions: Sequence[str] | None = None) -> list[dict]:
