@@ -226,7 +226,9 @@ class SafeArm:
     def __exit__(self, exc_type, exc, tb):
         try:
             if exc_type is not None:
-                self._stop_quietly(f"{exc_type.__name__} in the control loop: {exc}" if exc else exc_type.__name__)
+                # The error's own text is reported by whoever handles it (the CLI prints it once);
+                # the stop record names it only, so one error is not printed twice.
+                self._stop_quietly(f"{exc_type.__name__} in the control loop")
         finally:
             self.disconnect()
         return False

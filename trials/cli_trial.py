@@ -43,6 +43,8 @@ def plan_command(
     pool: Optional[Path] = typer.Option(None, help="draw poses and layouts only from this (task-feasible) config pool JSON"),
     sheet: Optional[Path] = typer.Option(None, help="also write the printable placement sheet PDF here"),
     force: bool = typer.Option(False, "--force", help="overwrite an existing plan at --out"),
+    hardware: Optional[Path] = typer.Option(None, help="hardware YAML of the cell: start poses are drawn inside its safety workspace box"),
+    table_frame: Optional[Path] = typer.Option(None, "--table-frame", help="with --hardware: T_base_table YAML (default: base = table)"),
 ) -> None:
     """Write the randomized real-trial plan (paper design: TCP poses x object layouts per env, shape, condition)."""
     from trials.real.plan import PlanError
@@ -62,9 +64,21 @@ def plan_command(
 
     spec = load_spec(scene)
     textures = {key: texture_ref(path, key, spec) for key, path in _key_values(texture, "--texture").items()}
+    workspace = None
+    if table_frame is not None and hardware is None:
+        raise PlanError("--table-frame: only with --hardware (it places the hardware's workspace box)")
+    if hardware is not None:
+        import numpy as np
+
+        from robot_io.config import load_hardware_config
+        from trials.real.session import load_T_base_table
+
+        hw = load_hardware_config(hardware)
+        workspace = (hw.safety.workspace_min_m, hw.safety.workspace_max_m,
+                     np.eye(4) if table_frame is None else load_T_base_table(table_frame))
     plan = make_plan(
         spec, seed, env, shape, condition, textures, n_tcp_poses=tcp_poses, n_object_layouts=object_poses, tags=tag,
-        pool=None if pool is None else load_pool(pool, spec), scene=None if scene is None else str(scene),
+        pool=None if pool is None else load_pool(pool, spec), scene=None if scene is None else str(scene), workspace=workspace,
     )
     save_plan(plan, out)
     config = {"job": "trial-plan", "plan": str(out), "plan_sha256": plan_sha256(out), "pool": None if pool is None else str(pool),

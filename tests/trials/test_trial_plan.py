@@ -227,3 +227,70 @@ def test_cli_plan_never_overwrites_a_plan_unless_forced(tmp_path):
     assert CliRunner().invoke(app, args + ["--seed", "9", "--force"]).exit_code == 0 and out.read_bytes() != before
     res = CliRunner().invoke(app, ["trial", "plan", "--out", str(tmp_path)])
     assert res.exit_code != 0 and "is a directory" in str(res.exception)
+
+
+def test_plan_with_a_cells_hardware_draws_start_poses_inside_its_workspace_box(spec):
+    from pathlib import Path
+
+    from robot_io.config import load_hardware_config
+
+    hw = load_hardware_config(Path(__file__).resolve().parents[2] / "examples" / "hardware" / "ur_v4l2.yaml")
+    lo, hi = np.array(hw.safety.workspace_min_m), np.array(hw.safety.workspace_max_m)
+    free = make_plan(spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2)
+    inside = lambda p: bool(np.all(p.T_table_tcp.T()[:3, 3] >= lo) and np.all(p.T_table_tcp.T()[:3, 3] <= hi))  # noqa: E731
+    boxed = make_plan(spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2, workspace=(lo, hi, np.eye(4)))
+    assert not all(inside(p) for p in free.tcp_poses)  # the sampler alone ignores the cell
+    assert all(inside(p) for p in boxed.tcp_poses) and len(boxed.tcp_poses) == 4
+    shifted = np.eye(4)
+    shifted[0, 3] = 0.5  # the table origin 0.5 m in front of the base
+    moved = make_plan(spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2, workspace=(lo, hi, shifted))
+    assert all(np.all((shifted @ p.T_table_tcp.T())[:3, 3] >= lo) and np.all((shifted @ p.T_table_tcp.T())[:3, 3] <= hi)
+               for p in moved.tcp_poses)
+
+
+def test_plan_refuses_a_workspace_no_start_pose_fits_in_one_line(spec, tmp_path, monkeypatch, capsys):
+    from pathlib import Path
+
+    from trials.cli import main
+
+    data = yaml.safe_load((Path(__file__).resolve().parents[2] / "examples" / "hardware" / "sim.yaml").read_text())
+    data["safety"]["workspace_min_m"], data["safety"]["workspace_max_m"] = [0.0, 0.0, 0.01], [0.05, 0.05, 0.05]
+    (tmp_path / "hw.yaml").write_text(yaml.safe_dump(data))
+    monkeypatch.setattr("sys.argv", ["advobj", "trial", "plan", "--out", str(tmp_path / "p.yaml"), "--shape", "cube", "--condition",
+                                     "clean", "--tcp-poses", "2", "--object-poses", "1", "--hardware", str(tmp_path / "hw.yaml")])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    err = [l for l in capsys.readouterr().err.splitlines() if l.strip()]
+    assert exc.value.code == 2 and len(err) == 1
+    assert "--hardware: found 0/2 start TCP poses inside the workspace box [0, 0, 0.01] .. [0.05, 0.05, 0.05] m" in err[0]
+    assert re.search(r"spanning x -?\d\.\d+\.\.-?\d\.\d+, y .*, z \d\.\d+\.\.\d\.\d+ m", err[0])
+    assert not (tmp_path / "p.yaml").exists()
+
+
+def test_a_plan_outside_the_cells_box_is_refused_once_not_twice(tmp_path, monkeypatch, capsys):
+    from pathlib import Path
+
+    from tests.trials.trial_session_helpers import tiny_onnx
+    from trials.cli import main
+
+    root = Path(__file__).resolve().parents[2]
+    data = yaml.safe_load((root / "examples" / "hardware" / "sim.yaml").read_text())
+    data["safety"]["workspace_max_m"] = [0.9, 0.9, 0.05]
+    data["sim"]["image_size"] = [32, 32]
+    (tmp_path / "hw.yaml").write_text(yaml.safe_dump(data))
+    monkeypatch.setattr("sys.argv", ["advobj", "trial", "plan", "--out", str(tmp_path / "p.yaml"), "--shape", "cube", "--condition",
+                                     "clean", "--tcp-poses", "1", "--object-poses", "1"])
+    try:
+        main()
+    except SystemExit as exc:
+        assert exc.code in (0, None)
+    capsys.readouterr()
+    monkeypatch.setattr("sys.argv", ["advobj", "trial", "run", "--hardware", str(tmp_path / "hw.yaml"), "--policy",
+                                     str(tiny_onnx(tmp_path / "p.onnx")), "--plan", str(tmp_path / "p.yaml"), "--session", "s",
+                                     "--db", str(tmp_path / "t.sqlite"), "--auto-confirm", "--no-rate-limit"])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    cap = capsys.readouterr()
+    both = cap.out + cap.err
+    assert exc.value.code == 2 and both.count("initial TCP poses outside the safety workspace box") == 1
+

@@ -312,7 +312,9 @@ def _draw_configs(spec, rng: np.random.Generator, pool):
         yield sample_config(spec, base + i, centers)
 
 
-def _poses(spec, rng: np.random.Generator, n_tcp: int, n_layouts: int, pool) -> tuple[list[TcpPose], list[ObjectLayout]]:
+def _poses(spec, rng: np.random.Generator, n_tcp: int, n_layouts: int, pool, workspace=None) -> tuple[list[TcpPose], list[ObjectLayout]]:
+    """``workspace``: ``(min_m, max_m, T_base_table)``, the safety box in the arm's base frame; only
+    TCP poses inside it are drawn."""
     from sim.configs import object_local_centers, object_poses_world
 
     centers_local = object_local_centers(spec)
@@ -327,13 +329,28 @@ def _poses(spec, rng: np.random.Generator, n_tcp: int, n_layouts: int, pool) -> 
         centers.append(np.einsum("kij,kj->ki", T_objs[:, :3, :3], centers_local) + T_objs[:, :3, 3])
         objects = {role: ObjectPlacement(xy_m=(float(xyy[k, 0]), float(xyy[k, 1])), yaw_rad=float(xyy[k, 2])) for role, k in (("goal", goal), ("adversarial", adv))}
         layouts.append(ObjectLayout(index=len(layouts), objects=objects))
-    tcps = []
+    tcps, outside = [], []
     for cfg in stream:
         if len(tcps) == n_tcp:
             break
         T = cfg.T_world_tcp_array
+        if workspace is not None:
+            lo, hi, T_base_table = workspace
+            p = (T_base_table @ T)[:3, 3]
+            if np.any(p < np.asarray(lo)) or np.any(p > np.asarray(hi)):
+                outside.append(p)
+                continue
         if all(_valid_start(spec, T, c[[goal, adv]]) for c in centers):
             tcps.append(TcpPose(index=len(tcps), T_table_tcp=Pose.from_T(T)))
+    if workspace is not None and len(tcps) < n_tcp:
+        lo, hi, _ = workspace
+        span = np.array(outside).reshape(-1, 3)
+        rng_txt = ", ".join(f"{a} {span[:, i].min():.3f}..{span[:, i].max():.3f}" for i, a in enumerate("xyz")) if len(span) else "-"
+        raise PlanError(f"--hardware: found {len(tcps)}/{n_tcp} start TCP poses inside the workspace box "
+                        f"[{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] m (base frame); "
+                        f"{len(outside)} drawn poses fell outside, spanning {rng_txt} m; the scene's start poses "
+                        "(init.r_range_m, init.phi_range_deg, init.region_x_m/region_y_m in the scene YAML) must fit the cell: widen the box if the cell allows it, move the "
+                        "table frame (--table-frame), or use a scene whose start poses lie inside it")
     if len(layouts) < n_layouts or len(tcps) < n_tcp:
         src = f"the pool's {len(pool)} configurations" if pool is not None else f"{_MAX_DRAWS} sampled configurations"
         raise PlanError(
@@ -355,6 +372,7 @@ def make_plan(
     tags: Sequence[str] = (),
     pool=None,
     scene: str | None = None,
+    workspace=None,
     **settings,
 ) -> TrialPlan:
     """The full-factorial trial plan (see the module docstring), in a random order drawn from ``seed`` (env by env).
@@ -363,6 +381,7 @@ def make_plan(
     draw poses and layouts from instead of the sampler. ``scene``: the scene file name recorded in
     the plan (``None`` = built-in). ``settings``: other :class:`TrialPlan` fields (``radius_m``,
     ``max_steps``, ``control_hz``, ``placement_tolerance_m``, ``placement_tolerance_rad``).
+    ``workspace``: ``(min_m, max_m, T_base_table)`` of a cell's safety box: start poses are drawn inside it.
     """
     from sim.assets import BUILTIN_MESHES
 
@@ -389,7 +408,7 @@ def make_plan(
         raise PlanError(f"--tcp-poses and --object-poses must be at least 1, got {n_tcp_poses} and {n_object_layouts}")
 
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7A1A1]))
-    tcps, layouts = _poses(spec, rng, n_tcp_poses, n_object_layouts, pool)
+    tcps, layouts = _poses(spec, rng, n_tcp_poses, n_object_layouts, pool, workspace)
     cells = []
     for tag in [None, *tags]:
         for env in envs:
