@@ -37,15 +37,20 @@ class Frame:
         return time.monotonic() - self.timestamp_s
 
 
-def scale_intrinsics(intr: CameraIntrinsics, width: int, height: int) -> CameraIntrinsics:
-    """The same camera at another resolution (same field of view, pixel-centre convention)."""
+def scale_intrinsics(intr: CameraIntrinsics, width: int, height: int, what: str = "camera") -> CameraIntrinsics:
+    """The same camera at another resolution of the same aspect ratio (:meth:`CameraIntrinsics.scaled`).
+
+    Frames of another aspect ratio are a crop (or a squashed image) of what was calibrated: no
+    rescaling of K describes them, so that is refused in one line naming ``what``.
+    """
     if (width, height) == (intr.width, intr.height):
         return intr
-    sx, sy = width / intr.width, height / intr.height
-    fx, fy = intr.K[0, 0] * sx, intr.K[1, 1] * sy
-    cx, cy = (intr.K[0, 2] + 0.5) * sx - 0.5, (intr.K[1, 2] + 0.5) * sy - 0.5
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return CameraIntrinsics(K, intr.dist, int(width), int(height), intr.rms_px)
+    if width * intr.height != height * intr.width:
+        from robot_io.errors import MissingIntrinsicsError
+
+        raise MissingIntrinsicsError(f"{what}: frames are {width}x{height} but the intrinsics are for {intr.width}x{intr.height}, "
+                                     "another aspect ratio (a crop): calibrate the camera at the frames' size")
+    return intr.scaled(width, height)
 
 
 class Camera(Device):

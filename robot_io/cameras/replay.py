@@ -113,4 +113,4 @@ class ReplayCamera(Camera):
     def intrinsics(self) -> CameraIntrinsics:
         if self._calibration is None:
             raise MissingIntrinsicsError(f"replay {self.path}: no intrinsics; set camera.intrinsics in the hardware config")
-        return self._calibration if self.size is None else scale_intrinsics(self._calibration, *self.size)
+        return self._calibration if self.size is None else scale_intrinsics(self._calibration, *self.size, f"replay {self.path}")

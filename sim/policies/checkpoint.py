@@ -18,7 +18,7 @@ import hashlib
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import ConfigDict, Field, ValidationError
 
@@ -74,6 +74,9 @@ class PolicyCard(_Strict):
     format: str = CARD_FORMAT
     arch: PolicyArch
     action: ActionScaling
+    preprocess: Literal["center_crop", "letterbox", "resize"] = Field(
+        "center_crop", description="how a camera frame of another size becomes the S x S input (sim.policyview): the centred "
+                                   "square, resized (the sim cameras' square view); the whole frame padded; or squashed")
     training: dict[str, Any] = Field(default_factory=dict, description="resolved training config")
     clean_success: CleanSuccess | None = None
     seed: int | None = None

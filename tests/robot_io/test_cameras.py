@@ -11,6 +11,7 @@ import pytest
 
 from calibration.intrinsics import CameraIntrinsics
 from robot_io.cameras.base import scale_intrinsics
+from robot_io.errors import MissingIntrinsicsError
 from robot_io.cameras.depthai import DepthAICamera
 from robot_io.cameras.opencv import OpenCVCamera, resolve_device
 from robot_io.cameras.replay import ReplayCamera
@@ -27,8 +28,13 @@ def test_opencv_delivers_rgb_frames_of_the_negotiated_size(monkeypatch, size):
         f = cam.read()
         assert f.rgb.shape == (size[1], size[0], 3) and f.rgb.dtype == np.uint8
         assert (f.rgb[0, 0] == [255, 0, 0]).all()  # BGR from the driver became RGB
-        K = cam.intrinsics.K
-        assert K[0, 2] == pytest.approx((319.5 + 0.5) * size[0] / 640 - 0.5)
+        if size[0] * 480 == size[1] * 640:
+            K = cam.intrinsics.K
+            assert K[0, 2] == pytest.approx((319.5 + 0.5) * size[0] / 640 - 0.5)
+            assert K[0, 0] / K[1, 1] == pytest.approx(1.0)  # the same camera, scaled: square pixels stay square
+        else:  # 16:9 from a 4:3 calibration is a crop of the sensor: no K describes it
+            with pytest.raises(MissingIntrinsicsError, match=r"frames are 1280x720 but the intrinsics are for 640x480, another aspect"):
+                cam.intrinsics
     assert dev.released.is_set()
 
 

@@ -63,6 +63,12 @@ POLICY_ERROR = "policy_error"  # outcome and stop reason of a trial whose policy
 _SIM_GUIDANCE_ROUNDS = 5  # the simulated operator follows the guidance this often before asking the real one
 
 
+def policy_preprocess(policy) -> str:
+    """The card's ``preprocess`` (``center_crop`` for a policy without a card)."""
+    card = getattr(policy, "card", None)
+    return getattr(card, "preprocess", None) or "center_crop"
+
+
 class PlanOutsideWorkspace(AdvobjError, ValueError):
     """A planned initial TCP pose lies outside the safety layer's workspace box."""
 
@@ -343,12 +349,9 @@ class TrialRunner:
                 return located, attempt, True
 
     def _policy_image(self, rgb: np.ndarray) -> np.ndarray:
-        S = int(self.policy.image_size)
-        if rgb.shape[:2] == (S, S):
-            return rgb
-        import cv2
+        from sim.policyview import policy_view
 
-        return cv2.resize(rgb, (S, S), interpolation=cv2.INTER_AREA)
+        return policy_view(rgb, int(self.policy.image_size), policy_preprocess(self.policy))
 
     def _reached_now(self, T_base_tcp, tracked) -> bool:
         from calibration.outcome import measure_reach

@@ -70,8 +70,12 @@ def load_trial_policy(path: str | Path, threads: int = 1):
         from sim.policies.onnx_policy import OnnxPolicy
 
         return OnnxPolicy(p, threads=threads)
-    from sim.policies.checkpoint import load_policy
+    from sim.policies.checkpoint import is_checkpoint, load_checkpoint, load_policy
 
+    if is_checkpoint(p):
+        policy, card = load_checkpoint(p)
+        policy.card = card  # the runner reads its preprocess
+        return policy
     return load_policy(p)
 
 
@@ -180,6 +184,9 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
             with camera, arm:
                 # Identities after connecting: drivers read serial numbers from the devices.
                 info = dataclasses.replace(info, devices={"camera": device_identity(camera), "arm": device_identity(arm)})
+                if not sim:
+                    for warning in camera_view_warnings(camera, policy, spec, hw):
+                        log(f"warning: {warning}")
                 for warning in store.device_changes(info):
                     log(warning)
                 T_base_table = np.eye(4)
@@ -206,6 +213,26 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
             stage.close()
         if world is not None:
             world.close()
+
+
+def camera_view_warnings(camera, policy, spec, hw) -> list[str]:
+    """How the real camera, as the policy sees it through its card's ``preprocess``, differs from
+    the camera the policy was trained with (the scene's): field of view, pixel aspect, mount."""
+    from robot_io.config import load_T_tcp_cam
+    from robot_io.errors import MissingIntrinsicsError
+    from sim.policyview import policy_view_K, view_mismatch
+    from trials.real.runner import policy_preprocess
+
+    try:
+        intr = camera.intrinsics
+    except MissingIntrinsicsError:
+        return ["camera: no intrinsics, so its field of view cannot be compared with the policy's training camera"]
+    S = int(policy.image_size)
+    mode = policy_preprocess(policy)
+    K_view = policy_view_K(intr.K, intr.width, intr.height, S, mode)
+    T_mount = spec.camera.T_tcp_cam if hw.T_tcp_cam is None else load_T_tcp_cam(hw.T_tcp_cam)
+    return [f"camera ({intr.width}x{intr.height}, preprocess {mode} to {S}x{S}): {m}"
+            for m in view_mismatch(K_view, spec.camera.K(S, S), S, T_mount, spec.camera.T_tcp_cam)]
 
 
 def _safety_at_plan_rate(hw, plan, episode, log):
