@@ -28,7 +28,8 @@ from calibration.intrinsics import CameraIntrinsics
 from calibration.io import PoseModel, Strict, load_model, write_yaml
 from sim.geometry import invert_T, transform_points
 
-__all__ = ["TABLE", "TagEntry", "ObjectRegistry", "ObjectObservation", "load_registry", "save_registry", "locate_objects"]
+__all__ = ["TABLE", "TagEntry", "ObjectRegistry", "ObjectObservation", "load_registry", "save_registry", "locate_objects",
+           "visible_tag_fraction"]
 
 TABLE = "table"
 N_TAG36H11 = 587  # ids 0..586
@@ -109,6 +110,31 @@ def locate_objects(detections: Sequence[TagDetection], registry: ObjectRegistry,
         if bp is not None:
             out[name] = ObjectObservation(name, bp.T_cam_frame, bp.tag_ids, bp.reprojection_rms_px, bp.ambiguous, bp.alternatives)
     return out
+
+
+def visible_tag_fraction(registry: ObjectRegistry, name: str, T_cam_object: np.ndarray, seen_ids, camera: CameraIntrinsics) -> float | None:
+    """How much of an object's tag area that should be visible was seen: an occlusion measure.
+
+    From the object's pose, each of its registered tags that faces the camera and lies wholly in
+    the image is *expected*; the result is the projected area of the expected tags that were
+    detected over the area of all expected ones (1.0 = nothing hidden; 0.4 = 60 % of the print
+    area the camera should see is covered). None when no tag is expected (nothing to measure).
+    """
+    expected, seen = 0.0, 0.0
+    seen_ids = set(int(i) for i in seen_ids)
+    for i in registry.tag_ids(name):
+        T_cam_tag = np.asarray(T_cam_object) @ invert_T(registry.tags[i].T_tag_object.T)
+        pts = transform_points(T_cam_tag, tag_object_points(registry.tags[i].size_m))
+        if T_cam_tag[2, 2] >= 0 or np.any(pts[:, 2] <= 0):  # turned away, or behind the camera
+            continue
+        px = camera.project(pts)
+        if np.any(px < -0.5) or np.any(px[:, 0] > camera.width - 0.5) or np.any(px[:, 1] > camera.height - 0.5):
+            continue
+        x, y = px[:, 0], px[:, 1]
+        area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+        expected += area
+        seen += area if i in seen_ids else 0.0
+    return None if expected <= 0 else seen / expected
 
 
 def load_registry(path) -> ObjectRegistry:

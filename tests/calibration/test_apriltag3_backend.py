@@ -76,3 +76,22 @@ def test_a_process_that_used_apriltag3_exits_cleanly():
             "detect_tag_corners(np.zeros((64, 64), np.uint8)); print('ok')")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+
+
+def test_visible_tag_fraction_measures_how_much_of_an_object_is_covered(K, cam):
+    from calibration.io import PoseModel
+    from calibration.registry import ObjectRegistry, TagEntry, locate_objects, visible_tag_fraction
+
+    # One object carrying two 40 mm tags side by side on its front face, 6 cm apart.
+    reg = ObjectRegistry(tags={1: TagEntry(object="box", size_m=0.04, T_tag_object=PoseModel(translation_m=(0.03, 0.0, 0.0))),
+                               2: TagEntry(object="box", size_m=0.04, T_tag_object=PoseModel(translation_m=(-0.03, 0.0, 0.0)))})
+    T_cam_box = S.camera_facing(0.45, np.radians(15), (0.0, 1.0, 0.0))
+    planes = {i: S.tag_plane(i, 0.04, T_cam_box @ np.linalg.inv(reg.tags[i].T_tag_object.T)) for i in (1, 2)}
+    both = S.render_planes([planes[1], planes[2]], K, W, H)
+    one = S.render_planes([planes[1]], K, W, H)  # tag 2 covered (a hand, another object)
+    for img, want in ((both, 1.0), (one, 0.5)):
+        obs = locate_objects(detect_tags(img, cam, reg.tag_size), reg, cam)["box"]
+        frac = visible_tag_fraction(reg, "box", obs.T_cam_object, obs.tag_ids, cam)
+        assert frac == pytest.approx(want, abs=0.03)
+    away = S.camera_facing(0.45) @ np.diag([1.0, -1.0, -1.0, 1.0])  # the tags' faces turned from the camera
+    assert visible_tag_fraction(reg, "box", away, (), cam) is None

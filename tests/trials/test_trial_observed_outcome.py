@@ -78,6 +78,10 @@ def test_outcomes_seen_through_the_tags_match_the_sim_ground_truth(cell):
             assert r["auto_outcome"] == want, (tid, r["auto_reason"])
     poses = [p for p in _rows(db, "object_poses") if p["phase"] == "final"]
     assert poses and all(p["found"] == 1 and p["source"] == "tags" for p in poses)
+    # Occlusion measure: the share of the expected tag area that was seen (a bundle's back tags are not expected).
+    assert all(0.0 < p["visible_fraction"] <= 1.0 for p in poses if p["visible_fraction"] is not None)
+    assert sum(p["visible_fraction"] is not None for p in poses) >= len(poses) // 2
+    assert all(0.05 < r["light_level"] < 0.95 for r in rows.values())  # the lighting scenarios' measure, per trial
     assert list((cell["dir"] / "frames" / "seen").glob("sim_registry_*.yaml"))  # each staged object tagged, on record
 
 

@@ -61,6 +61,7 @@ class LocatedObject:
     ambiguous: bool = False
     alternatives_center_m: np.ndarray | None = None
     source: str = "tags"
+    visible_fraction: float | None = None  # seen / expected tag area from this view (calibration.registry.visible_tag_fraction)
 
     @property
     def xy_m(self) -> np.ndarray:
@@ -155,8 +156,13 @@ class TagLocator:
                 continue
             T = T_table_cam @ obs.T_cam_object
             alts = [(T_table_cam @ a)[:3, 3] for a in obs.alternatives]
+            vis = None
+            if self.registry is not None and self.intrinsics is not None:
+                from calibration.registry import visible_tag_fraction
+
+                vis = visible_tag_fraction(self.registry, role, obs.T_cam_object, obs.tag_ids, self.intrinsics)
             out[role] = LocatedObject(role, T, T[:3, 3].copy(), tuple(obs.tag_ids), bool(obs.ambiguous),
-                                      np.array(alts) if alts else None, "tags")
+                                      np.array(alts) if alts else None, "tags", vis)
         return out
 
     @staticmethod

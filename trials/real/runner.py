@@ -278,7 +278,7 @@ class TrialRunner:
         import contextlib
 
         with getattr(self.operator, "running", contextlib.nullcontext)():
-            steps, stop_reason, t_loop = self._loop(trial, placed, tracked, fdir, rel_dir, events, t0)
+            steps, stop_reason, t_loop, light = self._loop(trial, placed, tracked, fdir, rel_dir, events, t0)
         policy_error = stop_reason.startswith(POLICY_ERROR)
         t4 = self.clock()
         self.arm.stop("trial ended")
@@ -315,7 +315,7 @@ class TrialRunner:
             texture_sha256=None if ref is None else ref.sha256, started_at=_iso_utc(t_wall), duration_s=self.clock() - t0,
             stop_reason=stop_reason, auto_outcome=result.reached, auto_reason=reason, distances_m=result.distances_m,
             operator_outcome=operator_outcome, note=decision.note, placement_checks=checks, placement_skipped=skipped,
-            T_table_tcp_final=T_table_tcp, frames_dir=rel_dir, steps=steps, object_poses=poses, events=events)
+            T_table_tcp_final=T_table_tcp, frames_dir=rel_dir, steps=steps, object_poses=poses, events=events, light_level=light)
         timing = TrialTiming(trial.trial_id, t1 - t0, t2 - t1, t3 - t2, t_loop, t5 - t4, 0.0, len(steps))
         return rec, timing
 
@@ -393,6 +393,7 @@ class TrialRunner:
         period = 1.0 / float(self.plan.control_hz)
         steps: list[StepRecord] = []
         stop_reason = "max_steps"
+        light = None
         moved: set[str] = set()
         self.arm.start_trial()
         t_start = self.clock()
@@ -410,6 +411,8 @@ class TrialRunner:
             if self.on_step is not None:
                 self.on_step(trial, k)
             frame = self.camera.read()
+            if light is None:  # what the camera saw at the start: the lighting scenarios' measure
+                light = float(np.asarray(frame.rgb, dtype=np.float32).mean() / 255.0)
             self._track(frame, T_frame, k, placed, tracked, moved, events, t0)
             action = np.asarray(self.policy.act(self._policy_image(frame.rgb)[None]), dtype=np.float64).reshape(-1, 6)[0]
             if not np.isfinite(action).all():
@@ -443,7 +446,7 @@ class TrialRunner:
                 wait = t_tick + period - self.clock()
                 if wait > 0:
                     self.sleep(wait)
-        return steps, stop_reason, self.clock() - t_start
+        return steps, stop_reason, self.clock() - t_start, light
 
     def _outcome(self, T_base_tcp0, events, t0):
         """The criterion at the final TCP position on what the camera sees (an unseen object: unknown).
@@ -472,4 +475,5 @@ class TrialRunner:
         if obj is None:
             return ObjectPoseRecord(role, phase, None, None, (), False, 0, getattr(self.locator, "source", "tags"))
         n_alt = 0 if obj.alternatives_center_m is None else len(obj.alternatives_center_m)
-        return ObjectPoseRecord(role, phase, obj.T_table_object, obj.center_table_m, obj.tag_ids, obj.ambiguous, n_alt, obj.source)
+        return ObjectPoseRecord(role, phase, obj.T_table_object, obj.center_table_m, obj.tag_ids, obj.ambiguous, n_alt, obj.source,
+                                obj.visible_fraction)

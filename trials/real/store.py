@@ -74,7 +74,7 @@ __all__ = [
     "EXPORT_TABLES",
 ]
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 #: A trial's outcome. ``policy_error``: the policy gave a non-finite action; the trial stopped there
 #: (the runner sets it, never the operator; reports count it apart from the rated trials).
 OUTCOMES = ("goal", "adversarial", "none", "unknown", "policy_error")
@@ -217,6 +217,12 @@ CREATE TABLE amendments (
 );
 CREATE INDEX amendments_trial ON amendments (trial_row);
 """,
+    # Version 5: what the paper's lighting and occlusion scenarios need per trial: the light level
+    # the camera saw, and how much of each object's expected tag area was visible.
+    5: """
+ALTER TABLE trials ADD COLUMN light_level REAL;
+ALTER TABLE object_poses ADD COLUMN visible_fraction REAL;
+""",
 }
 _OLD_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown')"
 _NEW_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown', 'policy_error')"
@@ -292,6 +298,7 @@ class ObjectPoseRecord:
     ambiguous: bool
     n_alternatives: int
     source: str  # "tags" or "sim"
+    visible_fraction: float | None = None  # seen / expected tag area (tags only): 1 = unoccluded
 
 
 @dataclass(frozen=True)
@@ -330,6 +337,7 @@ class TrialRecord:
     steps: list[StepRecord] = field(default_factory=list)
     object_poses: list[ObjectPoseRecord] = field(default_factory=list)
     events: list[EventRecord] = field(default_factory=list)
+    light_level: float | None = None  # mean grey level (0-1) of the first frame of the policy loop
 
     @property
     def final_outcome(self) -> str:
@@ -631,12 +639,13 @@ class TrialStore:
                 "INSERT INTO trials (session_id, trial_id, plan_order, env, shape, condition, tcp_pose, object_layout, tags_json, "
                 "texture_sha256, started_at, duration_s, n_steps, stop_reason, auto_outcome, auto_reason, distances_json, "
                 "operator_outcome, note, final_outcome, placement_checks, placement_skipped, "
-                + ", ".join(f"tcp_final_{p}" for p in _POSE) + ", frames_dir, run_id) VALUES (" + ",".join("?" * 30) + ")",
+                + ", ".join(f"tcp_final_{p}" for p in _POSE) + ", frames_dir, run_id, light_level) VALUES (" + ",".join("?" * 31) + ")",
                 (session_id, rec.trial_id, rec.plan_order, rec.env, rec.shape, rec.condition, rec.tcp_pose, rec.object_layout,
                  json.dumps(list(rec.tags)), rec.texture_sha256, rec.started_at, float(rec.duration_s), len(rec.steps),
                  rec.stop_reason, rec.auto_outcome, rec.auto_reason, json.dumps(rec.distances_m), rec.operator_outcome,
                  rec.note or "", rec.final_outcome, int(rec.placement_checks), int(rec.placement_skipped),
-                 *pose_vec(rec.T_table_tcp_final), rec.frames_dir, self._runs.get(session_id)))
+                 *pose_vec(rec.T_table_tcp_final), rec.frames_dir, self._runs.get(session_id),
+                 None if rec.light_level is None else float(rec.light_level)))
             row = int(cur.lastrowid)
             c.executemany(
                 "INSERT INTO steps VALUES (" + ",".join("?" * 26) + ")",
@@ -644,11 +653,12 @@ class TrialStore:
                   *pose_vec(s.T_base_tcp_cmd), *pose_vec(s.T_base_tcp_meas), s.safety_status, s.safety_reason, s.frame_ref)
                  for s in rec.steps])
             c.executemany(
-                "INSERT INTO object_poses VALUES (" + ",".join("?" * 18) + ")",
+                "INSERT INTO object_poses VALUES (" + ",".join("?" * 19) + ")",
                 [(row, o.role, o.phase, int(o.T_table_object is not None), *pose_vec(o.T_table_object),
                   None if o.T_table_object is None else float(np.arctan2(o.T_table_object[1, 0], o.T_table_object[0, 0])),
                   *([None] * 3 if o.center_table_m is None else [float(v) for v in o.center_table_m]),
-                  json.dumps([int(i) for i in o.tag_ids]), int(o.ambiguous), int(o.n_alternatives), o.source)
+                  json.dumps([int(i) for i in o.tag_ids]), int(o.ambiguous), int(o.n_alternatives), o.source,
+                  None if o.visible_fraction is None else float(o.visible_fraction))
                  for o in rec.object_poses])
             c.executemany("INSERT INTO events VALUES (?,?,?,?,?)",
                           [(row, float(e.t_s), e.kind, e.action, e.reason) for e in rec.events])
