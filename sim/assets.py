@@ -721,22 +721,85 @@ def _scale_vector(source, scale) -> np.ndarray:
     return s
 
 
-def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, float] = 1.0) -> trimesh.Trimesh:
+UNITS_M = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+# An object a wrist-camera policy reaches for: a coin is about 2 cm, a cereal box 30 cm. Outside
+# this range a mesh is almost always in the wrong units (a scan in mm is 1000x too big).
+PLAUSIBLE_SIZE_M = (0.01, 0.60)
+PLACEMENT_WARN_M = 0.001  # offsets below 1 mm are rounding, not a misplaced origin
+
+
+def _y_up_to_z_up(v: np.ndarray) -> np.ndarray:
+    """+Y-up (glTF, Blender's OBJ/glTF export) to our +Z-up: a +90 deg turn about x."""
+    return np.stack([v[:, 0], -v[:, 2], v[:, 1]], -1)
+
+
+def default_up_axis(source) -> str:
+    """The up axis a file's format implies: +Y for glTF (by its spec), +Z otherwise."""
+    return "y" if Path(os.fspath(source)).suffix.lower() in (".glb", ".gltf") else "z"
+
+
+def _size_hint(longest_m: float, scale) -> str:
+    for unit, f in (("mm", 0.001), ("cm", 0.01)):
+        if PLAUSIBLE_SIZE_M[0] <= longest_m * f <= PLAUSIBLE_SIZE_M[1]:
+            return f"set `units: {unit}` on the object (the file looks like {unit}: {longest_m * f * 100:.1f} cm then)"
+    return "set `units: mm|cm|m` or `scale:` on the object"
+
+
+def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, float] = 1.0, units: str = "m",
+               up_axis: str | None = None, placement: str = "auto", warn=None) -> trimesh.Trimesh:
     """A fresh mesh from a built-in name (:data:`BUILTIN_MESHES`) or a mesh file path, scaled.
 
     ``scale``: one factor or per-axis (x, y, z) factors of the object frame, applied after
     loading (UVs unchanged). Raises :class:`AssetError` naming the source.
+
+    Mesh files as they come from a scanner or Blender (built-ins are already in metres, +Z up,
+    resting on z = 0, centred):
+
+    * ``units`` (m, cm, mm): the file's length unit.
+    * ``up_axis`` (z, y; None = by format, :func:`default_up_axis`): which axis points up in the
+      file; +Y is turned to +Z.
+    * ``placement``: ``auto`` rests the object on its lowest point (z = 0) and centres its
+      bounding box in x/y, saying so through ``warn`` (default: ``warnings.warn``) when that moves
+      it by more than 1 mm; ``keep`` keeps the file's origin (the object frame is the file's).
+    * The longest side (after units and scale) must lie within :data:`PLAUSIBLE_SIZE_M`; otherwise
+      the mesh is refused in one line suggesting the units that would fit.
     """
     if not isinstance(source, (str, os.PathLike)):
         raise AssetError(f"mesh source must be a built-in name or a file path, got {source!r}")
     s = _scale_vector(source, scale)
     key = os.fspath(source)
+    if units not in UNITS_M:
+        raise AssetError(f"{key}: units must be one of {', '.join(UNITS_M)}, got {units!r}")
+    if up_axis not in (None, "z", "y") or placement not in ("auto", "keep"):
+        raise AssetError(f"{key}: up_axis must be z or y and placement auto or keep, got {up_axis!r} / {placement!r}")
     if isinstance(source, str) and key in BUILTIN_MESHES:
         mesh = BUILTIN_MESHES[key]()
-    elif Path(key).suffix.lower() in _MESH_EXTS or Path(key).exists():
-        mesh = load_mesh_file(key)
-    else:
+        if not np.all(s == 1.0):
+            mesh.vertices = np.asarray(mesh.vertices) * s
+        return mesh
+    if Path(key).suffix.lower() not in _MESH_EXTS and not Path(key).exists():
         raise AssetError(f"{key!r}: not a built-in mesh ({', '.join(BUILTIN_MESHES)}) nor a mesh file path")
-    if not np.all(s == 1.0):
-        mesh.vertices = np.asarray(mesh.vertices) * s
+    mesh = load_mesh_file(key)
+    v = np.asarray(mesh.vertices, dtype=np.float64) * UNITS_M[units]
+    if (up_axis or default_up_axis(key)) == "y":
+        v = _y_up_to_z_up(v)
+    v = v * s
+    lo, hi = v.min(0), v.max(0)
+    longest = float((hi - lo).max())
+    if not PLAUSIBLE_SIZE_M[0] <= longest <= PLAUSIBLE_SIZE_M[1]:
+        shown = f"{longest:.3g} m" if longest >= 1 else f"{longest * 100:.3g} cm"
+        raise AssetError(f"{key}: its longest side is {shown} (units {units}, scale {scale}), not a plausible object "
+                         f"({PLAUSIBLE_SIZE_M[0] * 100:g} cm to {PLAUSIBLE_SIZE_M[1] * 100:g} cm); {_size_hint(longest / float(s.max()), scale)}")
+    if placement == "auto":
+        shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
+        say = warn or (lambda text: warnings.warn(text, stacklevel=3))
+        if lo[2] < -PLACEMENT_WARN_M:
+            say(f"{key}: the mesh reaches {-lo[2] * 100:.1f} cm below its origin (below the table): rested on its lowest point")
+        elif lo[2] > PLACEMENT_WARN_M:
+            say(f"{key}: the mesh floats {lo[2] * 100:.1f} cm above its origin: rested on its lowest point")
+        if np.hypot(shift[0], shift[1]) > PLACEMENT_WARN_M:
+            say(f"{key}: the origin is {np.hypot(shift[0], shift[1]) * 100:.1f} cm from the base centre in x/y: recentred "
+                "(placement: keep keeps the file's origin)")
+        v = v + shift
+    mesh.vertices = v
     return mesh

@@ -125,17 +125,21 @@ def object_poses_world(object_xy_yaw) -> np.ndarray:
 
 
 @lru_cache(maxsize=64)
-def _mesh_center(mesh: str, scale) -> tuple[float, float, float]:
+def _mesh_center(mesh: str, scale, units: str = "m", up_axis: str | None = None, placement: str = "auto") -> tuple[float, float, float]:
+    import warnings
+
     from sim.assets import build_mesh
 
-    m = build_mesh(mesh, scale)
+    with warnings.catch_warnings():  # the renderer builds the same mesh and says it once
+        warnings.simplefilter("ignore")
+        m = build_mesh(mesh, scale, units, up_axis, placement)
     lo, hi = m.bounds
     return tuple(float(v) for v in (lo + hi) / 2.0)
 
 
 def object_local_centers(spec) -> np.ndarray:
     """Bounding-box centres ``(K, 3)`` m of the spec's objects in their own frames."""
-    return np.array([_mesh_center(o.mesh, o.scale) for o in spec.objects])
+    return np.array([_mesh_center(o.mesh, o.scale, o.units, o.up_axis, o.placement) for o in spec.objects])
 
 
 def _place_objects(spec, rng: np.random.Generator) -> np.ndarray:

@@ -356,7 +356,7 @@ class SceneRenderer:
 
         self._objects: list[_ObjectNodes] = []
         for k, ospec in enumerate(spec.objects):
-            mesh = meshes[k] if meshes is not None else build_mesh(ospec.mesh, ospec.scale)
+            mesh = meshes[k] if meshes is not None else build_mesh(ospec.mesh, ospec.scale, **ospec.mesh_kwargs())
             tex = self._resolve_texture(ospec.texture, mesh, default_texture)
             color = tuple(ospec.texture) if isinstance(ospec.texture, tuple) else None
             cnode = self.scene.add(textured_pyrender_mesh(mesh, tex, color), pose=np.eye(4))

@@ -107,6 +107,15 @@ class ObjectSpec(_Strict):
     role: Literal["goal", "adversarial", "distractor", "obstacle"]
     # None = the mesh's own default look; a string is an image path; a triple is a flat color.
     texture: str | Rgb | None = None
+    # Mesh files as exported (ignored for built-in meshes; see sim.assets.build_mesh).
+    units: Literal["m", "cm", "mm"] = Field("m", description="length unit of the mesh file (scans are often mm)")
+    up_axis: Literal["z", "y"] | None = Field(None, description="the file's up axis; default: +Y for .glb/.gltf (glTF spec), else +Z")
+    placement: Literal["auto", "keep"] = Field("auto", description="auto: rest on the lowest point and centre in x/y (warned when "
+                                                                   "it moves the mesh); keep: the file's origin is the object frame")
+
+    def mesh_kwargs(self) -> dict:
+        """The arguments of :func:`sim.assets.build_mesh` besides the source and scale."""
+        return {"units": self.units, "up_axis": self.up_axis, "placement": self.placement}
 
 
 class CameraSpec(_Strict):

@@ -33,8 +33,14 @@ def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool 
     for part, n in want.items():
         short = n - len(in_part(pool, part))
         if short > 0:
-            got, _ = build_feasible(policy, spec, part, short, cfg.seed, 8, exclude=[c.seed for c in pool], progress=progress,
-                                    desc=f"feasible pool ({part})")
+            got, tried = build_feasible(policy, spec, part, short, cfg.seed, 8, exclude=[c.seed for c in pool], progress=progress,
+                                        desc=f"feasible pool ({part})")
+            if not got and not in_part(pool, part):
+                from attack.optimize import AttackError
+
+                raise AttackError(f"feasible pool: the clean policy reached the goal in none of the {tried} configurations of this "
+                                  f"scene tried for the {part} part, so there is nothing to attack from: it does not do the task "
+                                  "in this scene (check the scene's objects, their sizes and the camera), or give --pool")
             extra += got
     if not extra:
         return pool
@@ -43,11 +49,24 @@ def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool 
     return pool
 
 
-def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True) -> dict:
+def pool_matches_scene(path: Path, spec) -> bool:
+    """Whether the pool file at ``path`` was made for ``spec`` (its fingerprint); False if unreadable."""
+    import json
+
+    from sim.configs import spec_fingerprint
+
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8")).get("spec_fingerprint") == spec_fingerprint(spec)
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True,
+               log=print) -> dict:
     from attack.optimize import AttackError, AttackRun, find_checkpoint, resolve_config, run_attack
     from attack.outputs import write_config_record, write_outputs
     from sim.configio import file_error, read_yaml
-    from sim.configs import load_pool
+    from sim.configs import PoolError, load_pool
     from sim.policies.checkpoint import load_policy
     from sim.runinfo import write_run_info
     from trials.scene_tools import load_spec
@@ -65,8 +84,21 @@ def attack_job(policy_dir, preset: str, config_path, scene_path, pool_path, out,
     if pool_path is not None and not Path(pool_path).is_file():
         raise AttackError(f"--pool: {pool_path}: no such pool file")
     pool_file = Path(pool_path) if pool_path is not None else feasible_pool_path(policy_dir)
-    pool = load_pool(pool_file, spec) if pool_file.is_file() else None
     out = Path(out)
+    pool = None
+    if pool_file.is_file():
+        if pool_path is None and not pool_matches_scene(pool_file, spec):
+            # The policy's own pool is for the scene it was trained in; an own scene gets its own
+            # task-feasible configurations (attack and validation parts only), built and kept here.
+            log(f"attack: {pool_file} is for another scene; building a task-feasible pool for "
+                f"{scene_path or 'the built-in scene'} into {out / 'feasible_pool.json'}")
+            pool_file = out / "feasible_pool.json"
+            pool = []
+        else:
+            try:
+                pool = load_pool(pool_file, spec)
+            except PoolError as err:
+                raise PoolError(f"{err}; --pool: give a pool made for this scene, or omit --pool to build one") from None
     if pool is not None:
         pool = top_up_attack_pool(policy, spec, pool, cfg, out, progress)
     run = AttackRun(policy, spec, cfg, pool=pool, out_dir=out)

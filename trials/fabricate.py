@@ -88,6 +88,7 @@ class RunSource:
     mesh: str  # built-in name or mesh file path
     scale: object  # the scene's scale of the adversarial object (number or 3-tuple)
     sha256: str  # of texture.npy
+    mesh_kwargs: dict = field(default_factory=dict)  # units / up_axis / placement of a mesh file (sim.assets.build_mesh)
 
 
 def load_run(run_dir) -> RunSource:
@@ -107,7 +108,8 @@ def load_run(run_dir) -> RunSource:
         o = next(o for o in default_scene().objects if o.role == "adversarial")
         adv = {"mesh": o.mesh, "scale": o.scale}
     mesh = src.mesh or adv.get("mesh")
-    return RunSource(str(run_dir), src.texture, str(mesh), adv.get("scale", 1.0), src.sha256)
+    kw = {k: adv[k] for k in ("units", "up_axis", "placement") if adv.get(k) is not None}
+    return RunSource(str(run_dir), src.texture, str(mesh), adv.get("scale", 1.0), src.sha256, kw)
 
 
 # ============================================================================ sampling
@@ -904,7 +906,7 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
         log("fabricate: warning: this texture was optimised under the scene's fixed light (light_randomization: false); "
             "for a real cell, optimise with light_randomization: true ('advobj experiment lighting' measures the difference)")
     try:
-        mesh = build_mesh(src.mesh, src.scale)
+        mesh = build_mesh(src.mesh, src.scale, **src.mesh_kwargs)
     except AssetError as err:
         raise FabricationError(f"{Path(run_dir) / 'run.json'}: mesh {src.mesh!r} of the run cannot be built ({err})") from None
     sheet_shape = shape if shape is not None else (src.mesh if src.mesh in SHEET_SHAPES else None)

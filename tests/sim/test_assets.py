@@ -312,7 +312,7 @@ def test_mesh_file_without_uv_gets_an_atlas_and_keeps_its_origin(tmp_path, ext):
     box.apply_translation([1.0, 2.0, 3.0])
     path = tmp_path / f"box.{ext}"
     box.export(path)
-    m = A.build_mesh(str(path))
+    m = A.build_mesh(str(path), up_axis="z", placement="keep")  # as written: +Z up, origin kept
     uv = np.asarray(m.visual.uv)
     assert uv.shape == (len(m.vertices), 2) and uv.min() >= 0 and uv.max() <= 1
     assert len(m.faces) == 12 and m.area == pytest.approx(box.area)
@@ -334,10 +334,66 @@ def test_textured_mesh_file_keeps_its_uv_and_image(tmp_path, meshes, ext):
     src = meshes["cube"]
     path = tmp_path / f"cube.{ext}"
     src.export(path)
-    m = A.build_mesh(path, 2.0)
+    m = A.build_mesh(path, 2.0, up_axis="z", placement="keep")
     np.testing.assert_allclose(m.visual.uv, src.visual.uv, atol=1e-6)
     np.testing.assert_allclose(m.extents, 2.0 * src.extents, rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(m.visual.material.image.convert("RGB")), np.asarray(src.visual.material.image))
+
+
+def test_a_scan_in_millimetres_is_refused_in_one_line_suggesting_its_units(tmp_path):
+    trimesh.creation.box((60.0, 60.0, 190.0)).export(tmp_path / "scan.stl")  # a bottle, exported in mm
+    with pytest.raises(A.AssetError, match=r"scan\.stl: its longest side is 190 m .*not a plausible object \(1 cm to 60 cm\); "
+                                           r"set `units: mm`") as e:
+        A.build_mesh(tmp_path / "scan.stl")
+    assert "\n" not in str(e.value)
+    m = A.build_mesh(tmp_path / "scan.stl", units="mm")
+    np.testing.assert_allclose(m.extents, [0.06, 0.06, 0.19], atol=1e-9)
+    with pytest.raises(A.AssetError, match=r"longest side is 0.19 cm"):
+        A.build_mesh(tmp_path / "scan.stl", units="mm", scale=0.01)
+
+
+def test_a_gltf_file_is_y_up_by_its_spec_unless_told_otherwise(tmp_path):
+    tall_along_y = trimesh.creation.box((0.05, 0.20, 0.08))  # how a +Y-up exporter writes a 20 cm tall object
+    tall_along_y.export(tmp_path / "bottle.glb")
+    m = A.build_mesh(tmp_path / "bottle.glb")
+    np.testing.assert_allclose(m.extents, [0.05, 0.08, 0.20], atol=1e-9)  # standing: its height along +z
+    assert m.bounds[0][2] == pytest.approx(0.0)
+    np.testing.assert_allclose(A.build_mesh(tmp_path / "bottle.glb", up_axis="z").extents, [0.05, 0.20, 0.08], atol=1e-9)
+    tall_along_y.export(tmp_path / "bottle.obj")
+    np.testing.assert_allclose(A.build_mesh(tmp_path / "bottle.obj", up_axis="y").extents, [0.05, 0.08, 0.20], atol=1e-9)
+    assert A.default_up_axis("x.gltf") == "y" and A.default_up_axis("x.OBJ") == "z"
+
+
+def test_a_mesh_reaching_below_the_table_rests_on_its_lowest_point_and_is_recentred_with_warnings(tmp_path):
+    box = trimesh.creation.box((0.06, 0.06, 0.10))
+    box.apply_translation([0.028, 0.0, 0.05 - 0.027])  # 2.7 cm below its origin, 2.8 cm off centre (YCB-like)
+    box.export(tmp_path / "ycb.ply")
+    said = []
+    m = A.build_mesh(tmp_path / "ycb.ply", warn=said.append)
+    np.testing.assert_allclose(m.bounds, [[-0.03, -0.03, 0.0], [0.03, 0.03, 0.10]], atol=1e-9)
+    assert any("2.7 cm below its origin (below the table): rested on its lowest point" in t for t in said)
+    assert any("2.8 cm from the base centre in x/y: recentred" in t for t in said)
+    kept = A.build_mesh(tmp_path / "ycb.ply", placement="keep", warn=said.append)
+    np.testing.assert_allclose(kept.bounds, box.bounds, atol=1e-9)
+    with pytest.warns(UserWarning, match="below the table"):
+        A.build_mesh(tmp_path / "ycb.ply")
+
+
+def test_a_scene_object_carries_units_up_axis_and_placement(tmp_path):
+    from sim.spec import default_scene, scene_from_dict
+
+    trimesh.creation.box((60.0, 40.0, 120.0)).export(tmp_path / "box_mm.stl")
+    d = default_scene().model_dump(mode="json")
+    adv = next(o for o in d["objects"] if o["role"] == "adversarial")
+    adv.update(mesh=str(tmp_path / "box_mm.stl"), units="mm")
+    spec = scene_from_dict(d)
+    from sim.configs import object_local_centers
+
+    k = spec.object_index("adversarial")
+    assert object_local_centers(spec)[k] == pytest.approx([0.0, 0.0, 0.06])
+    adv["units"] = "inch"
+    with pytest.raises(Exception, match="units"):
+        scene_from_dict(d)
 
 
 def test_multi_part_file_is_concatenated(tmp_path):

@@ -363,6 +363,21 @@ class Artifacts:
         return self._once("shots", build)
 
     @property
+    def chess(self) -> list[Path]:
+        """OpenCV's own chessboard photos (tests/data/photos/PROVENANCE.md): the docs' left*.jpg."""
+        return sorted((ROOT / "tests" / "data" / "photos" / "opencv-chessboard").glob("left*.jpg"))
+
+    @property
+    def ros_cam(self) -> Path:
+        def build():
+            from calibration.intrinsics import load_camera_yaml, save_camera_yaml
+
+            cam = load_camera_yaml(ROOT / "examples" / "calibration" / "cam.yaml")
+            return save_camera_yaml(self.calib / "ost.yaml", cam, fmt="ros")
+
+        return self._once("ros_cam", build)
+
+    @property
     def photo(self) -> Path:
         def build():
             import imageio.v3 as iio
@@ -413,6 +428,14 @@ CALIB = {
     "advobj calibrate handeye samples.yaml --out T_tcp_cam.yaml":
         Tiny("calibrate handeye {root}/examples/calibration/handeye_samples.yaml --out {calib}/T_tcp_cam.yaml", ("{calib}/T_tcp_cam.yaml",)),
     "advobj calibrate selfcheck": Tiny("calibrate selfcheck", expect="hand-eye"),
+    "advobj calibrate intrinsics left*.jpg --out cam.yaml":
+        Tiny("calibrate intrinsics {chess} --out {calib}/cam_chess.yaml", ("{calib}/cam_chess.yaml",),
+             expect="board: plain chessboard, 9x6 inner corners (found automatically)"),
+    "advobj calibrate intrinsics left*.jpg --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out ost.yaml":
+        Tiny("calibrate intrinsics {chess} --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out {calib}/ost_chess.yaml",
+             ("{calib}/ost_chess.yaml",), expect="(as given)"),
+    "advobj calibrate convert ost.yaml --out cam.yaml":
+        Tiny("calibrate convert {ros_cam} --out {calib}/cam_from_ros.yaml", ("{calib}/cam_from_ros.yaml",), expect="(ros)"),
 }
 
 PLAN_LINE = ("advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml "
