@@ -271,14 +271,60 @@ def _cylinder(radius: float, z0: float, z1: float, xy, sections: int = 12):
     return np.asarray(c.vertices, float), np.asarray(c.faces, np.int64)
 
 
+_ATLAS_MEMO: dict[str, tuple] = {}
+
+
+def atlas_cache_dir() -> Path | None:
+    """Where UV atlases are cached across commands: ``$ADVOBJ_CACHE_DIR/uv`` (empty: no disk
+    cache), else ``$XDG_CACHE_HOME/advobj/uv`` (default ``~/.cache``)."""
+    env = os.environ.get("ADVOBJ_CACHE_DIR")
+    if env is not None:
+        return Path(env) / "uv" if env else None
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "advobj" / "uv"
+
+
 def _atlas(vertices: np.ndarray, faces: np.ndarray):
     """xatlas charts + packing. Returns vertices (V', 3), faces (F, 3) (same order), uv (V', 2)
-    and ``vmapping`` (V',) into the input vertices."""
+    and ``vmapping`` (V',) into the input vertices.
+
+    An atlas costs seconds for a scan (10 s at 20k faces) and every command that builds the mesh
+    needs it, so it is cached by the content it depends on (the sha256 of the float32 vertices and
+    faces xatlas sees, and xatlas's version): in memory, and on disk in :func:`atlas_cache_dir`
+    as a plain ``.npz`` (arrays only, read without pickle; a damaged entry is rebuilt).
+    """
+    import hashlib
+    import importlib.metadata
+
     import xatlas
 
-    vmap, idx, uv = xatlas.parametrize(np.asarray(vertices, np.float32), np.asarray(faces, np.uint32))
-    vmap = np.asarray(vmap, np.int64)
-    return np.asarray(vertices, np.float64)[vmap], np.asarray(idx, np.int64), np.clip(np.asarray(uv, np.float64), 0.0, 1.0), vmap
+    v32, f32 = np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.uint32)
+    try:
+        version = importlib.metadata.version("xatlas")
+    except importlib.metadata.PackageNotFoundError:
+        version = "?"
+    key = hashlib.sha256(version.encode() + v32.tobytes() + b"|" + f32.tobytes()).hexdigest()
+    hit = _ATLAS_MEMO.get(key)
+    folder = atlas_cache_dir()
+    if hit is None and folder is not None and (folder / f"{key}.npz").is_file():
+        try:
+            with np.load(folder / f"{key}.npz", allow_pickle=False) as z:
+                hit = (z["vmap"].astype(np.int64), z["idx"].astype(np.int64), z["uv"].astype(np.float64))
+        except (OSError, ValueError, KeyError):
+            hit = None  # damaged or foreign: rebuilt below
+    if hit is None:
+        vmap, idx, uv = xatlas.parametrize(v32, f32)
+        hit = (np.asarray(vmap, np.int64), np.asarray(idx, np.int64), np.clip(np.asarray(uv, np.float64), 0.0, 1.0))
+        if folder is not None:
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                tmp = folder / f".{key}.{os.getpid()}.npz"
+                np.savez(tmp, vmap=hit[0], idx=hit[1], uv=hit[2])
+                os.replace(tmp, folder / f"{key}.npz")
+            except OSError:
+                pass  # a read-only cache only costs the rebuild next time
+    _ATLAS_MEMO[key] = hit
+    vmap, idx, uv = hit
+    return np.asarray(vertices, np.float64)[vmap], idx.copy(), uv.copy(), vmap.copy()
 
 
 # ============================================================================ built-ins
@@ -650,19 +696,26 @@ def _check_obj_references(path: Path) -> None:
                             inside(rest.split()[-1], f"{mtl.name}: {key}")
 
 
-def load_mesh_file(path: str | os.PathLike, recenter: bool = False) -> trimesh.Trimesh:
+def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None) -> trimesh.Trimesh:
     """Load a mesh file (OBJ / GLB / GLTF / PLY / STL / OFF via trimesh) and validate it.
 
     A multi-part file (``trimesh.Scene``) is concatenated in world placement. Raises
     :class:`AssetError` naming the file for: a missing file, an unreadable or unsupported
     format, no faces, non-finite vertices, or zero total area. Individually degenerate faces
     (area below 1e-12 x bbox diagonal^2) are removed with a warning. The origin is kept unless
-    ``recenter`` (then: base centre of the bounding box). UVs per :func:`ensure_uv`.
+    ``recenter`` (then: base centre of the bounding box). ``prepare(vertices) -> vertices`` runs on
+    the loaded geometry before the UV atlas (units, axes, placement; it may refuse the mesh, and
+    then no atlas is built). UVs per :func:`ensure_uv`.
     """
     path = Path(path)
     label = str(path)
     if not path.is_file():
         raise AssetError(f"{label}: mesh file not found")
+    if path.suffix.lower() not in _MESH_EXTS:
+        hint = (" (MuJoCo's binary mesh: use the STL/OBJ the MJCF was made from, or write the loaded model's mesh_vert/mesh_face "
+                "out with trimesh)") if path.suffix.lower() == ".msh" else ""
+        raise AssetError(f"{label}: {path.suffix or 'no extension'} is not a mesh format advobj reads{hint}; give "
+                         f"{', '.join(sorted(e.lstrip('.').upper() for e in _MESH_EXTS))}")
     if path.suffix.lower() == ".obj":
         _check_obj_references(path)
     try:
@@ -701,6 +754,9 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False) -> trimesh.T
         mesh = mesh.copy()
         mesh.update_faces(~bad)
         mesh.remove_unreferenced_vertices()
+    if prepare is not None:
+        mesh = mesh.copy() if mesh is loaded else mesh
+        mesh.vertices = prepare(np.asarray(mesh.vertices, dtype=np.float64))
     out = ensure_uv(mesh, path.stem)
     out.metadata["source"] = label
     if recenter:
@@ -741,8 +797,9 @@ def default_up_axis(source) -> str:
 def _size_hint(longest_m: float, scale) -> str:
     for unit, f in (("mm", 0.001), ("cm", 0.01)):
         if PLAUSIBLE_SIZE_M[0] <= longest_m * f <= PLAUSIBLE_SIZE_M[1]:
-            return f"set `units: {unit}` on the object (the file looks like {unit}: {longest_m * f * 100:.1f} cm then)"
-    return "set `units: mm|cm|m` or `scale:` on the object"
+            return (f"set `units: {unit}` on the object if the file is in {unit} ({longest_m * f * 100:.1f} cm then), "
+                    "or a `scale:` that gives its real size")
+    return "set `units: mm|cm|m` or a `scale:` on the object that gives its real size"
 
 
 def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, float] = 1.0, units: str = "m",
@@ -779,27 +836,29 @@ def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, flo
         return mesh
     if Path(key).suffix.lower() not in _MESH_EXTS and not Path(key).exists():
         raise AssetError(f"{key!r}: not a built-in mesh ({', '.join(BUILTIN_MESHES)}) nor a mesh file path")
-    mesh = load_mesh_file(key)
-    v = np.asarray(mesh.vertices, dtype=np.float64) * UNITS_M[units]
-    if (up_axis or default_up_axis(key)) == "y":
-        v = _y_up_to_z_up(v)
-    v = v * s
-    lo, hi = v.min(0), v.max(0)
-    longest = float((hi - lo).max())
-    if not PLAUSIBLE_SIZE_M[0] <= longest <= PLAUSIBLE_SIZE_M[1]:
-        shown = f"{longest:.3g} m" if longest >= 1 else f"{longest * 100:.3g} cm"
-        raise AssetError(f"{key}: its longest side is {shown} (units {units}, scale {scale}), not a plausible object "
-                         f"({PLAUSIBLE_SIZE_M[0] * 100:g} cm to {PLAUSIBLE_SIZE_M[1] * 100:g} cm); {_size_hint(longest / float(s.max()), scale)}")
-    if placement == "auto":
-        shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
-        say = warn or (lambda text: warnings.warn(text, stacklevel=3))
-        if lo[2] < -PLACEMENT_WARN_M:
-            say(f"{key}: the mesh reaches {-lo[2] * 100:.1f} cm below its origin (below the table): rested on its lowest point")
-        elif lo[2] > PLACEMENT_WARN_M:
-            say(f"{key}: the mesh floats {lo[2] * 100:.1f} cm above its origin: rested on its lowest point")
-        if np.hypot(shift[0], shift[1]) > PLACEMENT_WARN_M:
-            say(f"{key}: the origin is {np.hypot(shift[0], shift[1]) * 100:.1f} cm from the base centre in x/y: recentred "
-                "(placement: keep keeps the file's origin)")
-        v = v + shift
-    mesh.vertices = v
-    return mesh
+    def prepare(v: np.ndarray) -> np.ndarray:
+        v = v * UNITS_M[units]
+        if (up_axis or default_up_axis(key)) == "y":
+            v = _y_up_to_z_up(v)
+        v = v * s
+        lo, hi = v.min(0), v.max(0)
+        longest = float((hi - lo).max())
+        if not PLAUSIBLE_SIZE_M[0] <= longest <= PLAUSIBLE_SIZE_M[1]:
+            shown = f"{longest:.3g} m" if longest >= 1 else f"{longest * 100:.3g} cm"
+            raise AssetError(f"{key}: its longest side is {shown} (units {units}, scale {scale}), not a plausible object "
+                             f"({PLAUSIBLE_SIZE_M[0] * 100:g} cm to {PLAUSIBLE_SIZE_M[1] * 100:g} cm); "
+                             f"{_size_hint(longest / float(s.max()), scale)}")
+        if placement == "auto":
+            shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
+            say = warn or (lambda text: warnings.warn(text, stacklevel=4))
+            if lo[2] < -PLACEMENT_WARN_M:
+                say(f"{key}: the mesh reaches {-lo[2] * 100:.1f} cm below its origin (below the table): rested on its lowest point")
+            elif lo[2] > PLACEMENT_WARN_M:
+                say(f"{key}: the mesh floats {lo[2] * 100:.1f} cm above its origin: rested on its lowest point")
+            if np.hypot(shift[0], shift[1]) > PLACEMENT_WARN_M:
+                say(f"{key}: the origin is {np.hypot(shift[0], shift[1]) * 100:.1f} cm from the base centre in x/y: recentred "
+                    "(placement: keep keeps the file's origin)")
+            v = v + shift
+        return v
+
+    return load_mesh_file(key, prepare=prepare)

@@ -9,7 +9,21 @@ import typer
 
 from trials import cli_grid
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, help="Red-team wrist-camera visuomotor policies with 3D adversarial objects.")
+app = typer.Typer(no_args_is_help=True, add_completion=False, help="Red-team wrist-camera visuomotor policies with 3D adversarial objects.",
+                  context_settings={"help_option_names": ["-h", "--help"]})
+
+
+def _version(value: bool) -> None:
+    if value:
+        import importlib.metadata
+
+        typer.echo(f"advobj {importlib.metadata.version('advobj')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="print the version and exit")) -> None:
+    """Red-team wrist-camera visuomotor policies with 3D adversarial objects."""
 
 
 from trials import cli_scene  # noqa: E402

@@ -35,6 +35,8 @@ def train(
     curve_episodes: int = typer.Option(0, min=0, help="clean episodes after each iteration/chunk, for a learning curve (time excluded from the budget)"),
     stop_at: Optional[float] = typer.Option(None, help="stop once the learning-curve success reaches this (needs --curve-episodes)"),
     threads: int = typer.Option(1, help=_THREADS_HELP),
+    keep_state: bool = typer.Option(False, "--keep-state/--no-keep-state", help="keep train_state/ (the resume data, hundreds of MB) "
+                                    "once training has finished; by default it is deleted and the final weights kept"),
     device: str = typer.Option("cpu"),
     stem: Optional[str] = typer.Option(None, help="ResNet/VGG stem: 'small' (no early downsampling, the default of small presets) "
                                        "or 'standard' (ImageNet stem: ~3-5x cheaper per image on CPU)"),
@@ -60,7 +62,7 @@ def train(
         raise typer.BadParameter(str(err).splitlines()[0] if "preset" in str(err) else str(err)) from None
     _set_threads(threads)
     spec = load_spec(scene)
-    card = train_policy(cfg, out, spec, device=device, log=typer.echo)
+    card = train_policy(cfg, out, spec, device=device, log=typer.echo, keep_state=keep_state)
     t = card.training["train_time_s"]
     typer.echo(f"trained {cfg.policy.arch} ({cfg.method}, preset {preset}) in {t / 60:.1f} min; checkpoint in {out}/")
 

@@ -182,6 +182,9 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
         set_randomization(env, env_cfg)
         driven_success = []
         new_x, new_y = [], []
+        # Per-episode progress inside the iteration: the first one alone can take minutes.
+        episodes = tqdm(total=batches * N, desc=f"dagger {it + 1}/{cfg.iterations}: episodes", unit="ep", leave=False,
+                        disable=not progress)
         for b in range(batches):
             seeds = [TRAIN_SEED_BASE + seed * 1_000_000 + it * 10_000 + b * N + j for j in range(N)]
             expert_mask = rng.random(N) < beta
@@ -189,6 +192,10 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
             new_x.append(x)
             new_y.append(y)
             driven_success += success[driven].tolist()
+            episodes.update(N)
+            if driven_success:
+                episodes.set_postfix(policy_success=f"{np.mean(driven_success):.2f}")
+        episodes.close()
         images = np.concatenate([images, *new_x])[-cfg.max_frames:]
         actions = np.concatenate([actions, *new_y])[-cfg.max_frames:]
         loss = _train_steps(policy, optimizer, images, actions, cfg.grad_steps_per_iter, cfg.batch_size, rng, device)
@@ -200,6 +207,7 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
             set_randomization(env, clean)
             res = run_episodes(env, policy, range(cfg.eval_episodes))
             record["clean_success"] = res.success_rate.rate
+            log(f"iteration {it + 1}/{cfg.iterations}: clean success {res.success_rate}")
             # Evaluation is measurement, not training: its time is excluded from the budget.
             t0 += time.perf_counter() - te
             c0 += time.process_time() - ce

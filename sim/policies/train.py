@@ -19,8 +19,13 @@ from sim.runinfo import git_commit, write_run_info
 __all__ = ["train_policy"]
 
 
-def train_policy(cfg: TrainConfig, out_dir: str | Path, spec, device="cpu", progress: bool = True, log=print) -> PolicyCard:
-    """Train per ``cfg`` on scene ``spec``; resumes an interrupted run in the same ``out_dir``."""
+def train_policy(cfg: TrainConfig, out_dir: str | Path, spec, device="cpu", progress: bool = True, log=print,
+                 keep_state: bool = False) -> PolicyCard:
+    """Train per ``cfg`` on scene ``spec``; resumes an interrupted run in the same ``out_dir``.
+
+    Once the checkpoint is saved, ``train_state/`` (the resume data: frames, optimizer; hundreds
+    of MB) is deleted unless ``keep_state``; the final weights and card stay.
+    """
     import torch
 
     from sim.policies.dagger import train_dagger
@@ -55,4 +60,11 @@ def train_policy(cfg: TrainConfig, out_dir: str | Path, spec, device="cpu", prog
     training = {**resolved, "train_time_s": prog["elapsed_s"], "train_cpu_s": prog.get("cpu_s"), "history": prog["history"], "stopped_early": prog["stopped_early"]}
     card = PolicyCard(arch=cfg.policy, action=ActionScaling(max_step_m=spec.episode.max_step_m, max_step_rad=spec.episode.max_step_rad),
                       training=training, clean_success=clean, seed=cfg.seed, git_commit=git_commit())
-    return save_checkpoint(out_dir, policy.cpu(), card)
+    card = save_checkpoint(out_dir, policy.cpu(), card)
+    if not keep_state and (out_dir / "train_state").is_dir():
+        import shutil
+
+        size = sum(f.stat().st_size for f in (out_dir / "train_state").rglob("*") if f.is_file())
+        shutil.rmtree(out_dir / "train_state")
+        log(f"deleted {out_dir / 'train_state'} ({size / 1e6:.0f} MB of resume data; --keep-state keeps it)")
+    return card

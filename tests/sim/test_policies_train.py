@@ -142,3 +142,17 @@ def test_policy_cli_evaluates_and_exports_a_checkpoint(spec, tmp_path):
     r = runner.invoke(app, ["policy", "eval", str(tmp_path / "p.onnx"), "--episodes", "4", "--num-envs", "4"])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "p-eval" / "eval.json").read_text())["success"]["n"] == 4
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_a_finished_training_drops_its_resume_data_unless_kept(spec, tmp_path, keep):
+    from sim.policies.checkpoint import load_checkpoint
+    from sim.policies.train import train_policy
+
+    cfg = resolve_preset("ci", dagger={"iterations": 1, "episodes_per_iter": 8, "num_envs": 8, "grad_steps_per_iter": 2},
+                         final_eval_episodes=2, policy={"arch": "small_cnn", "image_size": SIZE}, env={"image_size": SIZE})
+    said = []
+    train_policy(cfg, tmp_path, spec, progress=False, log=said.append, keep_state=keep)
+    assert (tmp_path / "train_state").is_dir() == keep
+    assert any("deleted" in t and "train_state" in t for t in said) != keep
+    load_checkpoint(tmp_path)  # the final weights and card stay either way
