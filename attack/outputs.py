@@ -74,16 +74,33 @@ def textured_mesh(mesh, texture_rgb: np.ndarray):
     return m
 
 
-def export_meshes(out_dir: str | Path, mesh, texture_rgb: np.ndarray, stem: str = "adversarial") -> dict[str, Path]:
-    """Write ``stem.glb`` and ``stem.obj`` (+ .mtl + .png) for color 3D printing or re-rendering."""
+OBJ_UNITS = {"m": 1.0, "mm": 1000.0}
+
+
+def export_meshes(out_dir: str | Path, mesh, texture_rgb: np.ndarray, stem: str = "adversarial", obj_units: str = "m") -> dict[str, Path]:
+    """Write ``stem.glb`` and ``stem.obj`` (+ .mtl + .png) for color 3D printing or re-rendering.
+
+    The GLB follows the glTF spec: metres, +Y up (our +Z becomes +Y), so viewers show the object
+    standing. The OBJ stays +Z up (slicers' convention) in ``obj_units`` (m, or mm for print
+    services, which assume mm), and says both in its first line, since OBJ has no unit field.
+    """
+    if obj_units not in OBJ_UNITS:
+        raise ValueError(f"--units: expected m or mm, got {obj_units!r}")
     out = Path(out_dir)
     m = textured_mesh(mesh, texture_rgb)
+    g = m.copy()
+    v = np.asarray(g.vertices, dtype=np.float64)
+    g.vertices = np.stack([v[:, 0], v[:, 2], -v[:, 1]], -1)  # +Z up -> glTF's +Y up
     glb = out / f"{stem}.glb"
-    glb.write_bytes(m.export(file_type="glb"))
+    glb.write_bytes(g.export(file_type="glb"))
     obj_dir = out / f"{stem}_obj"
     obj_dir.mkdir(parents=True, exist_ok=True)
-    m.export(obj_dir / f"{stem}.obj", file_type="obj")
-    return {"glb": glb, "obj": obj_dir / f"{stem}.obj"}
+    o = m.copy()
+    o.vertices = np.asarray(o.vertices, dtype=np.float64) * OBJ_UNITS[obj_units]
+    obj = obj_dir / f"{stem}.obj"
+    o.export(obj, file_type="obj")
+    obj.write_text(f"# advobj: units {obj_units}, +Z up (in a scene YAML: units: {obj_units})\n" + obj.read_text())
+    return {"glb": glb, "obj": obj}
 
 
 def plot_losses(path: str | Path, history) -> Path:

@@ -17,10 +17,15 @@ def fabricate_command(
     tag_id: Optional[int] = typer.Option(None, "--tag-id", help="add a tag card with this tag36h11 id"),
     tag_size_mm: float = typer.Option(30.0, "--tag-size-mm", help="tag black-square side, mm"),
     no_check: bool = typer.Option(False, "--no-check", help="skip the pre-print check"),
+    units: str = typer.Option("m", "--units", help="length unit of the exported OBJ: m, or mm for print services (the GLB is "
+                              "metres, +Y up, by the glTF spec)"),
 ) -> None:
     """Write sheet.pdf + layout.json (cube/cylinder), adversarial.glb/OBJ, and check the print."""
     from trials.fabricate import fabricate
 
     tag = (tag_id, tag_size_mm) if tag_id is not None else None
-    summary = fabricate(run_dir, out, shape=shape, page=page.lower(), dpi=dpi, tag=tag, check=not no_check, log=typer.echo)
+    if units not in ("m", "mm"):
+        raise typer.BadParameter(f"expected m or mm, got {units!r}", param_hint="--units")
+    summary = fabricate(run_dir, out, shape=shape, page=page.lower(), dpi=dpi, tag=tag, check=not no_check, log=typer.echo,
+                        obj_units=units)
     typer.echo(f"fabricate: outputs in {out} ({summary.get('seconds', 0.0):.1f} s)")

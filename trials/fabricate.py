@@ -875,7 +875,7 @@ def _attack_field(run_dir, name: str):
 
 
 def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi: int = 300, tag: tuple[int, float] | None = None,
-              check: bool = True, tweak: LayoutTweak = LayoutTweak(), log=print, progress: bool = True) -> dict:
+              check: bool = True, tweak: LayoutTweak = LayoutTweak(), log=print, progress: bool = True, obj_units: str = "m") -> dict:
     """Everything ``advobj fabricate`` writes into ``out_dir``; returns a summary dict.
 
     Always: ``adversarial.glb`` + ``adversarial_obj/`` (colour 3D printing) and ``run.json``.
@@ -897,6 +897,8 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
         raise FabricationError(f"--page: {page!r} is not one of {', '.join(PAGES_MM)}")
     if Path(out_dir).is_file():
         raise FabricationError(f"--out: {out_dir} is a file; give an output directory")
+    if obj_units not in ("m", "mm"):
+        raise FabricationError(f"--units: expected m or mm, got {obj_units!r}")
     src = load_run(run_dir)
     out = Path(out_dir)
     light_dr = _attack_field(run_dir, "light_randomization")
@@ -915,12 +917,17 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
     if shape is not None and shape != src.mesh:
         raise FabricationError(f"--shape {shape}: the texture in {run_dir} was optimised on {src.mesh!r}, not {shape!r}; "
                                "its UV layout would not fit the net")
+    if tag is not None and sheet_shape is None:
+        # The tag card is a piece of a print sheet; a mesh without a sheet has nowhere to carry it.
+        raise FabricationError(f"--tag-id: {src.mesh!r} has no print sheet (sheets exist for {', '.join(SHEET_SHAPES)}), so no tag "
+                               "card can go with it; tag the printed object yourself and register it in objects.yaml "
+                               "(docs/calibration.md), or omit --tag-id")
     config = {"job": "fabricate", "run_dir": str(run_dir), "mesh": src.mesh, "scale": src.scale, "shape": sheet_shape, "page": page,
               "dpi": dpi, "tag": list(tag) if tag else None, "check": check, "texture_sha256": src.sha256,
               "light_randomization": light_dr,
               "tweak": asdict(tweak) if tweak != LayoutTweak() else None}
     write_run_info(out, config, None)
-    paths = export_meshes(out, mesh, src.texture)
+    paths = export_meshes(out, mesh, src.texture, obj_units=obj_units)
     summary = {"glb": str(paths["glb"]), "obj": str(paths["obj"]), "shape": sheet_shape}
     if sheet_shape is None:
         log(f"fabricate: {src.mesh!r} has no flat net; wrote {paths['glb'].name} and {paths['obj'].parent.name}/ for colour 3D printing "

@@ -264,3 +264,27 @@ def test_bad_dpi_is_refused_before_anything_is_written(tmp_path, monkeypatch, ca
     with pytest.raises(FabricationError, match="--dpi"):
         fabricate(tmp_path / "no_run", tmp_path / "o", dpi=0)
     assert not (tmp_path / "o").exists()
+
+
+def test_exports_follow_their_formats_glb_y_up_and_obj_says_its_units(tmp_path):
+    import trimesh
+
+    import sim.assets as A
+
+    run = make_attack_dir(tmp_path / "run", mesh=None, size=16)  # the mustard bottle: 19 cm tall
+    res = _invoke(["fabricate", run, "--out", tmp_path / "out", "--dpi", DPI, "--units", "mm"])
+    assert res.exit_code == 0, res.output
+    raw = trimesh.load(tmp_path / "out" / "adversarial.glb", force="mesh")
+    assert raw.extents[1] == pytest.approx(0.19, abs=0.002) and raw.bounds[0][1] == pytest.approx(0.0, abs=1e-6)  # +Y up
+    back = A.build_mesh(tmp_path / "out" / "adversarial.glb", placement="keep")  # read as glTF: standing again
+    np.testing.assert_allclose(back.bounds, A.build_mesh("mustard_bottle").bounds, atol=1e-5)
+    obj = tmp_path / "out" / "adversarial_obj" / "adversarial.obj"
+    assert obj.read_text().splitlines()[0] == "# advobj: units mm, +Z up (in a scene YAML: units: mm)"
+    np.testing.assert_allclose(A.build_mesh(obj, units="mm", placement="keep").bounds, back.bounds, atol=1e-5)
+
+
+def test_tag_id_on_a_mesh_without_a_sheet_is_refused_in_one_line_and_nothing_written(tmp_path):
+    run = make_attack_dir(tmp_path / "run", mesh=None, size=16)
+    res = _invoke(["fabricate", run, "--out", tmp_path / "out", "--dpi", DPI, "--tag-id", 5])
+    assert res.exit_code != 0 and "--tag-id: 'mustard_bottle' has no print sheet" in str(res.exception)
+    assert not (tmp_path / "out").exists()
