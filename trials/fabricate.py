@@ -91,6 +91,26 @@ class RunSource:
     mesh_kwargs: dict = field(default_factory=dict)  # units / up_axis / placement of a mesh file (sim.assets.build_mesh)
 
 
+def optimised_texel_size_mm(mesh, width_px: int, height_px: int) -> dict | None:
+    """How large one texel of a ``width_px x height_px`` texture is on the mesh's optimised faces:
+    the side (mm) of a texel's footprint per face (sqrt of 3D area over texel count), its
+    area-weighted median and 10th/90th percentiles. None if no optimised face has UV area."""
+    from sim.assets import texel_density_ratio
+
+    per_uv = texel_density_ratio(mesh)  # metres per UV unit, per face
+    opt = np.asarray(mesh.metadata.get("optimizable_faces", np.ones(len(mesh.faces), bool)), bool)
+    ok = opt & np.isfinite(per_uv)
+    if not ok.any():
+        return None
+    # One UV unit holds sqrt(width x height) texels along a side (square pixels in UV space).
+    mm = per_uv[ok] * 1000.0 / np.sqrt(float(width_px) * float(height_px))
+    w = np.asarray(mesh.area_faces)[ok]
+    order = np.argsort(mm)
+    cdf = np.cumsum(w[order]) / w.sum()
+    q = lambda p: float(mm[order][min(np.searchsorted(cdf, p), len(order) - 1)])  # noqa: E731
+    return {"median": q(0.5), "p10": q(0.1), "p90": q(0.9)}
+
+
 def load_run(run_dir) -> RunSource:
     """Read an ``advobj attack run`` directory (clear errors naming the missing/bad file)."""
     from trials.conditions import load_attack_source
@@ -928,7 +948,12 @@ def fabricate(run_dir, out_dir, shape: str | None = None, page: str = "a4", dpi:
               "tweak": asdict(tweak) if tweak != LayoutTweak() else None}
     write_run_info(out, config, None)
     paths = export_meshes(out, mesh, src.texture, obj_units=obj_units)
-    summary = {"glb": str(paths["glb"]), "obj": str(paths["obj"]), "shape": sheet_shape}
+    density = optimised_texel_size_mm(mesh, src.texture.shape[1], src.texture.shape[0])
+    summary = {"glb": str(paths["glb"]), "obj": str(paths["obj"]), "shape": sheet_shape, "texel_mm": density}
+    if density is not None:
+        log(f"fabricate: the optimised texture is {src.texture.shape[1]} x {src.texture.shape[0]} texels; on the object one texel spans "
+            f"{density['median']:.2f} mm (median over the optimised faces; {density['p10']:.2f}-{density['p90']:.2f} mm for 80 % of "
+            f"their area), whatever the print resolution")
     if sheet_shape is None:
         log(f"fabricate: {src.mesh!r} has no flat net; wrote {paths['glb'].name} and {paths['obj'].parent.name}/ for colour 3D printing "
             f"(sheets exist for {', '.join(SHEET_SHAPES)})")

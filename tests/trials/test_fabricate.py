@@ -288,3 +288,18 @@ def test_tag_id_on_a_mesh_without_a_sheet_is_refused_in_one_line_and_nothing_wri
     res = _invoke(["fabricate", run, "--out", tmp_path / "out", "--dpi", DPI, "--tag-id", 5])
     assert res.exit_code != 0 and "--tag-id: 'mustard_bottle' has no print sheet" in str(res.exception)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_optimised_texel_size_is_said_honestly(tmp_path):
+    from trials.fabricate import optimised_texel_size_mm
+
+    import sim.assets as A
+
+    cube = A.build_mesh("cube")  # 6 cm cube, its net on the unit UV square
+    d = optimised_texel_size_mm(cube, 64, 64)
+    side_mm = A.texel_density_ratio(cube)[0] * 1000 / 64
+    assert d["median"] == pytest.approx(side_mm, rel=0.05) and d["p10"] <= d["median"] <= d["p90"]
+    assert optimised_texel_size_mm(cube, 128, 128)["median"] == pytest.approx(d["median"] / 2, rel=1e-6)
+    run = make_attack_dir(tmp_path / "run", mesh=None, size=16)
+    res = _invoke(["fabricate", run, "--out", tmp_path / "out", "--dpi", DPI])
+    assert res.exit_code == 0 and "the optimised texture is 16 x 16 texels; on the object one texel spans" in res.output
