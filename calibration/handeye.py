@@ -321,6 +321,14 @@ def load_samples_yaml(path, min_board_corners: int = 8):
     f = load_model(path, HandEyeSamplesFile)
     root = path.parent
     board = load_board_yaml(root / f.board) if f.board else None
+    from calibration.intrinsics import ChessboardSpec
+
+    if isinstance(board, ChessboardSpec) and board.inner_cols % 2 == board.inner_rows % 2:
+        # Turned by 180 deg such a board looks the same, so its detected origin can jump between
+        # samples and T_cam_board with it; hand-eye needs a pose that is the board's own.
+        raise CalibrationError(f"{path}: board: a {board.inner_cols}x{board.inner_rows} chessboard looks the same turned by 180 deg, "
+                               "so its pose is ambiguous; use a ChArUco board, or a chessboard with one odd and one even count "
+                               "of inner corners (e.g. 9x6)")
     camera = load_camera_yaml(root / f.camera) if f.camera else None
     A, B, notes = [], [], []
     for k, s in enumerate(f.samples):

@@ -667,6 +667,8 @@ def camera_file_format(path) -> str:
         raise CalibrationFileError(p, "<file>", f"cannot read ({err.strerror or err})") from None
     if head.lstrip().startswith("%YAML") or "opencv-matrix" in head:
         return "opencv"
+    if p.suffix.lower() == ".json" and any(f'"{k}"' in head for k in ("camera_matrix", "cameraMatrix", "intrinsic", "mtx")):
+        return "opencv"  # FileStorage JSON with plain lists
     if "camera_matrix" in head and "image_width" in head and "opencv-matrix" not in head:
         return "ros"
     return "advobj"
@@ -690,10 +692,32 @@ _CV_W = ("image_width", "width", "imageWidth")
 _CV_H = ("image_height", "height", "imageHeight")
 
 
+def _node_array(node, path, name: str) -> np.ndarray:
+    """A FileStorage node as a float array: an ``!!opencv-matrix`` or a plain (nested) sequence."""
+    import cv2
+
+    try:
+        if node.isSeq():
+            vals = []
+            for i in range(node.size()):
+                item = node.at(i)
+                vals.append(_node_array(item, path, name) if item.isSeq() else np.array([item.real()]))
+            return np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in vals]) if vals else np.zeros(0)
+        m = node.mat()
+    except (cv2.error, SystemError) as err:
+        raise CalibrationFileError(path, name, f"not a matrix or a list of numbers ({str(err).splitlines()[-1][:80]})") from None
+    if m is None:
+        raise CalibrationFileError(path, name, "not a matrix or a list of numbers")
+    return np.asarray(m, dtype=np.float64).reshape(-1)
+
+
 def _load_opencv(path) -> CameraIntrinsics:
     import cv2
 
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as err:
+        raise CalibrationFileError(path, "<file>", f"not a readable OpenCV FileStorage file ({str(err).splitlines()[-1][:80]})") from None
     try:
         if not fs.isOpened():
             raise CalibrationFileError(path, "<file>", "not a readable OpenCV FileStorage file")
@@ -706,22 +730,25 @@ def _load_opencv(path) -> CameraIntrinsics:
             return None, None
 
         kname, knode = first(_CV_K)
-        if knode is None or knode.mat() is None or knode.mat().size != 9:
-            raise CalibrationFileError(path, "camera_matrix", f"no 3x3 camera matrix under any of {', '.join(_CV_K)}")
+        K = None if knode is None else _node_array(knode, path, kname)
+        if K is None or K.size != 9:
+            raise CalibrationFileError(path, kname or "camera_matrix", f"no 3x3 camera matrix under any of {', '.join(_CV_K)}")
         dname, dnode = first(_CV_D)
-        dist = np.zeros(0) if dnode is None or dnode.mat() is None else dnode.mat().reshape(-1)
+        dist = np.zeros(0) if dnode is None else _node_array(dnode, path, dname)
         wname, w = first(_CV_W)
         hname, h = first(_CV_H)
         if w is None or h is None:
             size = fs.getNode("image_size")
-            if size.empty() or size.size() != 2:
+            if size.empty() or not size.isSeq() or size.size() != 2:
                 raise CalibrationFileError(path, "image_width", "no image size (image_width/image_height, width/height or image_size)")
-            width, height = int(size.at(0).real()), int(size.at(1).real())
+            width, height = size.at(0).real(), size.at(1).real()
         else:
-            width, height = int(w.real()), int(h.real())
+            width, height = w.real(), h.real()
+        if not (float(width).is_integer() and float(height).is_integer()):
+            raise CalibrationFileError(path, "image_width", f"image size must be whole pixels, got {width} x {height}")
         rnode = fs.getNode("avg_reprojection_error")
         rms = None if rnode.empty() else float(rnode.real())
-        return _cam(path, kname, knode.mat(), dist, width, height, rms)
+        return _cam(path, kname, K, dist, int(width), int(height), rms)
     finally:
         fs.release()
 
@@ -731,7 +758,7 @@ def load_camera_yaml(path) -> CameraIntrinsics:
     an OpenCV ``FileStorage`` YAML/JSON (told apart by content). A :class:`CalibrationFileError`
     names the file and field."""
     fmt = camera_file_format(path)
-    if fmt == "opencv" or str(path).lower().endswith(".json"):
+    if fmt == "opencv" or (str(path).lower().endswith(".json") and fmt != "advobj"):
         return _load_opencv(path)
     if fmt == "ros":
         m = load_model(path, _RosCameraInfo)

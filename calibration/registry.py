@@ -112,11 +112,15 @@ def locate_objects(detections: Sequence[TagDetection], registry: ObjectRegistry,
     return out
 
 
+EXPECTED_MIN_COS = 0.26  # view angle up to ~75 deg (the detectors' practical limit)
+EXPECTED_MIN_SIDE_PX = 10.0  # shorter tag edges are not reliably decoded
+
+
 def visible_tag_fraction(registry: ObjectRegistry, name: str, T_cam_object: np.ndarray, seen_ids, camera: CameraIntrinsics) -> float | None:
     """How much of an object's tag area that should be visible was seen: an occlusion measure.
 
-    From the object's pose, each of its registered tags that faces the camera and lies wholly in
-    the image is *expected*; the result is the projected area of the expected tags that were
+    From the object's pose, each of its registered tags that faces the camera (view angle under
+    ~75 deg), is at least 10 px a side and lies wholly in the image is *expected*; the result is the projected area of the expected tags that were
     detected over the area of all expected ones (1.0 = nothing hidden; 0.4 = 60 % of the print
     area the camera should see is covered). None when no tag is expected (nothing to measure).
     """
@@ -125,10 +129,17 @@ def visible_tag_fraction(registry: ObjectRegistry, name: str, T_cam_object: np.n
     for i in registry.tag_ids(name):
         T_cam_tag = np.asarray(T_cam_object) @ invert_T(registry.tags[i].T_tag_object.T)
         pts = transform_points(T_cam_tag, tag_object_points(registry.tags[i].size_m))
-        if T_cam_tag[2, 2] >= 0 or np.any(pts[:, 2] <= 0):  # turned away, or behind the camera
+        if np.any(pts[:, 2] <= 0):
+            continue  # behind the camera
+        # Facing the camera along its line of sight (not merely along the optical axis), and not
+        # so grazing or small that no detector could read it: only such a tag is "expected".
+        ray = T_cam_tag[:3, 3] / np.linalg.norm(T_cam_tag[:3, 3])
+        if float(T_cam_tag[:3, 2] @ ray) > -EXPECTED_MIN_COS:
             continue
         px = camera.project(pts)
         if np.any(px < -0.5) or np.any(px[:, 0] > camera.width - 0.5) or np.any(px[:, 1] > camera.height - 0.5):
+            continue
+        if float(np.min(np.linalg.norm(px - np.roll(px, -1, 0), axis=1))) < EXPECTED_MIN_SIDE_PX:
             continue
         x, y = px[:, 0], px[:, 1]
         area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))

@@ -309,8 +309,16 @@ def _atlas(vertices: np.ndarray, faces: np.ndarray):
         try:
             with np.load(folder / f"{key}.npz", allow_pickle=False) as z:
                 hit = (z["vmap"].astype(np.int64), z["idx"].astype(np.int64), z["uv"].astype(np.float64))
-        except (OSError, ValueError, KeyError):
-            hit = None  # damaged or foreign: rebuilt below
+            vmap, idx, uv = hit
+            if not (vmap.ndim == 1 and idx.ndim == 2 and idx.shape == f32.shape and uv.shape == (len(vmap), 2)
+                    and (len(vmap) == 0 or (vmap.min() >= 0 and vmap.max() < len(v32))) and idx.min() >= 0 and idx.max() < len(vmap)):
+                raise ValueError("inconsistent atlas arrays")
+        except Exception:  # noqa: BLE001 - damaged (a truncated zip), foreign or inconsistent: drop it, rebuild below
+            hit = None
+            try:
+                (folder / f"{key}.npz").unlink()
+            except OSError:
+                pass
     if hit is None:
         vmap, idx, uv = xatlas.parametrize(v32, f32)
         hit = (np.asarray(vmap, np.int64), np.asarray(idx, np.int64), np.clip(np.asarray(uv, np.float64), 0.0, 1.0))
@@ -847,7 +855,7 @@ def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, flo
             shown = f"{longest:.3g} m" if longest >= 1 else f"{longest * 100:.3g} cm"
             raise AssetError(f"{key}: its longest side is {shown} (units {units}, scale {scale}), not a plausible object "
                              f"({PLAUSIBLE_SIZE_M[0] * 100:g} cm to {PLAUSIBLE_SIZE_M[1] * 100:g} cm); "
-                             f"{_size_hint(longest / float(s.max()), scale)}")
+                             f"{_size_hint(longest / float(s.max()) / UNITS_M[units], scale)}")
         if placement == "auto":
             shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
             say = warn or (lambda text: warnings.warn(text, stacklevel=4))

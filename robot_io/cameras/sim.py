@@ -101,7 +101,7 @@ def draw_tags(rgb: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, tags, T_w
         if T_wo is None:
             continue
         T_cam_tag = T_cam_world @ T_wo @ tag.T_object_tag
-        if T_cam_tag[2, 2] >= 0:  # the printed face turned away from the camera
+        if float(T_cam_tag[:3, 2] @ T_cam_tag[:3, 3]) >= 0:  # the printed face turned away along the line of sight
             continue
         p = (T_cam_tag[:3, :3] @ tag.corners_tag.T).T + T_cam_tag[:3, 3]
         if np.any(p[:, 2] < 0.02):
@@ -117,7 +117,8 @@ def draw_tags(rgb: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, tags, T_w
         # The print's outer pixel edges (centres at integers) onto the projected corners.
         Hm = cv2.getPerspectiveTransform(np.float32([[-0.5, -0.5], [n - 0.5, -0.5], [n - 0.5, n - 0.5], [-0.5, n - 0.5]]),
                                          px.astype(np.float32))
-        warped = cv2.warpPerspective(src, Hm, (W, H), flags=cv2.INTER_LINEAR, borderValue=0)
+        # White outside the print: its quiet zone is white, so the edge blends white into the scene, not black.
+        warped = cv2.warpPerspective(src, Hm, (W, H), flags=cv2.INTER_LINEAR, borderValue=255)
         mask = cv2.warpPerspective(np.ones((n, n), np.float32), Hm, (W, H), flags=cv2.INTER_LINEAR, borderValue=0)
         if depth is not None:
             # The print's depth at each pixel: where its ray meets the tag plane n . X = c.

@@ -185,17 +185,19 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
         # Per-episode progress inside the iteration: the first one alone can take minutes.
         episodes = tqdm(total=batches * N, desc=f"dagger {it + 1}/{cfg.iterations}: episodes", unit="ep", leave=False,
                         disable=not progress)
-        for b in range(batches):
-            seeds = [TRAIN_SEED_BASE + seed * 1_000_000 + it * 10_000 + b * N + j for j in range(N)]
-            expert_mask = rng.random(N) < beta
-            x, y, success, driven = collect(env, policy, expert_mask, seeds)
-            new_x.append(x)
-            new_y.append(y)
-            driven_success += success[driven].tolist()
-            episodes.update(N)
-            if driven_success:
-                episodes.set_postfix(policy_success=f"{np.mean(driven_success):.2f}")
-        episodes.close()
+        try:
+            for b in range(batches):
+                seeds = [TRAIN_SEED_BASE + seed * 1_000_000 + it * 10_000 + b * N + j for j in range(N)]
+                expert_mask = rng.random(N) < beta
+                x, y, success, driven = collect(env, policy, expert_mask, seeds)
+                new_x.append(x)
+                new_y.append(y)
+                driven_success += success[driven].tolist()
+                episodes.update(N)
+                if driven_success:
+                    episodes.set_postfix(policy_success=f"{np.mean(driven_success):.2f}")
+        finally:
+            episodes.close()
         images = np.concatenate([images, *new_x])[-cfg.max_frames:]
         actions = np.concatenate([actions, *new_y])[-cfg.max_frames:]
         loss = _train_steps(policy, optimizer, images, actions, cfg.grad_steps_per_iter, cfg.batch_size, rng, device)

@@ -200,3 +200,22 @@ def test_std_is_written_to_our_camera_file(tmp_path):
     p = save_camera_yaml(tmp_path / "c.yaml", _cam(), std_px={"fx": 0.5, "fy": 0.4, "cx": 0.3, "cy": 0.2})
     assert "intrinsics_std_px" in p.read_text() and load_camera_yaml(p).K[0, 0] == 536.07
     json.dumps(load_camera_yaml(p).K.tolist())
+
+
+def test_opencv_files_with_plain_lists_load_and_broken_ones_are_one_line(tmp_path):
+    (tmp_path / "plain.yml").write_text("%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
+                                        "camera_matrix: [[536.07, 0, 342.37], [0, 536.02, 235.54], [0, 0, 1]]\n"
+                                        "distortion_coefficients: [-0.265, -0.0467, 0.00183, -0.00031, 0.252]\n")
+    cam = load_camera_yaml(tmp_path / "plain.yml")
+    assert cam.K[0, 0] == pytest.approx(536.07) and cam.dist[4] == pytest.approx(0.252)
+    (tmp_path / "plain.json").write_text(json.dumps({"image_width": 640, "image_height": 480, "camera_matrix": _cam().K.tolist(),
+                                                     "distortion_coefficients": _cam().dist.tolist()}))
+    assert load_camera_yaml(tmp_path / "plain.json").K[1, 1] == pytest.approx(536.02)
+    (tmp_path / "ours.json").write_text(json.dumps({"width": 640, "height": 480, "K": _cam().K.tolist(), "dist": []}))
+    assert load_camera_yaml(tmp_path / "ours.json").K[0, 2] == pytest.approx(342.37)  # our schema, written as JSON
+    for name, text in (("broken.yml", "%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n  cols: [\n"),
+                       ("words.yml", "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: hello\n")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(CalibrationFileError) as e:
+            load_camera_yaml(tmp_path / name)
+        assert str(e.value).startswith(str(tmp_path / name)) and "\n" not in str(e.value)

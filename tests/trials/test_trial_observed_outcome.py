@@ -141,3 +141,28 @@ def test_an_object_hidden_at_the_end_gives_unknown_and_the_operator_decides(cell
     assert looks and "from the start pose: none of them" in looks[0]["reason"]
     final = {p["role"]: p for p in _rows(db, "object_poses") if p["trial_id"] == TRIAL and p["phase"] == "final"}
     assert final["adversarial"]["found"] == 0 and final["goal"]["found"] == 1
+
+
+def test_a_fault_mid_trial_is_committed_and_the_arm_does_not_move_again(cell):
+    from robot_io.arms.base import Fault
+
+    moves = []
+
+    def ready(runner, world):
+        driver = runner.arm._SafeArm__arm  # the sim driver behind the safety layer (the vendor-SDK boundary's twin)
+
+        def fault(trial, k):
+            if k == 3:
+                driver.inject_fault(Fault("protective_stop", "simulated protective stop", "clear it on the pendant"))
+
+        runner.on_step = fault
+        real_move = runner.arm.move_to
+        runner.arm.move_to = lambda T, *a, **kw: (moves.append(T), real_move(T, *a, **kw))[1]
+
+    db = _run(cell, "fault", on_ready=ready)
+    r = _rows(db, "trials")[TRIAL]
+    assert r["stop_reason"].startswith("fault:")
+    assert len(moves) == 1  # the positioning move only: no look-again after the fault
+    looks = [e for e in _rows(db, "events") if e["trial_id"] == TRIAL and e["kind"] == "outcome"]
+    assert all(e["action"] != "look_again" for e in looks)
+    assert r["auto_outcome"] in ("unknown", "none", "goal", "adversarial")

@@ -71,6 +71,16 @@ def test_nan_action_stops_the_trial_as_policy_error_and_the_session_goes_on(file
     cell = rate_cell([{"final_outcome": o} for o in outs.values()])
     assert cell["policy_error"] == 2 and cell["n"] == len(order) - 2 and cell["unknown"] == 0
 
+    # A policy error is not the operator's to change afterwards; its note is.
+    from trials.real.store import StoreError
+
+    with TrialStore(db) as store:
+        with pytest.raises(StoreError, match="stopped on a policy error"):
+            store.amend_trial("s", order[0], outcome="goal")
+        store.amend_trial("s", order[0], note="NaN from the exported graph's LayerNorm")
+        row = {r["trial_id"]: r for r in store.trial_rows()}[order[0]]
+        assert row["final_outcome"] == "policy_error" and row["note"].startswith("NaN")
+
 
 def test_a_version_2_store_is_migrated_keeping_its_trials(tmp_path):
     import sqlite3

@@ -25,8 +25,9 @@ Per trial, in this order:
    located from it and :func:`calibration.outcome.measure_reach` applies the paper's criterion
    (roles as names, so the outcome is ``goal``, ``adversarial``, ``none`` or ``unknown``). An
    object not seen from there (the camera is close to the objects at the end of a reach) is looked
-   for again from the trial's start pose, where the placement check saw it (the arm moves back
-   through the safety layer). One still not seen (a hand took it, its tags are hidden) makes the
+   for again from the trial's start pose, where the placement check saw it; the arm moves there
+   and back to the final pose through the safety layer, so the operator judges the trial where it
+   ended (not after a fault, a safety stop or a policy error: then the arm stays). One still not seen (a hand took it, its tags are hidden) makes the
    outcome ``unknown``, never a guess from where it was placed; the reason says where it was last seen.
 6. The operator confirms or overrides the outcome, with an optional note (an ``unknown`` outcome
    is put to the operator as a question).
@@ -287,7 +288,7 @@ class TrialRunner:
         for ev in list(self.arm.events)[n_ev:]:
             events.append(EventRecord(ev.time_s - t0, "safety", ev.action, ev.reason))
 
-        result, final, T_table_tcp = self._outcome(T_base_tcp0, events, t0)
+        result, final, T_table_tcp = self._outcome(T_base_tcp0, stop_reason, events, t0)
         reason = result.reason + "".join(f"; {self._last_seen(role, tracked)}" for role in result.missing)
         info = (f"  outcome: {result.reached} ({reason}); distances "
                 + ", ".join(f"{k} {'?' if v is None else f'{v * 100:.1f} cm'}" for k, v in result.distances_m.items()))
@@ -413,7 +414,6 @@ class TrialRunner:
             frame = self.camera.read()
             if light is None:  # what the camera saw at the start: the lighting scenarios' measure
                 light = float(np.asarray(frame.rgb, dtype=np.float32).mean() / 255.0)
-            self._track(frame, T_frame, k, placed, tracked, moved, events, t0)
             action = np.asarray(self.policy.act(self._policy_image(frame.rgb)[None]), dtype=np.float64).reshape(-1, 6)[0]
             if not np.isfinite(action).all():
                 # never sent to the arm (the safety layer would refuse it too) and not a step record:
@@ -431,6 +431,9 @@ class TrialRunner:
                 stop_reason = f"fault: {err}"
                 break
             t_cmd = self.clock()
+            # Tracking looks at the frame the policy acted on, after its command is sent: a tag
+            # detection must not age the frame the safety layer checks.
+            self._track(frame, T_frame, k, placed, tracked, moved, events, t0)
             T_meas = T_frame = self.arm.tcp_pose()
             name = f"step_{k:03d}.png"
             cv2.imwrite(str(fdir / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
@@ -448,26 +451,41 @@ class TrialRunner:
                     self.sleep(wait)
         return steps, stop_reason, self.clock() - t_start, light
 
-    def _outcome(self, T_base_tcp0, events, t0):
+    def _outcome(self, T_base_tcp0, stop_reason: str, events, t0):
         """The criterion at the final TCP position on what the camera sees (an unseen object: unknown).
 
         At the end of a reach the wrist camera is close to the objects and often sees neither
         whole; an object not seen from the final pose is looked for again from the trial's start
-        pose (the placement check's view), after the final TCP pose is measured.
+        pose (the placement check's view), after the final TCP pose is measured, and the arm then
+        returns to the final pose, so the operator judges the trial where it ended. After a fault,
+        a safety stop or a policy error the arm does not move again: the object stays unseen.
         """
         from calibration.outcome import measure_reach
+        from robot_io.errors import RobotIOError
 
-        T_table_tcp = self.T_table_base @ self.arm.tcp_pose()
+        T_base_final = self.arm.tcp_pose()
+        T_table_tcp = self.T_table_base @ T_base_final
         final = self._locate()
         unseen = [r for r in ROLES if r not in final]
         if unseen:
-            self.arm.move_to(T_base_tcp0)
-            again = self._locate()
-            found = [r for r in unseen if r in again]
-            final = {**final, **{r: again[r] for r in found}}
-            events.append(EventRecord(self.clock() - t0, "outcome", "look_again",
-                                      f"not seen from the final pose: {', '.join(unseen)}; from the start pose: "
-                                      f"{', '.join(found) or 'none of them'}"))
+            stopped = stop_reason.startswith(("fault", "safety_stop", POLICY_ERROR)) or self.arm.fault() is not None
+            if stopped:
+                events.append(EventRecord(self.clock() - t0, "outcome", "no_look_again",
+                                          f"not seen from the final pose: {', '.join(unseen)}; the arm stays where the trial "
+                                          f"stopped ({stop_reason.split(':')[0]})"))
+            else:
+                try:
+                    self.arm.move_to(T_base_tcp0)
+                    again = self._locate()
+                    self.arm.move_to(T_base_final)
+                except RobotIOError as err:  # a fault or refusal on the way: the outcome stays unseen
+                    events.append(EventRecord(self.clock() - t0, "outcome", "look_again_failed", str(err)))
+                else:
+                    found = [r for r in unseen if r in again]
+                    final = {**final, **{r: again[r] for r in found}}
+                    events.append(EventRecord(self.clock() - t0, "outcome", "look_again",
+                                              f"not seen from the final pose: {', '.join(unseen)}; from the start pose: "
+                                              f"{', '.join(found) or 'none of them'}; back at the final pose"))
         positions = {role: final[role].centers_for_outcome() for role in ROLES if role in final}
         return measure_reach(T_table_tcp[:3, 3], positions, ROLES, self.plan.radius_m), final, T_table_tcp
 

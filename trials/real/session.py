@@ -298,7 +298,13 @@ class _SimTaggedLocator:
         if self._spec is not self.world.spec:  # staged a new scene: tag its objects (the frame shows the old tags)
             self._spec = self.world.spec
             reg = sim_registry(self.world)
-            save_registry(self.folder / f"sim_registry_{self.world.spec.adversarial.mesh}.yaml", reg)
+            import hashlib
+
+            adv = self.world.spec.adversarial
+            # A file name from the mesh's name and a digest of its source and scale: never a path.
+            tag = hashlib.sha256(f"{adv.mesh}|{adv.scale}".encode()).hexdigest()[:8]
+            stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in Path(str(adv.mesh)).stem)[:40] or "mesh"
+            save_registry(self.folder / f"sim_registry_{stem}_{tag}.yaml", reg)
             self.camera.tags = sim_tags(reg)
             self.inner.registry = reg
             frame = self.camera.read()

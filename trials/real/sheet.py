@@ -29,13 +29,16 @@ ROWS_PER_PAGE = 50
 GRID_M = 0.05
 
 
-def footprint_xy_m(mesh: str, scale=1.0) -> np.ndarray:
-    """Convex outline ``(M, 2)`` m of a mesh seen from above, in its own frame (counter-clockwise)."""
+def footprint_xy_m(mesh: str, scale=1.0, **mesh_kwargs) -> np.ndarray:
+    """Convex outline ``(M, 2)`` m of a mesh seen from above, in its own frame (counter-clockwise).
+
+    ``mesh_kwargs``: a mesh file's ``units``, ``up_axis`` and ``placement`` (the scene object's
+    :meth:`~sim.spec.ObjectSpec.mesh_kwargs`), so the outline is the one the sim places."""
     from scipy.spatial import ConvexHull
 
     from sim.assets import build_mesh
 
-    xy = np.asarray(build_mesh(mesh, scale).vertices, dtype=np.float64)[:, :2]
+    xy = np.asarray(build_mesh(mesh, scale, **mesh_kwargs).vertices, dtype=np.float64)[:, :2]
     return xy[ConvexHull(xy).vertices]
 
 
@@ -168,8 +171,9 @@ def placement_sheet_pdf(plan, path, spec=None) -> int:
     spec = load_spec(plan.scene) if spec is None else spec
     adv_meshes = list(plan.shapes) + (["patch"] if "patch" in plan.conditions else [])
     outlines = {
-        "goal": {spec.goal.name: footprint_xy_m(spec.goal.mesh, spec.goal.scale)},
-        "adversarial": {m: footprint_xy_m(m, spec.adversarial.scale) for m in adv_meshes},
+        "goal": {spec.goal.name: footprint_xy_m(spec.goal.mesh, spec.goal.scale, **spec.goal.mesh_kwargs())},
+        "adversarial": {m: footprint_xy_m(m, spec.adversarial.scale, **(spec.adversarial.mesh_kwargs() if m == spec.adversarial.mesh else {}))
+                        for m in adv_meshes},
     }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

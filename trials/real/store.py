@@ -692,6 +692,9 @@ class TrialStore:
                 known = c.execute("SELECT 1 FROM sessions WHERE name = ?", (session,)).fetchone()
                 raise StoreError(f"--trial: no committed trial {trial_id!r} in session {session!r}" if known
                                  else f"--session: no session {session!r} in {self.path}")
+            if outcome is not None and row["auto_outcome"] == "policy_error":
+                raise StoreError(f"--outcome: trial {trial_id!r} stopped on a policy error (the policy's action was never sent); "
+                                 "its outcome is not the operator's to change, amend its --note only")
             new_final = row["final_outcome"] if outcome is None else outcome
             new_op = row["operator_outcome"] if outcome is None else (None if outcome == row["auto_outcome"] else outcome)
             new_note = row["note"] if note is None else note
