@@ -206,10 +206,27 @@ def sample_pool(spec, n: int, seed: int = 0, part: str | None = None) -> list[In
     return [sample_config(spec, next(seeds), centers) for _ in range(n)]
 
 
+# Object fields added after pools were first written, with the defaults that change nothing. On
+# a built-in mesh they never matter, so they are left out of its fingerprint there: every pool a
+# user already has stays valid. On a mesh file they shape the object, so they always count.
+_LATER_OBJECT_DEFAULTS = {"units": "m", "up_axis": None, "placement": "auto"}
+
+
+def _object_payload(o) -> dict:
+    from sim.assets import BUILTIN_MESHES
+
+    d = o.model_dump()
+    if d.get("mesh") in BUILTIN_MESHES:
+        for k, v in _LATER_OBJECT_DEFAULTS.items():
+            if d.get(k, v) == v:
+                d.pop(k, None)
+    return d
+
+
 def spec_fingerprint(spec) -> str:
     """Short hash of everything in the spec that affects configurations."""
     payload = json.dumps(
-        {"objects": [o.model_dump() for o in spec.objects], "init": spec.init.model_dump(), "episode": spec.episode.model_dump()},
+        {"objects": [_object_payload(o) for o in spec.objects], "init": spec.init.model_dump(), "episode": spec.episode.model_dump()},
         sort_keys=True,
         default=str,
     )

@@ -96,3 +96,11 @@ def test_intrinsics_from_fov_and_explicit_rescale():
     d["camera"].update(fx=100.0, fy=100.0, cx=63.5, cy=63.5, fov_deg=None)
     K2 = scene_from_dict(d).camera.K(64, 64)
     assert np.allclose(K2[:2, :], [[50, 0, 31.5], [0, 50, 31.5]])
+
+
+def test_the_built_in_scenes_fingerprint_is_unchanged_so_existing_pools_stay_valid():
+    from sim.configs import spec_fingerprint
+
+    # Every pool written for the built-in scene carries this value; fields added to scene objects
+    # later (units, up_axis, placement) must not change it while they are at their defaults.
+    assert spec_fingerprint(default_scene()) == "60e09fc80f149e90"
