@@ -12,7 +12,8 @@ Three runs of ``calibrate_intrinsics`` (each with its board found by ``identify_
 * ``sample-window``: k3 free and the sample's 11 px sub-pixel half-window;
 * ``sample-window, no outlier pass``: the same keeping every photo, as the sample does.
 
-Writes ``images.csv`` (per run and photo: accepted, reason, reprojection RMS) and
+Writes ``images.csv`` (per run and photo: accepted, reason, reprojection RMS, smallest corner
+spacing in px) and
 ``summary.json`` (per run: fx, fy, cx, cy, their 1-sigma, RMS, and the differences from the
 reference in % of its f; with command, commit, machine, wall and CPU time), and prints them.
 """
@@ -42,7 +43,16 @@ def run_all() -> tuple[list[dict], dict]:
     paths = sorted(PHOTOS.glob("left*.jpg"))
     imgs = [read_image(p) for p in paths]
     ref = load_camera_yaml(PHOTOS / "left_intrinsics.yml")
-    board, how = identify_board([to_gray(i) for i in imgs], BoardSpec())
+    grays = [to_gray(i) for i in imgs]
+    board, how = identify_board(grays, BoardSpec())
+    from calibration.intrinsics import detect_chessboard
+
+    spacing = {}  # smallest distance between neighbouring corners per photo (px): what bounds a sub-pixel window
+    for p, g in zip(paths, grays):
+        c, _ = detect_chessboard(g, board)
+        grid = c.reshape(board.inner_rows, board.inner_cols, 2)
+        spacing[p.name] = round(float(min(np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(),
+                                          np.linalg.norm(np.diff(grid, axis=0), axis=-1).min())), 2)
     rows, runs = [], {}
     f_ref = ref.K[0, 0]
     for name, opts in RUNS.items():
@@ -55,7 +65,7 @@ def run_all() -> tuple[list[dict], dict]:
                       "diff_pct_of_f": {k: float(100 * (got[k] - want[k]) / f_ref) for k in got}}
         for r in res.images:
             rows.append({"run": name, "photo": r.name, "accepted": int(r.accepted), "reason": r.reason, "corners": r.n_corners,
-                         "reprojection_rms_px": round(float(r.reprojection_rms_px), 4)})
+                         "reprojection_rms_px": round(float(r.reprojection_rms_px), 4), "corner_spacing_px": spacing[r.name]})
     reference = {"fx": float(ref.K[0, 0]), "fy": float(ref.K[1, 1]), "cx": float(ref.K[0, 2]), "cy": float(ref.K[1, 2]),
                  "rms_px": ref.rms_px, "source": "tests/data/photos/opencv-chessboard/left_intrinsics.yml"}
     return rows, {"board": how, "reference": reference, "runs": runs}
@@ -88,10 +98,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/chessboard")
     ap.add_argument("--write-docs", action="store_true", help="also rewrite the figures block of docs/calibration.md")
     a = ap.parse_args(argv)
-    import os
-    import platform
-
     from sim.runinfo import git_commit
+    from trials.tradeoff import machine_info
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -102,7 +110,7 @@ def main(argv=None) -> int:
         w.writeheader()
         w.writerows(rows)
     summary["run"] = {"command": "python benchmarks/bench_chessboard.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-                      "commit": git_commit(), "machine": {"cpus": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version()},
+                      "commit": git_commit(), "machine": machine_info(),
                       "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(docs_block(summary))

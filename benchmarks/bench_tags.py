@@ -167,14 +167,6 @@ def summarize_photos(rows: list[dict]) -> dict:
     return out
 
 
-def _machine() -> dict:
-    import os
-    import platform
-
-    return {"cpus": os.cpu_count(), "machine": platform.machine(), "system": platform.system(), "python": platform.python_version(),
-            "load_avg": [round(x, 2) for x in os.getloadavg()]}
-
-
 def read_csv(path: Path) -> list[dict]:
     """Rows as written, numbers back to numbers (empty cells stay "")."""
     def num(v: str):
@@ -263,7 +255,9 @@ def main(argv=None) -> int:
         prow = photo_rows(a.photos)
         _write_csv(out / "photos.csv", prow)
         summary["photos"] = summarize_photos(prow)
-    summary["run"] = {"commit": git_commit(), "machine": _machine(), "command": "python benchmarks/bench_tags.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+    from trials.tradeoff import machine_info
+
+    summary["run"] = {"commit": git_commit(), "machine": machine_info(), "command": "python benchmarks/bench_tags.py " + " ".join(argv if argv is not None else sys.argv[1:]),
                       "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     for b, s in summary["synthetic"].items():

@@ -200,11 +200,13 @@ def detect(
     photo = _read_image(image)
     h, w = photo.shape[:2]
     if (w, h) != (cam.width, cam.height) and rescale:
-        if w * cam.height != h * cam.width:
+        try:
+            scaled = cam.scaled(w, h)  # refuses another aspect ratio
+        except ValueError:
             raise typer.BadParameter(f"{image} is {w}x{h}, the camera file {camera} is {cam.width}x{cam.height}: another aspect ratio "
-                                     "(a crop), so the intrinsics cannot be rescaled; calibrate at this size", param_hint="--rescale")
+                                     "(a crop), so the intrinsics cannot be rescaled; calibrate at this size", param_hint="--rescale") from None
         typer.echo(f"rescaled the intrinsics from {cam.width}x{cam.height} to {w}x{h}")
-        cam = cam.scaled(w, h)
+        cam = scaled
     reg = load_registry(registry) if registry else None
     default = size_mm / 1000 if size_mm else None
 

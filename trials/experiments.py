@@ -199,37 +199,22 @@ class EvalResult(dict):
             self._ctx.run_jobs()
             self.update(json.loads((self._path / "summary.json").read_text()))
 
-    def __getitem__(self, k):
-        self._load()
-        return super().__getitem__(k)
 
-    def get(self, k, default=None):
-        self._load()
-        return super().get(k, default)
+def _loading(name: str):
+    base = getattr(dict, name)
 
-    def __contains__(self, k):
+    def method(self, *args):
         self._load()
-        return super().__contains__(k)
+        return base(self, *args)
 
-    def __iter__(self):
-        self._load()
-        return super().__iter__()
+    method.__name__ = name
+    return method
 
-    def __len__(self):
-        self._load()
-        return super().__len__()
 
-    def keys(self):
-        self._load()
-        return super().keys()
-
-    def items(self):
-        self._load()
-        return super().items()
-
-    def values(self):
-        self._load()
-        return super().values()
+# Every way of reading the dict runs the grid first (once): a recipe declares, then reads.
+for _name in ("__getitem__", "get", "__contains__", "__iter__", "__len__", "keys", "items", "values"):
+    setattr(EvalResult, _name, _loading(_name))
+del _name
 
 
 def _scene_input(ctx: Context) -> dict:
