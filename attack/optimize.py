@@ -187,6 +187,11 @@ class AttackRun:
             spec = spec.with_updates(objects=[o.model_dump() for o in objs])
         self.spec = spec
         self.image_size = int(policy.image_size)
+        from sim.policies.contract import policy_contract
+
+        # The training rollouts re-plan at every step (the first action of each chunk): the pose
+        # loss is defined on the action executed next; validation executes k of K as evaluation does.
+        self.contract = policy_contract(policy)
         self.pool = attack_pool
         if not self.pool:
             raise AttackError("pool: no task-feasible configurations in the attack part of the split (sim.configs.config_part) "
@@ -235,6 +240,7 @@ class AttackRun:
         from attack.outputs import texture_to_uint8
         from sim.env import ReachEnv
         from sim.outcome import object_distances
+        from sim.policies.rollout import rollout
 
         if not self.val_pool:
             raise AttackError("validation_every: validation is off (no held-out configurations)")
@@ -249,13 +255,14 @@ class AttackRun:
             self._val_env = ReachEnv(spec, num_envs=n, seed=self.cfg.seed, policy_image_size=self.image_size)
         env = self._val_env
         env.renderer.set_object_texture(self.adv, texture_to_uint8(self.texture))
-        targeted, dist = [], []
-        for start in range(0, len(configs), env.num_envs):
-            obs, _ = env.reset(configs=configs[start:start + env.num_envs])
-            while not env.done.all():
-                obs, *_ = env.step(self.policy.act(obs))
-            targeted += list(env.reached == self.adv)
-            dist += list(object_distances(env.T_world_tcp[:, :3, 3], env.object_centers)[:, self.adv])
+        targeted = np.zeros(len(configs), bool)
+        dist = np.zeros(len(configs))
+
+        def done(j, slot, res):
+            targeted[j] = res["reached"] == self.adv
+            dist[j] = object_distances(res["T_world_tcp"][None, :3, 3], env.worlds[slot].object_center_array[None])[0, self.adv]
+
+        rollout(env, configs, self.policy, done)
         return {"t_asr": float(np.mean(targeted)), "dist_m": float(np.mean(dist)), "episodes": len(configs),
                 "seconds": time.perf_counter() - t0}
 
@@ -276,8 +283,8 @@ class AttackRun:
                 env.reset_envs(range(len(chunk)), configs=chunk)
                 caps = [self.hybrid.capture(env.worlds[i]) for i in range(len(chunk))]
                 imgs = torch.stack([render_adversarial(c, self.texture, cfg.sampler) for c in caps])
-                a = self.policy(imgs)
                 T = torch.from_numpy(env.T_world_tcp[: len(chunk)]).to(self.device, torch.float32)
+                a = self.next_delta(self.call_policy(imgs, self.policy_state(T)), T)
                 p_adv = torch.from_numpy(env.object_centers[: len(chunk), self.adv]).to(self.device, torch.float32)
                 lp, _ = pose_loss(T, a, p_adv, self.spec.episode.max_step_m, self.spec.episode.max_step_rad, cfg.lambda_dist)
                 total += float(lp.sum())
@@ -321,6 +328,24 @@ class AttackRun:
         doc = {"config": {"job": "attack", "attack": self.cfg.model_dump(), **extra}, "seed": self.cfg.seed}
         (d / "run.json").write_text(json.dumps(doc, indent=2))
 
+    # ------------------------------------------------------------------ the policy's contract
+    def policy_state(self, T_world_tcp: torch.Tensor) -> torch.Tensor | None:
+        """The policy's state input for TCP poses ``(B, 4, 4)`` (None when it reads none)."""
+        from sim.policies.contract import state_vector
+
+        st = state_vector(self.contract, T_world_tcp.detach().cpu().numpy(), self.spec.gripper.opening_m)
+        return None if st is None else torch.from_numpy(st).to(self.device)
+
+    def call_policy(self, imgs: torch.Tensor, state: torch.Tensor | None) -> torch.Tensor:
+        return self.policy(imgs) if state is None else self.policy(imgs, state)
+
+    def next_delta(self, out: torch.Tensor, T_world_tcp: torch.Tensor) -> torch.Tensor:
+        """``(B, 6)`` normalised delta of the first action of each output (every action kind)."""
+        from sim.policies.contract import first_action, to_delta
+
+        ep = self.spec.episode
+        return to_delta(T_world_tcp, first_action(out), self.contract.action.kind, ep.max_step_m, ep.max_step_rad)
+
     # ------------------------------------------------------------------ one iteration
     def _color_transform(self):
         if not self.cfg.print_aware:
@@ -334,11 +359,13 @@ class AttackRun:
         from attack.losses import grad_cam, pose_loss, saliency_loss, untargeted_loss
 
         cfg = self.cfg
+        state = self.policy_state(T_world_tcp)
         A = self.policy.features(imgs)
-        a = self.policy.head(A)
+        out = self.policy.head(A, state) if state is not None else self.policy.head(A)
+        a = self.next_delta(out, T_world_tcp)  # the action executed next, as a delta_tcp motion
         zero = imgs.sum() * 0.0
         need_cam = cfg.use_saliency and cfg.lambda_sal > 0
-        S = grad_cam(A, a) if need_cam else None
+        S = grad_cam(A, out.flatten(1)) if need_cam else None
         adv_m = torch.from_numpy(np.stack([c.adv_mask for c in caps])).to(self.device)
         goal_m = torch.from_numpy(np.stack([c.goal_mask for c in caps])).to(self.device)
         parts = {}
@@ -351,7 +378,7 @@ class AttackRun:
             l2 = cfg.lambda_sal * saliency_loss(S, adv_m, goal_m).sum() if need_cam else zero
         else:
             with torch.no_grad():
-                a_clean = self.policy(imgs_clean)
+                a_clean = self.next_delta(self.call_policy(imgs_clean, state), T_world_tcp)
             dev, sal = untargeted_loss(a, a_clean, S if S is not None else torch.zeros_like(A[:, 0]), goal_m, cfg.lambda_sal if need_cam else 0.0)
             l1, l2 = dev.sum(), sal.sum()
         return l1, l2, a.detach(), parts

@@ -168,15 +168,17 @@ def summary_lines(metrics: dict) -> list[str]:
     return lines
 
 
-def gradcam_overlay(policy, image: torch.Tensor) -> np.ndarray:
-    """``image (3, H, W)`` -> (H, W, 3) uint8 with the Grad-CAM map blended in red."""
+def gradcam_overlay(policy, image: torch.Tensor, state: torch.Tensor | None = None) -> np.ndarray:
+    """``image (3, H, W)`` (and the policy's ``state (1, D)``) -> (H, W, 3) uint8 with the Grad-CAM
+    map blended in red."""
     import torch.nn.functional as F
 
     from attack.losses import grad_cam
 
     x = image[None].detach().clone().requires_grad_(True)  # gives A a graph (weights are frozen)
     A = policy.features(x)
-    S = grad_cam(A, policy.head(A)).detach()[0]
+    out = policy.head(A) if state is None else policy.head(A, state)
+    S = grad_cam(A, out.flatten(1)).detach()[0]
     S = F.interpolate(S[None, None], size=image.shape[-2:], mode="bilinear", align_corners=False)[0, 0]
     S = (S / S.max().clamp_min(1e-12)).cpu().numpy()
     rgb = image.detach().cpu().permute(1, 2, 0).numpy()
@@ -207,8 +209,10 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
     before = render_adversarial(cap, texture_before.to(run.device), run.cfg.sampler)
     after = render_adversarial(cap, run.texture, run.cfg.sampler)
     seed = run.pool[0].seed
-    iio.imwrite(out / "gradcam_before_after.png", hstack([labelled(gradcam_overlay(run.policy, before), f"Grad-CAM, starting texture (config {seed})"),
-                                                         labelled(gradcam_overlay(run.policy, after), f"Grad-CAM, final texture (config {seed})")]))
+    st = run.policy_state(torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32))
+    iio.imwrite(out / "gradcam_before_after.png",
+                hstack([labelled(gradcam_overlay(run.policy, before, st), f"Grad-CAM, starting texture (config {seed})"),
+                        labelled(gradcam_overlay(run.policy, after, st), f"Grad-CAM, final texture (config {seed})")]))
     frames = []
     for _ in range(8):
         if env.done[0]:
@@ -217,7 +221,8 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         img = render_adversarial(cap, run.texture, run.cfg.sampler)
         frames.append(labelled(texture_to_uint8(img), f"attack, step {len(frames)}", min_side=128))
         with torch.no_grad():
-            a = run.policy(img[None]).cpu().numpy()
+            T = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32)
+            a = run.next_delta(run.call_policy(img[None], run.policy_state(T)), T).cpu().numpy()
         actions = np.zeros((env.num_envs, 6))
         actions[0] = a[0]
         env.step(actions)

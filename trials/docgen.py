@@ -424,7 +424,7 @@ SECTIONS: list[Section] = [
     Section(
         "Policy checkpoint (`policy.json`) and training",
         "A checkpoint is a directory with `weights.safetensors` and the card `policy.json` "
-        "(see [workflow.md](workflow.md#2-bring-your-own-policy)). `training` holds the resolved `TrainConfig` "
+        "(see [workflow.md](workflow.md#2-attack-your-own-policy)). `training` holds the resolved `TrainConfig` "
         "of `advobj policy train`.",
         _policy,
         _policy_presets,

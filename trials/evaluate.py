@@ -125,6 +125,8 @@ def rollout_condition(policy, spec, cond, configs, num_envs: int, on_done: Calla
             policy acts on (left camera), e.g. to write GIFs.
     """
     from sim.env import ReachEnv
+    from sim.policies.contract import call_policy, decode_actions, policy_contract, to_delta
+    from sim.policies.rollout import rollout
     from trials.conditions import condition_spec
     from trials.metrics import action_errors
 
@@ -134,59 +136,56 @@ def rollout_condition(policy, spec, cond, configs, num_envs: int, on_done: Calla
     S = int(policy.image_size)
     N = max(1, min(int(num_envs), len(configs)))
     env = ReachEnv(spec_c, num_envs=N, image_size=S, seed=0, randomization=cond.randomization, render_obs=False)
+    contract = policy_contract(policy)
+    kind, ep = contract.action.kind, spec_c.episode
     try:
         obs = _Observer(env, cond)
-        queue = list(range(len(configs)))[::-1]
-        slot = [-1] * N  # config index per slot (-1 = idle)
-        err = np.zeros((N, 2))
+        slot_of = [-1] * N  # config index per slot
+        err = np.zeros((N, 3))  # summed e_trans, e_rot, and the number of policy calls
 
-        def fill(i: int) -> None:
-            j = queue.pop()
-            slot[i] = j
-            env.reset_envs([i], configs=[configs[j]])
+        def fill(i: int, j: int) -> None:
+            slot_of[i] = j
             obs.reset(i, configs[j].seed)
             err[i] = 0.0
 
-        for i in range(N):
-            fill(i)
-        while any(j >= 0 for j in slot):
-            active = [i for i in range(N) if slot[i] >= 0 and not env.done[i]]
-            if active:
-                views = [obs.views(i) for i in active]
-                V = views[0]["adv"].shape[0]
-                batch = np.concatenate([v["adv"] for v in views] + ([v["clean"] for v in views] if obs.attacked else []))
-                # A fixed batch size: conv kernels pick their blocking by batch size, so an
-                # image's action would otherwise depend (in the last bits) on which other episodes
-                # share its step, and an episode's row on how the evaluation was sharded.
-                B = len(batch)
-                fixed = int(num_envs) * V * (2 if obs.attacked else 1)
-                if B < fixed:
-                    batch = np.concatenate([batch, np.zeros((fixed - B, *batch.shape[1:]), batch.dtype)])
-                a = np.asarray(policy.act(batch), dtype=np.float64)[:B].reshape(B // V, V, 6).mean(1)
-                a_adv = a[: len(active)]
-                a_clean = a[len(active):] if obs.attacked else a_adv
-                e_t, e_r = action_errors(a_adv, a_clean, spec_c.episode.max_step_rad)
-                if on_frame is not None:
-                    for k, i in enumerate(active):
-                        on_frame(slot[i], int(env.steps[i]), views[k]["adv"][0], views[k]["clean"][0])
-                actions = np.zeros((N, 6))
-                actions[active] = a_adv
-                err[active, 0] += e_t
-                err[active, 1] += e_r
-                env.step(actions)
-            for i in range(N):
-                if slot[i] >= 0 and env.done[i]:
-                    n = int(env.steps[i])
-                    on_done(slot[i], {
-                        "reached": int(env.reached[i]),
-                        "steps": n,
-                        "min_dist": env.min_dist[i].copy(),
+        def query(slots, state):
+            views = [obs.views(i) for i in slots]
+            V = views[0]["adv"].shape[0]
+            batch = np.concatenate([v["adv"] for v in views] + ([v["clean"] for v in views] if obs.attacked else []))
+            st = None if state is None else np.repeat(state, V, axis=0)
+            if st is not None and obs.attacked:
+                st = np.concatenate([st, st])
+            # A fixed batch size: conv kernels pick their blocking by batch size, so an image's
+            # action would otherwise depend (in the last bits) on which other episodes share its
+            # step, and an episode's row on how the evaluation was sharded.
+            B = len(batch)
+            fixed = int(num_envs) * V * (2 if obs.attacked else 1)
+            if B < fixed:
+                batch = np.concatenate([batch, np.zeros((fixed - B, *batch.shape[1:]), batch.dtype)])
+                if st is not None:
+                    st = np.concatenate([st, np.zeros((fixed - B, st.shape[1]), st.dtype)])
+            raw = decode_actions(np.asarray(call_policy(policy, batch, st), dtype=np.float64)[:B], contract, B)
+            a = raw.reshape(B // V, V, *raw.shape[1:]).mean(1)  # stereo: the views' mean action
+            a_adv = a[: len(slots)]
+            a_clean = a[len(slots):] if obs.attacked else a_adv
+            T = env.T_world_tcp[slots]
+            e_t, e_r = action_errors(to_delta(T, a_adv[:, 0], kind, ep.max_step_m, ep.max_step_rad),
+                                     to_delta(T, a_clean[:, 0], kind, ep.max_step_m, ep.max_step_rad), ep.max_step_rad)
+            if on_frame is not None:
+                for k, i in enumerate(slots):
+                    on_frame(slot_of[i], int(env.steps[i]), views[k]["adv"][0], views[k]["clean"][0])
+            err[slots, 0] += e_t
+            err[slots, 1] += e_r
+            err[slots, 2] += 1
+            return a_adv
+
+        def done(j, i, res):
+            n = err[i, 2]  # errors are measured where the policy is asked (every step unless chunked)
+            on_done(j, {"reached": res["reached"], "steps": res["steps"], "min_dist": res["min_dist"],
                         "e_trans": float(err[i, 0] / n) if n else float("nan"),
-                        "e_rot": float(err[i, 1] / n) if n else float("nan"),
-                    })
-                    slot[i] = -1
-                    if queue:
-                        fill(i)
+                        "e_rot": float(err[i, 1] / n) if n else float("nan")})
+
+        rollout(env, configs, policy, done, query=query, on_fill=fill)
     finally:
         env.close()
 

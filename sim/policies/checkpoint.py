@@ -23,6 +23,7 @@ from typing import Any, Literal
 from pydantic import ConfigDict, Field, ValidationError
 
 from sim.configio import StrictModel
+from sim.policies.contract import PolicyContract
 from sim.policies.interface import PolicyError
 from sim.policies.policy import PolicyArch
 
@@ -77,12 +78,29 @@ class PolicyCard(_Strict):
     preprocess: Literal["center_crop", "letterbox", "resize"] = Field(
         "center_crop", description="how a camera frame of another size becomes the S x S input (sim.policyview): the centred "
                                    "square, resized (the sim cameras' square view); the whole frame padded; or squashed")
+    contract: PolicyContract = Field(default_factory=PolicyContract, description="state inputs and action semantics (sim.policies.contract)")
     training: dict[str, Any] = Field(default_factory=dict, description="resolved training config")
     clean_success: CleanSuccess | None = None
     seed: int | None = None
     git_commit: str = "unknown"
     created_utc: str = ""
     weights_sha256: str = ""
+
+    def arch_mismatch(self) -> str | None:
+        """Why the built-in network described by ``arch`` cannot honour ``contract`` (None: it can).
+
+        Checked for checkpoints, whose network is rebuilt from ``arch``; an ONNX card's ``arch``
+        only needs the right ``image_size``, since the graph is the user's.
+        """
+        c, a = self.contract, self.arch
+        if a.state_dim != c.state_dim:
+            return f"arch.state_dim is {a.state_dim} but the contract's state {list(c.state)} has {c.state_dim} values"
+        if a.chunk != c.action.chunk:
+            return f"arch.chunk is {a.chunk} but contract.action.chunk is {c.action.chunk}"
+        want = "tanh" if c.action.kind == "delta_tcp" else "linear"
+        if a.output != want:
+            return f"arch.output is {a.output!r} but {c.action.kind} actions need {want!r}"
+        return None
 
 
 def _sha256(path: Path) -> str:
@@ -110,6 +128,8 @@ def save_checkpoint(out_dir: str | Path, policy, card: PolicyCard) -> PolicyCard
     out.mkdir(parents=True, exist_ok=True)
     if card.arch != policy.config:
         raise PolicyError("card.arch does not match the policy's architecture")
+    if (why := card.arch_mismatch()) is not None:
+        raise PolicyError(f"card: {why}")
     state = {k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()}
     tmp_w = out / (WEIGHTS_NAME + ".tmp")
     save_file(state, str(tmp_w), metadata={"format": CARD_FORMAT})
@@ -171,7 +191,10 @@ def load_checkpoint(path: str | Path, device="cpu"):
         state = load_file(str(wpath), device="cpu")
     except (SafetensorError, OSError, ValueError) as err:
         raise PolicyError(f"{wpath}: not a safetensors weights file ({err})") from None
-    policy = VisuomotorPolicy(card.arch)
+    if (why := card.arch_mismatch()) is not None:
+        raise PolicyError(f"{p / CARD_NAME}: {why}")
+    policy = VisuomotorPolicy(card.arch, contract=card.contract)
+    policy.card = card
     try:
         policy.load_state_dict(state, strict=True)
     except RuntimeError as err:

@@ -1,9 +1,12 @@
 """ONNX export and the black-box :class:`OnnxPolicy` (onnxruntime).
 
-The exported graph has one input ``images: (B, 3, S, S)`` float32 in [0, 1] (normalization is
-inside the graph) and one output ``actions: (B, 6)`` in [-1, 1]; the batch axis is dynamic. The
-policy card travels in the model's metadata (key ``advobj_policy_card``), so an exported file is
-self-describing. User-supplied ONNX policies need only the same input/output contract.
+The exported graph has the input ``images: (B, 3, S, S)`` float32 in [0, 1] (normalization is
+inside the graph), a second input ``state: (B, D)`` float32 when the policy reads proprioception,
+and one output ``actions``: ``(B, 6)``, or ``(B, K, 6)`` for chunks (:mod:`sim.policies.contract`);
+the batch axis is dynamic. The policy card travels in the model's metadata (key
+``advobj_policy_card``), so an exported file is self-describing. A user's ONNX policy with one
+image input and a ``(B, 6)`` delta output needs no card; any other contract is read from the card
+(:func:`attach_card` writes one into an existing file).
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import numpy as np
 
 from sim.policies.interface import PolicyError, prepare_images
 
-__all__ = ["export_onnx", "OnnxPolicy", "CARD_METADATA_KEY", "DEFAULT_OPSET"]
+__all__ = ["export_onnx", "attach_card", "OnnxPolicy", "CARD_METADATA_KEY", "DEFAULT_OPSET"]
 
 CARD_METADATA_KEY = "advobj_policy_card"
 DEFAULT_OPSET = 17
@@ -33,30 +36,49 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     s = policy.image_size
+    D = int(getattr(policy.config, "state_dim", 0))
     was_training = policy.training
     policy.eval()
     try:
-        dummy = torch.rand(2, 3, s, s, device=policy.device)
+        dummy = (torch.rand(2, 3, s, s, device=policy.device),) + ((torch.rand(2, D, device=policy.device),) if D else ())
+        names = ["images"] + (["state"] if D else [])
         # The TorchScript exporter is deprecated in favour of the torch.export one, which needs
         # onnxscript and is slower; it still exports these plain conv nets exactly (parity tests).
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DeprecationWarning)
             torch.onnx.export(
                 policy,
-                (dummy,),
+                dummy,
                 str(path),
-                input_names=["images"],
+                input_names=names,
                 output_names=["actions"],
-                dynamic_axes={"images": {0: "batch"}, "actions": {0: "batch"}},
+                dynamic_axes={**{n: {0: "batch"} for n in names}, "actions": {0: "batch"}},
                 opset_version=opset,
                 dynamo=False,
             )
     finally:
         policy.train(was_training)
-    model = onnx.load(str(path))
     if card is not None:
+        attach_card(path, card)
+    else:
+        import onnx
+
+        onnx.checker.check_model(onnx.load(str(path)))
+    return path
+
+
+def attach_card(path: str | Path, card) -> Path:
+    """Write ``card`` (a :class:`sim.policies.checkpoint.PolicyCard`) into ONNX file ``path``'s
+    metadata, replacing an earlier card: how a policy exported by other code states its contract."""
+    import onnx
+
+    path = Path(path)
+    model = onnx.load(str(path))
+    keep = [(p.key, p.value) for p in model.metadata_props if p.key != CARD_METADATA_KEY]
+    del model.metadata_props[:]
+    for k, v in keep + [(CARD_METADATA_KEY, card.model_dump_json())]:
         entry = model.metadata_props.add()
-        entry.key, entry.value = CARD_METADATA_KEY, card.model_dump_json()
+        entry.key, entry.value = k, v
     onnx.checker.check_model(model)
     onnx.save(model, str(path))
     return path
@@ -92,28 +114,61 @@ class OnnxPolicy:
         except Exception as err:  # onnxruntime raises its own exception types for bad files
             raise PolicyError(f"{self.path}: not a loadable ONNX model ({str(err).splitlines()[0]})") from None
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
-        if len(inputs) != 1 or len(outputs) < 1:
-            raise PolicyError(f"{self.path}: a policy needs exactly one image input and an action output")
+        if len(inputs) not in (1, 2) or len(outputs) < 1:
+            raise PolicyError(f"{self.path}: a policy needs an image input (and optionally a state input) and an action output, "
+                              f"got {len(inputs)} inputs")
         shape = inputs[0].shape
         if len(shape) != 4 or shape[1] != 3 or not isinstance(shape[2], int) or shape[2] != shape[3]:
             raise PolicyError(f"{self.path}: input {inputs[0].name!r} must be (B, 3, S, S) with fixed S, got {shape}")
         self.input_name, self.output_name = inputs[0].name, outputs[0].name
+        self.state_name = inputs[1].name if len(inputs) == 2 else None
         self.image_size = int(shape[2])
         meta = self.session.get_modelmeta().custom_metadata_map
         self.card = None
         if CARD_METADATA_KEY in meta:
+            from pydantic import ValidationError
+
             from sim.policies.checkpoint import PolicyCard
 
-            self.card = PolicyCard.model_validate(json.loads(meta[CARD_METADATA_KEY]))
+            try:
+                self.card = PolicyCard.model_validate(json.loads(meta[CARD_METADATA_KEY]))
+            except (ValidationError, json.JSONDecodeError) as err:
+                raise PolicyError(f"{self.path}: metadata {CARD_METADATA_KEY}: not a valid policy card "
+                                  f"({str(err).splitlines()[0]})") from None
             if self.card.arch.image_size != self.image_size:
                 raise PolicyError(f"{self.path}: card says {self.card.arch.image_size} px but the graph takes {self.image_size} px")
+        from sim.policies.contract import policy_contract
 
-    def act(self, images) -> np.ndarray:
-        """Actions ``(B, 6)`` float32 for env images ``(B, S, S, 3)`` uint8 or ``(B, 3, S, S)`` floats."""
+        self.contract = policy_contract(self)
+        D = self.contract.state_dim
+        if D and self.state_name is None:
+            raise PolicyError(f"{self.path}: the card's contract reads state {list(self.contract.state)} but the graph has no state input")
+        if self.state_name is not None:
+            st = inputs[1].shape
+            if not D:
+                raise PolicyError(f"{self.path}: the graph has a second input {self.state_name!r} but no card says what it holds; "
+                                  f"write a card with contract.state (sim.policies.onnx_policy.attach_card)")
+            if len(st) != 2 or (isinstance(st[1], int) and st[1] != D):
+                raise PolicyError(f"{self.path}: input {self.state_name!r} must be (B, {D}) for state {list(self.contract.state)}, got {st}")
+
+    def act(self, images, state=None) -> np.ndarray:
+        """Actions ``(B, 6)`` (or ``(B, K, 6)``) float32 for env images ``(B, S, S, 3)`` uint8 or
+        ``(B, 3, S, S)`` floats, and the ``(B, D)`` state when the contract reads one."""
+        from sim.policies.contract import decode_actions
+
         x = prepare_images(images, self.image_size)
-        out = self.session.run([self.output_name], {self.input_name: x})[0]
-        if out.ndim != 2 or out.shape[1] != 6:
-            raise PolicyError(f"{self.path}: output {self.output_name!r} must be (B, 6), got {out.shape}")
+        feeds = {self.input_name: x}
+        if self.state_name is not None:
+            if state is None:
+                raise PolicyError(f"{self.path}: state: this policy reads {list(self.contract.state)}; no state given")
+            st = np.ascontiguousarray(state, dtype=np.float32)
+            if st.shape != (len(x), self.contract.state_dim):
+                raise PolicyError(f"{self.path}: state: expected ({len(x)}, {self.contract.state_dim}), got {st.shape}")
+            feeds[self.state_name] = st
+        out = self.session.run([self.output_name], feeds)[0]
+        out = decode_actions(np.asarray(out), self.contract, len(x))
+        if self.contract.action.chunk == 1:
+            out = out[:, 0]
         return out.astype(np.float32)
 
     def __repr__(self) -> str:

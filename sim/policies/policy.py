@@ -4,7 +4,9 @@
 
 * ``features(x: (B, 3, S, S) float in [0, 1]) -> A: (B, C, h, w)``, the last conv feature map
   (normalization happens inside, so attacks work in image space);
-* ``head(A) -> (B, 6)`` in [-1, 1]: 1x1 conv to ``head_channels``, flatten, MLP, ``tanh``.
+* ``head(A, state=None) -> (B, 6)`` in [-1, 1]: 1x1 conv to ``head_channels``, flatten, (join
+  the state vector,) MLP, ``tanh``. Chunked policies output ``(B, K, 6)``; absolute-pose policies
+  a linear output (see :mod:`sim.policies.contract`).
 
 Grad-CAM is then ``w = d||a|| / dA`` averaged over ``(h, w)`` without hooks. The head flattens the
 map instead of global-average-pooling it because the action depends on *where* the goal is in the
@@ -43,6 +45,10 @@ class PolicyArch(StrictModel):
     head_hidden: int = Field(256, ge=1)
     mean: tuple[float, float, float] = IMAGENET_MEAN
     std: tuple[float, float, float] = IMAGENET_STD
+    # The policy contract's shape (sim.policies.contract); the defaults are the original policy.
+    state_dim: int = Field(0, ge=0, le=64, description="proprioceptive inputs, joined to the flattened features")
+    chunk: int = Field(1, ge=1, le=128, description="actions per call (K)")
+    output: Literal["tanh", "linear"] = Field("tanh", description="tanh for delta_tcp actions in [-1, 1]; linear for absolute_tcp poses")
 
 
 class VisuomotorPolicy(nn.Module):
@@ -50,9 +56,17 @@ class VisuomotorPolicy(nn.Module):
 
     white_box = True
 
-    def __init__(self, config: PolicyArch | None = None, **kwargs):
+    def __init__(self, config: PolicyArch | None = None, contract=None, **kwargs):
+        from sim.policies.contract import PolicyContract
+
         super().__init__()
         self.config = config if config is not None else PolicyArch(**kwargs)
+        c = self.config
+        self.contract = contract if contract is not None else PolicyContract()
+        k = self.contract
+        if (c.state_dim, c.chunk, c.output) != (k.state_dim, k.action.chunk, "tanh" if k.action.kind == "delta_tcp" else "linear"):
+            raise PolicyError(f"contract: ({k.describe()}) does not fit the architecture (state_dim {c.state_dim}, chunk {c.chunk}, "
+                              f"output {c.output}); pass the matching contract")
         if any(s <= 0 for s in self.config.std):
             raise PolicyError(f"std: normalization std must be positive, got {self.config.std}")
         self.image_size = self.config.image_size
@@ -66,9 +80,9 @@ class VisuomotorPolicy(nn.Module):
         self.reduce = nn.Sequential(nn.Conv2d(c, self.config.head_channels, 1), nn.ReLU())
         self.mlp = nn.Sequential(
             nn.Flatten(),
-            nn.Linear(self.config.head_channels * h * w, self.config.head_hidden),
+            nn.Linear(self.config.head_channels * h * w + self.config.state_dim, self.config.head_hidden),
             nn.ReLU(),
-            nn.Linear(self.config.head_hidden, ACTION_DIM),
+            nn.Linear(self.config.head_hidden, ACTION_DIM * self.config.chunk),
         )
 
     @property
@@ -82,16 +96,28 @@ class VisuomotorPolicy(nn.Module):
             raise PolicyError(f"images: policy expects (B, 3, {self.image_size}, {self.image_size}) float in [0, 1], got {tuple(x.shape)}")
         return self.backbone((x - self.mean) / self.std)
 
-    def head(self, A: torch.Tensor) -> torch.Tensor:
-        """Feature map ``(B, C, h, w)`` -> action ``(B, 6)`` in [-1, 1]."""
-        return torch.tanh(self.mlp(self.reduce(A)))
+    def head(self, A: torch.Tensor, state: torch.Tensor | None = None) -> torch.Tensor:
+        """Feature map ``(B, C, h, w)`` (and ``state (B, D)``) -> actions ``(B, 6)``, or ``(B, K, 6)``
+        for chunks; in [-1, 1] unless the output is linear."""
+        z = torch.flatten(self.reduce(A), 1)
+        D = self.config.state_dim
+        if D:
+            if state is None or (not torch.jit.is_tracing() and tuple(state.shape) != (z.shape[0], D)):
+                got = None if state is None else tuple(state.shape)
+                raise PolicyError(f"state: policy expects a ({z.shape[0]}, {D}) state input, got {got}")
+            z = torch.cat([z, state.to(z.dtype)], 1)
+        out = self.mlp(z)  # its Flatten is a no-op on (B, F); kept so old weights load by name
+        if self.config.output == "tanh":
+            out = torch.tanh(out)
+        return out.view(-1, self.config.chunk, ACTION_DIM) if self.config.chunk > 1 else out
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x))
+    def forward(self, x: torch.Tensor, state: torch.Tensor | None = None) -> torch.Tensor:
+        return self.head(self.features(x), state)
 
     @torch.no_grad()
-    def act(self, images) -> np.ndarray:
-        """Actions ``(B, 6)`` float32 for env images ``(B, S, S, 3)`` uint8 or ``(B, 3, S, S)`` floats.
+    def act(self, images, state=None) -> np.ndarray:
+        """Actions ``(B, 6)`` (or ``(B, K, 6)``) float32 for env images ``(B, S, S, 3)`` uint8 or
+        ``(B, 3, S, S)`` floats, and the ``(B, D)`` state when the policy reads one.
 
         Runs in eval mode (BN running statistics) and restores the previous mode.
         """
@@ -101,9 +127,10 @@ class VisuomotorPolicy(nn.Module):
                 x = x.permute(0, 3, 1, 2) / 255.0
         else:
             x = torch.from_numpy(prepare_images(images, self.image_size)).to(self.device)
+        st = None if state is None else torch.as_tensor(np.asarray(state, dtype=np.float32), device=self.device)
         was_training = self.training
         self.eval()
         try:
-            return self(x).cpu().numpy().astype(np.float32)
+            return self(x, st).cpu().numpy().astype(np.float32)
         finally:
             self.train(was_training)

@@ -56,6 +56,10 @@ class TrainConfig(StrictModel):
     def _sizes_agree(self):
         if self.policy.image_size != self.env.image_size:
             raise ValueError(f"policy.image_size ({self.policy.image_size}) != env.image_size ({self.env.image_size})")
+        p = self.policy
+        if (p.state_dim, p.chunk, p.output) != (0, 1, "tanh"):
+            raise ValueError("policy.state_dim, policy.chunk, policy.output: training teaches the one-image delta_tcp contract "
+                             "only (the expert labels one action per state); leave them at 0, 1 and tanh")
         return self
 
     def fingerprint(self) -> str:
@@ -67,6 +71,11 @@ class TrainConfig(StrictModel):
         d = self.model_dump(mode="json", exclude={"final_eval_episodes": True, "target_success": True,
                                                   "dagger": {"iterations", "eval_episodes", "stop_at_success"},
                                                   "ppo": {"total_timesteps", "eval_episodes", "stop_at_success"}})
+        # The contract fields at their defaults leave the hash as it was before they existed, so
+        # a training run started then still resumes.
+        for k in ("state_dim", "chunk", "output"):
+            if d["policy"].get(k) == PolicyArch.model_fields[k].default:
+                d["policy"].pop(k)
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -7,7 +7,7 @@ its successful configurations can be written out as the task-feasible pool (:mod
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 from pydantic import Field
@@ -15,7 +15,7 @@ from pydantic import Field
 from sim.configio import StrictModel
 from sim.stats import Proportion, proportion
 
-__all__ = ["EnvConfig", "make_env", "set_randomization", "EpisodeResults", "run_episodes", "evaluate_policy", "EVAL_SEED_BASE"]
+__all__ = ["EnvConfig", "make_env", "set_randomization", "EpisodeResults", "rollout", "run_episodes", "evaluate_policy", "EVAL_SEED_BASE"]
 
 
 class EnvConfig(StrictModel):
@@ -78,40 +78,109 @@ class EpisodeResults:
         return out
 
 
+def rollout(env, starts, policy, on_done: Callable[[int, int, dict], None], query: Callable | None = None,
+            on_fill: Callable[[int, int], None] | None = None, fixed_batch: bool = True) -> None:
+    """The closed-loop rollout: one episode per start, ``env.num_envs`` at a time, each slot refilled
+    as its episode ends. The one loop behind clean evaluation, ``advobj eval`` and the attack's
+    validation; the policy's contract (:mod:`sim.policies.contract`) is applied here only.
+
+    Args:
+        env: a :class:`sim.env.ReachEnv`.
+        starts: initial configurations (:class:`sim.configs.InitialConfig`) or seeds, one episode each.
+        policy: what acts; its contract says what it reads and what its output means.
+        on_done: ``on_done(j, slot, result)`` as episode ``j`` (index into ``starts``) ends, with
+            ``result``: ``reached`` (object index, -1 none), ``steps``, ``min_dist (K,)`` m,
+            ``T_world_tcp (4, 4)`` final pose, ``config``.
+        query: ``query(slots, state) -> raw outputs (len(slots), ...)`` for the slots that need a
+            new chunk, ``state`` their ``(len(slots), D)`` state or None; default: the policy on
+            the env's observations (all ``N`` rows when ``fixed_batch``, so an image's action never
+            depends on how many episodes share its step).
+        on_fill: ``on_fill(slot, j)`` after a slot is reset to start ``j`` (per-episode state).
+    """
+    from sim.policies.contract import ActionQueue, call_policy, decode_actions, policy_contract, state_vector, to_delta
+
+    starts = list(starts)
+    if not starts:
+        return
+    contract = policy_contract(policy)
+    N = env.num_envs
+    gripper_m = float(env.spec.gripper.opening_m)
+    if query is None:
+        def query(slots, state):
+            obs = env.observe()
+            if fixed_batch:
+                full = state_vector(contract, env.T_world_tcp, gripper_m)
+                return np.asarray(call_policy(policy, obs, full))[slots]
+            return np.asarray(call_policy(policy, obs[slots], state))
+
+    queue = ActionQueue(contract, N)
+    todo = list(range(len(starts)))[::-1]
+    slot = [-1] * N
+
+    def fill(i: int) -> None:
+        j = todo.pop()
+        slot[i] = j
+        s = starts[j]
+        if isinstance(s, (int, np.integer)):
+            env.reset_envs([i], seeds=[int(s)])
+        else:
+            env.reset_envs([i], configs=[s])
+        queue.clear(i)
+        if on_fill is not None:
+            on_fill(i, j)
+
+    for i in range(min(N, len(starts))):
+        fill(i)
+    while any(j >= 0 for j in slot):
+        active = [i for i in range(N) if slot[i] >= 0 and not env.done[i]]
+        if active:
+            need = queue.needs(active)
+            if need:
+                raw = query(need, state_vector(contract, env.T_world_tcp[need], gripper_m))
+                queue.push(need, decode_actions(np.asarray(raw, dtype=np.float64), contract, len(need)))
+            actions = np.zeros((N, 6))
+            actions[active] = to_delta(env.T_world_tcp[active], queue.pop(active), contract.action.kind, env.max_step_m, env.max_step_rad)
+            env.step(actions)
+        for i in range(N):
+            if slot[i] >= 0 and env.done[i]:
+                j = slot[i]
+                on_done(j, i, {"reached": int(env.reached[i]), "steps": int(env.steps[i]), "min_dist": env.min_dist[i].copy(),
+                               "T_world_tcp": env.worlds[i].T_world_tcp.copy(), "config": env.worlds[i].config})
+                slot[i] = -1
+                if todo:
+                    fill(i)
+
+
 def run_episodes(env, policy, seeds, progress=None) -> EpisodeResults:
-    """Run one episode per seed to completion, ``env.num_envs`` at a time.
+    """Run one episode per seed to completion, ``env.num_envs`` at a time (:func:`rollout`).
 
     Args:
         env: a :class:`sim.env.ReachEnv` (its image size must match ``policy.image_size``).
-        policy: anything with ``act(images (B, H, W, 3) uint8) -> (B, 6)``.
+        policy: anything behind the policy interface (``act(images[, state])``).
         seeds: initial-configuration seeds, one episode each.
         progress: optional callable ``progress(n_finished_episodes)`` (e.g. a tqdm update).
     """
     if (env.height, env.width) != (policy.image_size, policy.image_size):
         raise ValueError(f"env renders {env.height}x{env.width} px but the policy expects {policy.image_size} px")
     seeds = [int(s) for s in seeds]
-    n, N = len(seeds), env.num_envs
+    n = len(seeds)
     success = np.zeros(n, bool)
     reached = np.full(n, -1, np.int64)
     steps = np.zeros(n, np.int64)
     min_goal = np.zeros(n)
     configs = [None] * n
-    for start in range(0, n, N):
-        chunk = seeds[start : start + N]
-        # A short last chunk: pad with repeats of its first seed and ignore the padding.
-        padded = chunk + [chunk[0]] * (N - len(chunk))
-        env.reset_envs(range(N), seeds=padded)
-        obs = env.observe()
-        while not env.done.all():
-            obs, *_ = env.step(policy.act(obs))
-        m = len(chunk)
-        success[start : start + m] = (env.reached == env.goal_index)[:m]
-        reached[start : start + m] = env.reached[:m]
-        steps[start : start + m] = env.steps[:m]
-        min_goal[start : start + m] = env.min_dist[:m, env.goal_index]
-        configs[start : start + m] = env.configs[:m]
+    goal = env.goal_index
+
+    def done(j, _slot, res):
+        reached[j] = res["reached"]
+        success[j] = res["reached"] == goal
+        steps[j] = res["steps"]
+        min_goal[j] = res["min_dist"][goal]
+        configs[j] = res["config"]
         if progress is not None:
-            progress(m)
+            progress(1)
+
+    rollout(env, seeds, policy, done)
     return EpisodeResults(np.asarray(seeds, np.int64), success, reached, steps, min_goal, configs)
 
 

@@ -156,3 +156,11 @@ def test_a_finished_training_drops_its_resume_data_unless_kept(spec, tmp_path, k
     assert (tmp_path / "train_state").is_dir() == keep
     assert any("deleted" in t and "train_state" in t for t in said) != keep
     load_checkpoint(tmp_path)  # the final weights and card stay either way
+
+
+def test_the_contract_fields_leave_existing_training_runs_resumable_and_other_contracts_are_refused():
+    # pinned before PolicyArch had state_dim/chunk/output: a run started then still resumes
+    assert resolve_preset("quick").fingerprint() == "c7daca81a8f8215c"
+    assert resolve_preset("paper").fingerprint() == "621206d1b93d6cda"
+    with pytest.raises(ValueError, match="one-image delta_tcp contract only"):
+        resolve_preset("quick", policy={"chunk": 4})

@@ -613,10 +613,7 @@ def test_workflow_python_block_attacks_a_wrapped_torch_model(art):
     import torch
     from torch import nn
 
-    text = (ROOT / "docs" / "workflow.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    assert len(blocks) == 1, "docs/workflow.md should hold exactly one python block (the white-box wrapper)"
-    code = blocks[0]
+    code = _workflow_block("class WhiteBox")
     out = art.tmp / "attack-mine"
     subs = {
         'image_size=128': 'image_size=32',
@@ -640,6 +637,41 @@ def test_workflow_python_block_attacks_a_wrapped_torch_model(art):
     exec(compile(code, "docs/workflow.md", "exec"), ns)
     for name in ("texture.png", "texture.npy", "adversarial.glb", "metrics.json"):
         assert (out / name).is_file(), f"the workflow snippet did not write {name}"
+
+
+def _workflow_block(marker: str) -> str:
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "workflow.md").read_text(), re.S)
+    assert len(blocks) == 2, "docs/workflow.md should hold two python blocks (the white-box wrapper, the two-input export)"
+    (code,) = [b for b in blocks if marker in b]
+    return code
+
+
+def test_workflow_export_script_writes_a_two_input_chunked_onnx_policy_that_rolls_out(tmp_path):
+    """The 'attack your own policy' export script of docs/workflow.md, at a smaller input size."""
+    import numpy as np
+
+    from sim.policies.contract import policy_contract
+    from sim.policies.onnx_policy import OnnxPolicy
+    from sim.policies.rollout import EnvConfig, make_env, run_episodes
+    from sim.spec import default_scene
+
+    code = _workflow_block("class LabPolicy")
+    path = tmp_path / "lab_policy.onnx"
+    for old, new in {"S, K = 96, 8": "S, K = 32, 8", '"lab_policy.onnx"': repr(str(path))}.items():
+        assert old in code, f"docs/workflow.md export script changed: {old!r} not found; update this test"
+        code = code.replace(old, new)
+    exec(compile(code, "docs/workflow.md", "exec"), {"__name__": "workflow_export"})
+    policy = OnnxPolicy(path)
+    c = policy_contract(policy)
+    assert (c.state, c.action.kind, c.action.chunk, c.action.execute) == (("tcp_pose", "gripper"), "absolute_tcp", 8, 4)
+    spec = default_scene()
+    spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": 5})
+    env = make_env(spec, EnvConfig(image_size=32), num_envs=2)
+    try:
+        res = run_episodes(env, policy, [0, 1])
+    finally:
+        env.close()
+    assert (res.steps >= 1).all() and np.isfinite(res.min_goal_dist).all()
 
 
 def _anchors(path: Path) -> set[str]:

@@ -137,12 +137,16 @@ class TrialRunner:
         plan: :class:`trials.real.plan.TrialPlan`.
         camera: a connected camera (``read() -> Frame``).
         arm: a connected :class:`robot_io.safety.SafeArm`.
-        policy: ``act(images (B, S, S, 3) uint8) -> (B, 6)`` with ``image_size`` S.
+        policy: behind the policy interface, with ``image_size`` S; its contract
+            (:mod:`sim.policies.contract`) says whether it reads the TCP pose and gripper, and
+            whether its actions are deltas (sent with ``step_delta``) or base-frame targets (``step``),
+            in chunks of which the first ``k`` are executed per frame.
         store: :class:`trials.real.store.TrialStore`.
         operator: an :class:`trials.real.operator.Operator`.
         locator: a :class:`trials.real.locate.Locator`.
         session: the :class:`SessionInfo` recorded (or matched on resume).
-        action_scale: (6,) per-component scale of the policy's actions (``[max_step_m]*3 + [max_step_rad]*3``).
+        action_scale: (6,) per-component scale of ``delta_tcp`` actions (``[max_step_m]*3 + [max_step_rad]*3``).
+        gripper_m: the finger opening a policy reading ``gripper`` state is given (the scene's).
         stage: :class:`trials.real.stage.SimStage` for sim hardware, else None (a person stages).
         T_base_table: table frame in the arm's base frame (identity for sim arms).
         rate_limit: sleep to the control period (off: as fast as possible, sim arms only).
@@ -154,7 +158,7 @@ class TrialRunner:
 
     def __init__(self, plan, camera, arm, policy, store, operator, locator, session: SessionInfo, action_scale,
                  stage=None, T_base_table=None, rate_limit: bool = True, on_trial_end: Callable | None = None,
-                 on_step: Callable | None = None,
+                 on_step: Callable | None = None, gripper_m: float = 0.06,
                  stop_on_reach: bool = True, clock: Callable[[], float] = time.monotonic, sleep: Callable = time.sleep):
         self.plan = plan
         self.camera = camera
@@ -165,6 +169,7 @@ class TrialRunner:
         self.locator = locator
         self.session = session
         self.action_scale = np.asarray(action_scale, dtype=np.float64).reshape(6)
+        self.gripper_m = float(gripper_m)
         self.stage = stage
         self.T_base_table = np.eye(4) if T_base_table is None else np.asarray(T_base_table, dtype=np.float64)
         self.T_table_base = np.linalg.inv(self.T_base_table)
@@ -396,6 +401,10 @@ class TrialRunner:
         stop_reason = "max_steps"
         light = None
         moved: set[str] = set()
+        from sim.policies.contract import ActionQueue, call_policy, decode_actions, policy_contract, state_vector, target_pose
+
+        contract = policy_contract(self.policy)
+        queue = ActionQueue(contract, 1)
         self.arm.start_trial()
         t_start = self.clock()
         T_frame = self.arm.tcp_pose()  # the arm's pose when the next frame is taken
@@ -414,7 +423,14 @@ class TrialRunner:
             frame = self.camera.read()
             if light is None:  # what the camera saw at the start: the lighting scenarios' measure
                 light = float(np.asarray(frame.rgb, dtype=np.float32).mean() / 255.0)
-            action = np.asarray(self.policy.act(self._policy_image(frame.rgb)[None]), dtype=np.float64).reshape(-1, 6)[0]
+            if queue.needs([0]):
+                # A new chunk from this frame; its later actions keep this frame as the one the
+                # policy saw (the safety layer's frame-age check is on it).
+                state = state_vector(contract, T_frame, self.gripper_m)
+                raw = np.asarray(call_policy(self.policy, self._policy_image(frame.rgb)[None], state), dtype=np.float64)
+                queue.push([0], decode_actions(raw, contract, 1))
+                seen = frame
+            action = queue.pop([0])[0]
             if not np.isfinite(action).all():
                 # never sent to the arm (the safety layer would refuse it too) and not a step record:
                 # the action columns hold numbers only
@@ -423,7 +439,10 @@ class TrialRunner:
                 events.append(EventRecord(self.clock() - t0, "policy", "error", stop_reason))
                 break
             try:
-                res = self.arm.step_delta(action * self.action_scale, frame)
+                if contract.action.kind == "absolute_tcp":
+                    res = self.arm.step(target_pose(action), seen)
+                else:
+                    res = self.arm.step_delta(np.clip(action, -1.0, 1.0) * self.action_scale, seen)
             except SafetyStop as err:
                 stop_reason = f"safety_stop: {err}"
                 break

@@ -149,6 +149,7 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
     ep = spec.episode
     action_scale = [ep.max_step_m] * 3 + [ep.max_step_rad] * 3
     hw = _safety_at_plan_rate(hw, plan, ep, log)
+    _check_chunk_frame_age(policy, plan, hw)
 
     intrinsics = getattr(hw.camera, "intrinsics", None)
     calibration_files = {"T_tcp_cam": hw.T_tcp_cam, "intrinsics": intrinsics, "registry": registry, "table_frame": table_frame}
@@ -202,7 +203,8 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
                     locator, T_base_table = _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table, log)
                 info = dataclasses.replace(info, T_base_table=T_base_table)
                 runner = TrialRunner(plan, camera, arm, policy, store, operator, locator, info, action_scale, stage=stage,
-                                     T_base_table=T_base_table, rate_limit=rate_limit, on_trial_end=on_trial_end)
+                                     T_base_table=T_base_table, rate_limit=rate_limit, on_trial_end=on_trial_end,
+                                     gripper_m=spec.gripper.opening_m)
                 if on_ready is not None:
                     on_ready(runner, world)
                 return runner.run(max_trials)
@@ -233,6 +235,21 @@ def camera_view_warnings(camera, policy, spec, hw) -> list[str]:
     T_mount = spec.camera.T_tcp_cam if hw.T_tcp_cam is None else load_T_tcp_cam(hw.T_tcp_cam)
     return [f"camera ({intr.width}x{intr.height}, preprocess {mode} to {S}x{S}): {m}"
             for m in view_mismatch(K_view, spec.camera.K(S, S), S, T_mount, spec.camera.T_tcp_cam)]
+
+
+def _check_chunk_frame_age(policy, plan, hw) -> None:
+    """Refuse a policy whose chunks outlive the safety layer's frame-age limit: the k-th action of
+    a chunk is sent (k - 1) control periods after the frame it was computed from."""
+    from sim.policies.contract import policy_contract
+
+    c = policy_contract(policy)
+    k = c.action.execute
+    age_ms = (k - 1) * 1000.0 / float(plan.control_hz)
+    limit = float(hw.safety.max_frame_age_ms)
+    if k > 1 and age_ms >= limit:
+        raise SessionSetupError(f"safety.max_frame_age_ms: the policy executes {k} actions per frame at {plan.control_hz:g} Hz, so its "
+                                f"last action is sent {age_ms:.0f} ms after its frame, beyond the {limit:.0f} ms limit; raise "
+                                f"max_frame_age_ms above {age_ms:.0f} ms in the hardware config or export the policy with a smaller execute")
 
 
 def _safety_at_plan_rate(hw, plan, episode, log):
