@@ -32,8 +32,14 @@ def safe_cosine(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a * b).sum(-1) / (na * nb)
 
 
-def pose_loss(T_world_tcp: torch.Tensor, actions: torch.Tensor, p_adv: torch.Tensor, max_step_m: float,
-              max_step_rad: float, lambda_dist: float) -> tuple[torch.Tensor, dict]:
+def pose_loss(
+    T_world_tcp: torch.Tensor,
+    actions: torch.Tensor,
+    p_adv: torch.Tensor,
+    max_step_m: float,
+    max_step_rad: float,
+    lambda_dist: float,
+) -> tuple[torch.Tensor, dict]:
     """``L_pose = L_ori + lambda_dist * L_dist`` per pair ``(B,)``.
 
     ``L_ori = 1 - cos(v_ee, v_target)`` with ``v_ee`` the heading the action would produce and
@@ -86,8 +92,9 @@ def saliency_loss(S: torch.Tensor, adv_mask: torch.Tensor, goal_mask: torch.Tens
     return -masked_mean(S, resize_mask(adv_mask, hw)) + masked_mean(S, resize_mask(goal_mask, hw))
 
 
-def untargeted_loss(actions: torch.Tensor, actions_clean: torch.Tensor, S: torch.Tensor, goal_mask: torch.Tensor,
-                    lambda_sal: float) -> tuple[torch.Tensor, torch.Tensor]:
+def untargeted_loss(
+    actions: torch.Tensor, actions_clean: torch.Tensor, S: torch.Tensor, goal_mask: torch.Tensor, lambda_sal: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The ablation's untargeted objective, split into its two terms ``(B,)`` each.
 
     ``-||a - a_gt||^2`` (push the action away from the clean one) and

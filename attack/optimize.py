@@ -21,12 +21,11 @@ every ``validation_every`` iterations, and ``best/`` keeps the texture with the 
 from __future__ import annotations
 
 import json
-import math
 import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 import torch
@@ -35,8 +34,17 @@ from pydantic import Field, ValidationError
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 
-__all__ = ["AttackConfig", "AttackError", "AttackWarning", "PRESETS", "resolve_config", "AttackRun", "run_attack", "find_checkpoint",
-           "better_score"]
+__all__ = [
+    "AttackConfig",
+    "AttackError",
+    "AttackWarning",
+    "PRESETS",
+    "resolve_config",
+    "AttackRun",
+    "run_attack",
+    "find_checkpoint",
+    "better_score",
+]
 
 
 class AttackError(AdvobjError, ValueError):
@@ -71,7 +79,9 @@ class AttackConfig(StrictModel):
     checkpoint_every: int = Field(50, ge=1)
     validation_every: int = Field(0, ge=0, description="iterations between held-out validations (0 = off)")
     validation_episodes: int = Field(16, ge=1, description="held-out configurations per validation")
-    validation_max_steps: int | None = Field(None, ge=1, description="episode length of a validation rollout (None: the scene's max_steps)")
+    validation_max_steps: int | None = Field(
+        None, ge=1, description="episode length of a validation rollout (None: the scene's max_steps)"
+    )
     seed: int = 0
     device: str = "cpu"
 
@@ -81,16 +91,33 @@ PRESETS: dict[str, dict] = {
     # few hundred steps; a smaller texture and a larger step make the short run count.
     # Validation every 20 iterations on 16 held-out configurations costs ~10 s a call at 64 px
     # (~20% of the run's wall time; benchmarks/bench_render_shortcuts.py --validation).
-    "quick": {"iterations": 120, "num_envs": 4, "rollout_steps": 6, "texture_size": 64, "lr": 1.0, "checkpoint_every": 20,
-              "validation_every": 20, "validation_episodes": 16},
+    "quick": {
+        "iterations": 120,
+        "num_envs": 4,
+        "rollout_steps": 6,
+        "texture_size": 64,
+        "lr": 1.0,
+        "checkpoint_every": 20,
+        "validation_every": 20,
+        "validation_episodes": 16,
+    },
     # The paper's run: 10k iterations, 4 envs x 10 steps (policy at 128x128). A long run is the one
     # most likely to be stopped early, so it keeps a validated best/ texture: 50 validations of 32
     # held-out episodes, a few percent of the run.
     # Lighting randomisation on, as the paper's sim-to-real path: measured with the quick preset it cost
     # 1.5% more time per iteration and bought +1.8 / +3.0 pp T-ASR under the bright / dim lights
     # (p 0.049 / 0.0026, n = 500) at no loss under the nominal one (results/lighting/).
-    "paper": {"iterations": 10_000, "num_envs": 4, "rollout_steps": 10, "texture_size": 256, "lr": 0.1, "checkpoint_every": 200,
-              "validation_every": 200, "validation_episodes": 32, "light_randomization": True},
+    "paper": {
+        "iterations": 10_000,
+        "num_envs": 4,
+        "rollout_steps": 10,
+        "texture_size": 256,
+        "lr": 0.1,
+        "checkpoint_every": 200,
+        "validation_every": 200,
+        "validation_episodes": 32,
+        "light_randomization": True,
+    },
 }
 
 
@@ -160,12 +187,11 @@ class AttackRun:
     """
 
     def __init__(self, policy, spec, cfg: AttackConfig, pool=None, out_dir: str | Path | None = None):
+        from attack.render import HybridRenderer
         from sim.configs import in_part, sample_pool
         from sim.env import ReachEnv
         from sim.policies.interface import require_white_box
         from sim.variations import Randomization
-
-        from attack.render import HybridRenderer
 
         require_white_box(policy)
         self.cfg = cfg
@@ -178,12 +204,17 @@ class AttackRun:
         # the best texture is picked on the "validation" part; evaluations use neither.
         if pool is None:
             attack_pool = sample_pool(spec, cfg.pool_size, seed=cfg.seed, part="attack")
-            val_pool = sample_pool(spec, cfg.validation_episodes, seed=cfg.seed, part="validation") if validating else []
+            val_pool = (
+                sample_pool(spec, cfg.validation_episodes, seed=cfg.seed, part="validation") if validating else []
+            )
         else:
             pool = list(pool)
             attack_pool, val_pool = in_part(pool, "attack"), in_part(pool, "validation")
         if cfg.adversarial_mesh is not None:
-            objs = [o.model_copy(update={"mesh": cfg.adversarial_mesh, "texture": None}) if o.role == "adversarial" else o for o in spec.objects]
+            objs = [
+                o.model_copy(update={"mesh": cfg.adversarial_mesh, "texture": None}) if o.role == "adversarial" else o
+                for o in spec.objects
+            ]
             spec = spec.with_updates(objects=[o.model_dump() for o in objs])
         self.spec = spec
         self.image_size = int(policy.image_size)
@@ -194,23 +225,36 @@ class AttackRun:
         self.contract = policy_contract(policy)
         self.pool = attack_pool
         if not self.pool:
-            raise AttackError("pool: no task-feasible configurations in the attack part of the split (sim.configs.config_part) "
-                              "to attack from; give a larger pool")
+            raise AttackError(
+                "pool: no task-feasible configurations in the attack part of the split (sim.configs.config_part) "
+                "to attack from; give a larger pool"
+            )
         self.val_pool: list = []
         if validating:
             if not val_pool:
-                raise AttackError("validation_episodes: the pool holds no configuration of the validation part of the split; "
-                                  "give a larger pool or set validation_every: 0")
+                raise AttackError(
+                    "validation_episodes: the pool holds no configuration of the validation part of the split; "
+                    "give a larger pool or set validation_every: 0"
+                )
             if len(val_pool) < cfg.validation_episodes:
                 warnings.warn(
                     f"validation_episodes: the pool holds only {len(val_pool)} configurations of the validation part; validating on "
                     f"{len(val_pool)} instead of {cfg.validation_episodes}. Give a larger pool (--pool) for a steadier validation "
-                    "score, or set validation_every: 0", AttackWarning, stacklevel=2)
+                    "score, or set validation_every: 0",
+                    AttackWarning,
+                    stacklevel=2,
+                )
             self.val_pool = val_pool[: cfg.validation_episodes]
         self.pool_r = np.array([c.r_m for c in self.pool])
         randomization = Randomization(light="random") if cfg.light_randomization else None
-        self.env = ReachEnv(spec, num_envs=cfg.num_envs, seed=cfg.seed, randomization=randomization, render_obs=False,
-                            policy_image_size=self.image_size)
+        self.env = ReachEnv(
+            spec,
+            num_envs=cfg.num_envs,
+            seed=cfg.seed,
+            randomization=randomization,
+            render_obs=False,
+            policy_image_size=self.image_size,
+        )
         self.hybrid = HybridRenderer(self.env.renderer)
         self.adv = self.hybrid.adv
         self.texture = initial_texture(cfg, self.env.renderer.object_mesh(self.adv))
@@ -237,7 +281,7 @@ class AttackRun:
         the adversarial object first, and the mean TCP-to-adversarial-object distance (m) at the
         end of the episodes (the tie-breaker: lower is better).
         """
-        from attack.outputs import texture_to_uint8
+        from attack.artifact import texture_to_uint8
         from sim.env import ReachEnv
         from sim.outcome import object_distances
         from sim.policies.rollout import rollout
@@ -249,7 +293,9 @@ class AttackRun:
         if self._val_env is None:
             spec = self.spec
             if self.cfg.validation_max_steps is not None:
-                spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": self.cfg.validation_max_steps})
+                spec = spec.with_updates(
+                    episode={**spec.episode.model_dump(), "max_steps": self.cfg.validation_max_steps}
+                )
             # Batches of equal size (the largest divisor of the pool size up to 8): no idle slots.
             n = max(d for d in range(1, min(8, len(configs)) + 1) if len(configs) % d == 0)
             self._val_env = ReachEnv(spec, num_envs=n, seed=self.cfg.seed, policy_image_size=self.image_size)
@@ -260,18 +306,24 @@ class AttackRun:
 
         def done(j, slot, res):
             targeted[j] = res["reached"] == self.adv
-            dist[j] = object_distances(res["T_world_tcp"][None, :3, 3], env.worlds[slot].object_center_array[None])[0, self.adv]
+            dist[j] = object_distances(res["T_world_tcp"][None, :3, 3], env.worlds[slot].object_center_array[None])[
+                0, self.adv
+            ]
 
         rollout(env, configs, self.policy, done)
-        return {"t_asr": float(np.mean(targeted)), "dist_m": float(np.mean(dist)), "episodes": len(configs),
-                "seconds": time.perf_counter() - t0}
+        return {
+            "t_asr": float(np.mean(targeted)),
+            "dist_m": float(np.mean(dist)),
+            "episodes": len(configs),
+            "seconds": time.perf_counter() - t0,
+        }
 
     def probe_pose_loss(self) -> float:
         """Mean pose loss over the first frame of every validation configuration under the
         current texture (hybrid render, no rollout): the same images at every call, so a change
         is the texture's doing. NaN when the run has no pose term. Uses no training RNG."""
         from attack.losses import pose_loss
-        from attack.render import render_adversarial
+        from attack.render import render_adversarial_batch
 
         cfg = self.cfg
         if cfg.loss != "targeted" or not cfg.use_pose or not self.val_pool:
@@ -279,14 +331,16 @@ class AttackRun:
         env, total, n = self.env, 0.0, 0
         with torch.no_grad():
             for start in range(0, len(self.val_pool), cfg.num_envs):
-                chunk = self.val_pool[start:start + cfg.num_envs]
+                chunk = self.val_pool[start : start + cfg.num_envs]
                 env.reset_envs(range(len(chunk)), configs=chunk)
                 caps = [self.hybrid.capture(env.worlds[i]) for i in range(len(chunk))]
-                imgs = torch.stack([render_adversarial(c, self.texture, cfg.sampler) for c in caps])
+                imgs = render_adversarial_batch(caps, self.texture, cfg.sampler)
                 T = torch.from_numpy(env.T_world_tcp[: len(chunk)]).to(self.device, torch.float32)
                 a = self.next_delta(self.call_policy(imgs, self.policy_state(T)), T)
                 p_adv = torch.from_numpy(env.object_centers[: len(chunk), self.adv]).to(self.device, torch.float32)
-                lp, _ = pose_loss(T, a, p_adv, self.spec.episode.max_step_m, self.spec.episode.max_step_rad, cfg.lambda_dist)
+                lp, _ = pose_loss(
+                    T, a, p_adv, self.spec.episode.max_step_m, self.spec.episode.max_step_rad, cfg.lambda_dist
+                )
                 total += float(lp.sum())
                 n += len(chunk)
         return total / max(n, 1)
@@ -303,7 +357,12 @@ class AttackRun:
         h.val_seconds.append(res["seconds"])
         if not better_score(res, self.best):
             return False
-        self.best = {"iteration": self.iteration, "t_asr": res["t_asr"], "dist_m": res["dist_m"], "episodes": res["episodes"]}
+        self.best = {
+            "iteration": self.iteration,
+            "t_asr": res["t_asr"],
+            "dist_m": res["dist_m"],
+            "episodes": res["episodes"],
+        }
         self.best_texture = self.texture.detach().clone()
         if self.out_dir is not None:
             self._write_best()
@@ -313,20 +372,19 @@ class AttackRun:
         tmp = self.out_dir / "best.tmp"
         tmp.mkdir(parents=True, exist_ok=True)
         self._write_attack_source(tmp, self.best_texture, {"best_of": "held-out validation T-ASR", **self.best})
-        (tmp / "best.json").write_text(json.dumps({**self.best, "score": "t_asr (higher), then dist_m (lower)"}, indent=2))
+        (tmp / "best.json").write_text(
+            json.dumps({**self.best, "score": "t_asr (higher), then dist_m (lower)"}, indent=2)
+        )
         return _swap_in(tmp, self.out_dir / "best")
 
     def _write_attack_source(self, d: Path, texture: torch.Tensor, extra: dict) -> None:
-        """``texture.npy`` (H, W, 3) float32, ``texture.png`` and a ``run.json`` naming the mesh:
-        what ``advobj eval --attack DIR`` reads."""
-        from attack.outputs import write_texture_png
+        """A texture folder (:class:`attack.artifact.AttackArtifact`): what ``advobj eval --attack DIR`` reads."""
+        from attack.artifact import AttackArtifact
 
-        np.save(d / "texture.npy", texture.detach().cpu().permute(1, 2, 0).numpy().astype(np.float32))
-        write_texture_png(d / "texture.png", texture)
         # Only the attack config (the mesh the texture belongs to): the run directory's own
         # run.json has the provenance, and asking git for it at every checkpoint costs seconds.
-        doc = {"config": {"job": "attack", "attack": self.cfg.model_dump(), **extra}, "seed": self.cfg.seed}
-        (d / "run.json").write_text(json.dumps(doc, indent=2))
+        config = {"job": "attack", "attack": self.cfg.model_dump(), **extra}
+        AttackArtifact.from_tensor(texture, config, self.cfg.seed).save(d, run="plain")
 
     # ------------------------------------------------------------------ the policy's contract
     def policy_state(self, T_world_tcp: torch.Tensor) -> torch.Tensor | None:
@@ -371,7 +429,9 @@ class AttackRun:
         parts = {}
         if cfg.loss == "targeted":
             if cfg.use_pose:
-                lp, parts = pose_loss(T_world_tcp, a, p_adv, self.spec.episode.max_step_m, self.spec.episode.max_step_rad, cfg.lambda_dist)
+                lp, parts = pose_loss(
+                    T_world_tcp, a, p_adv, self.spec.episode.max_step_m, self.spec.episode.max_step_rad, cfg.lambda_dist
+                )
                 l1 = lp.sum()
             else:
                 l1 = zero
@@ -379,7 +439,13 @@ class AttackRun:
         else:
             with torch.no_grad():
                 a_clean = self.next_delta(self.call_policy(imgs_clean, state), T_world_tcp)
-            dev, sal = untargeted_loss(a, a_clean, S if S is not None else torch.zeros_like(A[:, 0]), goal_m, cfg.lambda_sal if need_cam else 0.0)
+            dev, sal = untargeted_loss(
+                a,
+                a_clean,
+                S if S is not None else torch.zeros_like(A[:, 0]),
+                goal_m,
+                cfg.lambda_sal if need_cam else 0.0,
+            )
             l1, l2 = dev.sum(), sal.sum()
         return l1, l2, a.detach(), parts
 
@@ -392,15 +458,18 @@ class AttackRun:
         terms ``pose`` and ``sal``, the loss ``parts``, ``actions (B, 6)`` (detached) and the
         rendered ``images (B, 3, H, W)`` (detached).
         """
-        from attack.render import render_adversarial
+        from attack.render import render_adversarial_batch
 
         cfg = self.cfg
         tex = self.texture.detach().clone().requires_grad_(True)
         ct = self._color_transform()
-        imgs = torch.stack([render_adversarial(c, tex, cfg.sampler, ct) for c in caps])
+        imgs = render_adversarial_batch(caps, tex, cfg.sampler, ct)
         imgs_clean = None
         if cfg.loss == "untargeted":
-            imgs_clean = torch.stack([torch.from_numpy(c.i_sim).permute(2, 0, 1) for c in caps]).to(self.device, torch.float32) / 255.0
+            imgs_clean = (
+                torch.stack([torch.from_numpy(c.i_sim).permute(2, 0, 1) for c in caps]).to(self.device, torch.float32)
+                / 255.0
+            )
         # No image shows an optimisable pixel of the object (out of view, occluded, too far):
         # nothing reaches the texture. The losses are still logged, and Grad-CAM needs a graph
         # from the images to the feature map (the frozen weights give it none), hence a leaf.
@@ -413,8 +482,15 @@ class AttackRun:
             g_pose = torch.autograd.grad(l1, tex, retain_graph=l2.requires_grad)[0]
         if reaches and l2.requires_grad:
             g_sal = torch.autograd.grad(l2, tex)[0]
-        return {"g_pose": g_pose, "g_sal": g_sal, "pose": float(l1.detach()), "sal": float(l2.detach()),
-                "parts": parts, "actions": a, "images": imgs.detach()}
+        return {
+            "g_pose": g_pose,
+            "g_sal": g_sal,
+            "pose": float(l1.detach()),
+            "sal": float(l2.detach()),
+            "parts": parts,
+            "actions": a,
+            "images": imgs.detach(),
+        }
 
     def apply_update(self, g_pose: torch.Tensor, g_sal: torch.Tensor) -> tuple[torch.Tensor, bool]:
         """Combine the two gradients (PCGrad or sum) and take the normalised step.
@@ -490,7 +566,10 @@ class AttackRun:
         ckpt = self.out_dir / "checkpoint"
         tmp = self.out_dir / "checkpoint.tmp"
         tmp.mkdir(parents=True, exist_ok=True)
-        save_file({"texture": self.texture.detach().cpu().contiguous(), "torch_rng": self.torch_gen.get_state()}, str(tmp / "state.safetensors"))
+        save_file(
+            {"texture": self.texture.detach().cpu().contiguous(), "torch_rng": self.torch_gen.get_state()},
+            str(tmp / "state.safetensors"),
+        )
         state = {
             "iteration": self.iteration,
             "config": self.cfg.model_dump(),
@@ -522,8 +601,10 @@ class AttackRun:
         if saved != self.cfg:
             diff = sorted(k for k in AttackConfig.model_fields if getattr(saved, k) != getattr(self.cfg, k))
             hint = "; ".join(f"{k}: checkpoint {getattr(saved, k)!r}, now {getattr(self.cfg, k)!r}" for k in diff)
-            raise AttackError(f"{ckpt}: checkpoint was made with a different config (fields: {', '.join(diff)}; {hint}); "
-                              "resume with the checkpoint's values or start a new run directory")
+            raise AttackError(
+                f"{ckpt}: checkpoint was made with a different config (fields: {', '.join(diff)}; {hint}); "
+                "resume with the checkpoint's values or start a new run directory"
+            )
         self.texture = tensors["texture"].to(self.device)
         self.torch_gen.set_state(tensors["torch_rng"])
         self.rng.bit_generator.state = state["numpy_rng"]
@@ -571,10 +652,12 @@ def _swap_in(tmp: Path, final: Path) -> Path:
 
 def _read_best(best_dir: Path) -> tuple[dict, torch.Tensor] | None:
     """``(best.json, texture (3, S, S))`` of a ``best/`` directory (or its crash-left ``.old``)."""
+    from attack.artifact import AttackArtifact
+
     for d in (best_dir, best_dir.with_name(best_dir.name + ".old")):
         try:
             info = json.loads((d / "best.json").read_text())
-            tex = np.load(d / "texture.npy", allow_pickle=False)
+            tex = AttackArtifact.load(d).texture
         except (OSError, ValueError):
             continue
         return info, torch.from_numpy(np.ascontiguousarray(tex.transpose(2, 0, 1))).to(torch.float32)
@@ -590,12 +673,19 @@ def find_checkpoint(out_dir: str | Path) -> Path | None:
     return None
 
 
-def run_attack(run: AttackRun, progress: bool = True) -> AttackRun:
-    """Iterate to ``cfg.iterations`` with checkpoints; Ctrl-C saves a checkpoint, then re-raises."""
+def run_attack(
+    run: AttackRun,
+    progress: bool = True,
+    on_iteration: Callable[[AttackRun, dict], None] | None = None,
+    desc: str = "attack",
+) -> AttackRun:
+    """Iterate to ``cfg.iterations`` with validation and checkpoints; Ctrl-C saves a checkpoint,
+    then re-raises. The one attack loop: ``on_iteration(run, info)`` runs after each iteration's
+    validation and checkpoint (the tradeoff sweep writes its snapshots there)."""
     from tqdm import tqdm
 
     cfg = run.cfg
-    bar = tqdm(total=cfg.iterations, initial=run.iteration, desc="attack", disable=not progress, dynamic_ncols=True)
+    bar = tqdm(total=cfg.iterations, initial=run.iteration, desc=desc, disable=not progress, dynamic_ncols=True)
     t0 = time.perf_counter()
     start_seconds = run.history.seconds
     validating = cfg.validation_every > 0
@@ -615,6 +705,8 @@ def run_attack(run: AttackRun, progress: bool = True) -> AttackRun:
             bar.update(1)
             if run.out_dir is not None and (run.iteration % cfg.checkpoint_every == 0 or last):
                 run.save_checkpoint()
+            if on_iteration is not None:
+                on_iteration(run, info)
     except KeyboardInterrupt:
         if run.out_dir is not None:
             run.save_checkpoint()

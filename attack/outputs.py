@@ -1,4 +1,4 @@
-"""Artifacts of an attack run: texture files, textured meshes, plots and overlays."""
+"""What an attack run writes besides its texture folder (:mod:`attack.artifact`): textured meshes, plots and overlays."""
 
 from __future__ import annotations
 
@@ -8,60 +8,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["CONFIG_RECORD", "write_config_record", "read_config_record", "texture_to_uint8", "write_texture_png", "textured_mesh", "export_meshes", "plot_losses", "gradcam_overlay", "write_outputs"]
+from attack.artifact import AttackArtifact, texture_to_uint8
 
-
-# Which configurations a texture was optimised ("attack") and selected ("validation") on: the
-# record `advobj eval` checks its own configurations against (overlap must be 0).
-CONFIG_RECORD = "configs.json"
-_RECORD_FORMAT = "advobj-attack-configs/1"
-
-
-def write_config_record(out_dir: str | Path, attack_configs, validation_configs) -> Path:
-    """Write ``out_dir/configs.json``: seed and content id (:func:`sim.configs.config_id`) of every
-    configuration the attack may draw for EOT and every one its best texture is selected on."""
-    from sim.configs import config_id
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    doc = {"format": _RECORD_FORMAT,
-           **{part: [{"seed": int(c.seed), "id": config_id(c)} for c in cs]
-              for part, cs in (("attack", attack_configs), ("validation", validation_configs))}}
-    tmp = out / (CONFIG_RECORD + ".tmp")
-    tmp.write_text(json.dumps(doc))
-    tmp.replace(out / CONFIG_RECORD)
-    return out / CONFIG_RECORD
-
-
-def read_config_record(texture_dir: str | Path) -> set[str] | None:
-    """The configuration ids a texture directory was optimised or selected on, or ``None`` when no
-    record exists. ``best/`` and ``checkpoint/`` textures use their run directory's record."""
-    d = Path(texture_dir)
-    for cand in (d / CONFIG_RECORD, d.parent / CONFIG_RECORD):
-        if cand.is_file():
-            try:
-                doc = json.loads(cand.read_text())
-                if doc.get("format") != _RECORD_FORMAT:
-                    raise ValueError(f"format is not {_RECORD_FORMAT!r}")
-                return {e["id"] for part in ("attack", "validation") for e in doc[part]}
-            except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
-                raise ValueError(f"{cand}: unreadable configuration record ({err})") from None
-    return None
-
-
-def texture_to_uint8(texture: torch.Tensor | np.ndarray) -> np.ndarray:
-    """``(3, H, W)`` float [0, 1] (torch) or ``(H, W, 3)`` -> ``(H, W, 3)`` uint8."""
-    if isinstance(texture, torch.Tensor):
-        texture = texture.detach().cpu().permute(1, 2, 0).numpy()
-    return np.clip(np.rint(np.asarray(texture) * 255.0), 0, 255).astype(np.uint8)
-
-
-def write_texture_png(path: str | Path, texture) -> Path:
-    import imageio.v3 as iio
-
-    path = Path(path)
-    iio.imwrite(path, texture_to_uint8(texture))
-    return path
+__all__ = [
+    "textured_mesh",
+    "export_meshes",
+    "plot_losses",
+    "gradcam_overlay",
+    "write_outputs",
+]
 
 
 def textured_mesh(mesh, texture_rgb: np.ndarray):
@@ -77,7 +32,9 @@ def textured_mesh(mesh, texture_rgb: np.ndarray):
 OBJ_UNITS = {"m": 1.0, "mm": 1000.0}
 
 
-def export_meshes(out_dir: str | Path, mesh, texture_rgb: np.ndarray, stem: str = "adversarial", obj_units: str = "m") -> dict[str, Path]:
+def export_meshes(
+    out_dir: str | Path, mesh, texture_rgb: np.ndarray, stem: str = "adversarial", obj_units: str = "m"
+) -> dict[str, Path]:
     """Write ``stem.glb`` and ``stem.obj`` (+ .mtl + .png) for color 3D printing or re-rendering.
 
     The GLB follows the glTF spec: metres, +Y up (our +Z becomes +Y), so viewers show the object
@@ -143,9 +100,11 @@ def plot_losses(path: str | Path, history) -> Path:
 
 
 # Why the pose loss cannot be read as progress: printed with every summary and on the plot.
-POSE_LOSS_NOTE = ("the pose loss is measured on rollouts that move as the attack succeeds (the policy walks towards the object, "
-                  "so the views change), so its level is not comparable across iterations; judge the attack by the held-out "
-                  "validation T-ASR")
+POSE_LOSS_NOTE = (
+    "the pose loss is measured on rollouts that move as the attack succeeds (the policy walks towards the object, "
+    "so the views change), so its level is not comparable across iterations; judge the attack by the held-out "
+    "validation T-ASR"
+)
 
 
 def summary_lines(metrics: dict) -> list[str]:
@@ -154,17 +113,25 @@ def summary_lines(metrics: dict) -> list[str]:
     lines = [f"attack done: {metrics['iterations']} iterations in {metrics['seconds']:.0f} s"]
     if v:
         best = v.get("best") or {}
-        lines.append(f"held-out validation T-ASR (n = {best.get('episodes', '?')}): {v['t_asr'][0]:.2f} at the start -> "
-                     f"{v['t_asr'][-1]:.2f} at the end; best {best.get('t_asr', float('nan')):.2f} at iteration "
-                     f"{best.get('iteration', '?')} (best/)")
+        lines.append(
+            f"held-out validation T-ASR (n = {best.get('episodes', '?')}): {v['t_asr'][0]:.2f} at the start -> "
+            f"{v['t_asr'][-1]:.2f} at the end; best {best.get('t_asr', float('nan')):.2f} at iteration "
+            f"{best.get('iteration', '?')} (best/)"
+        )
     else:
-        lines.append("held-out validation: off (validation_every: 0); evaluate the texture with 'advobj eval' to know what it does")
-    lines.append(f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f} (first / last tenth of the run): "
-                 + POSE_LOSS_NOTE)
+        lines.append(
+            "held-out validation: off (validation_every: 0); evaluate the texture with 'advobj eval' to know what it does"
+        )
+    lines.append(
+        f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f} (first / last tenth of the run): "
+        + POSE_LOSS_NOTE
+    )
     probe = [x for x in ((v or {}).get("probe_pose_loss") or []) if x == x]
     if probe:
-        lines.append(f"pose loss on the fixed probe set (the validation configurations' first frames, comparable across "
-                     f"iterations): {probe[0]:.3f} -> {probe[-1]:.3f}")
+        lines.append(
+            f"pose loss on the fixed probe set (the validation configurations' first frames, comparable across "
+            f"iterations): {probe[0]:.3f} -> {probe[-1]:.3f}"
+        )
     return lines
 
 
@@ -196,8 +163,7 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tex = run.texture.detach().cpu()
-    write_texture_png(out / "texture.png", tex)
-    np.save(out / "texture.npy", tex.permute(1, 2, 0).numpy().astype(np.float32))
+    AttackArtifact.from_tensor(tex).save(out, run="none")  # run.json: the job's, with provenance
     mesh = run.env.renderer.object_mesh(run.adv)
     paths = export_meshes(out, mesh, texture_to_uint8(tex))
     plot_losses(out / "loss_curves.png", run.history)
@@ -210,9 +176,15 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
     after = render_adversarial(cap, run.texture, run.cfg.sampler)
     seed = run.pool[0].seed
     st = run.policy_state(torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32))
-    iio.imwrite(out / "gradcam_before_after.png",
-                hstack([labelled(gradcam_overlay(run.policy, before, st), f"Grad-CAM, starting texture (config {seed})"),
-                        labelled(gradcam_overlay(run.policy, after, st), f"Grad-CAM, final texture (config {seed})")]))
+    iio.imwrite(
+        out / "gradcam_before_after.png",
+        hstack(
+            [
+                labelled(gradcam_overlay(run.policy, before, st), f"Grad-CAM, starting texture (config {seed})"),
+                labelled(gradcam_overlay(run.policy, after, st), f"Grad-CAM, final texture (config {seed})"),
+            ]
+        ),
+    )
     frames = []
     for _ in range(8):
         if env.done[0]:
@@ -234,12 +206,15 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         "seconds": h.seconds,
         "seconds_per_iteration": h.seconds / max(1, len(h.iteration)),
         # The same without the held-out validation rollouts (comparable with validation off).
-        "seconds_per_iteration_training": (h.seconds - float(np.sum(getattr(h, "val_seconds", []) or [0.0]))) / max(1, len(h.iteration)),
+        "seconds_per_iteration_training": (h.seconds - float(np.sum(getattr(h, "val_seconds", []) or [0.0])))
+        / max(1, len(h.iteration)),
         "final_loss_pose": float(np.mean(h.loss_pose[-tail:])) if h.loss_pose else None,
         "initial_loss_pose": float(np.mean(h.loss_pose[:tail])) if h.loss_pose else None,
         "final_loss_saliency": float(np.mean(h.loss_saliency[-tail:])) if h.loss_saliency else None,
         "skipped_updates": h.skipped,
-        "validation": None if not getattr(h, "val_iteration", None) else {
+        "validation": None
+        if not getattr(h, "val_iteration", None)
+        else {
             "iteration": h.val_iteration,
             "t_asr": h.val_t_asr,
             "dist_m": h.val_dist_m,

@@ -42,6 +42,8 @@ __all__ = [
     "Capture",
     "HybridRenderer",
     "render_adversarial",
+    "render_adversarial_batch",
+    "composite_batch",
 ]
 
 _GAMMA = 2.2
@@ -187,7 +189,9 @@ def sample_bilinear(texture: torch.Tensor, uv: torch.Tensor, duv: torch.Tensor |
 
     Clamp-to-edge addressing, as the renderer's object textures use.
     """
-    out = F.grid_sample(texture[None], _to_grid(uv).to(texture.dtype), mode="bilinear", padding_mode="border", align_corners=False)
+    out = F.grid_sample(
+        texture[None], _to_grid(uv).to(texture.dtype), mode="bilinear", padding_mode="border", align_corners=False
+    )
     return out[0, :, 0, :].T
 
 
@@ -316,27 +320,69 @@ class HybridRenderer:
         else:  # nothing to shade: skip two passes
             white = black = out.rgb
         T_cam_obj = invert_T(T_world_cam) @ world.T_world_objects[self.adv]
-        frags = rasterize_fragments(out.face_ids, r.K, T_cam_obj, self.vertices, self.faces, self.uv, white, black, self.face_filter)
+        frags = rasterize_fragments(
+            out.face_ids, r.K, T_cam_obj, self.vertices, self.faces, self.uv, white, black, self.face_filter
+        )
         return Capture(out.rgb, frags, adv_mask, out.object_mask(self.goal))
 
 
-def render_adversarial(capture: Capture, texture: torch.Tensor, sampler: str = "trilinear",
-                       color_transform: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-    """``I_adv: (3, H, W)`` float in [0, 1] for ``texture (3, Ht, Wt)`` (differentiable in it).
+def render_adversarial_batch(
+    captures: list[Capture],
+    texture: torch.Tensor,
+    sampler: str = "trilinear",
+    color_transform: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """``I_adv: (B, 3, H, W)`` float in [0, 1] for ``B`` captures of one size (differentiable in
+    ``texture (3, Ht, Wt)``).
+
+    Batch-first: the B frames' fragments are concatenated, so the texture is sampled (and its mip
+    pyramid built) once, shaded once and composited by one scatter, instead of once per frame.
+    Every pixel is computed independently, so the result equals the frame-by-frame one up to float
+    rounding (vectorised kernels round a tensor's tail differently: 1 ulp at a few pixels).
 
     color_transform: optional per-channel ``(gain (3,), bias (3,))`` applied to the sampled texture
     colors, modelling printer/camera color error (the print-aware option).
     """
+    if not captures:
+        raise ValueError("render_adversarial_batch: no captures")
     device, dtype = texture.device, texture.dtype
-    i_sim = torch.from_numpy(capture.i_sim).to(device=device, dtype=dtype).permute(2, 0, 1) / 255.0
-    f = capture.fragments
-    if f.num_pixels == 0:
+    sizes = {c.i_sim.shape for c in captures}
+    if len(sizes) != 1:
+        raise ValueError(f"render_adversarial_batch: frames of different sizes {sorted(sizes)}")
+    i_sim = (
+        torch.from_numpy(np.stack([c.i_sim for c in captures])).to(device=device, dtype=dtype).permute(0, 3, 1, 2)
+        / 255.0
+    )
+    frags = [c.fragments for c in captures]
+    counts = [f.num_pixels for f in frags]
+    if sum(counts) == 0:
         return i_sim
-    uv = torch.from_numpy(f.uv).to(device=device, dtype=dtype)
-    duv = torch.from_numpy(f.duv).to(device=device, dtype=dtype)
+    cat = lambda name: torch.from_numpy(np.concatenate([getattr(f, name) for f in frags])).to(device)  # noqa: E731
+    uv, duv = cat("uv").to(dtype), cat("duv").to(dtype)
     albedo = SAMPLERS[sampler](texture, uv, duv)
     if color_transform is not None:
         gain, bias = color_transform
         albedo = (albedo * gain + bias).clamp(0.0, 1.0)
-    colors = shade(albedo, torch.from_numpy(f.diffuse).to(device, dtype), torch.from_numpy(f.specular).to(device, dtype))
-    return composite(i_sim, torch.from_numpy(f.pix).to(device), colors)
+    colors = shade(albedo, cat("diffuse").to(dtype), cat("specular").to(dtype))
+    frame = torch.repeat_interleave(torch.arange(len(frags), device=device), torch.tensor(counts, device=device))
+    return composite_batch(i_sim, frame, cat("pix"), colors)
+
+
+def composite_batch(i_sim: torch.Tensor, frame: torch.Tensor, pix: torch.Tensor, colors: torch.Tensor) -> torch.Tensor:
+    """:func:`composite` for a batch: ``i_sim (B, 3, H, W)``, pixel ``p`` of frame ``frame[p]`` at
+    flat index ``pix[p]`` takes ``colors[p] (3,)``. Returns ``(B, 3, H, W)``."""
+    b, c, h, w = i_sim.shape
+    flat = i_sim.reshape(b, c, h * w)
+    ch = torch.arange(c, device=pix.device)
+    out = flat.index_put((frame[None, :], ch[:, None], pix[None, :]), colors.T.to(flat.dtype))
+    return out.reshape(b, c, h, w)
+
+
+def render_adversarial(
+    capture: Capture,
+    texture: torch.Tensor,
+    sampler: str = "trilinear",
+    color_transform: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """``I_adv: (3, H, W)`` of one capture: :func:`render_adversarial_batch` of one frame."""
+    return render_adversarial_batch([capture], texture, sampler, color_transform)[0]

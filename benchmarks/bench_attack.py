@@ -1,6 +1,8 @@
 """Cost of one attack iteration at the paper's shape, split by stage, vs a policy-only iteration.
 
-Run: ``.venv/bin/python benchmarks/bench_attack.py [--iters 3] [--size 128] [--arch resnet18]``.
+Run: ``.venv/bin/python benchmarks/bench_attack.py [--iters 3] [--size 128] [--arch resnet18] [--out DIR]``.
+With ``--out`` the figures, the command, commit, machine and wall/CPU time are written to
+``DIR/summary.json`` (the committed measurements live in ``results/bench_attack/``).
 
 Shape: resnet18 policy at 128x128, 4 envs x 10 steps = 40 image-action pairs, saliency + PCGrad on.
 Prints ms per iteration for standard rendering (4 pyrender passes per pair), the differentiable
@@ -27,12 +29,27 @@ import torch
 class Timer:
     def __init__(self):
         self.t = {}
+        self.depth = 0
 
     @contextmanager
     def __call__(self, key):
         t0 = time.perf_counter()
         yield
         self.t[key] = self.t.get(key, 0.0) + time.perf_counter() - t0
+
+
+def _timed(timer, key, fn):
+    def wrapped(*a, **k):
+        if timer.depth:  # the single-frame render calls the batched one: time the outer call only
+            return fn(*a, **k)
+        timer.depth += 1
+        try:
+            with timer(key):
+                return fn(*a, **k)
+        finally:
+            timer.depth -= 1
+
+    return wrapped
 
 
 def instrument(run, timer):
@@ -47,13 +64,9 @@ def instrument(run, timer):
             return cap(*a, **k)
 
     run.hybrid.capture = capture
-    rad = ar.render_adversarial
-
-    def render_adv(*a, **k):
-        with timer("differentiable texture"):
-            return rad(*a, **k)
-
-    ar.render_adversarial = render_adv
+    for name in ("render_adversarial", "render_adversarial_batch"):  # per frame (before) or batched
+        if hasattr(ar, name):
+            setattr(ar, name, _timed(timer, "differentiable texture", getattr(ar, name)))
     losses = run._losses
 
     def timed_losses(*a, **k):
@@ -81,8 +94,8 @@ def policy_only_iteration(run, imgs, caps, T, p_adv):
         x = imgs.clone().requires_grad_(True)
         t0 = time.perf_counter()
         l1, l2, _, _ = run._losses(x, caps, T, p_adv, None)
-        g1 = torch.autograd.grad(l1, x, retain_graph=True)[0]
-        g2 = torch.autograd.grad(l2, x)[0]
+        torch.autograd.grad(l1, x, retain_graph=True)[0]
+        torch.autograd.grad(l2, x)[0]
         total += time.perf_counter() - t0
     return total
 
@@ -93,7 +106,9 @@ def main():
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--arch", default="resnet18")
     ap.add_argument("--sampler", default="trilinear")
+    ap.add_argument("--out", default=None, help="write summary.json here (with command, commit, machine, times)")
     args = ap.parse_args()
+    wall0, cpu0 = time.perf_counter(), time.process_time()
     from attack.optimize import AttackRun, resolve_config
     from attack.render import render_adversarial
     from sim.policies.policy import VisuomotorPolicy
@@ -122,8 +137,10 @@ def main():
     floor = statistics.median(policy_only_iteration(run, imgs, caps, T, p_adv) for _ in range(n))
     full = statistics.median(walls)
     rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
-    print(f"# {args.arch} {args.size}x{args.size}, {cfg.num_envs} envs x {cfg.rollout_steps} steps, saliency+PCGrad, "
-          f"sampler={args.sampler}; cores={os.cpu_count()} torch={torch.__version__} threads={torch.get_num_threads()}")
+    print(
+        f"# {args.arch} {args.size}x{args.size}, {cfg.num_envs} envs x {cfg.rollout_steps} steps, saliency+PCGrad, "
+        f"sampler={args.sampler}; cores={os.cpu_count()} torch={torch.__version__} threads={torch.get_num_threads()}"
+    )
     print("| stage | ms / iteration |")
     print("|---|---|")
     for k, v in stages.items():
@@ -133,6 +150,38 @@ def main():
     print(f"ratio full / policy-only: {full / floor:.2f} (target <= 1.3)")
     print(f"peak RSS: {rss_gb:.2f} GB (target <= 4 GB)")
     run.close()
+    if args.out:
+        import json
+        import sys
+        from pathlib import Path
+
+        from sim.runinfo import git_commit
+        from trials.experiments.tradeoff import machine_info
+
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        doc = {
+            "command": " ".join(["python"] + sys.argv),
+            "commit": git_commit(),
+            "machine": machine_info(),
+            "shape": {
+                "arch": args.arch,
+                "size": args.size,
+                "num_envs": cfg.num_envs,
+                "rollout_steps": cfg.rollout_steps,
+                "sampler": args.sampler,
+                "iters": n,
+            },
+            "iteration_walls_s": walls,
+            "stages_ms_per_iteration": {k: 1000 * v / n for k, v in stages.items()},
+            "full_ms_median": 1000 * full,
+            "policy_only_ms_median": 1000 * floor,
+            "ratio": full / floor,
+            "peak_rss_gb": rss_gb,
+            "run": {"wall_s": round(time.perf_counter() - wall0, 1), "cpu_s": round(time.process_time() - cpu0, 1)},
+        }
+        (out / "summary.json").write_text(json.dumps(doc, indent=2))
+        print(f"wrote {out / 'summary.json'}")
 
 
 if __name__ == "__main__":

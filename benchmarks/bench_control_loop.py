@@ -48,8 +48,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--onnx", type=Path, help="policy ONNX file (input (B, 3, S, S)); default: export resnet18")
     ap.add_argument("--size", type=int, default=128, help="image size when exporting the default policy")
-    ap.add_argument("--stem", choices=["small", "standard"], default="small",
-                    help="resnet18 stem of the default policy (small = the project's policy default)")
+    ap.add_argument(
+        "--stem",
+        choices=["small", "standard"],
+        default="small",
+        help="resnet18 stem of the default policy (small = the project's policy default)",
+    )
     ap.add_argument("--config", type=Path, default=SIM_YAML, help="hardware YAML with sim camera + sim arm")
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--warmup", type=int, default=20)
@@ -63,8 +67,9 @@ def main() -> None:
     from sim.policies.onnx_policy import OnnxPolicy
 
     with tempfile.TemporaryDirectory() as tmp:
-        onnx_path = args.onnx or export_resnet18(Path(tmp) / f"resnet18_{args.stem}_stem.onnx", args.size,
-                                                    args.stem == "small")
+        onnx_path = args.onnx or export_resnet18(
+            Path(tmp) / f"resnet18_{args.stem}_stem.onnx", args.size, args.stem == "small"
+        )
         policy = OnnxPolicy(onnx_path, threads=args.threads, spin=args.spin)
         S = policy.image_size
         cfg = load_hardware_config(args.config)
@@ -104,8 +109,10 @@ def main() -> None:
                     refused += res.status == "refused"
         world.close()
     total_med = float(np.median(t_total)) * 1000.0
-    print(f"control loop, {args.steps} steps, {S}x{S} px, policy {onnx_path.name}, onnxruntime threads={args.threads} spin={args.spin}, "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
+    print(
+        f"control loop, {args.steps} steps, {S}x{S} px, policy {onnx_path.name}, onnxruntime threads={args.threads} spin={args.spin}, "
+        f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}"
+    )
     print(f"  camera read (sim render)   {stats(t_cam, c_cam)}")
     print(f"  policy (onnxruntime)       {stats(t_pol, c_pol)}")
     print(f"  safety + arm command       {stats(t_arm, c_arm)}")

@@ -62,20 +62,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--envs", type=int, default=4)
-    ap.add_argument("--no-fastpath", action="store_true", help="pyrender's own uniform uploads (sim/gl_fastpath.py off)")
+    ap.add_argument(
+        "--no-fastpath", action="store_true", help="pyrender's own uniform uploads (sim/gl_fastpath.py off)"
+    )
     args = ap.parse_args()
     if args.no_fastpath:
         os.environ["ADVOBJ_GL_FASTPATH"] = "0"
     import torch
 
-    print(f"# cores={os.cpu_count()} torch={torch.__version__} threads={torch.get_num_threads()} "
-          f"gl_fastpath={'off' if args.no_fastpath else 'on'} load={os.getloadavg()[0]:.1f}")
+    print(
+        f"# cores={os.cpu_count()} torch={torch.__version__} threads={torch.get_num_threads()} "
+        f"gl_fastpath={'off' if args.no_fastpath else 'on'} load={os.getloadavg()[0]:.1f}"
+    )
     print("| image | envs | id pass (masks) | ms / env-frame | render ms | rest ms |")
     print("|---|---|---|---|---|---|")
     for size in (128, 64):
         for masks in (False, True):
             r = bench(size, args.envs, args.steps, masks)
-            print(f"| {size}x{size} | {r['envs']} | {'on' if masks else 'off'} | {r['ms_per_env_frame']:.2f} | {r['render_ms']:.2f} | {r['rest_ms']:.2f} |")
+            print(
+                f"| {size}x{size} | {r['envs']} | {'on' if masks else 'off'} | {r['ms_per_env_frame']:.2f} | {r['render_ms']:.2f} | {r['rest_ms']:.2f} |"
+            )
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ Usage:
     python benchmarks/bench_eval.py [--arch resnet18] [--size 128] [--num-envs 8] [--episodes 8]
                                     [--max-steps 20] [--condition attack] [--threads 0]
 
-Runs real ``trials.evaluate.rollout_condition`` episodes (pyrender, the attack texture as a
+Runs real ``trials.eval.evaluate.rollout_condition`` episodes (pyrender, the attack texture as a
 renderer variant plus the clean view of the same state) with an untrained policy (speed does not
 depend on the weights, and an untrained policy never reaches anything, so every episode runs its
 full length). The policy's ``act`` is timed inside the run, so
@@ -54,7 +54,9 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, default=8)
     ap.add_argument("--episodes", type=int, default=8)
     ap.add_argument("--max-steps", type=int, default=20)
-    ap.add_argument("--condition", default="attack", help="clean or attack (attack renders and acts on two views per step)")
+    ap.add_argument(
+        "--condition", default="attack", help="clean or attack (attack renders and acts on two views per step)"
+    )
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch's default)")
     args = ap.parse_args()
     if args.threads:
@@ -63,8 +65,8 @@ def main() -> None:
     from sim.configs import sample_pool
     from sim.policies.policy import VisuomotorPolicy
     from sim.spec import default_scene
-    from trials.conditions import Sources, build_conditions
-    from trials.evaluate import rollout_condition
+    from trials.eval.conditions import Sources, build_conditions
+    from trials.eval.evaluate import rollout_condition
 
     torch.manual_seed(0)
     policy = TimedPolicy(VisuomotorPolicy(arch=args.arch, image_size=args.size).eval())
@@ -84,9 +86,13 @@ def main() -> None:
         wall = time.perf_counter() - t0
     env_steps = sum(steps)
     step_s = wall / env_steps
-    print(f"arch={args.arch} size={args.size} condition={args.condition} num_envs={args.num_envs} torch_threads={torch.get_num_threads()}")
-    print(f"  {len(steps)} episodes, {env_steps} env-steps in {wall:.1f} s (incl. env/GL setup); "
-          f"{policy.calls} policy calls on {policy.images} images")
+    print(
+        f"arch={args.arch} size={args.size} condition={args.condition} num_envs={args.num_envs} torch_threads={torch.get_num_threads()}"
+    )
+    print(
+        f"  {len(steps)} episodes, {env_steps} env-steps in {wall:.1f} s (incl. env/GL setup); "
+        f"{policy.calls} policy calls on {policy.images} images"
+    )
     print(f"  policy forward: {policy.seconds:.1f} s ({1000 * policy.seconds / policy.images:.1f} ms/image)")
     print(f"  eval wall / policy forward = {wall / policy.seconds:.2f}  (target <= 1.3)")
     print(f"  episodes per minute (60-step episodes): {60.0 / (60 * step_s):.2f}")

@@ -35,8 +35,10 @@ def main() -> None:
         steps += info["step"][info["success"]].tolist()
     n = (args.episodes // n_envs) * n_envs
     lo, hi = wilson_interval(succ, n)
-    print(f"expert success {succ}/{n} = {100 * succ / n:.1f}% (95% Wilson {100 * lo:.1f}-{100 * hi:.1f}%); "
-          f"reached another object {other}; median steps to goal {np.median(steps):.0f}")
+    print(
+        f"expert success {succ}/{n} = {100 * succ / n:.1f}% (95% Wilson {100 * lo:.1f}-{100 * hi:.1f}%); "
+        f"reached another object {other}; median steps to goal {np.median(steps):.0f}"
+    )
     env.close()
 
 

@@ -34,7 +34,7 @@ def _job_cpu(out: Path) -> tuple[float, int]:
 
 
 def _rows(d: Path):
-    from trials.storage import read_rows
+    from trials.eval.episodes import read_rows
 
     return sorted(tuple(sorted((k, repr(v)) for k, v in r.items())) for r in read_rows(d / "episodes.csv"))
 
@@ -47,13 +47,15 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--out", default="runs/bench-grid")
     ap.add_argument("--record", default=None, help="where the figures go as JSON (default OUT/bench_grid.json)")
-    ap.add_argument("--write-docs", action="store_true", help="also rewrite the figures block of docs/scale-out.md from the record")
+    ap.add_argument(
+        "--write-docs", action="store_true", help="also rewrite the figures block of docs/scale-out.md from the record"
+    )
     a = ap.parse_args()
 
     import torch
 
-    from trials.experiments import resolve_experiment, run_experiment
-    from trials.jobs import RayExecutor, SerialExecutor
+    from trials.experiments.recipes import resolve_experiment, run_experiment
+    from trials.jobs.dag import RayExecutor, SerialExecutor
 
     torch.set_num_threads(1)
     cfg = resolve_experiment("quick", episodes=a.episodes, gifs=0, attack_overrides={"iterations": a.iterations})
@@ -62,10 +64,22 @@ def main() -> None:
     for mode in ("serial", "ray"):
         d = out / mode
         shutil.rmtree(d, ignore_errors=True)
-        ex = SerialExecutor(None, tee=False) if mode == "serial" else RayExecutor(workers=a.workers, echo=None, poll_s=0.2)
+        ex = (
+            SerialExecutor(None, tee=False)
+            if mode == "serial"
+            else RayExecutor(workers=a.workers, echo=None, poll_s=0.2)
+        )
         t0, c0 = time.perf_counter(), os.times()
-        run_experiment("table1", cfg, d, policy=a.policy, progress=False, log=lambda m: None, executor=ex,
-                       shards=1 if mode == "serial" else a.workers)
+        run_experiment(
+            "table1",
+            cfg,
+            d,
+            policy=a.policy,
+            progress=False,
+            log=lambda m: None,
+            executor=ex,
+            shards=1 if mode == "serial" else a.workers,
+        )
         wall = time.perf_counter() - t0
         c1 = os.times()
         driver_cpu = (c1.user - c0.user) + (c1.system - c0.system)
@@ -83,17 +97,32 @@ def main() -> None:
     collects = [v["collect_s"] for v in t.values()]
     speedup = results["serial"]["wall_s"] / results["ray"]["wall_s"]
     print(f"speed-up at {a.workers} workers: {speedup:.2f}x (target >= 1.6x); same episode rows: {same}")
-    print(f"overhead per Ray job (n={len(t)}): submission (or a CPU coming free) to start median {statistics.median(starts):.2f} s, max {max(starts):.2f} s; "
-          f"end to result on the driver median {statistics.median(collects):.3f} s, max {max(collects):.3f} s (target <= 1 s)")
-    print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; table1 budget: {a.iterations} attack iterations, "
-          f"{a.episodes} episodes x 3 arms, {a.workers} shards on Ray")
+    print(
+        f"overhead per Ray job (n={len(t)}): submission (or a CPU coming free) to start median {statistics.median(starts):.2f} s, max {max(starts):.2f} s; "
+        f"end to result on the driver median {statistics.median(collects):.3f} s, max {max(collects):.3f} s (target <= 1 s)"
+    )
+    print(
+        f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; table1 budget: {a.iterations} attack iterations, "
+        f"{a.episodes} episodes x 3 arms, {a.workers} shards on Ray"
+    )
     from sim.runinfo import git_commit
 
-    record = {"command": "python benchmarks/bench_grid.py " + " ".join(sys.argv[1:]), "commit": git_commit(),
-              "machine": {"cpus": os.cpu_count(), "load_avg_end": list(os.getloadavg())}, "args": vars(a), "speedup": speedup,
-              "same_rows": same, "results": results,
-              "overhead": {"start_delay_s_median": statistics.median(starts), "start_delay_s_max": max(starts),
-                           "collect_s_median": statistics.median(collects), "collect_s_max": max(collects), "n": len(t)}}
+    record = {
+        "command": "python benchmarks/bench_grid.py " + " ".join(sys.argv[1:]),
+        "commit": git_commit(),
+        "machine": {"cpus": os.cpu_count(), "load_avg_end": list(os.getloadavg())},
+        "args": vars(a),
+        "speedup": speedup,
+        "same_rows": same,
+        "results": results,
+        "overhead": {
+            "start_delay_s_median": statistics.median(starts),
+            "start_delay_s_max": max(starts),
+            "collect_s_median": statistics.median(collects),
+            "collect_s_max": max(collects),
+            "n": len(t),
+        },
+    }
     path = Path(a.record) if a.record else out / "bench_grid.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(record, indent=2))
@@ -108,23 +137,28 @@ START, END = "<!-- bench-grid:start", "<!-- bench-grid:end -->"
 def docs_block(rec: dict) -> str:
     """The figures of a record as the docs quote them."""
     r, o, g = rec["results"], rec["overhead"], rec["args"]
-    return "\n".join([
-        f"Measured by `{rec['command']}` at commit `{rec['commit'][:12]}` on {rec['machine']['cpus']} CPUs "
-        f"(`results/bench-grid/bench_grid.json`; one run):", "",
-        "| mode | jobs | wall (s) | CPU (s) |", "|---|---|---|---|",
-        f"| serial, in-process | {r['serial']['jobs']} | {r['serial']['wall_s']:.1f} | {r['serial']['cpu_s']:.1f} |",
-        f"| Ray, `--workers {g['workers']}` | {r['ray']['jobs']} | {r['ray']['wall_s']:.1f} | {r['ray']['cpu_s']:.1f} |", "",
-        f"- Speed-up: **{rec['speedup']:.2f}x** at {g['workers']} workers (target: at least 1.6x). Both modes wrote the same "
-        f"episode rows: {'yes' if rec['same_rows'] else 'NO'}.",
-        f"- Scheduling overhead per Ray job (n = {o['n']}), from submission to the job's start on its worker: median "
-        f"{o['start_delay_s_median']:.2f} s, max {o['start_delay_s_max']:.2f} s, counted from the later of the submission and "
-        "the moment a CPU came free (time queued behind other running jobs is not overhead). The maximum includes starting "
-        "a worker process the first time.",
-        f"- From the job's end to its result on the driver: median {o['collect_s_median']:.3f} s, max {o['collect_s_max']:.3f} s "
-        "(target: at most 1 s).",
-        f"- Budget: {g['iterations']} attack iterations, {g['episodes']} episodes x 3 arms.",
-        "- The Ray CPU time is the driver's own CPU plus every job's, from their `job.json`; Ray's own daemons are not counted.",
-    ])
+    return "\n".join(
+        [
+            f"Measured by `{rec['command']}` at commit `{rec['commit'][:12]}` on {rec['machine']['cpus']} CPUs "
+            f"(`results/bench-grid/bench_grid.json`; one run):",
+            "",
+            "| mode | jobs | wall (s) | CPU (s) |",
+            "|---|---|---|---|",
+            f"| serial, in-process | {r['serial']['jobs']} | {r['serial']['wall_s']:.1f} | {r['serial']['cpu_s']:.1f} |",
+            f"| Ray, `--workers {g['workers']}` | {r['ray']['jobs']} | {r['ray']['wall_s']:.1f} | {r['ray']['cpu_s']:.1f} |",
+            "",
+            f"- Speed-up: **{rec['speedup']:.2f}x** at {g['workers']} workers (target: at least 1.6x). Both modes wrote the same "
+            f"episode rows: {'yes' if rec['same_rows'] else 'NO'}.",
+            f"- Scheduling overhead per Ray job (n = {o['n']}), from submission to the job's start on its worker: median "
+            f"{o['start_delay_s_median']:.2f} s, max {o['start_delay_s_max']:.2f} s, counted from the later of the submission and "
+            "the moment a CPU came free (time queued behind other running jobs is not overhead). The maximum includes starting "
+            "a worker process the first time.",
+            f"- From the job's end to its result on the driver: median {o['collect_s_median']:.3f} s, max {o['collect_s_max']:.3f} s "
+            "(target: at most 1 s).",
+            f"- Budget: {g['iterations']} attack iterations, {g['episodes']} episodes x 3 arms.",
+            "- The Ray CPU time is the driver's own CPU plus every job's, from their `job.json`; Ray's own daemons are not counted.",
+        ]
+    )
 
 
 def write_docs(rec: dict) -> None:

@@ -47,8 +47,12 @@ def bench(arch: str, size: int, batch: int, reps: int, device: str) -> dict:
         xi = x.clone().requires_grad_(True)
         policy(xi).norm(dim=1).sum().backward()
 
-    row = {"arch": arch, "size": size, "torch_fwd": _median_ms_per_image(fwd, reps, batch),
-           "torch_fwd_bwd": _median_ms_per_image(fwd_bwd, reps, batch)}
+    row = {
+        "arch": arch,
+        "size": size,
+        "torch_fwd": _median_ms_per_image(fwd, reps, batch),
+        "torch_fwd_bwd": _median_ms_per_image(fwd_bwd, reps, batch),
+    }
     with tempfile.TemporaryDirectory() as tmp:
         onnx_policy = OnnxPolicy(export_onnx(policy, Path(tmp) / "p.onnx"))
         xn = x.cpu().numpy()
@@ -63,17 +67,27 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0 = torch's default); "
-                    "on an oversubscribed CPU, 1 avoids OpenMP spin-wait contention")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="torch intra-op threads (0 = torch's default); "
+        "on an oversubscribed CPU, 1 avoids OpenMP spin-wait contention",
+    )
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, batch {args.batch}, median of {args.reps}; ms per image")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, batch {args.batch}, median of {args.reps}; ms per image"
+    )
     print(f"{'backbone':<14}{'px':>5}{'torch fwd':>12}{'torch fwd+bwd':>15}{'onnxrt fwd':>12}")
     for arch in args.archs.split(","):
         for size in (int(s) for s in args.sizes.split(",")):
             r = bench(arch.strip(), size, args.batch, args.reps, args.device)
-            print(f"{r['arch']:<14}{r['size']:>5}{r['torch_fwd']:>12.2f}{r['torch_fwd_bwd']:>15.2f}{r['onnx_fwd']:>12.2f}", flush=True)
+            print(
+                f"{r['arch']:<14}{r['size']:>5}{r['torch_fwd']:>12.2f}{r['torch_fwd_bwd']:>15.2f}{r['onnx_fwd']:>12.2f}",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -99,7 +99,11 @@ def bench_frustum(spec, configs, size, policy, texture) -> None:
     on, states = rollouts(spec, configs, size, policy, texture, cull=True)
     off, _ = rollouts(spec, configs, size, policy, texture, cull=False)
     adv, goal = spec.object_index("adversarial"), spec.object_index("goal")
-    same = np.array_equal(on["reached"], off["reached"]) and np.array_equal(on["steps"], off["steps"]) and np.array_equal(on["tcp"], off["tcp"])
+    same = (
+        np.array_equal(on["reached"], off["reached"])
+        and np.array_equal(on["steps"], off["steps"])
+        and np.array_equal(on["tcp"], off["tcp"])
+    )
     r = SceneRenderer(spec, size, size)
     if texture is not None:
         r.set_object_texture(adv, texture)
@@ -115,16 +119,24 @@ def bench_frustum(spec, configs, size, policy, texture) -> None:
     results = {with_ids: cull_on_off(r, states, with_ids) for with_ids in (False, True)}
     r.close()
     n = len(states)
-    print(f"[frustum cull] {len(configs)} episodes, {n} wrist-camera frames at {size}x{size} "
-          f"({'policy' if policy is not None else 'expert'} trajectories)")
-    print(f"  frames with an object culled: {any_culled}/{n} = {any_culled / n:.1%}; per object: "
-          + ", ".join(f"{o.name} {c / n:.1%}" for o, c in zip(spec.objects, per_object)))
+    print(
+        f"[frustum cull] {len(configs)} episodes, {n} wrist-camera frames at {size}x{size} "
+        f"({'policy' if policy is not None else 'expert'} trajectories)"
+    )
+    print(
+        f"  frames with an object culled: {any_culled}/{n} = {any_culled / n:.1%}; per object: "
+        + ", ".join(f"{o.name} {c / n:.1%}" for o, c in zip(spec.objects, per_object))
+    )
     for with_ids, (t_on, t_off, d_rgb, d_ids) in results.items():
-        print(f"  {'color+id' if with_ids else 'color   '} pass: {t_on:.2f} ms/frame with, {t_off:.2f} without, "
-              f"ratio {t_off / t_on:.3f}x; max |rgb diff| {d_rgb}, differing id pixels {d_ids}")
-    print(f"  outcomes with/without identical: {same}; success {np.mean(on['reached'] == goal):.3f} / "
-          f"{np.mean(off['reached'] == goal):.3f}; reached adversarial (T-ASR) {np.mean(on['reached'] == adv):.3f} / "
-          f"{np.mean(off['reached'] == adv):.3f}")
+        print(
+            f"  {'color+id' if with_ids else 'color   '} pass: {t_on:.2f} ms/frame with, {t_off:.2f} without, "
+            f"ratio {t_off / t_on:.3f}x; max |rgb diff| {d_rgb}, differing id pixels {d_ids}"
+        )
+    print(
+        f"  outcomes with/without identical: {same}; success {np.mean(on['reached'] == goal):.3f} / "
+        f"{np.mean(off['reached'] == goal):.3f}; reached adversarial (T-ASR) {np.mean(on['reached'] == adv):.3f} / "
+        f"{np.mean(off['reached'] == adv):.3f}"
+    )
     return states, on["episodes"]
 
 
@@ -138,8 +150,14 @@ def clutter_spec(spec, n: int):
     for k in range(n):
         a, rad = 2 * np.pi * k / n, 0.45 + 0.25 * (k % 2)
         x, y = rad * np.cos(a), rad * np.sin(a)
-        objs.append({"name": f"clutter_{k}", "mesh": meshes[k % len(meshes)], "role": "distractor",
-                     "pose": {"x_m": float(x), "y_m": float(y), "yaw_deg": float(np.degrees(a))}})
+        objs.append(
+            {
+                "name": f"clutter_{k}",
+                "mesh": meshes[k % len(meshes)],
+                "role": "distractor",
+                "pose": {"x_m": float(x), "y_m": float(y), "yaw_deg": float(np.degrees(a))},
+            }
+        )
         poses.append(object_pose(x, y, a))
     return spec.model_copy(update={"objects": [type(spec.objects[0]).model_validate(o) for o in objs]}), np.array(poses)
 
@@ -159,10 +177,14 @@ def bench_frustum_clutter(spec, states, size, n: int) -> None:
         culled.append(len(r.culled))
     t_on, t_off, d_rgb, d_ids = cull_on_off(r, cstates, True)
     r.close()
-    print(f"[frustum cull, cluttered] the same {len(cstates)} frames with {n} extra objects ({len(cspec.objects)} in all): "
-          f"{np.mean(culled):.1f} objects culled per frame on average")
-    print(f"  color+id pass: {t_on:.2f} ms/frame with, {t_off:.2f} without, ratio {t_off / t_on:.3f}x; "
-          f"max |rgb diff| {d_rgb}, differing id pixels {d_ids}")
+    print(
+        f"[frustum cull, cluttered] the same {len(cstates)} frames with {n} extra objects ({len(cspec.objects)} in all): "
+        f"{np.mean(culled):.1f} objects culled per frame on average"
+    )
+    print(
+        f"  color+id pass: {t_on:.2f} ms/frame with, {t_off:.2f} without, ratio {t_off / t_on:.3f}x; "
+        f"max |rgb diff| {d_rgb}, differing id pixels {d_ids}"
+    )
 
 
 def bench_isolated_shading(spec, states, size) -> None:
@@ -202,14 +224,26 @@ def bench_isolated_shading(spec, states, size) -> None:
             t0 = time.perf_counter()
             caps[iso] = captures()
             ms[iso].append(1000 * (time.perf_counter() - t0) / len(frames))
-    d_shade = max(float(max(np.abs(a.fragments.diffuse - b.fragments.diffuse).max(initial=0), np.abs(a.fragments.specular - b.fragments.specular).max(initial=0)))
-                  for a, b in zip(caps[True], caps[False]))
-    d_img = max(float((render_adversarial(a, tex) - render_adversarial(b, tex)).abs().max()) for a, b in zip(caps[True], caps[False]))
+    d_shade = max(
+        float(
+            max(
+                np.abs(a.fragments.diffuse - b.fragments.diffuse).max(initial=0),
+                np.abs(a.fragments.specular - b.fragments.specular).max(initial=0),
+            )
+        )
+        for a, b in zip(caps[True], caps[False])
+    )
+    d_img = max(
+        float((render_adversarial(a, tex) - render_adversarial(b, tex)).abs().max())
+        for a, b in zip(caps[True], caps[False])
+    )
     t_on, t_off = statistics.median(ms[True]), statistics.median(ms[False])
     world.close()
     print(f"[isolated shading passes] {len(frames)} attack captures (color + ids + white + black) at {size}x{size}")
-    print(f"  {t_on:.2f} ms/capture with, {t_off:.2f} without, ratio {t_off / t_on:.3f}x; "
-          f"max |diffuse/specular diff| {d_shade:g}, max |I_adv diff| {d_img:g}")
+    print(
+        f"  {t_on:.2f} ms/capture with, {t_off:.2f} without, ratio {t_off / t_on:.3f}x; "
+        f"max |diffuse/specular diff| {d_shade:g}, max |I_adv diff| {d_img:g}"
+    )
 
 
 def bench_previous_frame(spec, states, episodes, size, max_pairs: int = 300) -> None:
@@ -240,10 +274,12 @@ def bench_previous_frame(spec, states, episodes, size, max_pairs: int = 300) -> 
                 means.append(float(d.mean()) if d.size else 0.0)
             prev = out
     r.close()
-    print(f"[previous-frame background, not shipped] {len(diffs)} pairs of consecutive frames of one episode "
-          f"(gripper excluded): max |rgb diff| median {statistics.median(diffs)}, max {max(diffs)}; "
-          f"mean |diff| median {statistics.median(means):.2f}/255; pixels changed: median {statistics.median(fracs):.1%}, "
-          f"min {min(fracs):.1%}")
+    print(
+        f"[previous-frame background, not shipped] {len(diffs)} pairs of consecutive frames of one episode "
+        f"(gripper excluded): max |rgb diff| median {statistics.median(diffs)}, max {max(diffs)}; "
+        f"mean |diff| median {statistics.median(means):.2f}/255; pixels changed: median {statistics.median(fracs):.1%}, "
+        f"min {min(fracs):.1%}"
+    )
 
 
 def bench_resolution(spec, states, size) -> None:
@@ -271,9 +307,11 @@ def bench_resolution(spec, states, size) -> None:
     r_small.close()
     r_big.close()
     t_s, t_b = statistics.median(ms_small), statistics.median(ms_big)
-    print(f"[resolution] render at the policy's {size}px: {t_s:.2f} ms/frame; render {big}px + box downsample: {t_b:.2f} "
-          f"ms/frame; ratio {t_b / t_s:.3f}x; the two images differ (max |diff| {max(int(d.max()) for d in diffs)}, "
-          f"mean {np.mean([d.mean() for d in diffs]):.2f}/255): the env renders at the policy's size only")
+    print(
+        f"[resolution] render at the policy's {size}px: {t_s:.2f} ms/frame; render {big}px + box downsample: {t_b:.2f} "
+        f"ms/frame; ratio {t_b / t_s:.3f}x; the two images differ (max |diff| {max(int(d.max()) for d in diffs)}, "
+        f"mean {np.mean([d.mean() for d in diffs]):.2f}/255): the env renders at the policy's size only"
+    )
 
 
 def bench_validation(spec, policy_dir, size) -> None:
@@ -288,7 +326,7 @@ def bench_validation(spec, policy_dir, size) -> None:
     pool = None
     if policy_dir is not None:
         from sim.policies.checkpoint import load_policy
-        from trials.attack_job import feasible_pool_path
+        from sim.policies.pool import feasible_pool_path
 
         policy = load_policy(policy_dir)
         pool_file = feasible_pool_path(policy_dir)
@@ -306,9 +344,11 @@ def bench_validation(spec, policy_dir, size) -> None:
     run.close()
     v, s = statistics.median(val), statistics.median(steps)
     calls = 1 + cfg.iterations // cfg.validation_every + (cfg.iterations % cfg.validation_every > 0)
-    print(f"[validation] quick preset ({cfg.validation_episodes} held-out episodes, <= {spec.episode.max_steps} steps, "
-          f"{run.image_size}px): {v:.2f} s/call; attack step {s:.2f} s/iteration; per quick run {calls} calls = "
-          f"{calls * v:.0f} s on top of {cfg.iterations} x {s:.2f} = {cfg.iterations * s:.0f} s (+{calls * v / (cfg.iterations * s):.0%})")
+    print(
+        f"[validation] quick preset ({cfg.validation_episodes} held-out episodes, <= {spec.episode.max_steps} steps, "
+        f"{run.image_size}px): {v:.2f} s/call; attack step {s:.2f} s/iteration; per quick run {calls} calls = "
+        f"{calls * v:.0f} s on top of {cfg.iterations} x {s:.2f} = {cfg.iterations * s:.0f} s (+{calls * v / (cfg.iterations * s):.0%})"
+    )
 
 
 def main() -> None:
@@ -318,7 +358,9 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=16)
     ap.add_argument("--size", type=int, default=64, help="render size without --policy (else the policy's)")
     ap.add_argument("--validation", action="store_true", help="also time the attack's held-out validation")
-    ap.add_argument("--clutter", type=int, default=12, help="extra objects for the cluttered-table culling row (0: skip)")
+    ap.add_argument(
+        "--clutter", type=int, default=12, help="extra objects for the cluttered-table culling row (0: skip)"
+    )
     args = ap.parse_args()
 
     import torch
@@ -332,7 +374,7 @@ def main() -> None:
     configs = sample_pool(spec, args.episodes, seed=1000)
     if args.policy is not None:
         from sim.policies.checkpoint import load_policy
-        from trials.attack_job import feasible_pool_path
+        from sim.policies.pool import feasible_pool_path
 
         policy = load_policy(args.policy)
         size = int(policy.image_size)

@@ -27,8 +27,8 @@ def main() -> None:
     from attack.optimize import AttackRun, resolve_config
     from sim.configs import in_part, load_pool
     from sim.policies.checkpoint import load_policy
+    from sim.policies.pool import feasible_pool_path
     from sim.spec import default_scene
-    from trials.attack_job import feasible_pool_path
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--policy", required=True)
@@ -56,13 +56,17 @@ def main() -> None:
     finally:
         run.close()
     q = np.quantile(ratios, [0.25, 0.5, 0.75]) if ratios else [float("nan")] * 3
-    print(f"# {a.policy}: {len(ratios)} of {len(configs)} first frames show the object; {time.perf_counter() - t0:.1f} s")
+    print(
+        f"# {a.policy}: {len(ratios)} of {len(configs)} first frames show the object; {time.perf_counter() - t0:.1f} s"
+    )
     print("| lambda_sal | median ||g_sal|| / ||g_pose|| | quartiles |")
     print("|---|---|---|")
     for lam in (0.01, 0.1, 1.0):
         print(f"| {lam} | {lam * q[1]:.4f} | [{lam * q[0]:.4f}, {lam * q[2]:.4f}] |")
     if cosines:
-        print(f"cosine(g_pose, g_sal): median {statistics.median(cosines):+.3f}, negative in {sum(c < 0 for c in cosines)} of {len(cosines)}")
+        print(
+            f"cosine(g_pose, g_sal): median {statistics.median(cosines):+.3f}, negative in {sum(c < 0 for c in cosines)} of {len(cosines)}"
+        )
 
 
 if __name__ == "__main__":

@@ -35,11 +35,17 @@ def main() -> None:
     c = w.object_center_array[adv]
     g = torch.Generator().manual_seed(0)
     textures = {
-        "smooth": (F.interpolate(torch.rand(1, 3, 16, 16, generator=g), size=(256, 256), mode="bilinear")[0] * 255).round().byte().permute(1, 2, 0).numpy(),
+        "smooth": (F.interpolate(torch.rand(1, 3, 16, 16, generator=g), size=(256, 256), mode="bilinear")[0] * 255)
+        .round()
+        .byte()
+        .permute(1, 2, 0)
+        .numpy(),
         "noise": (np.random.default_rng(0).random((256, 256, 3)) * 255).astype(np.uint8),
     }
     print(f"# {size}x{size} policy image, 256x256 texture; cores={os.cpu_count()} torch={torch.__version__}")
-    print("| texture | distance | phi | pixels | MAE bilinear (/255) | MAE trilinear (/255) | ms bilinear fwd+bwd | ms trilinear fwd+bwd |")
+    print(
+        "| texture | distance | phi | pixels | MAE bilinear (/255) | MAE trilinear (/255) | ms bilinear fwd+bwd | ms trilinear fwd+bwd |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for tname, tex in textures.items():
         tt = torch.from_numpy(tex).permute(2, 0, 1).float() / 255.0
@@ -64,7 +70,9 @@ def main() -> None:
                         render_adversarial(cap, x, s).sum().backward()
                         ts.append(1000 * (time.perf_counter() - t0))
                     times.append(statistics.median(ts))
-                print(f"| {tname} | {dist} m | {phi} deg | {int(m.sum())} | {row[0]:.2f} | {row[1]:.2f} | {times[0]:.2f} | {times[1]:.2f} |")
+                print(
+                    f"| {tname} | {dist} m | {phi} deg | {int(m.sum())} | {row[0]:.2f} | {row[1]:.2f} | {times[0]:.2f} | {times[1]:.2f} |"
+                )
     r.set_object_texture(adv, None)
     r.close()
 

@@ -135,16 +135,22 @@ class TagDetection:
                 for s in self.solutions
             ],
             "ambiguity_ratio": None if np.isnan(self.ambiguity_ratio) else round(float(self.ambiguity_ratio), 4),
-            "solution_angle_deg": None if np.isnan(self.solution_angle_deg) else round(float(self.solution_angle_deg), 3),
+            "solution_angle_deg": None
+            if np.isnan(self.solution_angle_deg)
+            else round(float(self.solution_angle_deg), 3),
             "view_angle_deg": None if np.isnan(self.view_angle_deg) else round(float(self.view_angle_deg), 2),
             "position_std_mm": None if np.isnan(self.position_std_m) else round(1000 * float(self.position_std_m), 3),
-            "orientation_std_deg": None if np.isnan(self.orientation_std_deg) else round(float(self.orientation_std_deg), 3),
+            "orientation_std_deg": None
+            if np.isnan(self.orientation_std_deg)
+            else round(float(self.orientation_std_deg), 3),
             "ambiguous": self.ambiguous,
             "flags": list(self.flags),
         }
 
 
-def reprojection_rms(T_cam_obj: np.ndarray, points_obj: np.ndarray, pixels: np.ndarray, camera: CameraIntrinsics) -> float:
+def reprojection_rms(
+    T_cam_obj: np.ndarray, points_obj: np.ndarray, pixels: np.ndarray, camera: CameraIntrinsics
+) -> float:
     """RMS pixel error of ``points_obj: (N, 3)`` seen at ``pixels: (N, 2)`` under ``T_cam_obj``."""
     proj = camera.project(transform_points(T_cam_obj, points_obj))
     return float(np.sqrt(np.mean(np.sum((proj - pixels) ** 2, -1))))
@@ -163,7 +169,9 @@ def resolve_dictionary(dictionary: str | int | None) -> str:
         for name, attr in ARUCO_DICTS.items():
             if getattr(cv2.aruco, attr) == int(dictionary):
                 return name
-        raise ValueError(f"dictionary: OpenCV dictionary id {int(dictionary)} is not supported; choose from {', '.join(TAG_DICTIONARIES)}")
+        raise ValueError(
+            f"dictionary: OpenCV dictionary id {int(dictionary)} is not supported; choose from {', '.join(TAG_DICTIONARIES)}"
+        )
     name = str(dictionary).strip().upper().removeprefix("DICT_")
     if name in ("TAG36H11", "APRILTAG_36H11", "36H11"):
         return TAG36H11
@@ -285,8 +293,13 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, cells: int = 
         ts = np.linspace(0.1, 0.9, max(6, int(L / 2)))
         base = a[None] + ts[:, None] * (b - a)[None]  # (M, 2)
         pts = base[:, None, :] + offs[None, :, None] * n[None, None, :]  # (M, S, 2)
-        prof = cv2.remap(gray.astype(np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
-                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        prof = cv2.remap(
+            gray.astype(np.float32),
+            pts[..., 0].astype(np.float32),
+            pts[..., 1].astype(np.float32),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
         g = np.clip(np.diff(prof, axis=1), 0.0, None)  # dark inside -> bright outside
         w = g.sum(1)
         ok = w > 1e-6 * max(1.0, float(prof.max()))
@@ -319,8 +332,9 @@ def tag_pose_solutions(corners_px: np.ndarray, tag_size_m: float, camera: Camera
 
     obj = tag_object_points(tag_size_m)
     try:
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, corners_px.reshape(4, 1, 2), camera.K, camera.dist,
-                                                    flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+            obj, corners_px.reshape(4, 1, 2), camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
     except cv2.error:
         return ()
     sols = []
@@ -386,8 +400,13 @@ def _flags(sols, corners_px, opt: TagDetectorOptions):
     return ratio, angle, view, tuple(flags)
 
 
-def detect_tags(image, camera: CameraIntrinsics, tag_size_m: float | Mapping[int, float] | Callable[[int], float | None] | None = None,
-                options: TagDetectorOptions | None = None, dictionary: str | int | None = None) -> list[TagDetection]:
+def detect_tags(
+    image,
+    camera: CameraIntrinsics,
+    tag_size_m: float | Mapping[int, float] | Callable[[int], float | None] | None = None,
+    options: TagDetectorOptions | None = None,
+    dictionary: str | int | None = None,
+) -> list[TagDetection]:
     """Every tag in ``image`` with both pose solutions (if its size is known), sorted by id.
 
     ``tag_size_m``: one size for all tags, a mapping id -> size, a function id -> size or None, or
@@ -398,10 +417,17 @@ def detect_tags(image, camera: CameraIntrinsics, tag_size_m: float | Mapping[int
     gray = to_gray(image)
     if gray.shape != (camera.height, camera.width):
         # Intrinsics belong to one resolution; poses from another would be silently wrong.
-        aspect = "" if gray.shape[1] * camera.height != gray.shape[0] * camera.width else (
-            " (same aspect ratio: pass --rescale to rescale the intrinsics, or calibrate the camera at this size)")
-        raise CalibrationError(f"image: size {gray.shape[1]}x{gray.shape[0]} does not match the camera file's "
-                               f"{camera.width}x{camera.height}; intrinsics hold for one resolution{aspect}")
+        aspect = (
+            ""
+            if gray.shape[1] * camera.height != gray.shape[0] * camera.width
+            else (
+                " (same aspect ratio: pass --rescale to rescale the intrinsics, or calibrate the camera at this size)"
+            )
+        )
+        raise CalibrationError(
+            f"image: size {gray.shape[1]}x{gray.shape[0]} does not match the camera file's "
+            f"{camera.width}x{camera.height}; intrinsics hold for one resolution{aspect}"
+        )
     if callable(tag_size_m):
         size_of = tag_size_m
     elif isinstance(tag_size_m, Mapping):
@@ -441,8 +467,12 @@ class BundlePose:
     alternatives: tuple[np.ndarray, ...] = field(default=())
 
 
-def estimate_bundle_pose(detections: Sequence[TagDetection], corners_in_frame: Mapping[int, np.ndarray],
-                         camera: CameraIntrinsics, options: TagDetectorOptions | None = None) -> BundlePose | None:
+def estimate_bundle_pose(
+    detections: Sequence[TagDetection],
+    corners_in_frame: Mapping[int, np.ndarray],
+    camera: CameraIntrinsics,
+    options: TagDetectorOptions | None = None,
+) -> BundlePose | None:
     """Fit one pose ``T_cam_frame`` to every detected tag listed in ``corners_in_frame``.
 
     ``corners_in_frame[id]: (4, 3)`` m are the tag's corners (detector order) in the body frame.

@@ -68,8 +68,13 @@ class DiversityReport:
 def _cv_method(name: str) -> int:
     import cv2
 
-    return {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PARK, "horaud": cv2.CALIB_HAND_EYE_HORAUD,
-            "andreff": cv2.CALIB_HAND_EYE_ANDREFF, "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS}[name]
+    return {
+        "tsai": cv2.CALIB_HAND_EYE_TSAI,
+        "park": cv2.CALIB_HAND_EYE_PARK,
+        "horaud": cv2.CALIB_HAND_EYE_HORAUD,
+        "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
+        "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS,
+    }[name]
 
 
 def check_motion_diversity(T_base_tcp, options: HandEyeOptions | None = None) -> DiversityReport:
@@ -87,7 +92,8 @@ def check_motion_diversity(T_base_tcp, options: HandEyeOptions | None = None) ->
     if n < opt.min_samples:
         raise DegenerateDataError(
             f"hand-eye: {n} sample(s), need at least {opt.min_samples} (10-20 recommended): "
-            "add arm poses that each see the whole board, rotating the gripper between them")
+            "add arm poses that each see the whole board, rotating the gripper between them"
+        )
     i, j = np.triu_indices(n, 1)
     R_rel = np.swapaxes(T[i, :3, :3], -1, -2) @ T[j, :3, :3]  # A's rotation, in tcp_i axes
     w = so3_log(R_rel)
@@ -98,7 +104,8 @@ def check_motion_diversity(T_base_tcp, options: HandEyeOptions | None = None) ->
         raise DegenerateDataError(
             f"hand-eye: the gripper barely rotates between samples (largest relative rotation {max_rot:.1f} deg; "
             f"need pairs rotating >= {opt.min_rotation_deg:g} deg): add poses that rotate the gripper by "
-            "20-40 deg about different axes (tilt about TCP x and y, turn about TCP z)")
+            "20-40 deg about different axes (tilt about TCP x and y, turn about TCP z)"
+        )
     axes = w[keep] / ang[keep, None]
     cos = np.clip(np.abs(axes @ axes.T), 0.0, 1.0)
     spread = float(np.degrees(np.arccos(cos.min())))
@@ -111,7 +118,8 @@ def check_motion_diversity(T_base_tcp, options: HandEyeOptions | None = None) ->
         raise DegenerateDataError(
             f"hand-eye: all rotations are about nearly the same axis (TCP frame {np.round(dom, 2).tolist()}, "
             f"spread {spread:.1f} deg < {opt.min_axis_spread_deg:g} deg), which leaves T_tcp_cam undetermined: "
-            f"add poses that rotate the gripper about a perpendicular axis, e.g. {np.round(perp, 2).tolist()} in the TCP frame")
+            f"add poses that rotate the gripper about a perpendicular axis, e.g. {np.round(perp, 2).tolist()} in the TCP frame"
+        )
     return DiversityReport(n, int(keep.sum()), max_rot, spread, dom)
 
 
@@ -127,8 +135,10 @@ def _solve(T_base_tcp, T_cam_board, method: str) -> np.ndarray:
     import cv2
 
     R, t = cv2.calibrateHandEye(
-        [x[:3, :3] for x in T_base_tcp], [x[:3, 3] for x in T_base_tcp],
-        [x[:3, :3] for x in T_cam_board], [x[:3, 3] for x in T_cam_board],
+        [x[:3, :3] for x in T_base_tcp],
+        [x[:3, 3] for x in T_base_tcp],
+        [x[:3, :3] for x in T_cam_board],
+        [x[:3, 3] for x in T_cam_board],
         method=_cv_method(method),  # keyword: positionally the 5th argument is an output
     )
     X = make_T(np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3))
@@ -142,8 +152,14 @@ def _pose_residuals(A, B, X, Y, w_t: float, w_r: float) -> np.ndarray:
     return np.concatenate([E[:, :3, 3] * w_t, so3_log(E[:, :3, :3]) * w_r], -1).reshape(-1)
 
 
-def refine_hand_eye(T_base_tcp, T_cam_board, T_tcp_cam, position_sigma_m: float = 1e-3, rotation_sigma_rad: float = np.radians(0.1),
-                    iterations: int = 20):
+def refine_hand_eye(
+    T_base_tcp,
+    T_cam_board,
+    T_tcp_cam,
+    position_sigma_m: float = 1e-3,
+    rotation_sigma_rad: float = np.radians(0.1),
+    iterations: int = 20,
+):
     """Levenberg-Marquardt on ``T_base_board^-1 T_base_tcp_i X T_cam_board_i = I`` over X and the board pose.
 
     Residuals are weighted by ``1/position_sigma_m`` and ``1/rotation_sigma_rad``. Returns
@@ -215,12 +231,14 @@ class HandEyeResult:
         return float(np.sqrt(np.mean(self.residual_rotation_deg**2)))
 
     def summary(self) -> str:
-        return (f"T_tcp_cam ({self.method}): t = {np.round(self.T_tcp_cam[:3, 3] * 1000, 2).tolist()} mm, "
-                f"rotvec = {np.round(so3_log(self.T_tcp_cam[:3, :3]), 4).tolist()} rad\n"
-                f"{self.method.split('+')[0]} vs {self.check_method}: {self.disagreement_m * 1000:.2f} mm, {self.disagreement_deg:.3f} deg\n"
-                f"residuals over {len(self.residual_position_m)} samples: RMS {self.rms_position_m * 1000:.2f} mm, "
-                f"{self.rms_rotation_deg:.3f} deg (max {self.residual_position_m.max() * 1000:.2f} mm, "
-                f"{self.residual_rotation_deg.max():.3f} deg)")
+        return (
+            f"T_tcp_cam ({self.method}): t = {np.round(self.T_tcp_cam[:3, 3] * 1000, 2).tolist()} mm, "
+            f"rotvec = {np.round(so3_log(self.T_tcp_cam[:3, :3]), 4).tolist()} rad\n"
+            f"{self.method.split('+')[0]} vs {self.check_method}: {self.disagreement_m * 1000:.2f} mm, {self.disagreement_deg:.3f} deg\n"
+            f"residuals over {len(self.residual_position_m)} samples: RMS {self.rms_position_m * 1000:.2f} mm, "
+            f"{self.rms_rotation_deg:.3f} deg (max {self.residual_position_m.max() * 1000:.2f} mm, "
+            f"{self.residual_rotation_deg.max():.3f} deg)"
+        )
 
 
 def solve_hand_eye(T_base_tcp, T_cam_board, options: HandEyeOptions | None = None) -> HandEyeResult:
@@ -240,11 +258,11 @@ def solve_hand_eye(T_base_tcp, T_cam_board, options: HandEyeOptions | None = Non
         X, _ = refine_hand_eye(A, B, X, opt.position_sigma_m, np.radians(opt.rotation_sigma_deg))
         method = f"{opt.method}+refine"
     M, pos, rot = _residuals(A, B, X)
-    return HandEyeResult(
-        X, method, Xc, opt.check_method, dis_m, dis_deg, pos, rot, M, div)
+    return HandEyeResult(X, method, Xc, opt.check_method, dis_m, dis_deg, pos, rot, M, div)
 
 
 # ---- files ---------------------------------------------------------------------------------
+
 
 class _HandEyeFile(Strict):
     T_tcp_cam: PoseModel
@@ -326,9 +344,11 @@ def load_samples_yaml(path, min_board_corners: int = 8):
     if isinstance(board, ChessboardSpec) and board.inner_cols % 2 == board.inner_rows % 2:
         # Turned by 180 deg such a board looks the same, so its detected origin can jump between
         # samples and T_cam_board with it; hand-eye needs a pose that is the board's own.
-        raise CalibrationError(f"{path}: board: a {board.inner_cols}x{board.inner_rows} chessboard looks the same turned by 180 deg, "
-                               "so its pose is ambiguous; use a ChArUco board, or a chessboard with one odd and one even count "
-                               "of inner corners (e.g. 9x6)")
+        raise CalibrationError(
+            f"{path}: board: a {board.inner_cols}x{board.inner_rows} chessboard looks the same turned by 180 deg, "
+            "so its pose is ambiguous; use a ChArUco board, or a chessboard with one odd and one even count "
+            "of inner corners (e.g. 9x6)"
+        )
     camera = load_camera_yaml(root / f.camera) if f.camera else None
     A, B, notes = [], [], []
     for k, s in enumerate(f.samples):
@@ -341,8 +361,10 @@ def load_samples_yaml(path, min_board_corners: int = 8):
             raise CalibrationError(f"{path}: samples.{k}.image: no such file {img_path}")
         gray = to_gray(read_image(img_path))
         if gray.shape != (camera.height, camera.width):
-            raise CalibrationError(f"{path}: samples.{k}.image: {img_path} is {gray.shape[1]}x{gray.shape[0]}, "
-                                   f"the camera file is for {camera.width}x{camera.height}")
+            raise CalibrationError(
+                f"{path}: samples.{k}.image: {img_path} is {gray.shape[1]}x{gray.shape[0]}, "
+                f"the camera file is for {camera.width}x{camera.height}"
+            )
         pose = estimate_board_pose(gray, board, camera, min_board_corners)
         if pose is None:
             notes.append(f"samples.{k} ({s.image}): board not found (fewer than {min_board_corners} corners); skipped")
@@ -351,5 +373,3 @@ def load_samples_yaml(path, min_board_corners: int = 8):
         B.append(pose[0])
         notes.append(f"samples.{k} ({s.image}): board at {pose[1]:.2f} px RMS from {pose[2]} corners")
     return np.asarray(A).reshape(-1, 4, 4), np.asarray(B).reshape(-1, 4, 4), notes
-
-

@@ -50,9 +50,15 @@ __all__ = [
 ]
 
 ARUCO_DICTS = {
-    "4X4_50": "DICT_4X4_50", "4X4_100": "DICT_4X4_100", "4X4_250": "DICT_4X4_250",
-    "5X5_50": "DICT_5X5_50", "5X5_100": "DICT_5X5_100", "5X5_250": "DICT_5X5_250",
-    "6X6_50": "DICT_6X6_50", "6X6_100": "DICT_6X6_100", "6X6_250": "DICT_6X6_250",
+    "4X4_50": "DICT_4X4_50",
+    "4X4_100": "DICT_4X4_100",
+    "4X4_250": "DICT_4X4_250",
+    "5X5_50": "DICT_5X5_50",
+    "5X5_100": "DICT_5X5_100",
+    "5X5_250": "DICT_5X5_250",
+    "6X6_50": "DICT_6X6_50",
+    "6X6_100": "DICT_6X6_100",
+    "6X6_250": "DICT_6X6_250",
 }
 
 
@@ -77,7 +83,9 @@ class BoardSpec(Strict):
 
         n = (self.squares_x * self.squares_y) // 2
         if n > cv2.aruco.getPredefinedDictionary(self.dictionary_id).bytesList.shape[0]:
-            raise ValueError(f"a {self.squares_x}x{self.squares_y} board needs {n} markers; dictionary {self.dictionary} is too small")
+            raise ValueError(
+                f"a {self.squares_x}x{self.squares_y} board needs {n} markers; dictionary {self.dictionary} is too small"
+            )
         return self
 
     @property
@@ -128,7 +136,21 @@ Board = BoardSpec | ChessboardSpec
 
 # Inner-corner counts of boards people print (OpenCV's samples, ROS camera_calibration, calib.io),
 # tried in this order when a plain chessboard's size is not given.
-COMMON_CHESSBOARDS = ((9, 6), (8, 6), (7, 6), (9, 7), (7, 5), (8, 5), (6, 4), (10, 7), (11, 8), (6, 5), (5, 4), (11, 7), (12, 9))
+COMMON_CHESSBOARDS = (
+    (9, 6),
+    (8, 6),
+    (7, 6),
+    (9, 7),
+    (7, 5),
+    (8, 5),
+    (6, 4),
+    (10, 7),
+    (11, 8),
+    (6, 5),
+    (5, 4),
+    (11, 7),
+    (12, 9),
+)
 
 
 @dataclass(frozen=True)
@@ -312,14 +334,19 @@ def detect_chessboard(gray: np.ndarray, board: ChessboardSpec, half_window_px: i
             # wide window is the more accurate), but under 40 % of the corner spacing, so that a
             # small or distant board's window never reaches the next corner.
             grid = c.reshape(board.inner_rows, board.inner_cols, 2)
-            spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(), np.linalg.norm(np.diff(grid, axis=0), axis=-1).min())
+            spacing = min(
+                np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(),
+                np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
+            )
             win = int(max(2, min(11, 0.4 * spacing))) if half_window_px is None else int(half_window_px)
             crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
             c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (win, win), (-1, -1), crit).reshape(-1, 2)
         else:
             # The sector-based detector finds boards the classic one misses (strong blur, low
             # contrast); its corners are sub-pixel already.
-            ok, c = cv2.findChessboardCornersSB(gray, board.pattern_size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)
+            ok, c = cv2.findChessboardCornersSB(
+                gray, board.pattern_size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
+            )
             if not ok:
                 return empty
             c = c.reshape(-1, 2)
@@ -333,7 +360,11 @@ def detect_chessboard(gray: np.ndarray, board: ChessboardSpec, half_window_px: i
 
 def detect_board(gray: np.ndarray, board: Board, half_window_px: int | None = None):
     """Corners of either board -> (corners_px (N, 2), ids (N,)); empty arrays if none."""
-    return detect_chessboard(gray, board, half_window_px) if isinstance(board, ChessboardSpec) else detect_charuco(gray, board)
+    return (
+        detect_chessboard(gray, board, half_window_px)
+        if isinstance(board, ChessboardSpec)
+        else detect_charuco(gray, board)
+    )
 
 
 def count_aruco_markers(gray: np.ndarray, dictionary: str) -> int:
@@ -348,8 +379,13 @@ def count_aruco_markers(gray: np.ndarray, dictionary: str) -> int:
     return 0 if ids is None else len(ids)
 
 
-def identify_board(grays: Sequence[np.ndarray], charuco: BoardSpec, inner_corners: tuple[int, int] | None = None,
-                   square_size_m: float | None = None, max_images: int = 4) -> tuple[Board, str]:
+def identify_board(
+    grays: Sequence[np.ndarray],
+    charuco: BoardSpec,
+    inner_corners: tuple[int, int] | None = None,
+    square_size_m: float | None = None,
+    max_images: int = 4,
+) -> tuple[Board, str]:
     """Which board the photos show: ``(board, sentence naming it)``, or :class:`CalibrationError`.
 
     ChArUco markers of ``charuco.dictionary`` -> that board. Markers of another dictionary -> an
@@ -360,31 +396,45 @@ def identify_board(grays: Sequence[np.ndarray], charuco: BoardSpec, inner_corner
 
     sample = list(grays)[:max_images]
     if any(count_aruco_markers(g, charuco.dictionary) >= 4 for g in sample):
-        return charuco, f"ChArUco board ({charuco.squares_x}x{charuco.squares_y} squares, dictionary {charuco.dictionary})"
-    counts = {name: max(count_aruco_markers(g, name) for g in sample) for name in ARUCO_DICTS if name != charuco.dictionary}
+        return (
+            charuco,
+            f"ChArUco board ({charuco.squares_x}x{charuco.squares_y} squares, dictionary {charuco.dictionary})",
+        )
+    counts = {
+        name: max(count_aruco_markers(g, name) for g in sample) for name in ARUCO_DICTS if name != charuco.dictionary
+    }
     best = max(counts.values(), default=0)
     if best >= 4:
         # A smaller dictionary is the start of a larger one (5X5_50 within 5X5_100): name every fit.
         fits = [n for n, c in counts.items() if c == best]
-        raise CalibrationError(f"board: the photos show ChArUco markers of dictionary {' or '.join(fits)}, not {charuco.dictionary}; "
-                               f"pass --dictionary {fits[-1] if len(fits) == 1 else fits[0]} or the one printed "
-                               "(and the board's --squares-x/--squares-y)")
+        raise CalibrationError(
+            f"board: the photos show ChArUco markers of dictionary {' or '.join(fits)}, not {charuco.dictionary}; "
+            f"pass --dictionary {fits[-1] if len(fits) == 1 else fits[0]} or the one printed "
+            "(and the board's --squares-x/--squares-y)"
+        )
     sizes = [tuple(inner_corners)] if inner_corners else list(COMMON_CHESSBOARDS)
     for cols, rows in sizes:
         for g in sample:
             for pattern in ((cols, rows), (rows, cols)):
                 try:
-                    ok, _ = cv2.findChessboardCorners(g, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_FAST_CHECK)
+                    ok, _ = cv2.findChessboardCorners(
+                        g, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_FAST_CHECK
+                    )
                 except cv2.error:
                     ok = False
                 if ok:
-                    spec = ChessboardSpec(inner_cols=pattern[0], inner_rows=pattern[1],
-                                          **({} if square_size_m is None else {"square_size_m": square_size_m}))
+                    spec = ChessboardSpec(
+                        inner_cols=pattern[0],
+                        inner_rows=pattern[1],
+                        **({} if square_size_m is None else {"square_size_m": square_size_m}),
+                    )
                     how = "as given" if inner_corners else "found automatically"
                     return spec, f"plain chessboard, {pattern[0]}x{pattern[1]} inner corners ({how})"
     what = f"{inner_corners[0]}x{inner_corners[1]} chessboard" if inner_corners else "chessboard of a common size"
-    raise CalibrationError(f"board: no ChArUco markers (dictionary {charuco.dictionary}) and no {what} found in "
-                           f"{len(sample)} photo(s); pass --board chessboard --inner-corners COLSxROWS, or the ChArUco board's options")
+    raise CalibrationError(
+        f"board: no ChArUco markers (dictionary {charuco.dictionary}) and no {what} found in "
+        f"{len(sample)} photo(s); pass --board chessboard --inner-corners COLSxROWS, or the ChArUco board's options"
+    )
 
 
 def _object_points(board: Board, ids: np.ndarray) -> np.ndarray:
@@ -426,8 +476,9 @@ def estimate_board_pose(gray: np.ndarray, board: Board, camera: CameraIntrinsics
     return make_T(so3_exp(rvec.reshape(3)), tvec.reshape(3)), rms, len(ids)
 
 
-def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | None = None,
-                         options: CalibrationOptions | None = None) -> IntrinsicsResult:
+def calibrate_intrinsics(
+    images: Sequence, board: Board, names: Sequence[str] | None = None, options: CalibrationOptions | None = None
+) -> IntrinsicsResult:
     """Calibrate from board ``images`` (arrays, any layout :func:`to_gray` accepts).
 
     Raises :class:`CalibrationError` if fewer than ``options.min_images`` images survive; the
@@ -447,7 +498,9 @@ def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | 
         if size is None:
             size = gray.shape[::-1]
         if gray.shape[::-1] != size:
-            reports[i] = ImageReport(name, False, f"size {gray.shape[1]}x{gray.shape[0]} differs from the first image's {size[0]}x{size[1]}")
+            reports[i] = ImageReport(
+                name, False, f"size {gray.shape[1]}x{gray.shape[0]} differs from the first image's {size[0]}x{size[1]}"
+            )
             continue
         corners, ids = detect_board(gray, board, opt.subpix_half_window_px)
         if isinstance(board, ChessboardSpec) and len(ids) == 0:
@@ -461,7 +514,9 @@ def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | 
             continue
         blur = blur_sigma_px(gray, corners)
         if not blur <= opt.max_blur_px:  # NaN (no measurable edge) is rejected too
-            reports[i] = ImageReport(name, False, f"blurred (edge blur {blur:.2f} px > {opt.max_blur_px:g} px)", len(ids), blur)
+            reports[i] = ImageReport(
+                name, False, f"blurred (edge blur {blur:.2f} px > {opt.max_blur_px:g} px)", len(ids), blur
+            )
             continue
         obj = _object_points(board, ids)
         if _collinear(obj[:, :2]):
@@ -469,7 +524,9 @@ def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | 
             continue
         dup = _duplicate_of(ids, corners, views, opt.duplicate_px)
         if dup is not None:
-            reports[i] = ImageReport(name, False, f"near-duplicate of {names[dup]} (corners within {opt.duplicate_px:g} px)", len(ids), blur)
+            reports[i] = ImageReport(
+                name, False, f"near-duplicate of {names[dup]} (corners within {opt.duplicate_px:g} px)", len(ids), blur
+            )
             continue
         views.append((i, obj.astype(np.float32), corners.astype(np.float32), ids))
         reports[i] = ImageReport(name, True, "", len(ids), blur)
@@ -487,7 +544,8 @@ def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | 
         if len(views) < opt.min_images:
             _fail(len(views))
         rms, K, dist, rvecs, tvecs, std_intr, _, per_view = cv2.calibrateCameraExtended(
-            [v[1] for v in views], [v[2] for v in views], size, None, None, flags=flags)
+            [v[1] for v in views], [v[2] for v in views], size, None, None, flags=flags
+        )
         per_view = np.asarray(per_view).reshape(-1)
         med = float(np.median(per_view))
         bad = [k for k, e in enumerate(per_view) if e > opt.outlier_factor * max(med, 0.05)]
@@ -496,8 +554,14 @@ def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | 
         for k in bad:
             i = views[k][0]
             r = reports[i]
-            reports[i] = ImageReport(r.name, False, f"reprojection error {per_view[k]:.2f} px > {opt.outlier_factor:g} x median {med:.2f} px",
-                                     r.n_corners, r.blur_px, float(per_view[k]))
+            reports[i] = ImageReport(
+                r.name,
+                False,
+                f"reprojection error {per_view[k]:.2f} px > {opt.outlier_factor:g} x median {med:.2f} px",
+                r.n_corners,
+                r.blur_px,
+                float(per_view[k]),
+            )
         views = [v for k, v in enumerate(views) if k not in bad]
     for k, v in enumerate(views):
         r = reports[v[0]]
@@ -505,7 +569,10 @@ def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | 
 
     from sim.geometry import make_T, so3_exp
 
-    T = make_T(so3_exp(np.stack([np.asarray(r).reshape(3) for r in rvecs])), np.stack([np.asarray(t).reshape(3) for t in tvecs]))
+    T = make_T(
+        so3_exp(np.stack([np.asarray(r).reshape(3) for r in rvecs])),
+        np.stack([np.asarray(t).reshape(3) for t in tvecs]),
+    )
     cam = CameraIntrinsics(K, np.asarray(dist).reshape(-1)[:5], int(size[0]), int(size[1]), float(rms))
     sd = np.asarray(std_intr, dtype=np.float64).reshape(-1)
     std = {k: float(sd[j]) for j, k in enumerate(("fx", "fy", "cx", "cy"))} if sd.size >= 4 else {}
@@ -515,15 +582,23 @@ def calibrate_intrinsics(images: Sequence, board: Board, names: Sequence[str] | 
     warn = []
     for k in ("fx", "fy"):
         if k in std and 100 * std[k] / K[0 if k == "fx" else 1, 0 if k == "fx" else 1] > opt.max_focal_std_pct:
-            warn.append(f"{k} is uncertain: std {std[k]:.2f} px ({100 * std[k] / K[0 if k == 'fx' else 1, 0 if k == 'fx' else 1]:.2f} %, "
-                        f"threshold {opt.max_focal_std_pct:g} %); add views at other tilts and distances")
+            warn.append(
+                f"{k} is uncertain: std {std[k]:.2f} px ({100 * std[k] / K[0 if k == 'fx' else 1, 0 if k == 'fx' else 1]:.2f} %, "
+                f"threshold {opt.max_focal_std_pct:g} %); add views at other tilts and distances"
+            )
     if coverage < opt.min_coverage:
-        warn.append(f"the corners cover {100 * coverage:.0f} % of the image area (threshold {100 * opt.min_coverage:.0f} %); "
-                    "add views with the board near the edges and corners of the frame, where distortion is strongest")
+        warn.append(
+            f"the corners cover {100 * coverage:.0f} % of the image area (threshold {100 * opt.min_coverage:.0f} %); "
+            "add views with the board near the edges and corners of the frame, where distortion is strongest"
+        )
     if tilt[1] - tilt[0] < opt.min_tilt_range_deg:
-        warn.append(f"the board's tilt spans only {tilt[0]:.0f}-{tilt[1]:.0f} deg (threshold {opt.min_tilt_range_deg:g} deg); "
-                    "add views tilted 20-45 deg about both axes: frontal views leave the focal length poorly determined")
-    return IntrinsicsResult(cam, float(rms), tuple(reports[k] for k in range(len(images))), T, std, coverage, tilt, tuple(warn))
+        warn.append(
+            f"the board's tilt spans only {tilt[0]:.0f}-{tilt[1]:.0f} deg (threshold {opt.min_tilt_range_deg:g} deg); "
+            "add views tilted 20-45 deg about both axes: frontal views leave the focal length poorly determined"
+        )
+    return IntrinsicsResult(
+        cam, float(rms), tuple(reports[k] for k in range(len(images))), T, std, coverage, tilt, tuple(warn)
+    )
 
 
 def _duplicate_of(ids: np.ndarray, corners: np.ndarray, views: list, tol_px: float) -> int | None:
@@ -549,6 +624,7 @@ def _coverage(corner_sets: Sequence[np.ndarray], size: tuple[int, int], cells: t
 
 # ---- files ---------------------------------------------------------------------------------
 
+
 class _CameraFile(Strict):
     width: Annotated[int, Field(gt=0)]
     height: Annotated[int, Field(gt=0)]
@@ -557,7 +633,9 @@ class _CameraFile(Strict):
     rms_px: Annotated[float, Field(ge=0.0)] | None = None
     model: Literal["opencv_pinhole"] = "opencv_pinhole"
     image_reprojection_rms_px: dict[str, float] | None = None
-    intrinsics_std_px: dict[Literal["fx", "fy", "cx", "cy"], Annotated[float, Field(ge=0.0, allow_inf_nan=False)]] | None = None
+    intrinsics_std_px: (
+        dict[Literal["fx", "fy", "cx", "cy"], Annotated[float, Field(ge=0.0, allow_inf_nan=False)]] | None
+    ) = None
 
     @field_validator("K")
     @classmethod
@@ -616,15 +694,23 @@ class _RosCameraInfo(Strict):
     @classmethod
     def _pinhole(cls, v):
         if v in ("equidistant", "fisheye"):
-            raise ValueError("the fisheye (equidistant) model is not supported; calibrate with plumb_bob or rational_polynomial")
+            raise ValueError(
+                "the fisheye (equidistant) model is not supported; calibrate with plumb_bob or rational_polynomial"
+            )
         return v
 
 
 CAMERA_FORMATS = ("advobj", "ros")
 
 
-def save_camera_yaml(path, camera: CameraIntrinsics, images: Sequence[ImageReport] = (), fmt: str = "advobj",
-                     std_px: dict | None = None, camera_name: str = "camera") -> Path:
+def save_camera_yaml(
+    path,
+    camera: CameraIntrinsics,
+    images: Sequence[ImageReport] = (),
+    fmt: str = "advobj",
+    std_px: dict | None = None,
+    camera_name: str = "camera",
+) -> Path:
     """Write ``camera`` to ``path``: ``fmt="advobj"`` (ours, with the per-image reprojection RMS
     of accepted images and the intrinsics' standard deviations) or ``"ros"`` (``camera_info``)."""
     if fmt == "ros":
@@ -634,11 +720,16 @@ def save_camera_yaml(path, camera: CameraIntrinsics, images: Sequence[ImageRepor
         dist = (dist + [0.0] * 5)[:5] if model == "plumb_bob" else (dist + [0.0] * 8)[:8]
         # Monocular, unrectified: R = I, P = [K | 0] (ROS's calibrator would put an optimal new K there).
         P = [float(K[0, 0]), 0.0, float(K[0, 2]), 0.0, 0.0, float(K[1, 1]), float(K[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
-        data = {"image_width": int(camera.width), "image_height": int(camera.height), "camera_name": camera_name,
-                "camera_matrix": {"rows": 3, "cols": 3, "data": [float(x) for x in K.reshape(-1)]},
-                "distortion_model": model, "distortion_coefficients": {"rows": 1, "cols": len(dist), "data": dist},
-                "rectification_matrix": {"rows": 3, "cols": 3, "data": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]},
-                "projection_matrix": {"rows": 3, "cols": 4, "data": P}}
+        data = {
+            "image_width": int(camera.width),
+            "image_height": int(camera.height),
+            "camera_name": camera_name,
+            "camera_matrix": {"rows": 3, "cols": 3, "data": [float(x) for x in K.reshape(-1)]},
+            "distortion_model": model,
+            "distortion_coefficients": {"rows": 1, "cols": len(dist), "data": dist},
+            "rectification_matrix": {"rows": 3, "cols": 3, "data": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]},
+            "projection_matrix": {"rows": 3, "cols": 4, "data": P},
+        }
         return write_yaml(path, data)
     if fmt != "advobj":
         raise ValueError(f"format: expected one of {', '.join(CAMERA_FORMATS)}, got {fmt!r}")
@@ -667,7 +758,9 @@ def camera_file_format(path) -> str:
         raise CalibrationFileError(p, "<file>", f"cannot read ({err.strerror or err})") from None
     if head.lstrip().startswith("%YAML") or "opencv-matrix" in head:
         return "opencv"
-    if p.suffix.lower() == ".json" and any(f'"{k}"' in head for k in ("camera_matrix", "cameraMatrix", "intrinsic", "mtx")):
+    if p.suffix.lower() == ".json" and any(
+        f'"{k}"' in head for k in ("camera_matrix", "cameraMatrix", "intrinsic", "mtx")
+    ):
         return "opencv"  # FileStorage JSON with plain lists
     if "camera_matrix" in head and "image_width" in head and "opencv-matrix" not in head:
         return "ros"
@@ -676,8 +769,13 @@ def camera_file_format(path) -> str:
 
 def _cam(path, field: str, K, dist, width, height, rms=None) -> CameraIntrinsics:
     """Validate through our own schema, so every format gets the same checks and messages."""
-    data = {"width": width, "height": height, "K": np.asarray(K, dtype=np.float64).reshape(3, 3).tolist(),
-            "dist": [float(x) for x in np.asarray(dist, dtype=np.float64).reshape(-1)], "rms_px": rms}
+    data = {
+        "width": width,
+        "height": height,
+        "K": np.asarray(K, dtype=np.float64).reshape(3, 3).tolist(),
+        "dist": [float(x) for x in np.asarray(dist, dtype=np.float64).reshape(-1)],
+        "rms_px": rms,
+    }
     try:
         m = load_model(path, _CameraFile, data)
     except CalibrationFileError as err:
@@ -705,7 +803,9 @@ def _node_array(node, path, name: str) -> np.ndarray:
             return np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in vals]) if vals else np.zeros(0)
         m = node.mat()
     except (cv2.error, SystemError) as err:
-        raise CalibrationFileError(path, name, f"not a matrix or a list of numbers ({str(err).splitlines()[-1][:80]})") from None
+        raise CalibrationFileError(
+            path, name, f"not a matrix or a list of numbers ({str(err).splitlines()[-1][:80]})"
+        ) from None
     if m is None:
         raise CalibrationFileError(path, name, "not a matrix or a list of numbers")
     return np.asarray(m, dtype=np.float64).reshape(-1)
@@ -717,7 +817,9 @@ def _load_opencv(path) -> CameraIntrinsics:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as err:
-        raise CalibrationFileError(path, "<file>", f"not a readable OpenCV FileStorage file ({str(err).splitlines()[-1][:80]})") from None
+        raise CalibrationFileError(
+            path, "<file>", f"not a readable OpenCV FileStorage file ({str(err).splitlines()[-1][:80]})"
+        ) from None
     try:
         if not fs.isOpened():
             raise CalibrationFileError(path, "<file>", "not a readable OpenCV FileStorage file")
@@ -732,7 +834,9 @@ def _load_opencv(path) -> CameraIntrinsics:
         kname, knode = first(_CV_K)
         K = None if knode is None else _node_array(knode, path, kname)
         if K is None or K.size != 9:
-            raise CalibrationFileError(path, kname or "camera_matrix", f"no 3x3 camera matrix under any of {', '.join(_CV_K)}")
+            raise CalibrationFileError(
+                path, kname or "camera_matrix", f"no 3x3 camera matrix under any of {', '.join(_CV_K)}"
+            )
         dname, dnode = first(_CV_D)
         dist = np.zeros(0) if dnode is None else _node_array(dnode, path, dname)
         wname, w = first(_CV_W)
@@ -740,7 +844,9 @@ def _load_opencv(path) -> CameraIntrinsics:
         if w is None or h is None:
             size = fs.getNode("image_size")
             if size.empty() or not size.isSeq() or size.size() != 2:
-                raise CalibrationFileError(path, "image_width", "no image size (image_width/image_height, width/height or image_size)")
+                raise CalibrationFileError(
+                    path, "image_width", "no image size (image_width/image_height, width/height or image_size)"
+                )
             width, height = size.at(0).real(), size.at(1).real()
         else:
             width, height = w.real(), h.real()
@@ -763,8 +869,12 @@ def load_camera_yaml(path) -> CameraIntrinsics:
     if fmt == "ros":
         m = load_model(path, _RosCameraInfo)
         if (m.camera_matrix.rows, m.camera_matrix.cols) != (3, 3):
-            raise CalibrationFileError(path, "camera_matrix", f"expected 3x3, got {m.camera_matrix.rows}x{m.camera_matrix.cols}")
-        return _cam(path, "camera_matrix", m.camera_matrix.data, m.distortion_coefficients.data, m.image_width, m.image_height)
+            raise CalibrationFileError(
+                path, "camera_matrix", f"expected 3x3, got {m.camera_matrix.rows}x{m.camera_matrix.cols}"
+            )
+        return _cam(
+            path, "camera_matrix", m.camera_matrix.data, m.distortion_coefficients.data, m.image_width, m.image_height
+        )
     m = load_model(path, _CameraFile)
     return CameraIntrinsics(np.asarray(m.K), np.asarray(m.dist), m.width, m.height, m.rms_px)
 
@@ -779,4 +889,8 @@ def load_board_yaml(path) -> Board:
 
 def save_board_yaml(path, board: Board) -> Path:
     what = "Plain chessboard (counted by inner corners" if isinstance(board, ChessboardSpec) else "ChArUco board ("
-    return write_yaml(path, board.model_dump(), header=f"{what}{'; ' if isinstance(board, ChessboardSpec) else ''}sizes in metres as printed)")
+    return write_yaml(
+        path,
+        board.model_dump(),
+        header=f"{what}{'; ' if isinstance(board, ChessboardSpec) else ''}sizes in metres as printed)",
+    )

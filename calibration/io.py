@@ -6,10 +6,9 @@ project's rotation exchange format); :func:`pose_to_T` / :func:`T_to_pose` conve
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, TypeVar
-
-import math
 
 import numpy as np
 import yaml
@@ -20,7 +19,18 @@ from sim.configio import StrictModel
 from sim.configio import read_yaml as _read_yaml
 from sim.geometry import make_T, so3_exp, so3_log
 
-__all__ = ["Strict", "PoseModel", "Vec3", "pose_to_T", "T_to_pose", "read_yaml", "load_model", "write_yaml", "check_T", "read_image"]
+__all__ = [
+    "Strict",
+    "PoseModel",
+    "Vec3",
+    "pose_to_T",
+    "T_to_pose",
+    "read_yaml",
+    "load_model",
+    "write_yaml",
+    "check_T",
+    "read_image",
+]
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -101,6 +111,7 @@ def check_T(T, name: str, tol: float = 1e-6) -> np.ndarray:
 
 def read_yaml(path) -> object:
     """Parsed YAML of ``path``; missing or malformed files raise :class:`CalibrationFileError`."""
+
     def error(p, problem: str) -> CalibrationFileError:
         unreadable = problem.startswith(("cannot read", "is a directory"))
         return CalibrationFileError(p, "<file>" if unreadable else "<yaml>", problem)

@@ -72,12 +72,22 @@ class RealReachResult:
     reason: str
 
     def to_dict(self) -> dict:
-        return {"reached": self.reached, "index": self.index, "distances_m": self.distances_m,
-                "missing": list(self.missing), "ambiguous": list(self.ambiguous), "reason": self.reason}
+        return {
+            "reached": self.reached,
+            "index": self.index,
+            "distances_m": self.distances_m,
+            "missing": list(self.missing),
+            "ambiguous": list(self.ambiguous),
+            "reason": self.reason,
+        }
 
 
-def measure_reach(tcp_pos_base, object_positions_base: Mapping[str, Sequence | np.ndarray | None], objects: Sequence[str],
-                  radius_m: float) -> RealReachResult:
+def measure_reach(
+    tcp_pos_base,
+    object_positions_base: Mapping[str, Sequence | np.ndarray | None],
+    objects: Sequence[str],
+    radius_m: float,
+) -> RealReachResult:
     """The outcome of one real trial.
 
     tcp_pos_base: (3,) m from the arm. object_positions_base: name -> (3,) position, or (A, 3)
@@ -108,10 +118,21 @@ def measure_reach(tcp_pos_base, object_positions_base: Mapping[str, Sequence | n
     d = object_distances(tcp[None], best[None])[0]
     distances = {n: (None if np.isnan(x) else float(x)) for n, x in zip(objects, d)}
     if idx == UNKNOWN:
-        reason = (f"not detected: {', '.join(missing)}" if missing
-                  else f"ambiguous pose of {', '.join(ambiguous)} changes the outcome")
+        reason = (
+            f"not detected: {', '.join(missing)}"
+            if missing
+            else f"ambiguous pose of {', '.join(ambiguous)} changes the outcome"
+        )
         return RealReachResult("unknown", idx, distances, tuple(missing), tuple(ambiguous), reason)
     if idx == NONE:
-        return RealReachResult("none", idx, distances, (), tuple(ambiguous), f"no object strictly closest within {radius_m:g} m")
-    return RealReachResult(objects[idx], idx, distances, (), tuple(ambiguous),
-                           f"{objects[idx]} is the closest object, {d[idx]:.3f} m <= {radius_m:g} m")
+        return RealReachResult(
+            "none", idx, distances, (), tuple(ambiguous), f"no object strictly closest within {radius_m:g} m"
+        )
+    return RealReachResult(
+        objects[idx],
+        idx,
+        distances,
+        (),
+        tuple(ambiguous),
+        f"{objects[idx]} is the closest object, {d[idx]:.3f} m <= {radius_m:g} m",
+    )

@@ -18,11 +18,28 @@ import numpy as np
 from calibration.errors import CalibrationError
 from calibration.intrinsics import BoardSpec
 
-__all__ = ["A4_MM", "PAGES_MM", "MM_PER_INCH", "SCALE_BAR_MM", "page_figure", "scale_bar", "image_mm", "tag_sheet_pdf", "board_pdf",
-           "parse_id_ranges", "parse_page"]
+__all__ = [
+    "A4_MM",
+    "PAGES_MM",
+    "MM_PER_INCH",
+    "SCALE_BAR_MM",
+    "page_figure",
+    "scale_bar",
+    "image_mm",
+    "tag_sheet_pdf",
+    "board_pdf",
+    "parse_id_ranges",
+    "parse_page",
+]
 
 A4_MM = (210.0, 297.0)
-PAGES_MM = {"A4": A4_MM, "A3": (297.0, 420.0), "A2": (420.0, 594.0), "letter": (215.9, 279.4), "tabloid": (279.4, 431.8)}
+PAGES_MM = {
+    "A4": A4_MM,
+    "A3": (297.0, 420.0),
+    "A2": (420.0, 594.0),
+    "letter": (215.9, 279.4),
+    "tabloid": (279.4, 431.8),
+}
 MM_PER_INCH = 25.4
 SCALE_BAR_MM = 50.0
 
@@ -59,7 +76,9 @@ def parse_page(page: str) -> tuple[float, float]:
         if not (math.isfinite(w) and math.isfinite(h) and 50.0 <= w <= 5000.0 and 50.0 <= h <= 5000.0):
             raise ValueError
     except ValueError:
-        raise ValueError(f"page: expected {', '.join(PAGES_MM)} or WIDTHxHEIGHT in mm (50-5000 each), got {page!r}") from None
+        raise ValueError(
+            f"page: expected {', '.join(PAGES_MM)} or WIDTHxHEIGHT in mm (50-5000 each), got {page!r}"
+        ) from None
     return (w, h)
 
 
@@ -94,17 +113,31 @@ def scale_bar(ax, x_mm: float, y_mm: float):
     ax.add_patch(Rectangle((x_mm, y_mm), SCALE_BAR_MM, 1.0, facecolor="black", edgecolor="none"))
     for k in range(6):
         ax.add_patch(Rectangle((x_mm + 10.0 * k - 0.15, y_mm - 2.0), 0.3, 3.0, facecolor="black", edgecolor="none"))
-    ax.text(x_mm + SCALE_BAR_MM + 3.0, y_mm + 0.5, f"{SCALE_BAR_MM:.0f} mm: check with a ruler, print at 100 %",
-            fontsize=7, va="center")
+    ax.text(
+        x_mm + SCALE_BAR_MM + 3.0,
+        y_mm + 0.5,
+        f"{SCALE_BAR_MM:.0f} mm: check with a ruler, print at 100 %",
+        fontsize=7,
+        va="center",
+    )
 
 
 def image_mm(ax, img: np.ndarray, x_mm: float, y_mm: float, w_mm: float, h_mm: float):
     """Draw ``img`` (grey or RGB uint8, row 0 at the top) unresampled into a page rectangle in mm."""
-    ax.imshow(img, cmap="gray", vmin=0, vmax=255, interpolation="none", extent=(x_mm, x_mm + w_mm, y_mm + h_mm, y_mm),
-              aspect="auto")
+    ax.imshow(
+        img,
+        cmap="gray",
+        vmin=0,
+        vmax=255,
+        interpolation="none",
+        extent=(x_mm, x_mm + w_mm, y_mm + h_mm, y_mm),
+        aspect="auto",
+    )
 
 
-def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_MM, margin_mm: float = 8.0, gap_mm: float = 4.0) -> Path:
+def tag_sheet_pdf(
+    path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_MM, margin_mm: float = 8.0, gap_mm: float = 4.0
+) -> Path:
     """AprilTags (tag36h11) ``tag_ids`` at ``tag_size_mm`` (black square side) on as many pages as needed.
 
     Tags sit in a dense grid: each keeps a white quiet zone of two cells and a label strip (id and
@@ -130,7 +163,9 @@ def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_M
     usable_w, usable_h = W - 2 * margin_mm, H - 2 * margin_mm - 10.0  # bottom strip: scale bar
     cols, rows = int((usable_w + gap_mm) // pitch_x), int((usable_h + gap_mm) // pitch_y)
     if cols < 1 or rows < 1:
-        raise CalibrationError(f"size_mm: a {tag_size_mm:g} mm tag does not fit a {W:g} x {H:g} mm page with {margin_mm:g} mm margins")
+        raise CalibrationError(
+            f"size_mm: a {tag_size_mm:g} mm tag does not fit a {W:g} x {H:g} mm page with {margin_mm:g} mm margins"
+        )
     per_page = cols * rows
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -143,8 +178,14 @@ def tag_sheet_pdf(path, tag_ids: Sequence[int], tag_size_mm: float, page_mm=A4_M
                 x, y = bx + quiet_mm, by + quiet_mm
                 img = cv2.aruco.generateImageMarker(d, int(tag_id), cells, borderBits=1)  # 1 px per cell
                 image_mm(ax, img, x, y, tag_size_mm, tag_size_mm)
-                ax.text(x + tag_size_mm / 2, y + tag_size_mm + quiet_mm + 0.3, f"tag36h11 id {tag_id}  {tag_size_mm:g} mm",
-                        fontsize=5, ha="center", va="top")
+                ax.text(
+                    x + tag_size_mm / 2,
+                    y + tag_size_mm + quiet_mm + 0.3,
+                    f"tag36h11 id {tag_id}  {tag_size_mm:g} mm",
+                    fontsize=5,
+                    ha="center",
+                    va="top",
+                )
                 cut_marks(ax, bx, by, box_w, box_h)
             scale_bar(ax, margin_mm, H - margin_mm)
             pdf.savefig(fig)
@@ -166,18 +207,33 @@ def board_pdf(path, board: BoardSpec, margin_mm: float = 8.0, px_per_square: int
     elif need[0] <= ph and need[1] <= pw:
         W, H = ph, pw
     else:
-        fits = [n for n, (a, b) in PAGES_MM.items() if (need[0] <= a and need[1] <= b) or (need[0] <= b and need[1] <= a)]
-        hint = f"--page {fits[0]}" if fits else f"--page {math.ceil(need[0])}x{math.ceil(need[1])} (a print service's size)"
-        raise CalibrationError(f"board: {w_mm:g} x {h_mm:g} mm ({need[0]:g} x {need[1]:g} with margins and label) does not fit a "
-                               f"{pw:g} x {ph:g} mm page ({page}) in either orientation; use fewer or smaller squares "
-                               f"(--squares-x/--squares-y/--square-mm) or {hint}")
-    img = board.cv_board().generateImage((board.squares_x * px_per_square, board.squares_y * px_per_square), marginSize=0, borderBits=1)
+        fits = [
+            n for n, (a, b) in PAGES_MM.items() if (need[0] <= a and need[1] <= b) or (need[0] <= b and need[1] <= a)
+        ]
+        hint = (
+            f"--page {fits[0]}"
+            if fits
+            else f"--page {math.ceil(need[0])}x{math.ceil(need[1])} (a print service's size)"
+        )
+        raise CalibrationError(
+            f"board: {w_mm:g} x {h_mm:g} mm ({need[0]:g} x {need[1]:g} with margins and label) does not fit a "
+            f"{pw:g} x {ph:g} mm page ({page}) in either orientation; use fewer or smaller squares "
+            f"(--squares-x/--squares-y/--square-mm) or {hint}"
+        )
+    img = board.cv_board().generateImage(
+        (board.squares_x * px_per_square, board.squares_y * px_per_square), marginSize=0, borderBits=1
+    )
     fig, ax = page_figure(W, H)
     x, y = (W - w_mm) / 2, margin_mm
     image_mm(ax, img, x, y, w_mm, h_mm)
-    ax.text(x, y + h_mm + 4.0, f"ChArUco {board.squares_x}x{board.squares_y}, square {board.square_size_m * 1000:g} mm, "
-            f"marker {board.marker_size_m * 1000:g} mm, DICT_{board.dictionary}{', legacy pattern' if board.legacy_pattern else ''}",
-            fontsize=7, va="top")
+    ax.text(
+        x,
+        y + h_mm + 4.0,
+        f"ChArUco {board.squares_x}x{board.squares_y}, square {board.square_size_m * 1000:g} mm, "
+        f"marker {board.marker_size_m * 1000:g} mm, DICT_{board.dictionary}{', legacy pattern' if board.legacy_pattern else ''}",
+        fontsize=7,
+        va="top",
+    )
     scale_bar(ax, x, H - margin_mm)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

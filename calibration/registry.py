@@ -28,8 +28,16 @@ from calibration.intrinsics import CameraIntrinsics
 from calibration.io import PoseModel, Strict, load_model, write_yaml
 from sim.geometry import invert_T, transform_points
 
-__all__ = ["TABLE", "TagEntry", "ObjectRegistry", "ObjectObservation", "load_registry", "save_registry", "locate_objects",
-           "visible_tag_fraction"]
+__all__ = [
+    "TABLE",
+    "TagEntry",
+    "ObjectRegistry",
+    "ObjectObservation",
+    "load_registry",
+    "save_registry",
+    "locate_objects",
+    "visible_tag_fraction",
+]
 
 TABLE = "table"
 N_TAG36H11 = 587  # ids 0..586
@@ -96,8 +104,12 @@ class ObjectObservation:
         return np.stack([self.T_cam_object[:3, 3]] + [a[:3, 3] for a in self.alternatives])
 
 
-def locate_objects(detections: Sequence[TagDetection], registry: ObjectRegistry, camera: CameraIntrinsics,
-                   options: TagDetectorOptions | None = None) -> dict[str, ObjectObservation]:
+def locate_objects(
+    detections: Sequence[TagDetection],
+    registry: ObjectRegistry,
+    camera: CameraIntrinsics,
+    options: TagDetectorOptions | None = None,
+) -> dict[str, ObjectObservation]:
     """Every registered object with at least one posed tag -> its :class:`ObjectObservation`.
 
     Objects whose tags were not seen are absent (the caller decides what unknown means).
@@ -106,9 +118,13 @@ def locate_objects(detections: Sequence[TagDetection], registry: ObjectRegistry,
     for name in registry.objects:
         ids = registry.tag_ids(name)
         corners = {i: registry.corners_in_object(i) for i in ids}
-        bp: BundlePose | None = estimate_bundle_pose([d for d in detections if d.tag_id in corners], corners, camera, options)
+        bp: BundlePose | None = estimate_bundle_pose(
+            [d for d in detections if d.tag_id in corners], corners, camera, options
+        )
         if bp is not None:
-            out[name] = ObjectObservation(name, bp.T_cam_frame, bp.tag_ids, bp.reprojection_rms_px, bp.ambiguous, bp.alternatives)
+            out[name] = ObjectObservation(
+                name, bp.T_cam_frame, bp.tag_ids, bp.reprojection_rms_px, bp.ambiguous, bp.alternatives
+            )
     return out
 
 
@@ -116,7 +132,9 @@ EXPECTED_MIN_COS = 0.26  # view angle up to ~75 deg (the detectors' practical li
 EXPECTED_MIN_SIDE_PX = 10.0  # shorter tag edges are not reliably decoded
 
 
-def visible_tag_fraction(registry: ObjectRegistry, name: str, T_cam_object: np.ndarray, seen_ids, camera: CameraIntrinsics) -> float | None:
+def visible_tag_fraction(
+    registry: ObjectRegistry, name: str, T_cam_object: np.ndarray, seen_ids, camera: CameraIntrinsics
+) -> float | None:
     """How much of an object's tag area that should be visible was seen: an occlusion measure.
 
     From the object's pose, each of its registered tags that faces the camera (view angle under
@@ -154,9 +172,17 @@ def load_registry(path) -> ObjectRegistry:
 
 
 def save_registry(path, registry: ObjectRegistry) -> Path:
-    data = {"tags": {int(i): {"object": e.object, "size_m": e.size_m,
-                              "T_tag_object": {"translation_m": list(e.T_tag_object.translation_m),
-                                               "rotvec_rad": list(e.T_tag_object.rotvec_rad)}}
-                     for i, e in registry.tags.items()}}
+    data = {
+        "tags": {
+            int(i): {
+                "object": e.object,
+                "size_m": e.size_m,
+                "T_tag_object": {
+                    "translation_m": list(e.T_tag_object.translation_m),
+                    "rotvec_rad": list(e.T_tag_object.rotvec_rad),
+                },
+            }
+            for i, e in registry.tags.items()
+        }
+    }
     return write_yaml(path, data, header="Object registry: tag id -> object, tag size (m), T_tag_object")
-

@@ -30,8 +30,15 @@ def _board_views(board, n: int, seed: int, distance_range_m=(0.3, 0.45), max_til
     return np.stack([T @ face @ centre for T in S.random_view_poses(n, distance_range_m, max_tilt_deg, seed)])
 
 
-def intrinsics_check(n_images: int = 12, width: int = 640, height: int = 480, blur_px: float = 0.6, noise: float = 2.0,
-                     dist=(-0.08, 0.03, 0.0, 0.0, 0.0), seed: int = 0) -> dict:
+def intrinsics_check(
+    n_images: int = 12,
+    width: int = 640,
+    height: int = 480,
+    blur_px: float = 0.6,
+    noise: float = 2.0,
+    dist=(-0.08, 0.03, 0.0, 0.0, 0.0),
+    seed: int = 0,
+) -> dict:
     """Calibrate from ``n_images`` rendered ChArUco views; relative errors (%) of fx, fy, cx, cy."""
     board = BoardSpec()
     K = S.default_K(width, height)
@@ -50,12 +57,23 @@ def intrinsics_check(n_images: int = 12, width: int = 640, height: int = 480, bl
         "cy_pct_of_f": 100 * abs(Kh[1, 2] - K[1, 2]) / f,
     }
     err["max_pct"] = max(err.values())
-    err.update(rms_px=res.rms_px, n_used=sum(r.accepted for r in res.images), k1=float(res.camera.dist[0]), k1_true=dist[0])
+    err.update(
+        rms_px=res.rms_px, n_used=sum(r.accepted for r in res.images), k1=float(res.camera.dist[0]), k1_true=dist[0]
+    )
     return err
 
 
-def tag_check(distance_m: float = 0.5, tilt_deg: float = 0.0, tag_size_m: float = 0.04, n: int = 10, width: int = 640,
-              height: int = 480, blur_px: float = 0.7, noise: float = 2.0, seed: int = 0) -> dict:
+def tag_check(
+    distance_m: float = 0.5,
+    tilt_deg: float = 0.0,
+    tag_size_m: float = 0.04,
+    n: int = 10,
+    width: int = 640,
+    height: int = 480,
+    blur_px: float = 0.7,
+    noise: float = 2.0,
+    seed: int = 0,
+) -> dict:
     """Single-tag pose errors over ``n`` renders at ``distance_m`` and ``tilt_deg`` (random tilt axis, roll, offset)."""
     K = S.default_K(width, height)
     cam = CameraIntrinsics(K, np.zeros(5), width, height)
@@ -63,8 +81,13 @@ def tag_check(distance_m: float = 0.5, tilt_deg: float = 0.0, tag_size_m: float 
     for s in range(n):
         rng = np.random.default_rng(seed * 7919 + s)
         a = rng.uniform(0, np.pi)
-        T = S.camera_facing(distance_m, np.radians(tilt_deg), (np.cos(a), np.sin(a), 0.0), rng.uniform(-0.5, 0.5),
-                            rng.uniform(-0.04, 0.04, 2))
+        T = S.camera_facing(
+            distance_m,
+            np.radians(tilt_deg),
+            (np.cos(a), np.sin(a), 0.0),
+            rng.uniform(-0.5, 0.5),
+            rng.uniform(-0.04, 0.04, 2),
+        )
         img = S.degrade(S.render_planes([S.tag_plane(7, tag_size_m, T)], K, width, height), blur_px, noise, seed=s)
         det = [d for d in detect_tags(img, cam, tag_size_m) if d.tag_id == 7]
         if not det:
@@ -76,7 +99,10 @@ def tag_check(distance_m: float = 0.5, tilt_deg: float = 0.0, tag_size_m: float 
         rot.append(np.degrees(rotation_angle(d.T_cam_tag[:3, :3], T[:3, :3])))
     pos, rot = np.asarray(pos), np.asarray(rot)
     return {
-        "n": n, "detected": len(pos), "flagged": flagged, "missed": missed,
+        "n": n,
+        "detected": len(pos),
+        "flagged": flagged,
+        "missed": missed,
         "position_mm_median": float(np.median(pos) * 1000) if len(pos) else float("nan"),
         "position_mm_max": float(pos.max() * 1000) if len(pos) else float("nan"),
         "orientation_deg_median": float(np.median(rot)) if len(rot) else float("nan"),
@@ -84,8 +110,13 @@ def tag_check(distance_m: float = 0.5, tilt_deg: float = 0.0, tag_size_m: float 
     }
 
 
-def handeye_check(n_samples: int = 15, tcp_noise=(1e-4, 0.02), board_noise=(5e-4, 0.1), seed: int = 0,
-                  options: HandEyeOptions | None = None) -> dict:
+def handeye_check(
+    n_samples: int = 15,
+    tcp_noise=(1e-4, 0.02),
+    board_noise=(5e-4, 0.1),
+    seed: int = 0,
+    options: HandEyeOptions | None = None,
+) -> dict:
     """Hand-eye error against a known ``T_tcp_cam`` with noisy arm poses (m, deg) and board poses (m, deg)."""
     rng = np.random.default_rng(seed)
     X = make_T(so3_exp(rng.normal(0, 0.2, 3) + [0.0, 0.0, np.pi / 2]), rng.uniform(-0.06, 0.06, 3) + [0.0, 0.0, 0.05])
@@ -106,8 +137,14 @@ def handeye_check(n_samples: int = 15, tcp_noise=(1e-4, 0.02), board_noise=(5e-4
     }
 
 
-def handeye_images_check(n_samples: int = 12, tcp_noise=(1e-4, 0.02), width: int = 640, height: int = 480, seed: int = 0,
-                         options: HandEyeOptions | None = None) -> dict:
+def handeye_images_check(
+    n_samples: int = 12,
+    tcp_noise=(1e-4, 0.02),
+    width: int = 640,
+    height: int = 480,
+    seed: int = 0,
+    options: HandEyeOptions | None = None,
+) -> dict:
     """Hand-eye error when the board poses come from rendered, blurred, noisy board images (not assumed noise)."""
     from calibration.intrinsics import estimate_board_pose, to_gray
 
@@ -118,8 +155,9 @@ def handeye_images_check(n_samples: int = 12, tcp_noise=(1e-4, 0.02), width: int
     X = make_T(so3_exp(rng.normal(0, 0.2, 3) + [0.0, 0.0, np.pi / 2]), rng.uniform(-0.06, 0.06, 3) + [0.0, 0.0, 0.05])
     T_base_board = make_T(so3_exp([np.pi, 0.0, rng.uniform(-np.pi, np.pi)]), [0.5, rng.uniform(-0.2, 0.2), 0.0])
     centre = (board.squares_x * board.square_size_m / 2, board.squares_y * board.square_size_m / 2, 0.0)
-    A, B_true = S.hand_eye_poses(n_samples, X, T_base_board, centre, distance_range_m=(0.35, 0.45), lateral_m=0.12,
-                                 roll_rad=0.5, seed=seed)
+    A, B_true = S.hand_eye_poses(
+        n_samples, X, T_base_board, centre, distance_range_m=(0.35, 0.45), lateral_m=0.12, roll_rad=0.5, seed=seed
+    )
     A = S.perturb_poses(A, tcp_noise[0], np.radians(tcp_noise[1]), seed=seed + 1)
     cb = board.cv_board()
     keep_A, B = [], []

@@ -60,8 +60,9 @@ def default_K(width: int = 640, height: int = 480, fov_x_deg: float = 70.0) -> n
     return np.array([[f, 0.0, 0.5 * width + 3.7], [0.0, f, 0.5 * height - 2.3], [0.0, 0.0, 1.0]])
 
 
-def camera_facing(distance_m: float, tilt_rad: float = 0.0, tilt_axis=(1.0, 0.0, 0.0), roll_rad: float = 0.0,
-                  offset_m=(0.0, 0.0)) -> np.ndarray:
+def camera_facing(
+    distance_m: float, tilt_rad: float = 0.0, tilt_axis=(1.0, 0.0, 0.0), roll_rad: float = 0.0, offset_m=(0.0, 0.0)
+) -> np.ndarray:
     """``T_cam_target`` (4, 4) of a target at ``distance_m`` along the optical axis.
 
     The target faces the camera (its +z toward the camera, i.e. printed face visible for tags),
@@ -76,8 +77,14 @@ def camera_facing(distance_m: float, tilt_rad: float = 0.0, tilt_axis=(1.0, 0.0,
     return make_T(R, np.array([offset_m[0], offset_m[1], distance_m]))
 
 
-def tag_plane(tag_id: int, tag_size_m: float, T_cam_tag: np.ndarray, dictionary: int | None = None,
-              margin: float = 0.5, px_per_cell: int = 24) -> TexturedPlane:
+def tag_plane(
+    tag_id: int,
+    tag_size_m: float,
+    T_cam_tag: np.ndarray,
+    dictionary: int | None = None,
+    margin: float = 0.5,
+    px_per_cell: int = 24,
+) -> TexturedPlane:
     """A printed AprilTag (tag36h11 by default) with a white quiet zone of ``margin`` x the tag size per side.
 
     ``tag_size_m`` is the side of the black square (OpenCV's marker length).
@@ -108,12 +115,14 @@ def board_plane(board, T_cam_board: np.ndarray, px_per_square: int = 80, margin_
     return TexturedPlane(img, corners, np.asarray(T_cam_board, dtype=np.float64))
 
 
-def chessboard_plane(board, T_cam_board: np.ndarray, px_per_square: int = 60, margin_squares: float = 0.5) -> TexturedPlane:
+def chessboard_plane(
+    board, T_cam_board: np.ndarray, px_per_square: int = 60, margin_squares: float = 0.5
+) -> TexturedPlane:
     """A printed plain chessboard (:class:`~calibration.intrinsics.ChessboardSpec`) with a white
     margin, in the board frame (origin at the first inner corner, +x along a row, +y down)."""
     cols, rows = board.inner_cols + 1, board.inner_rows + 1  # squares
     sq = board.square_size_m
-    cells = (np.add.outer(np.arange(rows), np.arange(cols)) % 2 == 0)
+    cells = np.add.outer(np.arange(rows), np.arange(cols)) % 2 == 0
     img = np.where(np.kron(cells, np.ones((px_per_square, px_per_square), dtype=bool)), 0, 255).astype(np.uint8)
     pad = int(round(margin_squares * px_per_square))
     img = np.pad(img, pad, constant_values=255)
@@ -151,13 +160,21 @@ def _quad_mesh(plane: TexturedPlane):
     tm = trimesh.Trimesh(plane.corners_m, faces, process=False)
     tex = pyrender.Texture(source=Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8)), source_channels="RGB")
     mat = pyrender.MetallicRoughnessMaterial(baseColorTexture=tex, doubleSided=True)
-    prim = pyrender.Primitive(positions=tm.vertices.astype(np.float32), indices=faces, texcoord_0=uv.astype(np.float32),
-                              material=mat)
+    prim = pyrender.Primitive(
+        positions=tm.vertices.astype(np.float32), indices=faces, texcoord_0=uv.astype(np.float32), material=mat
+    )
     return pyrender.Mesh([prim])
 
 
-def render_planes(planes, K: np.ndarray, width: int, height: int, background: float = 0.45,
-                  znear_m: float = 0.01, zfar_m: float = 20.0) -> np.ndarray:
+def render_planes(
+    planes,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    background: float = 0.45,
+    znear_m: float = 0.01,
+    zfar_m: float = 20.0,
+) -> np.ndarray:
     """Render ``planes`` with pinhole ``K: (3, 3)`` into an ``(height, width, 3)`` uint8 RGB image.
 
     ``background`` is the grey level (0..1) where nothing is drawn.
@@ -187,8 +204,9 @@ def distort_image(image: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndar
     h, w = image.shape[:2]
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pts = np.stack([u, v], -1).reshape(-1, 1, 2)
-    ideal = cv2.undistortPointsIter(pts, K, np.asarray(dist, np.float64), None, K,
-                                    (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9))
+    ideal = cv2.undistortPointsIter(
+        pts, K, np.asarray(dist, np.float64), None, K, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9)
+    )
     ideal = ideal.reshape(h, w, 2).astype(np.float32)
     return cv2.remap(image, ideal[..., 0], ideal[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
@@ -213,14 +231,24 @@ def random_view_poses(n: int, distance_range_m=(0.35, 0.6), max_tilt_deg: float 
         d = rng.uniform(*distance_range_m)
         ang = np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg))
         axis_ang = rng.uniform(0, np.pi)
-        out.append(camera_facing(d, ang, (np.cos(axis_ang), np.sin(axis_ang), 0.0), rng.uniform(-0.4, 0.4),
-                                 rng.uniform(-0.03, 0.03, 2)))
+        out.append(
+            camera_facing(
+                d, ang, (np.cos(axis_ang), np.sin(axis_ang), 0.0), rng.uniform(-0.4, 0.4), rng.uniform(-0.03, 0.03, 2)
+            )
+        )
     return np.stack(out)
 
 
-
-def hand_eye_poses(n: int, T_tcp_cam: np.ndarray, T_base_board: np.ndarray, board_center_board=(0.0, 0.0, 0.0),
-                   distance_range_m=(0.3, 0.45), lateral_m: float = 0.15, roll_rad: float = 0.6, seed: int = 0):
+def hand_eye_poses(
+    n: int,
+    T_tcp_cam: np.ndarray,
+    T_base_board: np.ndarray,
+    board_center_board=(0.0, 0.0, 0.0),
+    distance_range_m=(0.3, 0.45),
+    lateral_m: float = 0.15,
+    roll_rad: float = 0.6,
+    seed: int = 0,
+):
     """``n`` eye-in-hand samples looking at a board: ``(T_base_tcp (n, 4, 4), T_cam_board (n, 4, 4))``, noise-free.
 
     Camera positions scatter above the board (base +z side of the board's face) within
@@ -238,7 +266,9 @@ def hand_eye_poses(n: int, T_tcp_cam: np.ndarray, T_base_board: np.ndarray, boar
         lat = rng.uniform(-lateral_m, lateral_m, 3)
         lat -= normal * (lat @ normal)
         eye = center + normal * rng.uniform(*distance_range_m) + lat
-        T_base_cam = look_at(eye, center + rng.normal(0.0, 0.02, 3)) @ make_T(so3_exp([0.0, 0.0, rng.uniform(-roll_rad, roll_rad)]), np.zeros(3))
+        T_base_cam = look_at(eye, center + rng.normal(0.0, 0.02, 3)) @ make_T(
+            so3_exp([0.0, 0.0, rng.uniform(-roll_rad, roll_rad)]), np.zeros(3)
+        )
         A.append(compose(T_base_cam, invert_T(T_tcp_cam)))
         B.append(compose(invert_T(T_base_cam), T_base_board))
     return np.stack(A), np.stack(B)
@@ -250,6 +280,11 @@ def perturb_poses(T, position_sigma_m: float, rotation_sigma_rad: float, seed: i
 
     rng = np.random.default_rng(seed)
     T = np.asarray(T, dtype=np.float64)
-    xi = np.concatenate([rng.normal(0.0, position_sigma_m, T.shape[:-2] + (3,)),
-                         rng.normal(0.0, rotation_sigma_rad, T.shape[:-2] + (3,))], -1)
+    xi = np.concatenate(
+        [
+            rng.normal(0.0, position_sigma_m, T.shape[:-2] + (3,)),
+            rng.normal(0.0, rotation_sigma_rad, T.shape[:-2] + (3,)),
+        ],
+        -1,
+    )
     return T @ se3_exp(xi)

@@ -17,12 +17,12 @@ class CameraStats:
     frames: int
     width: int
     height: int
-    fps: float                 # from frame timestamps
-    read_ms_median: float      # time spent inside read()
+    fps: float  # from frame timestamps
+    read_ms_median: float  # time spent inside read()
     read_ms_p95: float
-    age_ms_median: float       # frame age when read() returned (capture -> available to the policy)
+    age_ms_median: float  # frame age when read() returned (capture -> available to the policy)
     age_ms_p95: float
-    dropped: int               # sequence gaps: frames the camera produced that we never saw
+    dropped: int  # sequence gaps: frames the camera produced that we never saw
 
 
 def measure_camera(camera, n_frames: int = 60) -> CameraStats:
@@ -42,9 +42,17 @@ def measure_camera(camera, n_frames: int = 60) -> CameraStats:
     span = stamps[-1] - stamps[0]
     dropped = int(sum(max(0, b - a - 1) for a, b in zip(seqs, seqs[1:])))
     ms = lambda xs, q: float(np.percentile(np.asarray(xs) * 1000.0, q))  # noqa: E731
-    return CameraStats(n_frames, frame.rgb.shape[1], frame.rgb.shape[0],
-                       (n_frames - 1) / span if span > 0 else float("inf"),
-                       ms(read_s, 50), ms(read_s, 95), ms(age_s, 50), ms(age_s, 95), dropped)
+    return CameraStats(
+        n_frames,
+        frame.rgb.shape[1],
+        frame.rgb.shape[0],
+        (n_frames - 1) / span if span > 0 else float("inf"),
+        ms(read_s, 50),
+        ms(read_s, 95),
+        ms(age_s, 50),
+        ms(age_s, 95),
+        dropped,
+    )
 
 
 def format_pose(T: np.ndarray) -> str:

@@ -17,10 +17,10 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
-from sim.configio import StrictModel, file_error, merged, read_yaml
-from sim.errors import format_validation_error
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
+from sim.configio import StrictModel, file_error, merged, read_yaml
+from sim.errors import format_validation_error
 
 __all__ = [
     "HardwareConfig",
@@ -55,8 +55,11 @@ class SimCameraConfig(_Strict):
     """Renders the sim world from the sim arm's TCP (needs ``arm.type: sim``)."""
 
     type: Literal["sim"]
-    tags: bool = Field(False, description="draw tag36h11 tags on the objects and the table (the session's --registry, or one "
-                                          "generated for the scene) and locate the objects through them, as a real cell does")
+    tags: bool = Field(
+        False,
+        description="draw tag36h11 tags on the objects and the table (the session's --registry, or one "
+        "generated for the scene) and locate the objects through them, as a real cell does",
+    )
 
 
 class OpenCVCameraConfig(_Strict):
@@ -157,8 +160,13 @@ def _resolve(cfg: HardwareConfig, base: Path | None) -> HardwareConfig:
     cam_updates = {k: fix(getattr(cfg.camera, k)) for k in ("intrinsics", "path") if hasattr(cfg.camera, k)}
     camera = {**cfg.camera.model_dump(), **cam_updates}
     sim = {**cfg.sim.model_dump(), "scene": fix(cfg.sim.scene)}
-    return merged(cfg, {"camera": camera, "T_tcp_cam": fix(cfg.T_tcp_cam), "sim": sim},
-                  what="hardware config", source=str(base), error=HardwareConfigError)
+    return merged(
+        cfg,
+        {"camera": camera, "T_tcp_cam": fix(cfg.T_tcp_cam), "sim": sim},
+        what="hardware config",
+        source=str(base),
+        error=HardwareConfigError,
+    )
 
 
 def hardware_config_from_dict(data, source: str = "<dict>", base: Path | None = None) -> HardwareConfig:

@@ -75,7 +75,9 @@ class SafetyLimits(StrictModel):
         if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
             raise ValueError("workspace bounds must be finite")
         if not (lo < hi).all():
-            raise ValueError(f"workspace_min_m {list(self.workspace_min_m)} must be below workspace_max_m {list(self.workspace_max_m)} on every axis")
+            raise ValueError(
+                f"workspace_min_m {list(self.workspace_min_m)} must be below workspace_max_m {list(self.workspace_max_m)} on every axis"
+            )
         if self.positioning_speed_mps > self.max_speed_mps:
             raise ValueError("positioning_speed_mps must not exceed max_speed_mps")
         return self
@@ -101,7 +103,9 @@ class SafetyLimits(StrictModel):
 
     def contains(self, p, tol: float = 0.0) -> bool:
         p = np.asarray(p, dtype=np.float64)
-        return bool((p >= np.asarray(self.workspace_min_m) - tol).all() and (p <= np.asarray(self.workspace_max_m) + tol).all())
+        return bool(
+            (p >= np.asarray(self.workspace_min_m) - tol).all() and (p <= np.asarray(self.workspace_max_m) + tol).all()
+        )
 
 
 @dataclass(frozen=True)
@@ -120,8 +124,13 @@ class StepResult:
     reasons: tuple[str, ...] = field(default_factory=tuple)
 
 
-def limit_command(T_now: np.ndarray, T_target: np.ndarray, prev_step_m: np.ndarray,
-                  limits: SafetyLimits, period_s: float | None = None) -> tuple[np.ndarray, np.ndarray, list[str]]:
+def limit_command(
+    T_now: np.ndarray,
+    T_target: np.ndarray,
+    prev_step_m: np.ndarray,
+    limits: SafetyLimits,
+    period_s: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Pure math: the command actually sent for ``T_target`` from ``T_now``.
 
     ``period_s`` is the time this command may cover (the caller measures it since its last
@@ -156,7 +165,9 @@ def limit_command(T_now: np.ndarray, T_target: np.ndarray, prev_step_m: np.ndarr
         a_cap = limits.max_accel_mps2 * dt**2
         m = float(np.linalg.norm(dd))
         if m > a_cap:
-            reasons.append(f"step change {m * 1000:.2f} mm exceeds the acceleration cap {a_cap * 1000:.2f} mm: smoothed")
+            reasons.append(
+                f"step change {m * 1000:.2f} mm exceeds the acceleration cap {a_cap * 1000:.2f} mm: smoothed"
+            )
             dp = prev + dd * (a_cap / m)
         p_cmd = np.clip(p_now + dp, lo, hi)  # the box is hard: it overrides the soft acceleration cap
         if not np.allclose(p_cmd, p_now + dp, atol=0.0, rtol=0.0):
@@ -295,8 +306,9 @@ class SafeArm:
         try:
             self._stop(reason)
         except Exception as err:  # noqa: BLE001
-            log.error("stopping the arm failed (%s: %s); the driver's own watchdog must stop it",
-                      type(err).__name__, err)
+            log.error(
+                "stopping the arm failed (%s: %s); the driver's own watchdog must stop it", type(err).__name__, err
+            )
 
     def _require_no_fault(self) -> None:
         f = self.__arm.fault()
@@ -348,6 +360,7 @@ class SafeArm:
         The semantics are :func:`sim.action.next_tcp_pose`'s: translate along the current TCP
         axes, then rotate about the new TCP origin.
         """
+
         def target(T_now):
             d = np.asarray(delta_tcp, dtype=np.float64)
             if d.shape != (6,):
@@ -388,7 +401,9 @@ class SafeArm:
         age_ms = (now - ts) * 1000.0
         if age_ms < -_FUTURE_TOLERANCE_MS:
             # Usually a wall-clock (time.time) stamp: it would defeat the age check, so refuse.
-            raise _Refuse(f"camera frame timestamp is {-age_ms:.0f} ms in the future: stamp frames with time.monotonic()")
+            raise _Refuse(
+                f"camera frame timestamp is {-age_ms:.0f} ms in the future: stamp frames with time.monotonic()"
+            )
         if age_ms > lim.max_frame_age_ms:
             raise _Refuse(f"camera frame is {age_ms:.0f} ms old (limit {lim.max_frame_age_ms:.0f} ms)")
         self._require_no_fault()
@@ -398,8 +413,9 @@ class SafeArm:
             raise _Refuse("target is not a finite rigid (4, 4) transform (NaN, Inf or not a rotation)")
         # Read before sending: a sim arm's clock advances while it executes the command.
         t_cmd = self._command_clock()
-        T_cmd, dp, reasons = limit_command(T_now, np.asarray(T_target, dtype=np.float64), self._prev_step, lim,
-                                           self._command_period_s(t_cmd))
+        T_cmd, dp, reasons = limit_command(
+            T_now, np.asarray(T_target, dtype=np.float64), self._prev_step, lim, self._command_period_s(t_cmd)
+        )
         for r in reasons:
             self._record("clipped", r)
         self._last_command_s = t_cmd  # before sending: a servo that raises may still have reached the arm

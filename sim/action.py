@@ -11,10 +11,9 @@ position ``p_next`` and heading ``v_ee`` with respect to the action.
 
 from __future__ import annotations
 
-from sim.errors import AdvobjError
-
 import numpy as np
 
+from sim.errors import AdvobjError
 from sim.geometry import _is_torch, so3_exp
 
 __all__ = ["ActionError", "check_actions", "next_tcp_pose", "intended_position", "intended_heading"]

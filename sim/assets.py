@@ -262,7 +262,9 @@ def _ellipsoid(radii, center, subdivisions: int = 2, rotvec=(0.0, 0.0, 0.0)):
     from sim.geometry import so3_exp
 
     s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
-    v = (np.asarray(s.vertices) * np.asarray(radii, float)) @ so3_exp(np.asarray(rotvec, float)).T + np.asarray(center, float)
+    v = (np.asarray(s.vertices) * np.asarray(radii, float)) @ so3_exp(np.asarray(rotvec, float)).T + np.asarray(
+        center, float
+    )
     return v, np.asarray(s.faces, np.int64)
 
 
@@ -310,8 +312,15 @@ def _atlas(vertices: np.ndarray, faces: np.ndarray):
             with np.load(folder / f"{key}.npz", allow_pickle=False) as z:
                 hit = (z["vmap"].astype(np.int64), z["idx"].astype(np.int64), z["uv"].astype(np.float64))
             vmap, idx, uv = hit
-            if not (vmap.ndim == 1 and idx.ndim == 2 and idx.shape == f32.shape and uv.shape == (len(vmap), 2)
-                    and (len(vmap) == 0 or (vmap.min() >= 0 and vmap.max() < len(v32))) and idx.min() >= 0 and idx.max() < len(vmap)):
+            if not (
+                vmap.ndim == 1
+                and idx.ndim == 2
+                and idx.shape == f32.shape
+                and uv.shape == (len(vmap), 2)
+                and (len(vmap) == 0 or (vmap.min() >= 0 and vmap.max() < len(v32)))
+                and idx.min() >= 0
+                and idx.max() < len(vmap)
+            ):
                 raise ValueError("inconsistent atlas arrays")
         except Exception:  # noqa: BLE001 - damaged (a truncated zip), foreign or inconsistent: drop it, rebuild below
             hit = None
@@ -488,7 +497,9 @@ def _patch_parts() -> _Parts:
 
     v, f, uv, which = _box_faces((side, side, t), uv_of_face)
     optimizable = which == 4  # "+z" is the 5th face of _box_faces
-    return _Parts(v, f, uv, tx.patch_shader(), optimizable=optimizable, islands={"top": PATCH_TOP_UV}, uv_side_m=side / w)
+    return _Parts(
+        v, f, uv, tx.patch_shader(), optimizable=optimizable, islands={"top": PATCH_TOP_UV}, uv_side_m=side / w
+    )
 
 
 _BUILDERS: dict[str, Callable[[], _Parts]] = {
@@ -686,7 +697,9 @@ def _check_obj_references(path: Path) -> None:
     def inside(name: str, what: str) -> Path:
         target = (base / name).resolve()
         if base not in target.parents:
-            raise AssetError(f"{path}: {what} {name!r} lies outside the mesh's folder {base}; keep materials and images beside the mesh")
+            raise AssetError(
+                f"{path}: {what} {name!r} lies outside the mesh's folder {base}; keep materials and images beside the mesh"
+            )
         return target
 
     try:
@@ -720,10 +733,18 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None
     if not path.is_file():
         raise AssetError(f"{label}: mesh file not found")
     if path.suffix.lower() not in _MESH_EXTS:
-        hint = (" (MuJoCo's binary mesh: use the STL/OBJ the MJCF was made from, or write the loaded model's mesh_vert/mesh_face "
-                "out with trimesh)") if path.suffix.lower() == ".msh" else ""
-        raise AssetError(f"{label}: {path.suffix or 'no extension'} is not a mesh format advobj reads{hint}; give "
-                         f"{', '.join(sorted(e.lstrip('.').upper() for e in _MESH_EXTS))}")
+        hint = (
+            (
+                " (MuJoCo's binary mesh: use the STL/OBJ the MJCF was made from, or write the loaded model's mesh_vert/mesh_face "
+                "out with trimesh)"
+            )
+            if path.suffix.lower() == ".msh"
+            else ""
+        )
+        raise AssetError(
+            f"{label}: {path.suffix or 'no extension'} is not a mesh format advobj reads{hint}; give "
+            f"{', '.join(sorted(e.lstrip('.').upper() for e in _MESH_EXTS))}"
+        )
     if path.suffix.lower() == ".obj":
         _check_obj_references(path)
     try:
@@ -805,13 +826,21 @@ def default_up_axis(source) -> str:
 def _size_hint(longest_m: float, scale) -> str:
     for unit, f in (("mm", 0.001), ("cm", 0.01)):
         if PLAUSIBLE_SIZE_M[0] <= longest_m * f <= PLAUSIBLE_SIZE_M[1]:
-            return (f"set `units: {unit}` on the object if the file is in {unit} ({longest_m * f * 100:.1f} cm then), "
-                    "or a `scale:` that gives its real size")
+            return (
+                f"set `units: {unit}` on the object if the file is in {unit} ({longest_m * f * 100:.1f} cm then), "
+                "or a `scale:` that gives its real size"
+            )
     return "set `units: mm|cm|m` or a `scale:` on the object that gives its real size"
 
 
-def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, float] = 1.0, units: str = "m",
-               up_axis: str | None = None, placement: str = "auto", warn=None) -> trimesh.Trimesh:
+def build_mesh(
+    source: str | os.PathLike,
+    scale: float | tuple[float, float, float] = 1.0,
+    units: str = "m",
+    up_axis: str | None = None,
+    placement: str = "auto",
+    warn=None,
+) -> trimesh.Trimesh:
     """A fresh mesh from a built-in name (:data:`BUILTIN_MESHES`) or a mesh file path, scaled.
 
     ``scale``: one factor or per-axis (x, y, z) factors of the object frame, applied after
@@ -844,6 +873,7 @@ def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, flo
         return mesh
     if Path(key).suffix.lower() not in _MESH_EXTS and not Path(key).exists():
         raise AssetError(f"{key!r}: not a built-in mesh ({', '.join(BUILTIN_MESHES)}) nor a mesh file path")
+
     def prepare(v: np.ndarray) -> np.ndarray:
         v = v * UNITS_M[units]
         if (up_axis or default_up_axis(key)) == "y":
@@ -853,19 +883,25 @@ def build_mesh(source: str | os.PathLike, scale: float | tuple[float, float, flo
         longest = float((hi - lo).max())
         if not PLAUSIBLE_SIZE_M[0] <= longest <= PLAUSIBLE_SIZE_M[1]:
             shown = f"{longest:.3g} m" if longest >= 1 else f"{longest * 100:.3g} cm"
-            raise AssetError(f"{key}: its longest side is {shown} (units {units}, scale {scale}), not a plausible object "
-                             f"({PLAUSIBLE_SIZE_M[0] * 100:g} cm to {PLAUSIBLE_SIZE_M[1] * 100:g} cm); "
-                             f"{_size_hint(longest / float(s.max()) / UNITS_M[units], scale)}")
+            raise AssetError(
+                f"{key}: its longest side is {shown} (units {units}, scale {scale}), not a plausible object "
+                f"({PLAUSIBLE_SIZE_M[0] * 100:g} cm to {PLAUSIBLE_SIZE_M[1] * 100:g} cm); "
+                f"{_size_hint(longest / float(s.max()) / UNITS_M[units], scale)}"
+            )
         if placement == "auto":
             shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
             say = warn or (lambda text: warnings.warn(text, stacklevel=4))
             if lo[2] < -PLACEMENT_WARN_M:
-                say(f"{key}: the mesh reaches {-lo[2] * 100:.1f} cm below its origin (below the table): rested on its lowest point")
+                say(
+                    f"{key}: the mesh reaches {-lo[2] * 100:.1f} cm below its origin (below the table): rested on its lowest point"
+                )
             elif lo[2] > PLACEMENT_WARN_M:
                 say(f"{key}: the mesh floats {lo[2] * 100:.1f} cm above its origin: rested on its lowest point")
             if np.hypot(shift[0], shift[1]) > PLACEMENT_WARN_M:
-                say(f"{key}: the origin is {np.hypot(shift[0], shift[1]) * 100:.1f} cm from the base centre in x/y: recentred "
-                    "(placement: keep keeps the file's origin)")
+                say(
+                    f"{key}: the origin is {np.hypot(shift[0], shift[1]) * 100:.1f} cm from the base centre in x/y: recentred "
+                    "(placement: keep keeps the file's origin)"
+                )
             v = v + shift
         return v
 

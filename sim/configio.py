@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import TypeVar
 
 import yaml
-
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from sim.errors import AdvobjError, format_validation_error
@@ -57,8 +56,9 @@ def _plain(value):
     return value
 
 
-def merged(model: M, update: Mapping, *, what: str, source: str | None = None,
-           error: type[Exception] = ConfigError) -> M:
+def merged(
+    model: M, update: Mapping, *, what: str, source: str | None = None, error: type[Exception] = ConfigError
+) -> M:
     """``model`` with the fields in ``update`` replaced, validated again as a whole.
 
     ``Model.model_validate({**model.model_dump(), **update})``: bounds, finiteness and model
@@ -80,8 +80,13 @@ def file_error(cls: Callable[[str], Exception]) -> Callable[[Path, str], Excepti
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # the C loader when available: ~10x faster on large plans
 
 
-def read_yaml(path: str | Path, what: str, *, error: Callable[[Path, str], Exception] = file_error(ConfigError),
-              mapping: bool = True) -> object:
+def read_yaml(
+    path: str | Path,
+    what: str,
+    *,
+    error: Callable[[Path, str], Exception] = file_error(ConfigError),
+    mapping: bool = True,
+) -> object:
     """The parsed YAML of ``path`` (a ``dict`` unless ``mapping=False``); any failure raises ``error(path, problem)``.
 
     ``what`` names the kind of file in the message ("hardware config", "trial plan"). The problem
@@ -107,8 +112,14 @@ def read_yaml(path: str | Path, what: str, *, error: Callable[[Path, str], Excep
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         problem = getattr(err, "problem", None)
-        raise error(path, f"not valid YAML{where}" + (f" ({' '.join(str(problem).split())})" if problem else "")) from None
-    except (ValueError, TypeError, OverflowError) as err:  # a scalar the constructor cannot build (e.g. a huge timestamp)
+        raise error(
+            path, f"not valid YAML{where}" + (f" ({' '.join(str(problem).split())})" if problem else "")
+        ) from None
+    except (
+        ValueError,
+        TypeError,
+        OverflowError,
+    ) as err:  # a scalar the constructor cannot build (e.g. a huge timestamp)
         raise error(path, f"not a usable {what}: {' '.join(str(err).split())}") from None
     if mapping and not isinstance(data, dict):
         got = "nothing (the file is empty)" if data is None else type(data).__name__

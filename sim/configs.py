@@ -9,8 +9,6 @@ changed spec is detected rather than silently reinterpreted.
 
 from __future__ import annotations
 
-from sim.errors import AdvobjError
-
 import hashlib
 import json
 import math
@@ -20,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.errors import AdvobjError
 from sim.geometry import look_at, make_T, rot_z
 
 __all__ = [
@@ -125,7 +124,9 @@ def object_poses_world(object_xy_yaw) -> np.ndarray:
 
 
 @lru_cache(maxsize=64)
-def _mesh_center(mesh: str, scale, units: str = "m", up_axis: str | None = None, placement: str = "auto") -> tuple[float, float, float]:
+def _mesh_center(
+    mesh: str, scale, units: str = "m", up_axis: str | None = None, placement: str = "auto"
+) -> tuple[float, float, float]:
     import warnings
 
     from sim.assets import build_mesh
@@ -148,7 +149,9 @@ def _place_objects(spec, rng: np.random.Generator) -> np.ndarray:
     if not init.randomize_objects:
         return nominal
     for _ in range(_MAX_TRIES):
-        xy = np.stack([rng.uniform(*init.region_x_m, size=len(nominal)), rng.uniform(*init.region_y_m, size=len(nominal))], -1)
+        xy = np.stack(
+            [rng.uniform(*init.region_x_m, size=len(nominal)), rng.uniform(*init.region_y_m, size=len(nominal))], -1
+        )
         d = np.linalg.norm(xy[:, None] - xy[None], axis=-1) + np.eye(len(xy)) * 1e9
         if d.min() >= init.min_separation_m:
             yaw = rng.uniform(-math.pi, math.pi, size=len(nominal))
@@ -226,7 +229,11 @@ def _object_payload(o) -> dict:
 def spec_fingerprint(spec) -> str:
     """Short hash of everything in the spec that affects configurations."""
     payload = json.dumps(
-        {"objects": [_object_payload(o) for o in spec.objects], "init": spec.init.model_dump(), "episode": spec.episode.model_dump()},
+        {
+            "objects": [_object_payload(o) for o in spec.objects],
+            "init": spec.init.model_dump(),
+            "episode": spec.episode.model_dump(),
+        },
         sort_keys=True,
         default=str,
     )
@@ -259,7 +266,9 @@ def load_pool(path: str | Path, spec=None) -> list[InitialConfig]:
     except OSError as err:
         raise PoolError(f"{path}: cannot read config pool ({err.strerror})") from None
     except UnicodeDecodeError as err:
-        raise PoolError(f"{path}: not a JSON config pool: not UTF-8 text (byte {err.start}), is it a binary file?") from None
+        raise PoolError(
+            f"{path}: not a JSON config pool: not UTF-8 text (byte {err.start}), is it a binary file?"
+        ) from None
     except RecursionError:
         raise PoolError(f"{path}: not a usable JSON config pool: nested too deeply") from None
     except json.JSONDecodeError as err:

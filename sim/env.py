@@ -13,9 +13,9 @@ import numpy as np
 
 from sim.action import check_actions, next_tcp_pose
 from sim.configs import InitialConfig
+from sim.errors import AdvobjError
 from sim.expert import expert_actions
 from sim.outcome import NONE, object_distances, reach_outcome
-from sim.errors import AdvobjError
 from sim.render import SceneRenderer
 from sim.variations import Randomization
 from sim.world import SimWorld, _image_size
@@ -49,9 +49,18 @@ class ReachEnv:
     Observations are ``(N, H, W, 3)`` uint8.
     """
 
-    def __init__(self, spec, num_envs: int = 1, image_size=None, seed: int = 0,
-                 randomization: Randomization | None = None, render_masks: bool = False, stereo: bool = False,
-                 render_obs: bool = True, policy_image_size: int | None = None):
+    def __init__(
+        self,
+        spec,
+        num_envs: int = 1,
+        image_size=None,
+        seed: int = 0,
+        randomization: Randomization | None = None,
+        render_masks: bool = False,
+        stereo: bool = False,
+        render_obs: bool = True,
+        policy_image_size: int | None = None,
+    ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.spec = spec
@@ -62,8 +71,10 @@ class ReachEnv:
                 image_size = S
             if _image_size(spec, image_size) != (S, S):
                 h, w = _image_size(spec, image_size)
-                raise EnvError(f"image_size: the env would render {h}x{w} px but the policy reads {S}x{S} px; render at the "
-                               f"policy's size (image_size={S} or None) instead of resizing the observation")
+                raise EnvError(
+                    f"image_size: the env would render {h}x{w} px but the policy reads {S}x{S} px; render at the "
+                    f"policy's size (image_size={S} or None) instead of resizing the observation"
+                )
         self.height, self.width = _image_size(spec, image_size)
         self.render_masks = render_masks
         self.render_obs = render_obs
@@ -142,7 +153,9 @@ class ReachEnv:
         base = self._seed if seed is None else int(seed)
         if seed is None:
             self._seed += self.num_envs  # the next unseeded reset draws fresh configurations
-        self.reset_envs(range(self.num_envs), None if configs is None else configs, seeds=[base + i for i in range(self.num_envs)])
+        self.reset_envs(
+            range(self.num_envs), None if configs is None else configs, seeds=[base + i for i in range(self.num_envs)]
+        )
         return self._obs.copy(), self._info()
 
     def reset_envs(self, indices, configs=None, seeds=None) -> None:
@@ -198,7 +211,9 @@ class ReachEnv:
 
     def expert_actions(self) -> np.ndarray:
         """(N, 6) privileged expert actions for the current states."""
-        return expert_actions(self.T_world_tcp, self.object_centers, self.goal_index, self.max_step_m, self.max_step_rad)
+        return expert_actions(
+            self.T_world_tcp, self.object_centers, self.goal_index, self.max_step_m, self.max_step_rad
+        )
 
     def close(self) -> None:
         self.renderer.close()

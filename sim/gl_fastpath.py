@@ -41,7 +41,13 @@ _ORIGINAL_LIGHTING = None
 _ORIGINAL_FORWARD = None
 _FUNCS: dict | None = None
 
-_c_int, _c_uint, _c_float, _c_ptr, _c_bool = ctypes.c_int, ctypes.c_uint, ctypes.c_float, ctypes.c_void_p, ctypes.c_ubyte
+_c_int, _c_uint, _c_float, _c_ptr, _c_bool = (
+    ctypes.c_int,
+    ctypes.c_uint,
+    ctypes.c_float,
+    ctypes.c_void_p,
+    ctypes.c_ubyte,
+)
 
 
 def _load_funcs() -> dict:

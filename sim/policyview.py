@@ -86,8 +86,16 @@ def fov_deg(K: np.ndarray, width: int, height: int) -> tuple[float, float]:
     return (math.degrees(2 * math.atan(0.5 * width / K[0, 0])), math.degrees(2 * math.atan(0.5 * height / K[1, 1])))
 
 
-def view_mismatch(K_view: np.ndarray, K_train: np.ndarray, size: int, T_tcp_cam: np.ndarray, T_tcp_cam_train: np.ndarray,
-                  fov_tol_deg: float = 5.0, mount_tol_m: float = 0.02, mount_tol_deg: float = 5.0) -> list[str]:
+def view_mismatch(
+    K_view: np.ndarray,
+    K_train: np.ndarray,
+    size: int,
+    T_tcp_cam: np.ndarray,
+    T_tcp_cam_train: np.ndarray,
+    fov_tol_deg: float = 5.0,
+    mount_tol_m: float = 0.02,
+    mount_tol_deg: float = 5.0,
+) -> list[str]:
     """Sentences for every way the camera the policy looks through differs from its training camera
     beyond the tolerances: field of view, pixel aspect, principal point, mount position and angle."""
     from sim.geometry import rotation_angle
@@ -96,18 +104,26 @@ def view_mismatch(K_view: np.ndarray, K_train: np.ndarray, size: int, T_tcp_cam:
     fx, fy = fov_deg(K_view, size, size)
     tx, ty = fov_deg(K_train, size, size)
     if abs(fx - tx) > fov_tol_deg or abs(fy - ty) > fov_tol_deg:
-        out.append(f"field of view {fx:.1f} x {fy:.1f} deg as the policy sees it, trained at {tx:.1f} x {ty:.1f} deg "
-                   f"(tolerance {fov_tol_deg:g} deg): objects appear {'smaller' if fx > tx else 'larger'} than in training")
+        out.append(
+            f"field of view {fx:.1f} x {fy:.1f} deg as the policy sees it, trained at {tx:.1f} x {ty:.1f} deg "
+            f"(tolerance {fov_tol_deg:g} deg): objects appear {'smaller' if fx > tx else 'larger'} than in training"
+        )
     if abs(K_view[0, 0] / K_view[1, 1] - 1.0) > 0.02:
-        out.append(f"pixels are {K_view[0, 0] / K_view[1, 1]:.2f} times as wide as tall in the policy's view (a squashed frame); "
-                   "use preprocess center_crop or letterbox")
+        out.append(
+            f"pixels are {K_view[0, 0] / K_view[1, 1]:.2f} times as wide as tall in the policy's view (a squashed frame); "
+            "use preprocess center_crop or letterbox"
+        )
     off = np.hypot(K_view[0, 2] - K_train[0, 2], K_view[1, 2] - K_train[1, 2])
     if off > 0.05 * size:
-        out.append(f"the principal point is {off:.1f} px ({100 * off / size:.0f} % of the image) from the training camera's")
+        out.append(
+            f"the principal point is {off:.1f} px ({100 * off / size:.0f} % of the image) from the training camera's"
+        )
     T, U = np.asarray(T_tcp_cam, dtype=np.float64), np.asarray(T_tcp_cam_train, dtype=np.float64)
     dt = float(np.linalg.norm(T[:3, 3] - U[:3, 3]))
     da = math.degrees(rotation_angle(T[:3, :3], U[:3, :3]))
     if dt > mount_tol_m or da > mount_tol_deg:
-        out.append(f"the camera mount T_tcp_cam differs from the training camera's by {100 * dt:.1f} cm and {da:.1f} deg "
-                   f"(tolerance {100 * mount_tol_m:g} cm, {mount_tol_deg:g} deg)")
+        out.append(
+            f"the camera mount T_tcp_cam differs from the training camera's by {100 * dt:.1f} cm and {da:.1f} deg "
+            f"(tolerance {100 * mount_tol_m:g} cm, {mount_tol_deg:g} deg)"
+        )
     return out

@@ -28,10 +28,10 @@ Id codes (24-bit, ``r << 16 | g << 8 | b``):
 
 from __future__ import annotations
 
-from sim.errors import AdvobjError
-
 import os
 from dataclasses import dataclass, field
+
+from sim.errors import AdvobjError
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
@@ -79,17 +79,28 @@ def frustum_normals(K: np.ndarray, width: int, height: int, margin_px: float = 2
     """
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     m = float(margin_px)
-    n = np.array([
-        [fx, 0.0, cx + 0.5 + m],
-        [-fx, 0.0, width + m - cx - 0.5],
-        [0.0, fy, cy + 0.5 + m],
-        [0.0, -fy, height + m - cy - 0.5],
-    ])
+    n = np.array(
+        [
+            [fx, 0.0, cx + 0.5 + m],
+            [-fx, 0.0, width + m - cx - 0.5],
+            [0.0, fy, cy + 0.5 + m],
+            [0.0, -fy, height + m - cy - 0.5],
+        ]
+    )
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
-def spheres_outside_frustum(centers_cam: np.ndarray, radii: np.ndarray, K: np.ndarray, width: int, height: int,
-                            znear: float, zfar: float, margin_px: float = 2.0, normals: np.ndarray | None = None) -> np.ndarray:
+def spheres_outside_frustum(
+    centers_cam: np.ndarray,
+    radii: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    znear: float,
+    zfar: float,
+    margin_px: float = 2.0,
+    normals: np.ndarray | None = None,
+) -> np.ndarray:
     """Which spheres lie entirely outside the camera's view frustum: ``(N,)`` bool.
 
     centers_cam: (N, 3) m sphere centres in the OpenCV camera frame; radii: (N,) m; K: (3, 3)
@@ -304,8 +315,15 @@ class SceneRenderer:
             images are pixel-identical; :attr:`culled` lists the objects skipped last render).
     """
 
-    def __init__(self, spec, width: int | None = None, height: int | None = None, meshes=None, face_coded=None,
-                 frustum_cull: bool = True):
+    def __init__(
+        self,
+        spec,
+        width: int | None = None,
+        height: int | None = None,
+        meshes=None,
+        face_coded=None,
+        frustum_cull: bool = True,
+    ):
         try:
             import pyrender
         except Exception as err:  # ImportError, or PyOpenGL failing to find the platform library
@@ -339,7 +357,9 @@ class SceneRenderer:
 
         # Table: a tiled texture (repeat wrap) on a box whose top is z = 0.
         self._table_mesh = table_mesh(tuple(spec.table.size_m), spec.table.thickness_m)
-        self._table = self._add_static(self._table_mesh, spec.table.texture, TABLE_ID, repeat=True, default_name="table")
+        self._table = self._add_static(
+            self._table_mesh, spec.table.texture, TABLE_ID, repeat=True, default_name="table"
+        )
 
         # Gripper: children of a TCP node so one pose update moves all parts.
         self._tcp_node = pyrender.Node(name="tcp", matrix=np.eye(4))
@@ -369,8 +389,12 @@ class SceneRenderer:
         self.culled: tuple[int, ...] = ()
         # Bounding spheres in the object frames: bounding-box centre, farthest vertex.
         self._sphere_c = np.array([(o.mesh.bounds[0] + o.mesh.bounds[1]) / 2.0 for o in self._objects]).reshape(-1, 3)
-        self._sphere_r = np.array([np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=-1).max()
-                                   for o, c in zip(self._objects, self._sphere_c)])
+        self._sphere_r = np.array(
+            [
+                np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=-1).max()
+                for o, c in zip(self._objects, self._sphere_c)
+            ]
+        )
         self._T_world_objects = np.tile(np.eye(4), (len(self._objects), 1, 1))
         self._frustum_normals = frustum_normals(self.K, self.width, self.height)
 
@@ -417,7 +441,8 @@ class SceneRenderer:
         for light in lighting.lights:
             if light.type == "directional":
                 node = self.scene.add(
-                    pyrender.DirectionalLight(color=light.color, intensity=light.intensity), pose=_light_pose(light.direction)
+                    pyrender.DirectionalLight(color=light.color, intensity=light.intensity),
+                    pose=_light_pose(light.direction),
                 )
             else:
                 node = self.scene.add(
@@ -442,7 +467,9 @@ class SceneRenderer:
         self.set_lights(appearance.lighting)
         self.set_background(appearance.background if appearance.background is not None else self.spec.background)
         if appearance.table_variant != getattr(getattr(self, "_appearance", None), "table_variant", -1):
-            tex = self._table_texture if appearance.table_variant < 0 else table_variant_texture(appearance.table_variant)
+            tex = (
+                self._table_texture if appearance.table_variant < 0 else table_variant_texture(appearance.table_variant)
+            )
             self.set_table_texture(tex)
         self._appearance = appearance
 
@@ -494,8 +521,16 @@ class SceneRenderer:
         R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
         centers_cam = (centers_world - t) @ R  # R^T (p - t), row-wise
         cam = self.spec.camera
-        out = spheres_outside_frustum(centers_cam, self._sphere_r, self.K, self.width, self.height, cam.znear_m, cam.zfar_m,
-                                      normals=self._frustum_normals)
+        out = spheres_outside_frustum(
+            centers_cam,
+            self._sphere_r,
+            self.K,
+            self.width,
+            self.height,
+            cam.znear_m,
+            cam.zfar_m,
+            normals=self._frustum_normals,
+        )
         return tuple(int(k) for k in np.flatnonzero(out))
 
     def _set_pass(self, color_pass: bool, variants: dict, isolate: int | None = None) -> None:
@@ -514,8 +549,14 @@ class SceneRenderer:
             for name, node in obj.variants.items():
                 node.mesh.is_visible = color_pass and shown and chosen == name
 
-    def render(self, T_world_cam: np.ndarray, with_ids: bool = True, with_color: bool = True, variants=None,
-               isolate: int | None = None) -> RenderOutput:
+    def render(
+        self,
+        T_world_cam: np.ndarray,
+        with_ids: bool = True,
+        with_color: bool = True,
+        variants=None,
+        isolate: int | None = None,
+    ) -> RenderOutput:
         """Render from an OpenCV camera pose ``T_world_cam: (4, 4)``.
 
         ``variants``: ``{object index: variant name}`` swaps in looks registered with
@@ -550,7 +591,9 @@ class SceneRenderer:
             depth = d2 if depth is None else depth
         if rgb is None:
             rgb = np.zeros((self.height, self.width, 3), np.uint8)
-        return RenderOutput(np.ascontiguousarray(rgb), depth.astype(np.float32), ids, self.object_names, self.face_coded)
+        return RenderOutput(
+            np.ascontiguousarray(rgb), depth.astype(np.float32), ids, self.object_names, self.face_coded
+        )
 
     def close(self) -> None:
         """Free this renderer's GL resources (other renderers keep working)."""

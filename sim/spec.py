@@ -6,8 +6,6 @@ dotted path (``objects.1.pose.yaw_deg: ...``) and the file it came from.
 
 from __future__ import annotations
 
-from sim.errors import AdvobjError, format_validation_error
-
 import math
 from importlib import resources
 from pathlib import Path
@@ -18,6 +16,7 @@ import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from sim.configio import StrictModel, file_error, merged, read_yaml
+from sim.errors import AdvobjError, format_validation_error
 from sim.geometry import make_T, so3_exp
 
 __all__ = [
@@ -109,9 +108,14 @@ class ObjectSpec(_Strict):
     texture: str | Rgb | None = None
     # Mesh files as exported (ignored for built-in meshes; see sim.assets.build_mesh).
     units: Literal["m", "cm", "mm"] = Field("m", description="length unit of the mesh file (scans are often mm)")
-    up_axis: Literal["z", "y"] | None = Field(None, description="the file's up axis; default: +Y for .glb/.gltf (glTF spec), else +Z")
-    placement: Literal["auto", "keep"] = Field("auto", description="auto: rest on the lowest point and centre in x/y (warned when "
-                                                                   "it moves the mesh); keep: the file's origin is the object frame")
+    up_axis: Literal["z", "y"] | None = Field(
+        None, description="the file's up axis; default: +Y for .glb/.gltf (glTF spec), else +Z"
+    )
+    placement: Literal["auto", "keep"] = Field(
+        "auto",
+        description="auto: rest on the lowest point and centre in x/y (warned when "
+        "it moves the mesh); keep: the file's origin is the object frame",
+    )
 
     def mesh_kwargs(self) -> dict:
         """The arguments of :func:`sim.assets.build_mesh` besides the source and scale."""
@@ -299,12 +303,16 @@ def _resolve_paths(spec: SceneSpec, source: str) -> SceneSpec:
             return p
         target = (base / p).resolve()
         if base not in target.parents:
-            raise SpecError(f"{source}: {field}: texture {p!r} lies outside the scene file's folder {base}; "
-                            "put the image next to the scene (or below it) and name it relatively")
+            raise SpecError(
+                f"{source}: {field}: texture {p!r} lies outside the scene file's folder {base}; "
+                "put the image next to the scene (or below it) and name it relatively"
+            )
         return str(target)
 
-    objects = [{**o.model_dump(), "mesh": fix(o.mesh), "texture": texture(o.texture, f"objects.{i}.texture")}
-               for i, o in enumerate(spec.objects)]
+    objects = [
+        {**o.model_dump(), "mesh": fix(o.mesh), "texture": texture(o.texture, f"objects.{i}.texture")}
+        for i, o in enumerate(spec.objects)
+    ]
     table = {**spec.table.model_dump(), "texture": texture(spec.table.texture, "table.texture")}
     return merged(spec, {"objects": objects, "table": table}, what="scene spec", source=source, error=SpecError)
 

@@ -54,7 +54,14 @@ class Proportion:
     confidence: float
 
     def to_dict(self) -> dict:
-        return {"k": self.k, "n": self.n, "rate": self.rate, "lo": self.lo, "hi": self.hi, "confidence": self.confidence}
+        return {
+            "k": self.k,
+            "n": self.n,
+            "rate": self.rate,
+            "lo": self.lo,
+            "hi": self.hi,
+            "confidence": self.confidence,
+        }
 
     def __str__(self) -> str:
         pct = int(round(self.confidence * 100))

@@ -119,7 +119,9 @@ def _dilate(rgb: np.ndarray, covered: np.ndarray, steps: int, fill: np.ndarray) 
     return rgb
 
 
-def bake_vertex_values(faces: np.ndarray, uv: np.ndarray, values: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+def bake_vertex_values(
+    faces: np.ndarray, uv: np.ndarray, values: np.ndarray, size: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-vertex ``values`` (V, C) interpolated to every texel of an (S, S) texture.
 
     Returns (S, S, C) float64 values and the (S, S) bool mask of texels some face maps to.
@@ -283,8 +285,16 @@ def mustard_shader(body_top_m: float, cap_bottom_m: float, half_width_m: float) 
 
 def cube_shader(size_m: float) -> Shader:
     """Cube: a distinct pastel per face with a darker border, so orientation is visible."""
-    colors = np.array([_rgb(230, 120, 110), _rgb(110, 190, 120), _rgb(110, 140, 220),
-                       _rgb(230, 210, 110), _rgb(190, 120, 210), _rgb(120, 210, 210)])
+    colors = np.array(
+        [
+            _rgb(230, 120, 110),
+            _rgb(110, 190, 120),
+            _rgb(110, 140, 220),
+            _rgb(230, 210, 110),
+            _rgb(190, 120, 210),
+            _rgb(120, 210, 210),
+        ]
+    )
 
     def shade(p, n, tags):
         axis = np.argmax(np.abs(n), -1)
@@ -335,8 +345,10 @@ def duck_shader() -> Shader:
     """Rubber-duck colours by part (tags index :data:`DUCK_PARTS`)."""
     yellow = _rgb(250, 210, 40)
     orange = _rgb(240, 130, 20)
-    return _tagged({0: yellow, 1: yellow, 2: yellow, 3: yellow * 0.92, 4: orange, 5: _rgb(20, 20, 25),
-                    6: orange, 7: orange}, yellow)
+    return _tagged(
+        {0: yellow, 1: yellow, 2: yellow, 3: yellow * 0.92, 4: orange, 5: _rgb(20, 20, 25), 6: orange, 7: orange},
+        yellow,
+    )
 
 
 def dog_shader() -> Shader:

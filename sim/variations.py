@@ -14,7 +14,14 @@ import numpy as np
 
 from sim.spec import LightingSpec, LightSpec
 
-__all__ = ["Randomization", "Appearance", "sample_appearance", "add_sensor_noise", "table_variant_texture", "NUM_TABLE_VARIANTS"]
+__all__ = [
+    "Randomization",
+    "Appearance",
+    "sample_appearance",
+    "add_sensor_noise",
+    "table_variant_texture",
+    "NUM_TABLE_VARIANTS",
+]
 
 NUM_TABLE_VARIANTS = 8
 # background "mixed": share of episodes that keep the spec's own table and backdrop.
@@ -75,7 +82,10 @@ def sample_appearance(spec, randomization: Randomization, rng: np.random.Generat
         direction = (-np.cos(el) * np.cos(az), -np.cos(el) * np.sin(az), -np.sin(el))
         tint = np.clip(1.0 + rng.normal(0.0, 0.06, 3), 0.8, 1.0)
         light = LightSpec(
-            type="directional", intensity=float(rng.uniform(1.2, 5.0)), color=tuple(float(c) for c in tint), direction=direction
+            type="directional",
+            intensity=float(rng.uniform(1.2, 5.0)),
+            color=tuple(float(c) for c in tint),
+            direction=direction,
         )
         amb = float(rng.uniform(0.15, 0.5))
         lighting = LightingSpec(ambient=(amb, amb, amb), lights=[light])

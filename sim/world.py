@@ -37,8 +37,14 @@ class SimWorld:
         randomization: per-episode appearance variation (default: none).
     """
 
-    def __init__(self, spec, image_size=None, seed: int = 0, renderer: SceneRenderer | None = None,
-                 randomization: Randomization | None = None):
+    def __init__(
+        self,
+        spec,
+        image_size=None,
+        seed: int = 0,
+        renderer: SceneRenderer | None = None,
+        randomization: Randomization | None = None,
+    ):
         self.spec = spec
         self.height, self.width = _image_size(spec, image_size)
         self._owns_renderer = renderer is None
@@ -87,7 +93,9 @@ class SimWorld:
         uploads); ``None`` builds one that this world owns. A renderer this world owned is closed.
         """
         if len(spec.objects) != len(self.spec.objects):
-            raise ValueError(f"set_scene: the new scene has {len(spec.objects)} objects, this world {len(self.spec.objects)}")
+            raise ValueError(
+                f"set_scene: the new scene has {len(spec.objects)} objects, this world {len(self.spec.objects)}"
+            )
         new = renderer or SceneRenderer(spec, self.width, self.height)
         if (new.height, new.width) != (self.height, self.width):
             raise ValueError("set_scene: renderer has a different image size")
@@ -146,7 +154,9 @@ class SimWorld:
     def render(self, T_world_cam: np.ndarray | None = None, with_ids: bool = True, variants=None) -> RenderOutput:
         """Render the current state; default camera = the wrist camera at the current TCP pose."""
         self.prepare()
-        out = self.renderer.render(self.camera_pose() if T_world_cam is None else T_world_cam, with_ids=with_ids, variants=variants)
+        out = self.renderer.render(
+            self.camera_pose() if T_world_cam is None else T_world_cam, with_ids=with_ids, variants=variants
+        )
         out.rgb = add_sensor_noise(out.rgb, self.appearance.noise_std, self._noise_rng)
         return out
 

@@ -10,7 +10,7 @@ import itertools
 
 import torch
 
-from sim.policies.checkpoint import ActionScaling, PolicyCard
+from sim.policies.card import ActionScaling, PolicyCard
 from sim.policies.contract import ActionContract, PolicyContract
 from sim.policies.policy import PolicyArch, VisuomotorPolicy
 
@@ -27,8 +27,15 @@ def contract_of(state, action) -> PolicyContract:
 
 def tiny_policy(contract: PolicyContract, seed: int = 0, size: int = 32) -> VisuomotorPolicy:
     torch.manual_seed(seed)
-    arch = PolicyArch(arch="small_cnn", image_size=size, head_hidden=16, head_channels=4, state_dim=contract.state_dim,
-                      chunk=contract.action.chunk, output="tanh" if contract.action.kind == "delta_tcp" else "linear")
+    arch = PolicyArch(
+        arch="small_cnn",
+        image_size=size,
+        head_hidden=16,
+        head_channels=4,
+        state_dim=contract.state_dim,
+        chunk=contract.action.chunk,
+        output="tanh" if contract.action.kind == "delta_tcp" else "linear",
+    )
     p = VisuomotorPolicy(arch, contract=contract)
     if contract.action.kind == "absolute_tcp":
         # targets around a point above the table, pointing down: what a reach policy outputs
@@ -41,5 +48,9 @@ def tiny_policy(contract: PolicyContract, seed: int = 0, size: int = 32) -> Visu
 
 
 def card_of(policy: VisuomotorPolicy) -> PolicyCard:
-    return PolicyCard(arch=policy.config, contract=policy.contract, action=ActionScaling(max_step_m=0.02, max_step_rad=0.1),
-                      training={"method": "test"})
+    return PolicyCard(
+        arch=policy.config,
+        contract=policy.contract,
+        action=ActionScaling(max_step_m=0.02, max_step_rad=0.1),
+        training={"method": "test"},
+    )

@@ -38,8 +38,14 @@ def _machine() -> dict:
                 break
     except OSError:
         pass
-    return {"cpus": os.cpu_count(), "cpu_model": model, "machine": platform.machine(), "system": platform.system(),
-            "python": platform.python_version(), "load_avg_start": list(os.getloadavg())}
+    return {
+        "cpus": os.cpu_count(),
+        "cpu_model": model,
+        "machine": platform.machine(),
+        "system": platform.system(),
+        "python": platform.python_version(),
+        "load_avg_start": list(os.getloadavg()),
+    }
 
 
 def _commit() -> str:
@@ -49,26 +55,45 @@ def _commit() -> str:
     return git_commit()
 
 
-def run(recipe: str, episodes: int, policy: str | None, work: Path, results: Path, extra: list[str], name: str | None = None) -> int:
+def run(
+    recipe: str, episodes: int, policy: str | None, work: Path, results: Path, extra: list[str], name: str | None = None
+) -> int:
     name = name or recipe
     out = work / name
     # Paths relative to the checkout, so the recorded command is the one a reader types there.
-    cmd = [str(ROOT / ".venv" / "bin" / "advobj"), "experiment", recipe, "--preset", "quick", "--episodes", str(episodes),
-           "--out", os.path.relpath(out, ROOT)]
+    cmd = [
+        str(ROOT / ".venv" / "bin" / "advobj"),
+        "experiment",
+        recipe,
+        "--preset",
+        "quick",
+        "--episodes",
+        str(episodes),
+        "--out",
+        os.path.relpath(out, ROOT),
+    ]
     if policy:
         cmd += ["--policy", policy]
     cmd += extra
     record_path = results / name / "run.json"
     record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
-    attempt = {"command": " ".join(["advobj"] + cmd[1:]), "commit": _commit(), "machine": _machine(),
-               "start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    attempt = {
+        "command": " ".join(["advobj"] + cmd[1:]),
+        "commit": _commit(),
+        "machine": _machine(),
+        "start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     rc = subprocess.call(cmd, cwd=ROOT)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    attempt.update(wall_s=round(time.perf_counter() - t0, 1),
-                   cpu_s=round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1),
-                   exit_code=rc, end_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), load_avg_end=list(os.getloadavg()))
+    attempt.update(
+        wall_s=round(time.perf_counter() - t0, 1),
+        cpu_s=round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1),
+        exit_code=rc,
+        end_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        load_avg_end=list(os.getloadavg()),
+    )
     record["attempts"].append(attempt)
     (results / name).mkdir(parents=True, exist_ok=True)
     record_path.write_text(json.dumps(record, indent=2))
@@ -104,9 +129,14 @@ def collect(name: str, work: Path, results: Path) -> Path:
             continue
         m = json.loads((at / "metrics.json").read_text())
         cfg = json.loads((at / "run.json").read_text())["config"]["attack"]
-        attacks[at.name] = {"config": cfg, "iterations": m["iterations"], "seconds": m["seconds"],
-                            "validation": m.get("validation"), "initial_loss_pose": m.get("initial_loss_pose"),
-                            "final_loss_pose": m.get("final_loss_pose")}
+        attacks[at.name] = {
+            "config": cfg,
+            "iterations": m["iterations"],
+            "seconds": m["seconds"],
+            "validation": m.get("validation"),
+            "initial_loss_pose": m.get("initial_loss_pose"),
+            "final_loss_pose": m.get("final_loss_pose"),
+        }
         shutil.copyfile(at / "texture.png", dst / "textures" / f"{at.name}.png")
     (dst / "attacks.json").write_text(json.dumps(attacks, indent=1))
     policies = {}
@@ -154,7 +184,7 @@ def main(argv=None) -> int:
     k.add_argument("--command", required=True, help="the command that trained it")
     k.add_argument("--results", type=Path, default=ROOT / "results")
     argv = list(sys.argv[1:] if argv is None else argv)
-    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
     a = ap.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
     a.extra = extra
     if a.cmd == "card":

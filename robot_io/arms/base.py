@@ -16,8 +16,9 @@ from robot_io.device import Device
 
 __all__ = ["Fault", "Arm"]
 
-FaultKind = Literal["protective_stop", "emergency_stop", "connection_lost", "program_stopped",
-                    "heartbeat_timeout", "device_fault"]
+FaultKind = Literal[
+    "protective_stop", "emergency_stop", "connection_lost", "program_stopped", "heartbeat_timeout", "device_fault"
+]
 
 
 @dataclass(frozen=True)

@@ -35,11 +35,17 @@ STOP_BYTE = b"!"
 SEQ_MODULO = 10000
 # Device fault codes -> Fault kinds, with what the operator does about each.
 FAULT_KINDS = {
-    "HEARTBEAT": ("heartbeat_timeout", "the device stopped: no command within its heartbeat timeout",
-                  "find why the host stalled, then reconnect (connect() clears the fault)"),
+    "HEARTBEAT": (
+        "heartbeat_timeout",
+        "the device stopped: no command within its heartbeat timeout",
+        "find why the host stalled, then reconnect (connect() clears the fault)",
+    ),
     "ESTOP": ("emergency_stop", "the emergency stop is pressed", "release the e-stop, then reconnect"),
-    "PSTOP": ("protective_stop", "the controller raised a protective stop (collision or limit)",
-              "clear the workspace, then reconnect (connect() sends CLEAR)"),
+    "PSTOP": (
+        "protective_stop",
+        "the controller raised a protective stop (collision or limit)",
+        "clear the workspace, then reconnect (connect() sends CLEAR)",
+    ),
 }
 
 
@@ -98,8 +104,15 @@ class SerialArm(Arm):
 
     name = "serial"
 
-    def __init__(self, port: str, baudrate: int = 115200, timeout_ms: float = 200.0, retries: int = 3,
-                 boot_timeout_ms: float = 3000.0, expect_banner: bool = True):
+    def __init__(
+        self,
+        port: str,
+        baudrate: int = 115200,
+        timeout_ms: float = 200.0,
+        retries: int = 3,
+        boot_timeout_ms: float = 3000.0,
+        expect_banner: bool = True,
+    ):
         super().__init__()
         self.port = port
         self.baudrate = int(baudrate)
@@ -131,8 +144,13 @@ class SerialArm(Arm):
         try:
             self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)
         except (serial.SerialException, OSError, ValueError) as err:
-            raise ArmFaultError(Fault("connection_lost", f"cannot open serial port {self.port}: {err}",
-                                      "check the cable and the port name (ls /dev/serial/by-id/)")) from None
+            raise ArmFaultError(
+                Fault(
+                    "connection_lost",
+                    f"cannot open serial port {self.port}: {err}",
+                    "check the cable and the port name (ls /dev/serial/by-id/)",
+                )
+            ) from None
         self._buf.clear()
         self._link_lost = None
         # A random first SEQ: a new session must not look like a resend of the previous session's
@@ -150,8 +168,10 @@ class SerialArm(Arm):
             else:
                 info = dict(f.split("=", 1) for f in banner.split()[1:] if "=" in f)
             if info.get("proto") != str(PROTOCOL_VERSION):
-                raise ProtocolError(f"serial arm on {self.port} speaks protocol {info.get('proto', '?')}, "
-                                    f"this host speaks {PROTOCOL_VERSION}: update the firmware or advobj")
+                raise ProtocolError(
+                    f"serial arm on {self.port} speaks protocol {info.get('proto', '?')}, "
+                    f"this host speaks {PROTOCOL_VERSION}: update the firmware or advobj"
+                )
             self.device_info = info
             self._transact(["CLEAR"])
         except BaseException:
@@ -208,7 +228,7 @@ class SerialArm(Arm):
             # Bootloaders print noise before the firmware starts; only a '#BOOT' line counts.
             at = line.find(b"#BOOT")  # noise may share the banner's line
             if at >= 0:
-                return line[at + 1:].decode("ascii", "replace").strip()
+                return line[at + 1 :].decode("ascii", "replace").strip()
         log.warning("serial arm %s: no boot banner within %.0f ms; sending HELLO", self.port, self.boot_timeout_ms)
         return None
 
@@ -228,8 +248,13 @@ class SerialArm(Arm):
                     reply = self._await_reply(seq)
                 except OSError as err:  # pyserial's SerialException is an OSError: unplugged, port gone
                     self._link_lost = f"serial I/O error ({err})"
-                    raise ArmFaultError(Fault("connection_lost", f"serial arm {self.port}: {self._link_lost}",
-                                              "check the cable and that the controller is powered, then reconnect")) from None
+                    raise ArmFaultError(
+                        Fault(
+                            "connection_lost",
+                            f"serial arm {self.port}: {self._link_lost}",
+                            "check the cable and that the controller is powered, then reconnect",
+                        )
+                    ) from None
                 if reply is None:
                     continue
                 status, rest = reply[0], reply[1:]
@@ -243,9 +268,16 @@ class SerialArm(Arm):
                 if code == "FAULT":
                     raise ArmFaultError(self._status_fault() or Fault("device_fault", " ".join(rest), ""))
                 raise ProtocolError(f"serial arm {self.port} rejected {fields[0]}: ERR {' '.join(rest)}")
-            self._link_lost = f"no valid reply to {fields[0]} after {self.retries + 1} attempts of {self.timeout_ms:.0f} ms"
-            raise ArmFaultError(Fault("connection_lost", f"serial arm {self.port}: {self._link_lost}",
-                                      "check the cable and that the controller is powered, then reconnect"))
+            self._link_lost = (
+                f"no valid reply to {fields[0]} after {self.retries + 1} attempts of {self.timeout_ms:.0f} ms"
+            )
+            raise ArmFaultError(
+                Fault(
+                    "connection_lost",
+                    f"serial arm {self.port}: {self._link_lost}",
+                    "check the cable and that the controller is powered, then reconnect",
+                )
+            )
 
     def _await_reply(self, seq: int) -> list[str] | None:
         deadline = time.monotonic() + self.timeout_ms / 1000.0
@@ -293,8 +325,11 @@ class SerialArm(Arm):
         if self._ser is None:
             return Fault("connection_lost", f"serial arm {self.port} is not connected", "call connect()")
         if self._link_lost:
-            return Fault("connection_lost", f"serial arm {self.port}: {self._link_lost}",
-                         "check the cable and that the controller is powered, then reconnect")
+            return Fault(
+                "connection_lost",
+                f"serial arm {self.port}: {self._link_lost}",
+                "check the cable and that the controller is powered, then reconnect",
+            )
         try:
             self._drain_notices()
             if time.monotonic() - self._last_status_s > self.status_interval_s:

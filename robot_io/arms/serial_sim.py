@@ -50,11 +50,20 @@ class SerialArmSimulator:
         max_speed_mps, max_speed_radps: the device's own motion limits.
     """
 
-    def __init__(self, fd: int, heartbeat_timeout_ms: float = 500.0, boot_delay_s: float = 0.05,
-                 send_banner: bool = True, boot_noise: bytes = b"\x00\xfe boot v0.1\r\n",
-                 max_speed_mps: float = 0.5, max_speed_radps: float = 2.0,
-                 T_base_tcp: np.ndarray | None = None, keep_fd: int | None = None,
-                 protocol_version: int = PROTOCOL_VERSION, device_id: str = "SIM-0001"):
+    def __init__(
+        self,
+        fd: int,
+        heartbeat_timeout_ms: float = 500.0,
+        boot_delay_s: float = 0.05,
+        send_banner: bool = True,
+        boot_noise: bytes = b"\x00\xfe boot v0.1\r\n",
+        max_speed_mps: float = 0.5,
+        max_speed_radps: float = 2.0,
+        T_base_tcp: np.ndarray | None = None,
+        keep_fd: int | None = None,
+        protocol_version: int = PROTOCOL_VERSION,
+        device_id: str = "SIM-0001",
+    ):
         self.fd = fd
         self.protocol_version = int(protocol_version)
         self.device_id = device_id
@@ -65,7 +74,9 @@ class SerialArmSimulator:
         self.boot_noise = boot_noise
         self.max_speed_mps = float(max_speed_mps)
         self.max_speed_radps = float(max_speed_radps)
-        self.T_base_tcp = pose_from_vec([0.4, 0.0, 0.3, np.pi, 0.0, 0.0]) if T_base_tcp is None else np.array(T_base_tcp, float)
+        self.T_base_tcp = (
+            pose_from_vec([0.4, 0.0, 0.3, np.pi, 0.0, 0.0]) if T_base_tcp is None else np.array(T_base_tcp, float)
+        )
         # Fault injection knobs (see the module docstring).
         self.corrupt_replies = 0
         self.drop_replies = 0
@@ -146,8 +157,11 @@ class SerialArmSimulator:
                     booted = True
                     self._last_rx = now
                     if self.send_banner:
-                        self._send(self.boot_noise + f"#BOOT advobj-arm fw={FIRMWARE} proto={self.protocol_version} "
-                                   f"hb_ms={self.heartbeat_timeout_ms:.0f} id={self.device_id}\n".encode())
+                        self._send(
+                            self.boot_noise
+                            + f"#BOOT advobj-arm fw={FIRMWARE} proto={self.protocol_version} "
+                            f"hb_ms={self.heartbeat_timeout_ms:.0f} id={self.device_id}\n".encode()
+                        )
                     self.booted.set()
                 t_prev = now
                 continue  # input during boot is lost, as on a real board
@@ -230,8 +244,13 @@ class SerialArmSimulator:
     def _execute(self, cmd: str, args: list[str]) -> list[str]:
         with self._lock:
             if cmd == "HELLO":
-                return ["OK", f"proto={self.protocol_version}", f"fw={FIRMWARE}", f"hb_ms={self.heartbeat_timeout_ms:.0f}",
-                        f"id={self.device_id}"]
+                return [
+                    "OK",
+                    f"proto={self.protocol_version}",
+                    f"fw={FIRMWARE}",
+                    f"hb_ms={self.heartbeat_timeout_ms:.0f}",
+                    f"id={self.device_id}",
+                ]
             if cmd == "HB":
                 return ["OK"]
             if cmd == "STATUS":

@@ -56,8 +56,15 @@ class URArm(Arm):
 
     name = "ur_rtde"
 
-    def __init__(self, host: str, mode: Literal["servoL", "speedL"] = "servoL", acceleration_mps2: float = 0.5,
-                 lookahead_time_s: float = 0.1, gain: float = 300.0, watchdog_min_hz: float = 10.0):
+    def __init__(
+        self,
+        host: str,
+        mode: Literal["servoL", "speedL"] = "servoL",
+        acceleration_mps2: float = 0.5,
+        lookahead_time_s: float = 0.1,
+        gain: float = 300.0,
+        watchdog_min_hz: float = 10.0,
+    ):
         super().__init__()
         if mode not in ("servoL", "speedL"):
             raise ValueError(f"mode must be 'servoL' or 'speedL', got {mode!r}")
@@ -78,8 +85,10 @@ class URArm(Arm):
         rtde_receive = require_extra("rtde_receive", "ur", "the UR arm driver")
         self._dashboard_mod = require_extra("dashboard_client", "ur", "the UR arm driver")
         if not hasattr(rtde_control.RTDEControlInterface, "getAsyncOperationProgressEx"):
-            raise MissingExtraError("the installed ur-rtde has no RTDEControlInterface.getAsyncOperationProgressEx, "
-                                    "which the UR driver needs to wait for moveL: pip install -U ur-rtde")
+            raise MissingExtraError(
+                "the installed ur-rtde has no RTDEControlInterface.getAsyncOperationProgressEx, "
+                "which the UR driver needs to wait for moveL: pip install -U ur-rtde"
+            )
         try:
             self._rtde_r = rtde_receive.RTDEReceiveInterface(self.host)
             self._rtde_c = rtde_control.RTDEControlInterface(self.host)
@@ -90,8 +99,13 @@ class URArm(Arm):
             # a control interface its script on the controller.
             self._close_quietly()
             if isinstance(err, RuntimeError):
-                raise ArmFaultError(Fault("connection_lost", f"cannot connect to UR controller at {self.host}: {err}",
-                                          "check the network, that the arm is powered on and in remote control")) from None
+                raise ArmFaultError(
+                    Fault(
+                        "connection_lost",
+                        f"cannot connect to UR controller at {self.host}: {err}",
+                        "check the network, that the arm is powered on and in remote control",
+                    )
+                ) from None
             raise
 
     def _read_controller_identity(self) -> dict[str, str]:
@@ -108,7 +122,9 @@ class URArm(Arm):
             finally:
                 dash.disconnect()
         except Exception as err:  # noqa: BLE001
-            log.warning("UR %s: cannot read the controller's serial number from the dashboard server (%s)", self.host, err)
+            log.warning(
+                "UR %s: cannot read the controller's serial number from the dashboard server (%s)", self.host, err
+            )
         return out
 
     def identity(self) -> dict[str, str]:
@@ -142,16 +158,25 @@ class URArm(Arm):
         if c is None or r is None:
             return Fault("connection_lost", "not connected to the UR controller", "call connect()")
         if not (r.isConnected() and c.isConnected()):
-            return Fault("connection_lost", f"RTDE connection to {self.host} lost",
-                         "check the network cable, then reconnect (the watchdog has stopped the arm)")
+            return Fault(
+                "connection_lost",
+                f"RTDE connection to {self.host} lost",
+                "check the network cable, then reconnect (the watchdog has stopped the arm)",
+            )
         if r.isEmergencyStopped():
-            return Fault("emergency_stop", "the emergency stop is pressed",
-                         "release the e-stop, re-enable the arm on the teach pendant, then reconnect")
+            return Fault(
+                "emergency_stop",
+                "the emergency stop is pressed",
+                "release the e-stop, re-enable the arm on the teach pendant, then reconnect",
+            )
         if r.isProtectiveStopped():
             return Fault("protective_stop", "the controller raised a protective stop", PROTECTIVE_STOP_RECOVERY)
         if not c.isProgramRunning():
-            return Fault("program_stopped", "the RTDE control script is not running",
-                         "reconnect, or call URArm.recover() to re-upload the control script")
+            return Fault(
+                "program_stopped",
+                "the RTDE control script is not running",
+                "reconnect, or call URArm.recover() to re-upload the control script",
+            )
         return None
 
     def _require_ok(self) -> None:
@@ -190,8 +215,13 @@ class URArm(Arm):
         try:
             if not c.moveL(pose_to_vec(T_goal), v, self.acceleration_mps2, True):
                 self._require_ok()  # a refused move is usually a fault raised meanwhile
-                raise ArmFaultError(Fault("device_fault", "moveL was rejected by the controller",
-                                          "check the target is reachable and the teach pendant log"))
+                raise ArmFaultError(
+                    Fault(
+                        "device_fault",
+                        "moveL was rejected by the controller",
+                        "check the target is reachable and the teach pendant log",
+                    )
+                )
             deadline = time.monotonic() + timeout_s
             while True:
                 self.keepalive()
@@ -201,8 +231,13 @@ class URArm(Arm):
                     self._require_ok()  # ended by a fault raised since the check above?
                     return
                 if time.monotonic() > deadline:
-                    raise ArmFaultError(Fault("device_fault", f"moveL did not finish within {timeout_s:.1f} s",
-                                              "check the teach pendant for what held the arm back"))
+                    raise ArmFaultError(
+                        Fault(
+                            "device_fault",
+                            f"moveL did not finish within {timeout_s:.1f} s",
+                            "check the teach pendant for what held the arm back",
+                        )
+                    )
                 time.sleep(poll_s)
         except BaseException:
             # Fault, timeout, Ctrl-C: an asynchronous move keeps going unless stopped (servoStop does not).

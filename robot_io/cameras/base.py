@@ -48,8 +48,10 @@ def scale_intrinsics(intr: CameraIntrinsics, width: int, height: int, what: str 
     if width * intr.height != height * intr.width:
         from robot_io.errors import MissingIntrinsicsError
 
-        raise MissingIntrinsicsError(f"{what}: frames are {width}x{height} but the intrinsics are for {intr.width}x{intr.height}, "
-                                     "another aspect ratio (a crop): calibrate the camera at the frames' size")
+        raise MissingIntrinsicsError(
+            f"{what}: frames are {width}x{height} but the intrinsics are for {intr.width}x{intr.height}, "
+            "another aspect ratio (a crop): calibrate the camera at the frames' size"
+        )
     return intr.scaled(width, height)
 
 

@@ -28,9 +28,11 @@ def _lost(err: Exception) -> Exception:
 def _not_opened(err: Exception) -> CameraLostError:
     # depthai v3 finds and boots the device when the Pipeline is created: no OAK attached, one
     # without USB permissions or one held by another process fails there ('No available devices').
-    return CameraLostError(f"cannot open the OAK camera ({err}): check that it is plugged in (lsusb lists Luxonis "
-                           "devices as 03e7:...), that no other process uses it and, on Linux, that the Luxonis "
-                           "udev rules are installed")
+    return CameraLostError(
+        f"cannot open the OAK camera ({err}): check that it is plugged in (lsusb lists Luxonis "
+        "devices as 03e7:...), that no other process uses it and, on Linux, that the Luxonis "
+        "udev rules are installed"
+    )
 
 
 def _device_info(device, calib) -> dict[str, str]:
@@ -60,8 +62,15 @@ class DepthAICamera(Camera):
 
     name = "depthai"
 
-    def __init__(self, socket: str = "CAM_A", width: int = 640, height: int = 480, fps: float = 30.0,
-                 intrinsics: CameraIntrinsics | None = None, timeout_ms: float = 1000.0):
+    def __init__(
+        self,
+        socket: str = "CAM_A",
+        width: int = 640,
+        height: int = 480,
+        fps: float = 30.0,
+        intrinsics: CameraIntrinsics | None = None,
+        timeout_ms: float = 1000.0,
+    ):
         super().__init__()
         self.socket = socket
         self.width, self.height, self.fps = int(width), int(height), float(fps)

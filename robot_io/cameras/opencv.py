@@ -55,10 +55,17 @@ class OpenCVCamera(Camera):
 
     name = "opencv"
 
-    def __init__(self, device: str | int = 0, width: int | None = None, height: int | None = None,
-                 fps: float | None = None, fourcc: str | None = None,
-                 intrinsics: CameraIntrinsics | None = None, timeout_ms: float = 1000.0,
-                 max_consecutive_failures: int = 10):
+    def __init__(
+        self,
+        device: str | int = 0,
+        width: int | None = None,
+        height: int | None = None,
+        fps: float | None = None,
+        fourcc: str | None = None,
+        intrinsics: CameraIntrinsics | None = None,
+        timeout_ms: float = 1000.0,
+        max_consecutive_failures: int = 10,
+    ):
         super().__init__()
         if fourcc is not None and len(fourcc) != 4:
             raise ValueError(f"fourcc must be 4 characters, got {fourcc!r}")
@@ -153,7 +160,8 @@ class OpenCVCamera(Camera):
                 if failures >= self.max_consecutive_failures:
                     with self._cond:
                         self._error = CameraLostError(
-                            f"camera {self.device} lost: {failures} consecutive failed reads (unplugged?)")
+                            f"camera {self.device} lost: {failures} consecutive failed reads (unplugged?)"
+                        )
                         self._cond.notify_all()
                     return
                 time.sleep(0.002)
@@ -181,13 +189,19 @@ class OpenCVCamera(Camera):
     @property
     def intrinsics(self) -> CameraIntrinsics:
         if self._calibration is None:
-            raise MissingIntrinsicsError(f"camera {self.device}: no intrinsics; set camera.intrinsics in the hardware config")
+            raise MissingIntrinsicsError(
+                f"camera {self.device}: no intrinsics; set camera.intrinsics in the hardware config"
+            )
         if self.size is None:
             return self._calibration
         if self.size != (self._calibration.width, self._calibration.height) and not self._warned_rescale:
             self._warned_rescale = True
-            log.warning("intrinsics calibrated at %dx%d, camera delivers %dx%d: rescaling K",
-                        self._calibration.width, self._calibration.height, *self.size)
+            log.warning(
+                "intrinsics calibrated at %dx%d, camera delivers %dx%d: rescaling K",
+                self._calibration.width,
+                self._calibration.height,
+                *self.size,
+            )
         return scale_intrinsics(self._calibration, *self.size)
 
 

@@ -31,8 +31,9 @@ class ReplayCamera(Camera):
 
     name = "replay"
 
-    def __init__(self, path: str | Path, loop: bool = False, fps: float | None = None,
-                 intrinsics: CameraIntrinsics | None = None):
+    def __init__(
+        self, path: str | Path, loop: bool = False, fps: float | None = None, intrinsics: CameraIntrinsics | None = None
+    ):
         super().__init__()
         self.path = Path(path)
         self.loop = bool(loop)
@@ -112,5 +113,11 @@ class ReplayCamera(Camera):
     @property
     def intrinsics(self) -> CameraIntrinsics:
         if self._calibration is None:
-            raise MissingIntrinsicsError(f"replay {self.path}: no intrinsics; set camera.intrinsics in the hardware config")
-        return self._calibration if self.size is None else scale_intrinsics(self._calibration, *self.size, f"replay {self.path}")
+            raise MissingIntrinsicsError(
+                f"replay {self.path}: no intrinsics; set camera.intrinsics in the hardware config"
+            )
+        return (
+            self._calibration
+            if self.size is None
+            else scale_intrinsics(self._calibration, *self.size, f"replay {self.path}")
+        )

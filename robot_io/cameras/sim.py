@@ -66,7 +66,9 @@ def sim_registry(world, tag_size_m: float = 0.045, table_tags: bool = True):
     tags = {}
     if table_tags:
         for i, y in enumerate((-0.25, 0.25)):
-            tags[i] = TagEntry(object="table", size_m=tag_size_m, T_tag_object=T_to_pose(invert_T(make_T(np.eye(3), [0.0, y, 0.0]))))
+            tags[i] = TagEntry(
+                object="table", size_m=tag_size_m, T_tag_object=T_to_pose(invert_T(make_T(np.eye(3), [0.0, y, 0.0])))
+            )
     side = so3_exp(np.array([np.pi / 2, 0.0, 0.0]))  # tag +z = object -y, tag +y = object +z
     for base, role in ((10, "goal"), (20, "adversarial")):
         k = world.spec.object_index(role)
@@ -82,8 +84,14 @@ def sim_registry(world, tag_size_m: float = 0.045, table_tags: bool = True):
     return ObjectRegistry(tags=tags)
 
 
-def draw_tags(rgb: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, tags, T_world_objects: dict,
-              depth: np.ndarray | None = None) -> np.ndarray:
+def draw_tags(
+    rgb: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    tags,
+    T_world_objects: dict,
+    depth: np.ndarray | None = None,
+) -> np.ndarray:
     """``rgb`` with every tag whose object is in ``T_world_objects`` drawn in (perspective warp).
 
     ``T_world_objects``: role -> (4, 4) of the object's registry frame in the world. ``depth``
@@ -115,8 +123,9 @@ def draw_tags(rgb: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, tags, T_w
         n = int(np.clip(round(2 * side), 8, tag.image.shape[0]))
         src = cv2.resize(tag.image, (n, n), interpolation=cv2.INTER_AREA).astype(np.float32)
         # The print's outer pixel edges (centres at integers) onto the projected corners.
-        Hm = cv2.getPerspectiveTransform(np.float32([[-0.5, -0.5], [n - 0.5, -0.5], [n - 0.5, n - 0.5], [-0.5, n - 0.5]]),
-                                         px.astype(np.float32))
+        Hm = cv2.getPerspectiveTransform(
+            np.float32([[-0.5, -0.5], [n - 0.5, -0.5], [n - 0.5, n - 0.5], [-0.5, n - 0.5]]), px.astype(np.float32)
+        )
         # White outside the print: its quiet zone is white, so the edge blends white into the scene, not black.
         warped = cv2.warpPerspective(src, Hm, (W, H), flags=cv2.INTER_LINEAR, borderValue=255)
         mask = cv2.warpPerspective(np.ones((n, n), np.float32), Hm, (W, H), flags=cv2.INTER_LINEAR, borderValue=0)

@@ -33,13 +33,15 @@ differentiable Grad-CAM) work through every trunk.
 from __future__ import annotations
 
 import torch
-from torch import nn
 import torch.nn.functional as F
+from torch import nn
 
 __all__ = ["BACKBONES", "build_backbone", "ResNet", "VGG16BN", "InceptionV3", "SmallCNN"]
 
 
-def _conv_bn(cin: int, cout: int, k: int, stride: int = 1, padding: int | tuple = 0, eps: float = 1e-5) -> nn.Sequential:
+def _conv_bn(
+    cin: int, cout: int, k: int, stride: int = 1, padding: int | tuple = 0, eps: float = 1e-5
+) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, k, stride, padding, bias=False), nn.BatchNorm2d(cout, eps=eps), nn.ReLU())
 
 
@@ -150,7 +152,9 @@ class InceptionC(nn.Module):
     def __init__(self, cin: int, c7: int):
         super().__init__()
         self.branch1x1 = _bc(cin, 192, 1)
-        self.branch7x7 = nn.Sequential(_bc(cin, c7, 1), _bc(c7, c7, (1, 7), padding=(0, 3)), _bc(c7, 192, (7, 1), padding=(3, 0)))
+        self.branch7x7 = nn.Sequential(
+            _bc(cin, c7, 1), _bc(c7, c7, (1, 7), padding=(0, 3)), _bc(c7, 192, (7, 1), padding=(3, 0))
+        )
         self.branch7x7dbl = nn.Sequential(
             _bc(cin, c7, 1),
             _bc(c7, c7, (7, 1), padding=(3, 0)),
@@ -170,7 +174,10 @@ class InceptionD(nn.Module):
         super().__init__()
         self.branch3x3 = nn.Sequential(_bc(cin, 192, 1), _bc(192, 320, 3, stride=2))
         self.branch7x7x3 = nn.Sequential(
-            _bc(cin, 192, 1), _bc(192, 192, (1, 7), padding=(0, 3)), _bc(192, 192, (7, 1), padding=(3, 0)), _bc(192, 192, 3, stride=2)
+            _bc(cin, 192, 1),
+            _bc(192, 192, (1, 7), padding=(0, 3)),
+            _bc(192, 192, (7, 1), padding=(3, 0)),
+            _bc(192, 192, 3, stride=2),
         )
 
     def forward(self, x):
@@ -214,11 +221,17 @@ class InceptionV3(nn.Module):
             nn.Identity() if small_stem else nn.MaxPool2d(3, 2),
         )
         self.mixed = nn.Sequential(
-            InceptionA(192, 32), InceptionA(256, 64), InceptionA(288, 64),  # Mixed_5b/c/d
+            InceptionA(192, 32),
+            InceptionA(256, 64),
+            InceptionA(288, 64),  # Mixed_5b/c/d
             InceptionB(288),  # Mixed_6a
-            InceptionC(768, 128), InceptionC(768, 160), InceptionC(768, 160), InceptionC(768, 192),  # Mixed_6b-e
+            InceptionC(768, 128),
+            InceptionC(768, 160),
+            InceptionC(768, 160),
+            InceptionC(768, 192),  # Mixed_6b-e
             InceptionD(768),  # Mixed_7a
-            InceptionE(1280), InceptionE(2048),  # Mixed_7b/c
+            InceptionE(1280),
+            InceptionE(2048),  # Mixed_7b/c
         )
         self.out_channels = 2048
 

@@ -62,10 +62,14 @@ STATE_SIZES = {"tcp_pose": 6, "gripper": 1}
 
 class ActionContract(StrictModel):
     kind: Literal["delta_tcp", "absolute_tcp"] = Field(
-        "delta_tcp", description="delta_tcp: normalised TCP-frame motion in [-1, 1]^6; absolute_tcp: target pose [x, y, z (m), "
-                                 "rx, ry, rz (rad)] in the base frame")
+        "delta_tcp",
+        description="delta_tcp: normalised TCP-frame motion in [-1, 1]^6; absolute_tcp: target pose [x, y, z (m), "
+        "rx, ry, rz (rad)] in the base frame",
+    )
     chunk: int = Field(1, ge=1, le=128, description="K: actions the policy outputs per call")
-    execute: int = Field(1, ge=1, le=128, description="k: actions of each chunk executed before the policy is asked again (k <= K)")
+    execute: int = Field(
+        1, ge=1, le=128, description="k: actions of each chunk executed before the policy is asked again (k <= K)"
+    )
 
     @model_validator(mode="after")
     def _k_le_K(self):
@@ -75,7 +79,9 @@ class ActionContract(StrictModel):
 
 
 class PolicyContract(StrictModel):
-    state: tuple[StateField, ...] = Field((), description="proprioceptive inputs, concatenated in this order: tcp_pose (6), gripper (1)")
+    state: tuple[StateField, ...] = Field(
+        (), description="proprioceptive inputs, concatenated in this order: tcp_pose (6), gripper (1)"
+    )
     action: ActionContract = ActionContract()
 
     @model_validator(mode="after")
@@ -138,7 +144,9 @@ def decode_actions(raw, contract: PolicyContract, batch: int):
     if shape == (batch, 6 * K):
         return raw.reshape(batch, K, 6)
     want = f"({batch}, 6)" if K == 1 else f"({batch}, {K}, 6) or ({batch}, {6 * K})"
-    raise PolicyError(f"actions: the policy's contract ({contract.describe()}) needs outputs of shape {want}, got {shape}")
+    raise PolicyError(
+        f"actions: the policy's contract ({contract.describe()}) needs outputs of shape {want}, got {shape}"
+    )
 
 
 def first_action(actions):

@@ -36,7 +36,6 @@ TRAIN_SEED_BASE = 10_000_000
 
 
 class DaggerConfig(StrictModel):
-
     iterations: int = Field(8, ge=1)
     episodes_per_iter: int = Field(64, ge=1)
     num_envs: int = Field(16, ge=1)
@@ -91,7 +90,10 @@ class _State:
         from safetensors.torch import save_file
 
         self.dir.mkdir(parents=True, exist_ok=True)
-        save_file({k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()}, str(self.dir / "model.safetensors.tmp"))
+        save_file(
+            {k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()},
+            str(self.dir / "model.safetensors.tmp"),
+        )
         torch.save(optimizer.state_dict(), self.dir / "optim.pt.tmp")
         with open(self.dir / "data.npz.tmp", "wb") as f:
             np.savez(f, images=images, actions=actions)
@@ -115,8 +117,10 @@ class _State:
                 images, actions = d["images"], d["actions"]
         except Exception as err:  # any damaged or foreign file: refuse to resume, in one line
             msg = " ".join(str(err).split())[:300]
-            raise PolicyError(f"{self.dir}: cannot resume training from this state ({type(err).__name__}: {msg}); "
-                              "move the directory away to start over") from None
+            raise PolicyError(
+                f"{self.dir}: cannot resume training from this state ({type(err).__name__}: {msg}); "
+                "move the directory away to start over"
+            ) from None
         return images, actions, progress
 
 
@@ -137,11 +141,21 @@ def _train_steps(policy, optimizer, images, actions, steps: int, batch: int, rng
         optimizer.step()
         losses.append(loss.item())
     policy.eval()
-    return float(np.mean(losses[-max(1, steps // 5):]))
+    return float(np.mean(losses[-max(1, steps // 5) :]))
 
 
-def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: str | Path, seed: int = 0,
-                 fingerprint: str = "", device="cpu", progress: bool = True, log=print) -> dict:
+def train_dagger(
+    policy,
+    env,
+    cfg: DaggerConfig,
+    env_cfg: EnvConfig,
+    out_dir: str | Path,
+    seed: int = 0,
+    fingerprint: str = "",
+    device="cpu",
+    progress: bool = True,
+    log=print,
+) -> dict:
     """Train ``policy`` in place with DAgger in ``env``; resumes from ``out_dir/train_state``.
 
     Args:
@@ -162,12 +176,23 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
     state = _State(out_dir)
     h = w = env_cfg.image_size
     images, actions = np.zeros((0, h, w, 3), np.uint8), np.zeros((0, 6), np.float32)
-    prog = {"fingerprint": fingerprint, "iterations_done": 0, "elapsed_s": 0.0, "cpu_s": 0.0, "history": [], "stopped_early": False}
+    prog = {
+        "fingerprint": fingerprint,
+        "iterations_done": 0,
+        "elapsed_s": 0.0,
+        "cpu_s": 0.0,
+        "history": [],
+        "stopped_early": False,
+    }
     if state.exists():
         images, actions, prog = state.load(policy, optimizer)
         if prog.get("fingerprint") != fingerprint:
-            raise PolicyError(f"{state.dir}: holds a run with a different config; use a new --out or delete that directory")
-        log(f"resuming after iteration {prog['iterations_done']} ({len(images)} frames, {prog['elapsed_s']:.0f} s so far)")
+            raise PolicyError(
+                f"{state.dir}: holds a run with a different config; use a new --out or delete that directory"
+            )
+        log(
+            f"resuming after iteration {prog['iterations_done']} ({len(images)} frames, {prog['elapsed_s']:.0f} s so far)"
+        )
     clean = EnvConfig(image_size=env_cfg.image_size)
     N = cfg.num_envs
     batches = -(-cfg.episodes_per_iter // N)
@@ -183,8 +208,13 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
         driven_success = []
         new_x, new_y = [], []
         # Per-episode progress inside the iteration: the first one alone can take minutes.
-        episodes = tqdm(total=batches * N, desc=f"dagger {it + 1}/{cfg.iterations}: episodes", unit="ep", leave=False,
-                        disable=not progress)
+        episodes = tqdm(
+            total=batches * N,
+            desc=f"dagger {it + 1}/{cfg.iterations}: episodes",
+            unit="ep",
+            leave=False,
+            disable=not progress,
+        )
         try:
             for b in range(batches):
                 seeds = [TRAIN_SEED_BASE + seed * 1_000_000 + it * 10_000 + b * N + j for j in range(N)]
@@ -198,12 +228,17 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
                     episodes.set_postfix(policy_success=f"{np.mean(driven_success):.2f}")
         finally:
             episodes.close()
-        images = np.concatenate([images, *new_x])[-cfg.max_frames:]
-        actions = np.concatenate([actions, *new_y])[-cfg.max_frames:]
+        images = np.concatenate([images, *new_x])[-cfg.max_frames :]
+        actions = np.concatenate([actions, *new_y])[-cfg.max_frames :]
         loss = _train_steps(policy, optimizer, images, actions, cfg.grad_steps_per_iter, cfg.batch_size, rng, device)
-        record = {"iteration": it, "beta": beta, "frames": int(len(images)), "loss": loss,
-                  "policy_driven_success": float(np.mean(driven_success)) if driven_success else None,
-                  "policy_driven_episodes": len(driven_success)}
+        record = {
+            "iteration": it,
+            "beta": beta,
+            "frames": int(len(images)),
+            "loss": loss,
+            "policy_driven_success": float(np.mean(driven_success)) if driven_success else None,
+            "policy_driven_episodes": len(driven_success),
+        }
         if cfg.eval_episodes:
             te, ce = time.perf_counter(), time.process_time()
             set_randomization(env, clean)
@@ -216,7 +251,9 @@ def train_dagger(policy, env, cfg: DaggerConfig, env_cfg: EnvConfig, out_dir: st
             if cfg.stop_at_success is not None and res.success_rate.rate >= cfg.stop_at_success:
                 prog["stopped_early"] = True
         prog["elapsed_s"] += time.perf_counter() - t0
-        prog["cpu_s"] = prog.get("cpu_s", 0.0) + time.process_time() - c0  # CPU time of all threads: the cost on an idle machine
+        prog["cpu_s"] = (
+            prog.get("cpu_s", 0.0) + time.process_time() - c0
+        )  # CPU time of all threads: the cost on an idle machine
         record["elapsed_s"], record["cpu_s"] = prog["elapsed_s"], prog["cpu_s"]
         prog["history"].append(record)
         prog["iterations_done"] = it + 1

@@ -42,7 +42,9 @@ def prepare_images(images, image_size: int) -> np.ndarray:
     if a.ndim == 3:
         a = a[None]
     if a.ndim != 4:
-        raise PolicyError(f"images: expected (B, {image_size}, {image_size}, 3) uint8 or (B, 3, {image_size}, {image_size}) float, got shape {a.shape}")
+        raise PolicyError(
+            f"images: expected (B, {image_size}, {image_size}, 3) uint8 or (B, 3, {image_size}, {image_size}) float, got shape {a.shape}"
+        )
     if a.dtype == np.uint8:
         if a.shape[-1] != 3:
             raise PolicyError(f"images: uint8 images must be (B, H, W, 3), got shape {a.shape}")
@@ -63,7 +65,11 @@ def require_white_box(policy) -> None:
 
     The attack calls this first: it needs ``policy.head(policy.features(x))`` in torch.
     """
-    if getattr(policy, "white_box", False) and callable(getattr(policy, "features", None)) and callable(getattr(policy, "head", None)):
+    if (
+        getattr(policy, "white_box", False)
+        and callable(getattr(policy, "features", None))
+        and callable(getattr(policy, "head", None))
+    ):
         return
     kind = type(policy).__name__
     raise WhiteBoxRequired(

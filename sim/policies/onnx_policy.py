@@ -40,7 +40,9 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
     was_training = policy.training
     policy.eval()
     try:
-        dummy = (torch.rand(2, 3, s, s, device=policy.device),) + ((torch.rand(2, D, device=policy.device),) if D else ())
+        dummy = (torch.rand(2, 3, s, s, device=policy.device),) + (
+            (torch.rand(2, D, device=policy.device),) if D else ()
+        )
         names = ["images"] + (["state"] if D else [])
         # The TorchScript exporter is deprecated in favour of the torch.export one, which needs
         # onnxscript and is slower; it still exports these plain conv nets exactly (parity tests).
@@ -68,7 +70,7 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
 
 
 def attach_card(path: str | Path, card) -> Path:
-    """Write ``card`` (a :class:`sim.policies.checkpoint.PolicyCard`) into ONNX file ``path``'s
+    """Write ``card`` (a :class:`sim.policies.card.PolicyCard`) into ONNX file ``path``'s
     metadata, replacing an earlier card: how a policy exported by other code states its contract."""
     import onnx
 
@@ -115,8 +117,10 @@ class OnnxPolicy:
             raise PolicyError(f"{self.path}: not a loadable ONNX model ({str(err).splitlines()[0]})") from None
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         if len(inputs) not in (1, 2) or len(outputs) < 1:
-            raise PolicyError(f"{self.path}: a policy needs an image input (and optionally a state input) and an action output, "
-                              f"got {len(inputs)} inputs")
+            raise PolicyError(
+                f"{self.path}: a policy needs an image input (and optionally a state input) and an action output, "
+                f"got {len(inputs)} inputs"
+            )
         shape = inputs[0].shape
         if len(shape) != 4 or shape[1] != 3 or not isinstance(shape[2], int) or shape[2] != shape[3]:
             raise PolicyError(f"{self.path}: input {inputs[0].name!r} must be (B, 3, S, S) with fixed S, got {shape}")
@@ -128,28 +132,37 @@ class OnnxPolicy:
         if CARD_METADATA_KEY in meta:
             from pydantic import ValidationError
 
-            from sim.policies.checkpoint import PolicyCard
+            from sim.policies.card import PolicyCard
 
             try:
                 self.card = PolicyCard.model_validate(json.loads(meta[CARD_METADATA_KEY]))
             except (ValidationError, json.JSONDecodeError) as err:
-                raise PolicyError(f"{self.path}: metadata {CARD_METADATA_KEY}: not a valid policy card "
-                                  f"({str(err).splitlines()[0]})") from None
+                raise PolicyError(
+                    f"{self.path}: metadata {CARD_METADATA_KEY}: not a valid policy card ({str(err).splitlines()[0]})"
+                ) from None
             if self.card.arch.image_size != self.image_size:
-                raise PolicyError(f"{self.path}: card says {self.card.arch.image_size} px but the graph takes {self.image_size} px")
+                raise PolicyError(
+                    f"{self.path}: card says {self.card.arch.image_size} px but the graph takes {self.image_size} px"
+                )
         from sim.policies.contract import policy_contract
 
         self.contract = policy_contract(self)
         D = self.contract.state_dim
         if D and self.state_name is None:
-            raise PolicyError(f"{self.path}: the card's contract reads state {list(self.contract.state)} but the graph has no state input")
+            raise PolicyError(
+                f"{self.path}: the card's contract reads state {list(self.contract.state)} but the graph has no state input"
+            )
         if self.state_name is not None:
             st = inputs[1].shape
             if not D:
-                raise PolicyError(f"{self.path}: the graph has a second input {self.state_name!r} but no card says what it holds; "
-                                  f"write a card with contract.state (sim.policies.onnx_policy.attach_card)")
+                raise PolicyError(
+                    f"{self.path}: the graph has a second input {self.state_name!r} but no card says what it holds; "
+                    f"write a card with contract.state (sim.policies.onnx_policy.attach_card)"
+                )
             if len(st) != 2 or (isinstance(st[1], int) and st[1] != D):
-                raise PolicyError(f"{self.path}: input {self.state_name!r} must be (B, {D}) for state {list(self.contract.state)}, got {st}")
+                raise PolicyError(
+                    f"{self.path}: input {self.state_name!r} must be (B, {D}) for state {list(self.contract.state)}, got {st}"
+                )
 
     def act(self, images, state=None) -> np.ndarray:
         """Actions ``(B, 6)`` (or ``(B, K, 6)``) float32 for env images ``(B, S, S, 3)`` uint8 or

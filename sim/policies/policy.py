@@ -48,7 +48,9 @@ class PolicyArch(StrictModel):
     # The policy contract's shape (sim.policies.contract); the defaults are the original policy.
     state_dim: int = Field(0, ge=0, le=64, description="proprioceptive inputs, joined to the flattened features")
     chunk: int = Field(1, ge=1, le=128, description="actions per call (K)")
-    output: Literal["tanh", "linear"] = Field("tanh", description="tanh for delta_tcp actions in [-1, 1]; linear for absolute_tcp poses")
+    output: Literal["tanh", "linear"] = Field(
+        "tanh", description="tanh for delta_tcp actions in [-1, 1]; linear for absolute_tcp poses"
+    )
 
 
 class VisuomotorPolicy(nn.Module):
@@ -64,9 +66,15 @@ class VisuomotorPolicy(nn.Module):
         c = self.config
         self.contract = contract if contract is not None else PolicyContract()
         k = self.contract
-        if (c.state_dim, c.chunk, c.output) != (k.state_dim, k.action.chunk, "tanh" if k.action.kind == "delta_tcp" else "linear"):
-            raise PolicyError(f"contract: ({k.describe()}) does not fit the architecture (state_dim {c.state_dim}, chunk {c.chunk}, "
-                              f"output {c.output}); pass the matching contract")
+        if (c.state_dim, c.chunk, c.output) != (
+            k.state_dim,
+            k.action.chunk,
+            "tanh" if k.action.kind == "delta_tcp" else "linear",
+        ):
+            raise PolicyError(
+                f"contract: ({k.describe()}) does not fit the architecture (state_dim {c.state_dim}, chunk {c.chunk}, "
+                f"output {c.output}); pass the matching contract"
+            )
         if any(s <= 0 for s in self.config.std):
             raise PolicyError(f"std: normalization std must be positive, got {self.config.std}")
         self.image_size = self.config.image_size
@@ -92,8 +100,12 @@ class VisuomotorPolicy(nn.Module):
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """``x: (B, 3, S, S)`` float in [0, 1] -> last conv feature map ``(B, C, h, w)``."""
         # Shape check in Python; skipped while tracing for ONNX export, where it would be baked in.
-        if not torch.jit.is_tracing() and (x.ndim != 4 or x.shape[1] != 3 or tuple(x.shape[2:]) != (self.image_size, self.image_size)):
-            raise PolicyError(f"images: policy expects (B, 3, {self.image_size}, {self.image_size}) float in [0, 1], got {tuple(x.shape)}")
+        if not torch.jit.is_tracing() and (
+            x.ndim != 4 or x.shape[1] != 3 or tuple(x.shape[2:]) != (self.image_size, self.image_size)
+        ):
+            raise PolicyError(
+                f"images: policy expects (B, 3, {self.image_size}, {self.image_size}) float in [0, 1], got {tuple(x.shape)}"
+            )
         return self.backbone((x - self.mean) / self.std)
 
     def head(self, A: torch.Tensor, state: torch.Tensor | None = None) -> torch.Tensor:

@@ -13,7 +13,15 @@ from pathlib import Path
 from sim.configs import load_pool, save_pool
 from sim.policies.rollout import EpisodeResults
 
-__all__ = ["feasible_configs", "write_feasible_pool", "load_feasible_pool"]
+__all__ = ["feasible_pool_path", "feasible_configs", "write_feasible_pool", "load_feasible_pool"]
+
+
+def feasible_pool_path(policy_dir: Path) -> Path:
+    """The task-feasible pool of a policy: ``<dir>/feasible_pool.json`` (written by ``advobj policy
+    train``), else ``<dir>/eval/feasible_pool.json`` (written by ``advobj policy eval``)."""
+    own = Path(policy_dir) / "feasible_pool.json"
+    evaluated = Path(policy_dir) / "eval" / "feasible_pool.json"
+    return evaluated if not own.is_file() and evaluated.is_file() else own
 
 
 def feasible_configs(results: EpisodeResults) -> list:
@@ -24,8 +32,12 @@ def feasible_configs(results: EpisodeResults) -> list:
 def write_feasible_pool(path: str | Path, spec, results: EpisodeResults, meta: dict | None = None) -> Path:
     """Write the successful episodes' configurations to ``path`` (JSON config pool)."""
     configs = feasible_configs(results)
-    info = {"kind": "task-feasible", "episodes": int(len(results.success)), "feasible": len(configs),
-            "success": results.success_rate.to_dict()}
+    info = {
+        "kind": "task-feasible",
+        "episodes": int(len(results.success)),
+        "feasible": len(configs),
+        "success": results.success_rate.to_dict(),
+    }
     info.update(meta or {})
     return save_pool(path, spec, configs, meta=info)
 

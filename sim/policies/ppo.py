@@ -34,7 +34,6 @@ ACTION_BOUND = 5.0  # pre-tanh action space; tanh(5) = 0.99991
 
 
 class PPOConfig(StrictModel):
-
     total_timesteps: int = Field(200_000, ge=1)
     num_envs: int = Field(8, ge=1)
     n_steps: int = Field(128, ge=2, description="rollout length per env per update")
@@ -95,9 +94,12 @@ class ReachVecEnv(_vec_env_base()):
         infos = [{} for _ in range(self.num_envs)]
         done_idx = np.flatnonzero(dones)
         for i in done_idx:
-            infos[i] = {"terminal_observation": obs[i].transpose(2, 0, 1).copy(), "TimeLimit.truncated": bool(truncated[i] and not terminated[i]),
-                        "is_success": bool(info["success"][i]),
-                        "episode": {"r": float(self._return[i]), "l": int(info["step"][i]), "t": 0.0}}
+            infos[i] = {
+                "terminal_observation": obs[i].transpose(2, 0, 1).copy(),
+                "TimeLimit.truncated": bool(truncated[i] and not terminated[i]),
+                "is_success": bool(info["success"][i]),
+                "episode": {"r": float(self._return[i]), "l": int(info["step"][i]), "t": 0.0},
+            }
             self._return[i] = 0.0
         if len(done_idx):
             self.env.reset_envs(done_idx, seeds=self._draw_seeds(len(done_idx)))
@@ -184,8 +186,18 @@ def to_visuomotor(model):
     return policy.eval()
 
 
-def train_ppo(arch, env, cfg: PPOConfig, env_cfg: EnvConfig, out_dir: str | Path, seed: int = 0, fingerprint: str = "",
-              device="cpu", progress: bool = True, log=print):
+def train_ppo(
+    arch,
+    env,
+    cfg: PPOConfig,
+    env_cfg: EnvConfig,
+    out_dir: str | Path,
+    seed: int = 0,
+    fingerprint: str = "",
+    device="cpu",
+    progress: bool = True,
+    log=print,
+):
     """Train with PPO in ``env`` (``cfg.num_envs`` envs); resumes from ``out_dir/train_state``.
 
     Returns ``(policy, progress_record)`` with the policy as a :class:`VisuomotorPolicy`.
@@ -202,12 +214,23 @@ def train_ppo(arch, env, cfg: PPOConfig, env_cfg: EnvConfig, out_dir: str | Path
     set_randomization(env, env_cfg)
     vec = ReachVecEnv(env, TRAIN_SEED_BASE + seed * 1_000_000)
     model = _make_model(vec, arch, cfg, seed, device)
-    prog = {"fingerprint": fingerprint, "timesteps": 0, "elapsed_s": 0.0, "cpu_s": 0.0, "history": [], "stopped_early": False}
+    prog = {
+        "fingerprint": fingerprint,
+        "timesteps": 0,
+        "elapsed_s": 0.0,
+        "cpu_s": 0.0,
+        "history": [],
+        "stopped_early": False,
+    }
     if (state_dir / "progress.json").is_file():
         prog = json.loads((state_dir / "progress.json").read_text())
         if prog.get("fingerprint") != fingerprint:
-            raise PolicyError(f"{state_dir}: holds a run with a different config; use a new --out or delete that directory")
-        missing = model.policy.load_state_dict(load_file(str(state_dir / "model.safetensors")), strict=False).missing_keys
+            raise PolicyError(
+                f"{state_dir}: holds a run with a different config; use a new --out or delete that directory"
+            )
+        missing = model.policy.load_state_dict(
+            load_file(str(state_dir / "model.safetensors")), strict=False
+        ).missing_keys
         if any(not k.startswith(_ALIASES) for k in missing):
             raise PolicyError(f"{state_dir}: saved PPO weights do not fit this architecture")
         model.policy.optimizer.load_state_dict(torch.load(state_dir / "optim.pt", weights_only=True))
@@ -238,7 +261,9 @@ def train_ppo(arch, env, cfg: PPOConfig, env_cfg: EnvConfig, out_dir: str | Path
             if cfg.stop_at_success is not None and res.success_rate.rate >= cfg.stop_at_success:
                 prog["stopped_early"] = True
         prog["elapsed_s"] += time.perf_counter() - t0
-        prog["cpu_s"] = prog.get("cpu_s", 0.0) + time.process_time() - c0  # CPU time of all threads: the cost on an idle machine
+        prog["cpu_s"] = (
+            prog.get("cpu_s", 0.0) + time.process_time() - c0
+        )  # CPU time of all threads: the cost on an idle machine
         prog["timesteps"] = int(model.num_timesteps)
         record["elapsed_s"], record["cpu_s"] = prog["elapsed_s"], prog["cpu_s"]
         prog["history"].append(record)

@@ -58,8 +58,10 @@ class TrainConfig(StrictModel):
             raise ValueError(f"policy.image_size ({self.policy.image_size}) != env.image_size ({self.env.image_size})")
         p = self.policy
         if (p.state_dim, p.chunk, p.output) != (0, 1, "tanh"):
-            raise ValueError("policy.state_dim, policy.chunk, policy.output: training teaches the one-image delta_tcp contract "
-                             "only (the expert labels one action per state); leave them at 0, 1 and tanh")
+            raise ValueError(
+                "policy.state_dim, policy.chunk, policy.output: training teaches the one-image delta_tcp contract "
+                "only (the expert labels one action per state); leave them at 0, 1 and tanh"
+            )
         return self
 
     def fingerprint(self) -> str:
@@ -68,9 +70,15 @@ class TrainConfig(StrictModel):
         The run length (``dagger.iterations``, ``ppo.total_timesteps``) and the learning-curve
         settings are left out, so a finished run can also be extended or given a curve.
         """
-        d = self.model_dump(mode="json", exclude={"final_eval_episodes": True, "target_success": True,
-                                                  "dagger": {"iterations", "eval_episodes", "stop_at_success"},
-                                                  "ppo": {"total_timesteps", "eval_episodes", "stop_at_success"}})
+        d = self.model_dump(
+            mode="json",
+            exclude={
+                "final_eval_episodes": True,
+                "target_success": True,
+                "dagger": {"iterations", "eval_episodes", "stop_at_success"},
+                "ppo": {"total_timesteps", "eval_episodes", "stop_at_success"},
+            },
+        )
         # The contract fields at their defaults leave the hash as it was before they existed, so
         # a training run started then still resumes.
         for k in ("state_dim", "chunk", "output"):
@@ -107,16 +115,27 @@ PRESETS: dict[str, dict] = {
         # at 128 px): ~5x cheaper per image than the small-image stem on CPU.
         policy=dict(arch="resnet18", image_size=128, small_stem=False),
         env=dict(image_size=128, **{**_DR, "background": "varied"}),
-        dagger=dict(iterations=8, episodes_per_iter=128, num_envs=16, grad_steps_per_iter=400, batch_size=64, lr=3e-4,
-                    max_frames=80_000),
-        ppo=dict(total_timesteps=2_000_000, num_envs=16, n_steps=256, batch_size=256, n_epochs=4, chunk_timesteps=32_768),
+        dagger=dict(
+            iterations=8,
+            episodes_per_iter=128,
+            num_envs=16,
+            grad_steps_per_iter=400,
+            batch_size=64,
+            lr=3e-4,
+            max_frames=80_000,
+        ),
+        ppo=dict(
+            total_timesteps=2_000_000, num_envs=16, n_steps=256, batch_size=256, n_epochs=4, chunk_timesteps=32_768
+        ),
         final_eval_episodes=500,
         target_success=0.95,
     ),
 }
 
 
-def resolve_preset(name: str, arch: str | None = None, method: str | None = None, seed: int = 0, **overrides) -> TrainConfig:
+def resolve_preset(
+    name: str, arch: str | None = None, method: str | None = None, seed: int = 0, **overrides
+) -> TrainConfig:
     """The :class:`TrainConfig` of preset ``name`` with ``arch``/``method``/``seed`` and section overrides.
 
     ``overrides`` maps a section (``dagger``, ``ppo``, ``env``, ``policy``) to a dict of fields, or

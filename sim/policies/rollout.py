@@ -15,7 +15,16 @@ from pydantic import Field
 from sim.configio import StrictModel
 from sim.stats import Proportion, proportion
 
-__all__ = ["EnvConfig", "make_env", "set_randomization", "EpisodeResults", "rollout", "run_episodes", "evaluate_policy", "EVAL_SEED_BASE"]
+__all__ = [
+    "EnvConfig",
+    "make_env",
+    "set_randomization",
+    "EpisodeResults",
+    "rollout",
+    "run_episodes",
+    "evaluate_policy",
+    "EVAL_SEED_BASE",
+]
 
 
 class EnvConfig(StrictModel):
@@ -48,6 +57,7 @@ def set_randomization(env, cfg: EnvConfig) -> None:
     for w in env.worlds:
         w.randomization = r
 
+
 # Evaluation seeds start at 0 by default; training draws its configurations from seeds at or
 # above TRAIN_SEED_BASE (see sim.policies.dagger), so the two never overlap.
 EVAL_SEED_BASE = 0
@@ -69,8 +79,11 @@ class EpisodeResults:
         return proportion(int(self.success.sum()), len(self.success))
 
     def summary(self, object_names: list[str] | None = None) -> dict:
-        out = {"success": self.success_rate.to_dict(), "mean_steps": float(self.steps.mean()) if len(self.steps) else None,
-               "mean_min_goal_dist_m": float(self.min_goal_dist.mean()) if len(self.steps) else None}
+        out = {
+            "success": self.success_rate.to_dict(),
+            "mean_steps": float(self.steps.mean()) if len(self.steps) else None,
+            "mean_min_goal_dist_m": float(self.min_goal_dist.mean()) if len(self.steps) else None,
+        }
         if object_names is not None:
             counts = {name: int((self.reached == k).sum()) for k, name in enumerate(object_names)}
             counts["none"] = int((self.reached < 0).sum())
@@ -78,8 +91,15 @@ class EpisodeResults:
         return out
 
 
-def rollout(env, starts, policy, on_done: Callable[[int, int, dict], None], query: Callable | None = None,
-            on_fill: Callable[[int, int], None] | None = None, fixed_batch: bool = True) -> None:
+def rollout(
+    env,
+    starts,
+    policy,
+    on_done: Callable[[int, int, dict], None],
+    query: Callable | None = None,
+    on_fill: Callable[[int, int], None] | None = None,
+    fixed_batch: bool = True,
+) -> None:
     """The closed-loop rollout: one episode per start, ``env.num_envs`` at a time, each slot refilled
     as its episode ends. The one loop behind clean evaluation, ``advobj eval`` and the attack's
     validation; the policy's contract (:mod:`sim.policies.contract`) is applied here only.
@@ -106,6 +126,7 @@ def rollout(env, starts, policy, on_done: Callable[[int, int, dict], None], quer
     N = env.num_envs
     gripper_m = float(env.spec.gripper.opening_m)
     if query is None:
+
         def query(slots, state):
             obs = env.observe()
             if fixed_batch:
@@ -139,13 +160,24 @@ def rollout(env, starts, policy, on_done: Callable[[int, int, dict], None], quer
                 raw = query(need, state_vector(contract, env.T_world_tcp[need], gripper_m))
                 queue.push(need, decode_actions(np.asarray(raw, dtype=np.float64), contract, len(need)))
             actions = np.zeros((N, 6))
-            actions[active] = to_delta(env.T_world_tcp[active], queue.pop(active), contract.action.kind, env.max_step_m, env.max_step_rad)
+            actions[active] = to_delta(
+                env.T_world_tcp[active], queue.pop(active), contract.action.kind, env.max_step_m, env.max_step_rad
+            )
             env.step(actions)
         for i in range(N):
             if slot[i] >= 0 and env.done[i]:
                 j = slot[i]
-                on_done(j, i, {"reached": int(env.reached[i]), "steps": int(env.steps[i]), "min_dist": env.min_dist[i].copy(),
-                               "T_world_tcp": env.worlds[i].T_world_tcp.copy(), "config": env.worlds[i].config})
+                on_done(
+                    j,
+                    i,
+                    {
+                        "reached": int(env.reached[i]),
+                        "steps": int(env.steps[i]),
+                        "min_dist": env.min_dist[i].copy(),
+                        "T_world_tcp": env.worlds[i].T_world_tcp.copy(),
+                        "config": env.worlds[i].config,
+                    },
+                )
                 slot[i] = -1
                 if todo:
                     fill(i)
@@ -184,8 +216,16 @@ def run_episodes(env, policy, seeds, progress=None) -> EpisodeResults:
     return EpisodeResults(np.asarray(seeds, np.int64), success, reached, steps, min_goal, configs)
 
 
-def evaluate_policy(policy, spec, episodes: int, seed: int = EVAL_SEED_BASE, num_envs: int = 16, env_cfg: EnvConfig | None = None,
-                    env=None, progress: bool = True) -> EpisodeResults:
+def evaluate_policy(
+    policy,
+    spec,
+    episodes: int,
+    seed: int = EVAL_SEED_BASE,
+    num_envs: int = 16,
+    env_cfg: EnvConfig | None = None,
+    env=None,
+    progress: bool = True,
+) -> EpisodeResults:
     """Clean evaluation: ``episodes`` episodes from seeds ``seed .. seed + episodes - 1``.
 
     ``env_cfg`` defaults to no randomisation at the policy's image size. Pass ``env`` to reuse an

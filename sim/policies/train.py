@@ -10,7 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from sim.configs import spec_fingerprint
-from sim.policies.checkpoint import ActionScaling, CleanSuccess, PolicyCard, save_checkpoint
+from sim.policies.card import ActionScaling, CleanSuccess, PolicyCard
+from sim.policies.checkpoint import save_checkpoint
 from sim.policies.pool import write_feasible_pool
 from sim.policies.presets import TrainConfig
 from sim.policies.rollout import EVAL_SEED_BASE, evaluate_policy, make_env
@@ -19,8 +20,15 @@ from sim.runinfo import git_commit, write_run_info
 __all__ = ["train_policy"]
 
 
-def train_policy(cfg: TrainConfig, out_dir: str | Path, spec, device="cpu", progress: bool = True, log=print,
-                 keep_state: bool = False) -> PolicyCard:
+def train_policy(
+    cfg: TrainConfig,
+    out_dir: str | Path,
+    spec,
+    device="cpu",
+    progress: bool = True,
+    log=print,
+    keep_state: bool = False,
+) -> PolicyCard:
     """Train per ``cfg`` on scene ``spec``; resumes an interrupted run in the same ``out_dir``.
 
     Once the checkpoint is saved, ``train_state/`` (the resume data: frames, optimizer; hundreds
@@ -51,15 +59,37 @@ def train_policy(cfg: TrainConfig, out_dir: str | Path, spec, device="cpu", prog
         if cfg.final_eval_episodes:
             res = evaluate_policy(policy, spec, cfg.final_eval_episodes, EVAL_SEED_BASE, env=env, progress=progress)
             p = res.success_rate
-            clean = CleanSuccess(k=p.k, n=p.n, rate=p.rate, lo=p.lo, hi=p.hi, confidence=p.confidence,
-                                 episodes_seed=EVAL_SEED_BASE, image_size=cfg.env.image_size)
-            write_feasible_pool(out_dir / "feasible_pool.json", spec, res, meta={"policy": str(out_dir), "seed": EVAL_SEED_BASE})
+            clean = CleanSuccess(
+                k=p.k,
+                n=p.n,
+                rate=p.rate,
+                lo=p.lo,
+                hi=p.hi,
+                confidence=p.confidence,
+                episodes_seed=EVAL_SEED_BASE,
+                image_size=cfg.env.image_size,
+            )
+            write_feasible_pool(
+                out_dir / "feasible_pool.json", spec, res, meta={"policy": str(out_dir), "seed": EVAL_SEED_BASE}
+            )
             log(f"clean success: {p}")
     finally:
         env.close()
-    training = {**resolved, "train_time_s": prog["elapsed_s"], "train_cpu_s": prog.get("cpu_s"), "history": prog["history"], "stopped_early": prog["stopped_early"]}
-    card = PolicyCard(arch=cfg.policy, action=ActionScaling(max_step_m=spec.episode.max_step_m, max_step_rad=spec.episode.max_step_rad),
-                      training=training, clean_success=clean, seed=cfg.seed, git_commit=git_commit())
+    training = {
+        **resolved,
+        "train_time_s": prog["elapsed_s"],
+        "train_cpu_s": prog.get("cpu_s"),
+        "history": prog["history"],
+        "stopped_early": prog["stopped_early"],
+    }
+    card = PolicyCard(
+        arch=cfg.policy,
+        action=ActionScaling(max_step_m=spec.episode.max_step_m, max_step_rad=spec.episode.max_step_rad),
+        training=training,
+        clean_success=clean,
+        seed=cfg.seed,
+        git_commit=git_commit(),
+    )
     card = save_checkpoint(out_dir, policy.cpu(), card)
     if not keep_state and (out_dir / "train_state").is_dir():
         import shutil

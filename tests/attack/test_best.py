@@ -6,14 +6,31 @@ import numpy as np
 import pytest
 import torch
 
-from attack.optimize import AttackError, AttackRun, AttackWarning, better_score, find_checkpoint, resolve_config, run_attack
+from attack.optimize import (
+    AttackError,
+    AttackRun,
+    AttackWarning,
+    better_score,
+    find_checkpoint,
+    resolve_config,
+    run_attack,
+)
 from sim.configs import config_part, sample_pool
 from sim.policies.policy import VisuomotorPolicy
 from sim.spec import default_scene
-from trials.conditions import load_attack_source
+from trials.eval.conditions import load_attack_source
 
-CFG = {"iterations": 6, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "checkpoint_every": 2, "lr": 0.5,
-       "validation_every": 1, "validation_episodes": 2, "validation_max_steps": 3}
+CFG = {
+    "iterations": 6,
+    "num_envs": 2,
+    "rollout_steps": 2,
+    "texture_size": 16,
+    "checkpoint_every": 2,
+    "lr": 0.5,
+    "validation_every": 1,
+    "validation_episodes": 2,
+    "validation_max_steps": 3,
+}
 
 
 def _policy():
@@ -43,14 +60,20 @@ def _scripted(run, scores):
 
 def test_a_pool_short_of_validation_configurations_validates_on_what_it_has_and_says_so(spec_pool):
     spec, pool = spec_pool
-    with pytest.warns(AttackWarning, match="only 2 configurations of the validation part; validating on 2 instead of 16"):
+    with pytest.warns(
+        AttackWarning, match="only 2 configurations of the validation part; validating on 2 instead of 16"
+    ):
         run = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "validation_episodes": 16}), pool=pool)
     assert len(run.val_pool) == 2 and len(run.pool) == 6
     run.close()
     with pytest.raises(AttackError, match="no configuration of the validation part"):
-        AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=[c for c in pool if config_part(c.seed) == "attack"])
+        AttackRun(
+            _policy(), spec, resolve_config("quick", CFG), pool=[c for c in pool if config_part(c.seed) == "attack"]
+        )
     with pytest.raises(AttackError, match="attack part"):
-        AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=[c for c in pool if config_part(c.seed) == "validation"])
+        AttackRun(
+            _policy(), spec, resolve_config("quick", CFG), pool=[c for c in pool if config_part(c.seed) == "validation"]
+        )
 
 
 def test_a_pool_of_evaluation_configurations_is_never_attacked_or_validated_on(spec_pool):
@@ -168,7 +191,13 @@ def test_real_validation_is_deterministic_and_leaves_the_training_rng_alone(spec
 
 def test_validation_off_keeps_the_whole_pool_and_writes_no_best(tmp_path, spec_pool):
     spec, pool = spec_pool
-    run = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "validation_every": 0, "iterations": 2}), pool=pool, out_dir=tmp_path)
+    run = AttackRun(
+        _policy(),
+        spec,
+        resolve_config("quick", {**CFG, "validation_every": 0, "iterations": 2}),
+        pool=pool,
+        out_dir=tmp_path,
+    )
     assert resolve_config("quick").validation_every > 0 and resolve_config("paper").validation_every > 0
     run_attack(run, progress=False)
     run.close()

@@ -54,7 +54,13 @@ def test_pose_loss_finite_over_distance_and_grazing_views(r, phi_deg, theta, act
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.integers(1, 4), st.integers(1, 6), st.integers(1, 6), st.floats(0, 1), st.sampled_from(["empty", "full", "one", "random"]))
+@given(
+    st.integers(1, 4),
+    st.integers(1, 6),
+    st.integers(1, 6),
+    st.floats(0, 1),
+    st.sampled_from(["empty", "full", "one", "random"]),
+)
 def test_saliency_terms_finite_and_zero_for_empty_masks(b, h, w, scale, kind):
     S = torch.rand(b, h, w) * scale
     H, W = 4 * h, 4 * w
@@ -94,7 +100,10 @@ def test_zero_or_nonfinite_gradient_skips_the_update(kind, n):
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.lists(st.floats(-1e3, 1e3, width=32), min_size=8, max_size=8), st.lists(st.floats(-1e3, 1e3, width=32), min_size=8, max_size=8))
+@given(
+    st.lists(st.floats(-1e3, 1e3, width=32), min_size=8, max_size=8),
+    st.lists(st.floats(-1e3, 1e3, width=32), min_size=8, max_size=8),
+)
 def test_pcgrad_removes_conflict_and_sums(g1, g2):
     a, b = torch.tensor(g1, dtype=torch.float64), torch.tensor(g2, dtype=torch.float64)
     g = pcgrad(a, b)

@@ -11,8 +11,16 @@ from sim.policies.interface import WhiteBoxRequired
 from sim.policies.policy import VisuomotorPolicy
 from sim.spec import default_scene
 
-CFG = {"iterations": 4, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "checkpoint_every": 2, "pool_size": 8, "lr": 0.5,
-       "validation_every": 0}  # validation: tests/attack/test_best.py
+CFG = {
+    "iterations": 4,
+    "num_envs": 2,
+    "rollout_steps": 2,
+    "texture_size": 16,
+    "checkpoint_every": 2,
+    "pool_size": 8,
+    "lr": 0.5,
+    "validation_every": 0,
+}  # validation: tests/attack/test_best.py
 
 
 def _policy():
@@ -77,7 +85,13 @@ def test_black_box_policy_is_refused(spec_pool):
 
 def test_texture_moves_and_stays_in_range_for_every_loss_variant(spec_pool):
     spec, pool = spec_pool
-    for extra in ({}, {"loss": "untargeted"}, {"use_saliency": False}, {"use_pose": False}, {"pcgrad": False, "print_aware": True, "light_randomization": True}):
+    for extra in (
+        {},
+        {"loss": "untargeted"},
+        {"use_saliency": False},
+        {"use_pose": False},
+        {"pcgrad": False, "print_aware": True, "light_randomization": True},
+    ):
         run = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "iterations": 2, **extra}), pool=pool)
         before = run.texture.clone()
         run_attack(run, progress=False)

@@ -45,8 +45,13 @@ def test_glb_and_obj_exports_re_render_as_optimised(tmp_path):
 def test_the_end_of_run_summary_puts_the_held_out_t_asr_first_and_explains_the_pose_loss():
     from attack.outputs import summary_lines
 
-    m = {"iterations": 120, "seconds": 30.0, "initial_loss_pose": 0.136, "final_loss_pose": 0.209,
-         "validation": {"t_asr": [0.0, 0.31, 0.62], "best": {"iteration": 120, "t_asr": 0.62, "episodes": 16}}}
+    m = {
+        "iterations": 120,
+        "seconds": 30.0,
+        "initial_loss_pose": 0.136,
+        "final_loss_pose": 0.209,
+        "validation": {"t_asr": [0.0, 0.31, 0.62], "best": {"iteration": 120, "t_asr": 0.62, "episodes": 16}},
+    }
     lines = summary_lines(m)
     assert "validation T-ASR (n = 16): 0.00 at the start -> 0.62 at the end; best 0.62 at iteration 120" in lines[1]
     assert lines[2].startswith("pose loss 0.136 -> 0.209") and "not comparable across iterations" in lines[2]

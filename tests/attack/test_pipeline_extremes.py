@@ -30,8 +30,12 @@ CFG = {"iterations": 1000, "num_envs": 1, "rollout_steps": 1, "texture_size": 16
 def run():
     torch.manual_seed(0)
     spec = default_scene()
-    r = AttackRun(VisuomotorPolicy(arch="small_cnn", image_size=32), spec, resolve_config("quick", CFG),
-                  pool=[sample_config(spec, 10)])  # an attack-part seed (sim.configs.config_part)
+    r = AttackRun(
+        VisuomotorPolicy(arch="small_cnn", image_size=32),
+        spec,
+        resolve_config("quick", CFG),
+        pool=[sample_config(spec, 10)],
+    )  # an attack-part seed (sim.configs.config_part)
     yield r
     r.close()
 
@@ -64,8 +68,16 @@ def _forward(run, T_world_cam, texture, keep_pixels=None):
     if keep_pixels is not None:  # cut the fragments (and the mask) down to the first k pixels
         f = cap.fragments
         sl = slice(0, keep_pixels)
-        frags = dataclasses.replace(f, pix=f.pix[sl], face=f.face[sl], bary=f.bary[sl], uv=f.uv[sl], duv=f.duv[sl],
-                                    diffuse=f.diffuse[sl], specular=f.specular[sl])
+        frags = dataclasses.replace(
+            f,
+            pix=f.pix[sl],
+            face=f.face[sl],
+            bary=f.bary[sl],
+            uv=f.uv[sl],
+            duv=f.duv[sl],
+            diffuse=f.diffuse[sl],
+            specular=f.specular[sl],
+        )
         cap = Capture(cap.i_sim, frags, frags.mask(), cap.goal_mask)
     run.texture = texture.clone()
     T = torch.from_numpy(world.T_world_tcp[None]).float()
@@ -195,7 +207,11 @@ def test_zero_and_nonfinite_gradients_skip_the_update(run):
     tex = TEXTURES["random"]()
     run.texture = tex.clone()
     zero = torch.zeros_like(tex)
-    for g_pose, g_sal in ((zero, zero), (torch.full_like(tex, float("nan")), zero), (zero, torch.full_like(tex, float("inf")))):
+    for g_pose, g_sal in (
+        (zero, zero),
+        (torch.full_like(tex, float("nan")), zero),
+        (zero, torch.full_like(tex, float("inf"))),
+    ):
         _, updated = run.apply_update(g_pose, g_sal)
         assert not updated and torch.equal(run.texture, tex)
 
@@ -217,4 +233,6 @@ def test_a_whole_iteration_without_gradient_is_reported_skipped(run, case):
         run.pool, run.pool_r = pool, pool_r
     assert info["updated"] is False and run.history.skipped == skipped + 1
     assert torch.equal(run.texture, before)
-    assert all(math.isfinite(v) for v in (run.history.loss_pose[-1], run.history.loss_saliency[-1], run.history.grad_norm[-1]))
+    assert all(
+        math.isfinite(v) for v in (run.history.loss_pose[-1], run.history.loss_saliency[-1], run.history.grad_norm[-1])
+    )

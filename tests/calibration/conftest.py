@@ -32,6 +32,8 @@ def board_images(K, board):
 
     T = _board_views(board, 12, seed=3)
     cb = board.cv_board()
-    imgs = [S.degrade(S.distort_image(S.render_planes([S.board_plane(cb, t)], K, W, H), K, DIST), 0.6, 2.0, seed=i)
-            for i, t in enumerate(T)]
+    imgs = [
+        S.degrade(S.distort_image(S.render_planes([S.board_plane(cb, t)], K, W, H), K, DIST), 0.6, 2.0, seed=i)
+        for i, t in enumerate(T)
+    ]
     return imgs, T

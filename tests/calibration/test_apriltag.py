@@ -20,7 +20,9 @@ from .conftest import H, W
 
 
 def _render_tag(K, T, size=0.04, tag_id=7, blur=0.7, noise=2.0, seed=0, dictionary=None):
-    return S.degrade(S.render_planes([S.tag_plane(tag_id, size, T, dictionary=dictionary)], K, W, H), blur, noise, seed=seed)
+    return S.degrade(
+        S.render_planes([S.tag_plane(tag_id, size, T, dictionary=dictionary)], K, W, H), blur, noise, seed=seed
+    )
 
 
 def _views(distance, tilt_deg, n, seed=0):
@@ -28,8 +30,15 @@ def _views(distance, tilt_deg, n, seed=0):
     for s in range(n):
         rng = np.random.default_rng(seed * 100 + s)
         a = rng.uniform(0, np.pi)
-        out.append(S.camera_facing(distance, np.radians(tilt_deg), (np.cos(a), np.sin(a), 0), rng.uniform(-0.5, 0.5),
-                                   rng.uniform(-0.04, 0.04, 2)))
+        out.append(
+            S.camera_facing(
+                distance,
+                np.radians(tilt_deg),
+                (np.cos(a), np.sin(a), 0),
+                rng.uniform(-0.5, 0.5),
+                rng.uniform(-0.04, 0.04, 2),
+            )
+        )
     return out
 
 

@@ -51,8 +51,16 @@ def test_aruco_dictionaries_are_detected_by_name(K, cam):
     assert detect_tags(img, cam, 0.04) == []  # not a tag36h11 tag
 
 
-@pytest.mark.parametrize("given,name", [(None, "tag36h11"), ("TAG36H11", "tag36h11"), ("DICT_4X4_50", "4X4_50"),
-                                        (cv2.aruco.DICT_APRILTAG_36h11, "tag36h11"), (cv2.aruco.DICT_5X5_100, "5X5_100")])
+@pytest.mark.parametrize(
+    "given,name",
+    [
+        (None, "tag36h11"),
+        ("TAG36H11", "tag36h11"),
+        ("DICT_4X4_50", "4X4_50"),
+        (cv2.aruco.DICT_APRILTAG_36h11, "tag36h11"),
+        (cv2.aruco.DICT_5X5_100, "5X5_100"),
+    ],
+)
 def test_dictionary_names_resolve(given, name):
     assert resolve_dictionary(given) == name and name in TAG_DICTIONARIES
 
@@ -72,8 +80,10 @@ def test_degenerate_and_blank_images_give_no_tags(shape):
 
 def test_a_process_that_used_apriltag3_exits_cleanly():
     # pupil-apriltags' own destructor frees the family before the detector and segfaults at exit.
-    code = ("import numpy as np; from calibration.apriltag import detect_tag_corners; "
-            "detect_tag_corners(np.zeros((64, 64), np.uint8)); print('ok')")
+    code = (
+        "import numpy as np; from calibration.apriltag import detect_tag_corners; "
+        "detect_tag_corners(np.zeros((64, 64), np.uint8)); print('ok')"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
 
@@ -83,8 +93,12 @@ def test_visible_tag_fraction_measures_how_much_of_an_object_is_covered(K, cam):
     from calibration.registry import ObjectRegistry, TagEntry, locate_objects, visible_tag_fraction
 
     # One object carrying two 40 mm tags side by side on its front face, 6 cm apart.
-    reg = ObjectRegistry(tags={1: TagEntry(object="box", size_m=0.04, T_tag_object=PoseModel(translation_m=(0.03, 0.0, 0.0))),
-                               2: TagEntry(object="box", size_m=0.04, T_tag_object=PoseModel(translation_m=(-0.03, 0.0, 0.0)))})
+    reg = ObjectRegistry(
+        tags={
+            1: TagEntry(object="box", size_m=0.04, T_tag_object=PoseModel(translation_m=(0.03, 0.0, 0.0))),
+            2: TagEntry(object="box", size_m=0.04, T_tag_object=PoseModel(translation_m=(-0.03, 0.0, 0.0))),
+        }
+    )
     T_cam_box = S.camera_facing(0.45, np.radians(15), (0.0, 1.0, 0.0))
     planes = {i: S.tag_plane(i, 0.04, T_cam_box @ np.linalg.inv(reg.tags[i].T_tag_object.T)) for i in (1, 2)}
     both = S.render_planes([planes[1], planes[2]], K, W, H)

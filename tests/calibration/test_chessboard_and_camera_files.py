@@ -31,8 +31,10 @@ CHESS = ChessboardSpec(inner_cols=9, inner_rows=6, square_size_m=0.025)
 @pytest.fixture(scope="module")
 def chess_images(K):
     T = _board_views(CHESS, 10, seed=1)
-    return [S.degrade(S.distort_image(S.render_planes([S.chessboard_plane(CHESS, t)], K, W, H), K, DIST), 0.6, 2.0, seed=i)
-            for i, t in enumerate(T)], T
+    return [
+        S.degrade(S.distort_image(S.render_planes([S.chessboard_plane(CHESS, t)], K, W, H), K, DIST), 0.6, 2.0, seed=i)
+        for i, t in enumerate(T)
+    ], T
 
 
 def test_plain_chessboard_intrinsics_within_half_a_percent_of_ground_truth(chess_images, K):
@@ -66,13 +68,18 @@ def test_identify_board_finds_charuco_and_names_a_wrong_dictionary(board_images)
     grays = [to_gray(i) for i in board_images[0][:2]]
     spec, how = identify_board(grays, BoardSpec())
     assert spec == BoardSpec() and how.startswith("ChArUco board")
-    with pytest.raises(CalibrationError, match=r"dictionary 5X5_50 or 5X5_100 or 5X5_250, not 4X4_50; pass --dictionary"):
+    with pytest.raises(
+        CalibrationError, match=r"dictionary 5X5_50 or 5X5_100 or 5X5_250, not 4X4_50; pass --dictionary"
+    ):
         identify_board(grays, BoardSpec(dictionary="4X4_50"))
 
 
 def test_identify_board_refuses_photos_without_a_board_in_one_line():
     blank = np.full((H, W), 128, np.uint8)
-    with pytest.raises(CalibrationError, match=r"no ChArUco markers \(dictionary 5X5_100\) and no chessboard of a common size found in 1 photo") as e:
+    with pytest.raises(
+        CalibrationError,
+        match=r"no ChArUco markers \(dictionary 5X5_100\) and no chessboard of a common size found in 1 photo",
+    ) as e:
         identify_board([blank], BoardSpec())
     assert "\n" not in str(e.value)
 
@@ -95,7 +102,9 @@ def test_std_coverage_and_tilt_are_reported_and_weak_sets_warned(chess_images, K
     # Frontal views only, all near the centre: the focal length is weakly determined and the
     # edges of the frame are never seen; both are said.
     T = _board_views(CHESS, 6, seed=5, distance_range_m=(0.4, 0.42), max_tilt_deg=4.0)
-    frontal = [S.degrade(S.render_planes([S.chessboard_plane(CHESS, t)], K, W, H), 0.6, 2.0, seed=i) for i, t in enumerate(T)]
+    frontal = [
+        S.degrade(S.render_planes([S.chessboard_plane(CHESS, t)], K, W, H), 0.6, 2.0, seed=i) for i, t in enumerate(T)
+    ]
     weak = calibrate_intrinsics(frontal, CHESS)
     text = " ".join(weak.warnings)
     assert "tilt spans only" in text and "of the image area" in text
@@ -109,6 +118,7 @@ def test_board_yaml_round_trips_both_kinds(tmp_path):
 
 # ---- camera files from other tools ------------------------------------------------------------
 
+
 def _cam():
     K = np.array([[536.07, 0.0, 342.37], [0.0, 536.02, 235.54], [0.0, 0.0, 1.0]])
     return CameraIntrinsics(K, np.array([-0.265, -0.0467, 0.00183, -0.00031, 0.252]), 640, 480, 0.4)
@@ -118,7 +128,11 @@ def test_ros_camera_info_round_trips(tmp_path):
     p = save_camera_yaml(tmp_path / "ost.yaml", _cam(), fmt="ros")
     assert camera_file_format(p) == "ros"
     back = load_camera_yaml(p)
-    assert np.allclose(back.K, _cam().K) and np.allclose(back.dist, _cam().dist) and (back.width, back.height) == (640, 480)
+    assert (
+        np.allclose(back.K, _cam().K)
+        and np.allclose(back.dist, _cam().dist)
+        and (back.width, back.height) == (640, 480)
+    )
 
 
 def test_a_ros_camera_info_file_as_the_calibrator_writes_it_loads(tmp_path):
@@ -153,7 +167,9 @@ def test_ros_fisheye_and_malformed_matrices_are_refused_naming_the_field(tmp_pat
     (tmp_path / "fish.yaml").write_text(good.replace("plumb_bob", "equidistant"))
     with pytest.raises(CalibrationFileError, match=r"fish\.yaml: distortion_model: .*fisheye"):
         load_camera_yaml(tmp_path / "fish.yaml")
-    (tmp_path / "short.yaml").write_text(good.replace("rows: 3\n  cols: 3\n  data: [536", "rows: 3\n  cols: 3\n  data: [0.0, 536", 1))
+    (tmp_path / "short.yaml").write_text(
+        good.replace("rows: 3\n  cols: 3\n  data: [536", "rows: 3\n  cols: 3\n  data: [0.0, 536", 1)
+    )
     with pytest.raises(CalibrationFileError, match=r"short\.yaml: camera_matrix"):
         load_camera_yaml(tmp_path / "short.yaml")
 
@@ -203,18 +219,30 @@ def test_std_is_written_to_our_camera_file(tmp_path):
 
 
 def test_opencv_files_with_plain_lists_load_and_broken_ones_are_one_line(tmp_path):
-    (tmp_path / "plain.yml").write_text("%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
-                                        "camera_matrix: [[536.07, 0, 342.37], [0, 536.02, 235.54], [0, 0, 1]]\n"
-                                        "distortion_coefficients: [-0.265, -0.0467, 0.00183, -0.00031, 0.252]\n")
+    (tmp_path / "plain.yml").write_text(
+        "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
+        "camera_matrix: [[536.07, 0, 342.37], [0, 536.02, 235.54], [0, 0, 1]]\n"
+        "distortion_coefficients: [-0.265, -0.0467, 0.00183, -0.00031, 0.252]\n"
+    )
     cam = load_camera_yaml(tmp_path / "plain.yml")
     assert cam.K[0, 0] == pytest.approx(536.07) and cam.dist[4] == pytest.approx(0.252)
-    (tmp_path / "plain.json").write_text(json.dumps({"image_width": 640, "image_height": 480, "camera_matrix": _cam().K.tolist(),
-                                                     "distortion_coefficients": _cam().dist.tolist()}))
+    (tmp_path / "plain.json").write_text(
+        json.dumps(
+            {
+                "image_width": 640,
+                "image_height": 480,
+                "camera_matrix": _cam().K.tolist(),
+                "distortion_coefficients": _cam().dist.tolist(),
+            }
+        )
+    )
     assert load_camera_yaml(tmp_path / "plain.json").K[1, 1] == pytest.approx(536.02)
     (tmp_path / "ours.json").write_text(json.dumps({"width": 640, "height": 480, "K": _cam().K.tolist(), "dist": []}))
     assert load_camera_yaml(tmp_path / "ours.json").K[0, 2] == pytest.approx(342.37)  # our schema, written as JSON
-    for name, text in (("broken.yml", "%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n  cols: [\n"),
-                       ("words.yml", "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: hello\n")):
+    for name, text in (
+        ("broken.yml", "%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n  cols: [\n"),
+        ("words.yml", "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: hello\n"),
+    ):
         (tmp_path / name).write_text(text)
         with pytest.raises(CalibrationFileError) as e:
             load_camera_yaml(tmp_path / name)

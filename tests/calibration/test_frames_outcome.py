@@ -33,13 +33,19 @@ def test_registry_round_trip(tmp_path):
     assert load_registry(save_registry(tmp_path / "r.yaml", reg)) == reg
 
 
-@pytest.mark.parametrize("text, field", [
-    ("tags:\n  900: {object: a, size_m: 0.04}\n", "tags"),
-    ("tags:\n  1: {object: a, size_m: -0.04}\n", "tags.1.size_m"),
-    ("tags:\n  1: {object: a, size_m: 0.04, T_tag_object: {translation_m: [0, 0]}}\n", "tags.1.T_tag_object.translation_m"),
-    ("tags:\n  1: {object: a, size_m: 0.04, colour: red}\n", "tags.1.colour"),
-    ("tag:\n  1: {object: a, size_m: 0.04}\n", "tags"),
-])
+@pytest.mark.parametrize(
+    "text, field",
+    [
+        ("tags:\n  900: {object: a, size_m: 0.04}\n", "tags"),
+        ("tags:\n  1: {object: a, size_m: -0.04}\n", "tags.1.size_m"),
+        (
+            "tags:\n  1: {object: a, size_m: 0.04, T_tag_object: {translation_m: [0, 0]}}\n",
+            "tags.1.T_tag_object.translation_m",
+        ),
+        ("tags:\n  1: {object: a, size_m: 0.04, colour: red}\n", "tags.1.colour"),
+        ("tag:\n  1: {object: a, size_m: 0.04}\n", "tags"),
+    ],
+)
 def test_corrupt_registry_names_file_and_field(tmp_path, text, field):
     p = tmp_path / "objects.yaml"
     p.write_text(text)
@@ -73,17 +79,21 @@ def test_frame_chain_validates_and_maps_points():
 
 
 @settings(max_examples=80, deadline=None)
-@given(tcp=arrays(np.float64, (4, 3), elements=st.floats(-0.3, 0.3)),
-       obj=arrays(np.float64, (4, 3, 3), elements=st.floats(-0.3, 0.3)),
-       radius=st.floats(0.0, 0.3))
+@given(
+    tcp=arrays(np.float64, (4, 3), elements=st.floats(-0.3, 0.3)),
+    obj=arrays(np.float64, (4, 3, 3), elements=st.floats(-0.3, 0.3)),
+    radius=st.floats(0.0, 0.3),
+)
 def test_real_outcome_equals_the_sim_criterion_when_everything_is_seen(tcp, obj, radius):
     assert np.array_equal(real_reach_outcome(tcp, obj, radius), reach_outcome(tcp, obj, radius))
 
 
 @settings(max_examples=60, deadline=None)
-@given(tcp=arrays(np.float64, (1, 3), elements=st.floats(-0.3, 0.3)),
-       obj=arrays(np.float64, (1, 3, 3), elements=st.floats(-0.3, 0.3)),
-       missing=st.integers(0, 2))
+@given(
+    tcp=arrays(np.float64, (1, 3), elements=st.floats(-0.3, 0.3)),
+    obj=arrays(np.float64, (1, 3, 3), elements=st.floats(-0.3, 0.3)),
+    missing=st.integers(0, 2),
+)
 def test_any_undetected_object_makes_the_outcome_unknown(tcp, obj, missing):
     obj = obj.copy()
     obj[0, missing] = np.nan

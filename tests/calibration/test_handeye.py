@@ -82,8 +82,10 @@ def test_translation_only_motion_is_refused():
 
 
 @settings(max_examples=30, deadline=None)
-@given(axis=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda a: np.linalg.norm(a) > 0.2),
-       seed=st.integers(0, 10_000))
+@given(
+    axis=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda a: np.linalg.norm(a) > 0.2),
+    seed=st.integers(0, 10_000),
+)
 def test_rotation_about_a_single_axis_is_refused_with_a_perpendicular_axis_to_add(axis, seed):
     rng = np.random.default_rng(seed)
     a = np.asarray(axis) / np.linalg.norm(axis)
@@ -131,7 +133,10 @@ def _pose(T):
 
 def test_samples_file_with_board_poses(tmp_path):
     A, B = _noisy_set()
-    p = write_yaml(tmp_path / "samples.yaml", {"samples": [{"T_base_tcp": _pose(a), "T_cam_board": _pose(b)} for a, b in zip(A, B)]})
+    p = write_yaml(
+        tmp_path / "samples.yaml",
+        {"samples": [{"T_base_tcp": _pose(a), "T_cam_board": _pose(b)} for a, b in zip(A, B)]},
+    )
     A2, B2, notes = load_samples_yaml(p)
     assert np.allclose(A2, A, atol=1e-9) and np.allclose(B2, B, atol=1e-9) and notes == []
 
@@ -155,8 +160,16 @@ def test_hand_eye_from_rendered_board_images(tmp_path, K, board):
     from .conftest import H, W
 
     w, h = board.squares_x * board.square_size_m, board.squares_y * board.square_size_m
-    A, B = S.hand_eye_poses(10, X_TRUE, T_BASE_BOARD, (w / 2, h / 2, 0.0), distance_range_m=(0.35, 0.45),
-                            lateral_m=0.1, roll_rad=0.4, seed=7)
+    A, B = S.hand_eye_poses(
+        10,
+        X_TRUE,
+        T_BASE_BOARD,
+        (w / 2, h / 2, 0.0),
+        distance_range_m=(0.35, 0.45),
+        lateral_m=0.1,
+        roll_rad=0.4,
+        seed=7,
+    )
     A = S.perturb_poses(A, 1e-4, np.radians(0.02), seed=8)
     save_board_yaml(tmp_path / "board.yaml", board)
     save_camera_yaml(tmp_path / "cam.yaml", CameraIntrinsics(K, np.zeros(5), W, H))
@@ -181,7 +194,13 @@ def test_samples_file_with_a_missing_or_wrong_size_image_names_the_sample(tmp_pa
     save_camera_yaml(tmp_path / "cam.yaml", CameraIntrinsics(K, np.zeros(5), 640, 480))
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((100, 120), np.uint8))
     for image, msg in (("gone.png", "samples.0.image: no such file"), ("small.png", "samples.0.image: .*120x100")):
-        p = write_yaml(tmp_path / "s.yaml", {"board": "board.yaml", "camera": "cam.yaml",
-                                             "samples": [{"T_base_tcp": _pose(np.eye(4)), "image": image}]})
+        p = write_yaml(
+            tmp_path / "s.yaml",
+            {
+                "board": "board.yaml",
+                "camera": "cam.yaml",
+                "samples": [{"T_base_tcp": _pose(np.eye(4)), "image": image}],
+            },
+        )
         with pytest.raises(CalibrationError, match=msg):
             load_samples_yaml(p)

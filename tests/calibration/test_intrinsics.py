@@ -60,9 +60,12 @@ def test_blurred_sparse_and_odd_sized_images_are_rejected_with_reasons(board_ima
     assert len(detect_charuco(to_gray(blurred), board)[1]) >= 12  # still detected: rejected for blur, not corners
     blank = np.full((H, W, 3), 128, np.uint8)
     small = imgs[1][: H // 2, : W // 2]
-    res = calibrate_intrinsics(list(imgs[2:8]) + [blurred, blank, small], board,
-                               [f"ok{i}" for i in range(6)] + ["blurred.png", "blank.png", "small.png"],
-                               CalibrationOptions(max_blur_px=1.25))
+    res = calibrate_intrinsics(
+        list(imgs[2:8]) + [blurred, blank, small],
+        board,
+        [f"ok{i}" for i in range(6)] + ["blurred.png", "blank.png", "small.png"],
+        CalibrationOptions(max_blur_px=1.25),
+    )
     by = {r.name: r for r in res.images}
     assert not by["blurred.png"].accepted and by["blurred.png"].reason.startswith("blurred")
     assert not by["blank.png"].accepted and by["blank.png"].reason == "no ChArUco markers (dictionary 5X5_100) found"
@@ -153,9 +156,14 @@ def test_legacy_board_is_only_detected_with_the_legacy_flag(K):
     assert len(detect_charuco(gray, modern)[1]) < len(detect_charuco(gray, legacy)[1])
 
 
-@pytest.mark.parametrize("img", [
-    np.zeros((H, W), np.float32), np.ones((H, W, 4), np.float64), np.full((H, W, 1), 65535, np.uint16),
-])
+@pytest.mark.parametrize(
+    "img",
+    [
+        np.zeros((H, W), np.float32),
+        np.ones((H, W, 4), np.float64),
+        np.full((H, W, 1), 65535, np.uint16),
+    ],
+)
 def test_to_gray_accepts_common_layouts(img):
     g = to_gray(img)
     assert g.shape == (H, W) and g.dtype == np.uint8

@@ -56,7 +56,10 @@ def test_the_docs_quote_the_committed_chessboard_run(chessboard):
     committed = json.loads((ROOT / "results" / "chessboard" / "summary.json").read_text())
     _, fresh = chessboard
     for name, r in fresh["runs"].items():  # the committed figures are what the code gives now
-        assert committed["runs"][name]["fx"] == pytest.approx(r["fx"], abs=1e-6) and committed["runs"][name]["n_accepted"] == r["n_accepted"]
+        assert (
+            committed["runs"][name]["fx"] == pytest.approx(r["fx"], abs=1e-6)
+            and committed["runs"][name]["n_accepted"] == r["n_accepted"]
+        )
     assert bench.docs_block(committed) in (ROOT / "docs" / "calibration.md").read_text()
 
 
@@ -85,7 +88,11 @@ def test_the_opencv_sample_output_loads_as_a_camera_file():
     from calibration.intrinsics import load_camera_yaml
 
     cam = load_camera_yaml(PHOTOS / "opencv-chessboard" / "left_intrinsics.yml")
-    assert (cam.width, cam.height) == (640, 480) and cam.K[0, 0] == pytest.approx(535.9157, abs=1e-3) and len(cam.dist) == 5
+    assert (
+        (cam.width, cam.height) == (640, 480)
+        and cam.K[0, 0] == pytest.approx(535.9157, abs=1e-3)
+        and len(cam.dist) == 5
+    )
     assert np.isclose(cam.rms_px, 0.3926, atol=1e-3)
 
 

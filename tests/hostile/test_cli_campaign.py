@@ -1,10 +1,10 @@
 """The hostile-input campaign over every CLI command (enumerated from the typer app).
 
-Every command of ``trials.cli.app`` (groups walked, so a new command is covered automatically)
+Every command of ``trials.cli.main.app`` (groups walked, so a new command is covered automatically)
 gets, for each of its file parameters, every hostile file kind (malformed / binary / empty /
 deeply nested / unknown-key YAML, corrupt mesh, ONNX, SQLite and image, a missing path, a
 directory, a traversal name), and for each of its numeric options NaN, inf and a negative number.
-Each case runs in-process (``trials.cli.main`` with ``sys.argv`` patched) in a scratch working
+Each case runs in-process (``trials.cli.main.main`` with ``sys.argv`` patched) in a scratch working
 directory, and must end with exit code 2, exactly one non-empty line on stderr (naming a flag,
 field or file), no traceback, and no file created or changed outside the given output folders.
 
@@ -15,7 +15,6 @@ to ``campaign.json`` in the pytest temp directory; run with ``-s`` to see them.
 from __future__ import annotations
 
 import hashlib
-import inspect
 import json
 import os
 import re
@@ -47,7 +46,7 @@ OUTPUT_NAMES = {"out", "db", "plot", "sheet"}  # parameters naming where a comma
 def _commands():
     import typer.main
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     def walk(cmd, path):
         subs = getattr(cmd, "commands", None)
@@ -168,7 +167,7 @@ def _on_alarm(signum, frame):
 
 
 def _run_case(path, target, kind, work: Path, monkeypatch, capsys):
-    from trials.cli import main
+    from trials.cli.main import main
 
     cmd = dict((tuple(p), c) for p, c in _commands())[tuple(path)]
     argv = _argv(path, cmd, target, kind, work)
@@ -197,7 +196,11 @@ def test_the_campaign_covers_every_command():
     covered = {tuple(p) for p, _, _ in CASES}
     assert len(commands) >= 25
     # a command without a file or numeric parameter has no hostile input of these kinds
-    uncovered = [" ".join(p) for p, c in commands if tuple(p) not in covered and any(k in ("path", "number") for _, k, _ in _params(c))]
+    uncovered = [
+        " ".join(p)
+        for p, c in commands
+        if tuple(p) not in covered and any(k in ("path", "number") for _, k, _ in _params(c))
+    ]
     assert uncovered == []
 
 
@@ -237,15 +240,26 @@ def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
         if touched:
             problems.append(f"touched outside: {touched[:3]}")
         key = (" ".join(path), target, kind)
-        results.append({"command": key[0], "param": target, "kind": kind, "exit": code, "stderr": lines[:2],
-                        "problems": problems, "touched": touched})
+        results.append(
+            {
+                "command": key[0],
+                "param": target,
+                "kind": kind,
+                "exit": code,
+                "stderr": lines[:2],
+                "problems": problems,
+                "touched": touched,
+            }
+        )
         if problems and key not in KNOWN:
             failures.append(f"{' '.join(argv)} -> {'; '.join(problems)} | {lines[:1]}")
     figures = {
         "commands_covered": len({r["command"] for r in results}),
         "commands_total": len(_commands()),
         "cases": len(results),
-        "tracebacks": sum(any(p.startswith("Traceback") or p == "traceback on stderr" for p in r["problems"]) for r in results),
+        "tracebacks": sum(
+            any(p.startswith("Traceback") or p == "traceback on stderr" for p in r["problems"]) for r in results
+        ),
         "timeouts": sum(any("still running" in p for p in r["problems"]) for r in results),
         "not_one_line_exit_2": sum(bool(r["problems"]) for r in results),
         "files_touched_outside": sum(len(r["touched"]) for r in results),

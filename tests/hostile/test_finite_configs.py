@@ -40,8 +40,12 @@ def _project_models() -> dict[str, type[BaseModel]]:
 def test_every_project_model_refuses_nan_and_inf_and_unknown_keys():
     models = _project_models()
     assert len(models) > 30, sorted(models)
-    loose = sorted(name for name, m in models.items()
-                   if name not in PENDING and (m.model_config.get("allow_inf_nan", True) or m.model_config.get("extra") != "forbid"))
+    loose = sorted(
+        name
+        for name, m in models.items()
+        if name not in PENDING
+        and (m.model_config.get("allow_inf_nan", True) or m.model_config.get("extra") != "forbid")
+    )
     assert loose == [], f"models that accept NaN/inf or unknown keys (derive from sim.configio.StrictModel): {loose}"
     assert all(issubclass(m, StrictModel) for n, m in models.items() if n not in PENDING)
 
@@ -59,14 +63,18 @@ def test_hardware_T_tcp_cam_with_nan_or_inf_is_refused_naming_the_field(tmp_path
     assert str(p) in msg and "translation_m" in msg and "\n" not in msg
 
 
-@pytest.mark.parametrize("field,bad", [("workspace_max_m", "[1, 1, .nan]"), ("max_step_m", ".inf"), ("max_trial_s", ".nan")])
+@pytest.mark.parametrize(
+    "field,bad", [("workspace_max_m", "[1, 1, .nan]"), ("max_step_m", ".inf"), ("max_trial_s", ".nan")]
+)
 def test_hardware_safety_limits_with_nan_or_inf_are_refused(tmp_path, field, bad):
     from robot_io.config import load_hardware_config
     from robot_io.errors import HardwareConfigError
 
     safety = {"workspace_min_m": "[0, 0, 0]", "workspace_max_m": "[1, 1, 1]", field: bad}
     p = tmp_path / "hw.yaml"
-    p.write_text("camera: {type: sim}\narm: {type: sim}\nsafety:\n" + "".join(f"  {k}: {v}\n" for k, v in safety.items()))
+    p.write_text(
+        "camera: {type: sim}\narm: {type: sim}\nsafety:\n" + "".join(f"  {k}: {v}\n" for k, v in safety.items())
+    )
     with pytest.raises(HardwareConfigError, match=rf"safety\.{field}"):
         load_hardware_config(p)
 

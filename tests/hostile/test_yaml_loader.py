@@ -24,14 +24,19 @@ HOSTILE = {
 
 def _loaders():
     from calibration.intrinsics import load_camera_yaml
-    from robot_io.config import load_T_tcp_cam, load_hardware_config
+    from robot_io.config import load_hardware_config, load_T_tcp_cam
     from sim.spec import SpecError, load_scene
     from trials.real.operator import AnswersError, load_answers
     from trials.real.plan import PlanError, load_plan
 
-    return {"scene": (load_scene, SpecError), "hardware": (load_hardware_config, HardwareConfigError),
-            "plan": (load_plan, PlanError), "answers": (load_answers, AnswersError),
-            "camera": (load_camera_yaml, CalibrationFileError), "T_tcp_cam": (load_T_tcp_cam, CalibrationFileError)}
+    return {
+        "scene": (load_scene, SpecError),
+        "hardware": (load_hardware_config, HardwareConfigError),
+        "plan": (load_plan, PlanError),
+        "answers": (load_answers, AnswersError),
+        "camera": (load_camera_yaml, CalibrationFileError),
+        "T_tcp_cam": (load_T_tcp_cam, CalibrationFileError),
+    }
 
 
 @pytest.mark.parametrize("loader", sorted(_loaders()))
@@ -126,14 +131,16 @@ def test_a_training_state_holding_a_pickle_is_refused_in_one_line_and_never_run(
 
 
 def test_a_hand_eye_rotation_vector_of_1e200_is_refused_naming_the_field(tmp_path):
+    from pathlib import Path
+
     import yaml
 
     from calibration.handeye import load_samples_yaml
     from calibration.io import CalibrationFileError
 
-    from pathlib import Path
-
-    doc = yaml.safe_load((Path(__file__).resolve().parents[2] / "examples" / "calibration" / "handeye_samples.yaml").read_text())
+    doc = yaml.safe_load(
+        (Path(__file__).resolve().parents[2] / "examples" / "calibration" / "handeye_samples.yaml").read_text()
+    )
     doc["samples"][0]["T_base_tcp"]["rotvec_rad"] = [1e200, 0.0, 0.0]
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(doc))
     with pytest.raises(CalibrationFileError, match=r"samples.0.T_base_tcp.rotvec_rad: norm must be at most 100 rad"):
@@ -145,14 +152,30 @@ def test_a_photo_of_another_size_than_the_camera_file_is_one_line_naming_it(tmp_
 
     import imageio.v3 as iio
 
-    from trials.cli import main
+    from trials.cli.main import main
 
     root = Path(__file__).resolve().parents[2] / "examples" / "calibration"
     iio.imwrite(tmp_path / "small.png", np.zeros((240, 320, 3), np.uint8))
-    monkeypatch.setattr("sys.argv", ["advobj", "calibrate", "detect", str(tmp_path / "small.png"), "--camera", str(root / "cam.yaml"),
-                                     "--registry", str(root / "objects.yaml")])
+    monkeypatch.setattr(
+        "sys.argv",
+        [
+            "advobj",
+            "calibrate",
+            "detect",
+            str(tmp_path / "small.png"),
+            "--camera",
+            str(root / "cam.yaml"),
+            "--registry",
+            str(root / "objects.yaml"),
+        ],
+    )
     with pytest.raises(SystemExit) as exc:
         main()
     err = [l for l in capsys.readouterr().err.splitlines() if l.strip()]
-    assert exc.value.code == 2 and len(err) == 1 and "small.png" in err[0] and "320x240 does not match the camera file's 640x480" in err[0]
+    assert (
+        exc.value.code == 2
+        and len(err) == 1
+        and "small.png" in err[0]
+        and "320x240 does not match the camera file's 640x480" in err[0]
+    )
     assert "same aspect ratio" in err[0]

@@ -26,8 +26,16 @@ def fresh_world(sim_world):
 
 @pytest.fixture
 def limits():
-    return SafetyLimits(workspace_min_m=(-1.0, -1.0, 0.0), workspace_max_m=(1.0, 1.0, 1.0),
-                        max_step_m=0.02, max_step_rad=0.1, max_speed_mps=0.5, max_speed_radps=2.0,
-                        max_accel_mps2=1000.0, control_period_s=0.05, max_frame_age_ms=100.0,
-                        max_trial_s=60.0, positioning_speed_mps=0.2)
-
+    return SafetyLimits(
+        workspace_min_m=(-1.0, -1.0, 0.0),
+        workspace_max_m=(1.0, 1.0, 1.0),
+        max_step_m=0.02,
+        max_step_rad=0.1,
+        max_speed_mps=0.5,
+        max_speed_radps=2.0,
+        max_accel_mps2=1000.0,
+        control_period_s=0.05,
+        max_frame_age_ms=100.0,
+        max_trial_s=60.0,
+        positioning_speed_mps=0.2,
+    )

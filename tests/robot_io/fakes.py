@@ -418,8 +418,9 @@ def install_depthai(monkeypatch, oak: FakeOak | None = None) -> FakeOak:
 class FakeCaptureDevice:
     """What a UVC device supports; FakeVideoCapture instances read from it."""
 
-    def __init__(self, sizes=((640, 480), (1280, 720), (320, 240)), fps=200.0, honours_fps=True,
-                 fourccs=("YUYV", "MJPG")):
+    def __init__(
+        self, sizes=((640, 480), (1280, 720), (320, 240)), fps=200.0, honours_fps=True, fourccs=("YUYV", "MJPG")
+    ):
         self.sizes = list(sizes)
         self.fps = fps
         self.honours_fps = honours_fps
@@ -435,9 +436,13 @@ def make_video_capture(dev: FakeCaptureDevice, cv2):
     class FakeVideoCapture:
         def __init__(self, src, api=None):
             dev.opened_with.append((src, api))
-            self.props = {cv2.CAP_PROP_FRAME_WIDTH: dev.sizes[0][0], cv2.CAP_PROP_FRAME_HEIGHT: dev.sizes[0][1],
-                          cv2.CAP_PROP_FPS: 30.0, cv2.CAP_PROP_BUFFERSIZE: 4.0,
-                          cv2.CAP_PROP_FOURCC: float(cv2.VideoWriter_fourcc(*dev.fourccs[0]))}
+            self.props = {
+                cv2.CAP_PROP_FRAME_WIDTH: dev.sizes[0][0],
+                cv2.CAP_PROP_FRAME_HEIGHT: dev.sizes[0][1],
+                cv2.CAP_PROP_FPS: 30.0,
+                cv2.CAP_PROP_BUFFERSIZE: 4.0,
+                cv2.CAP_PROP_FOURCC: float(cv2.VideoWriter_fourcc(*dev.fourccs[0])),
+            }
             self._open = True
 
         def isOpened(self):

@@ -11,11 +11,10 @@ import pytest
 
 from calibration.intrinsics import CameraIntrinsics
 from robot_io.cameras.base import scale_intrinsics
-from robot_io.errors import MissingIntrinsicsError
 from robot_io.cameras.depthai import DepthAICamera
 from robot_io.cameras.opencv import OpenCVCamera, resolve_device
 from robot_io.cameras.replay import ReplayCamera
-from robot_io.errors import CameraLostError, MissingExtraError, RobotIOError
+from robot_io.errors import CameraLostError, MissingExtraError, MissingIntrinsicsError, RobotIOError
 from tests.robot_io.fakes import FakeCaptureDevice, install_depthai, install_video_capture
 
 CALIB = CameraIntrinsics(np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.zeros(5), 640, 480)
@@ -33,7 +32,9 @@ def test_opencv_delivers_rgb_frames_of_the_negotiated_size(monkeypatch, size):
             assert K[0, 2] == pytest.approx((319.5 + 0.5) * size[0] / 640 - 0.5)
             assert K[0, 0] / K[1, 1] == pytest.approx(1.0)  # the same camera, scaled: square pixels stay square
         else:  # 16:9 from a 4:3 calibration is a crop of the sensor: no K describes it
-            with pytest.raises(MissingIntrinsicsError, match=r"frames are 1280x720 but the intrinsics are for 640x480, another aspect"):
+            with pytest.raises(
+                MissingIntrinsicsError, match=r"frames are 1280x720 but the intrinsics are for 640x480, another aspect"
+            ):
                 cam.intrinsics
     assert dev.released.is_set()
 

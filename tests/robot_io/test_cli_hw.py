@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from trials.cli import app
+from trials.cli.main import app
 
 SIM_YAML = Path(__file__).resolve().parents[2] / "examples" / "hardware" / "sim.yaml"
 
@@ -53,7 +53,9 @@ def test_check_with_jog_moves_up_and_back(lend_world):
 
 def test_check_rejects_a_bad_config_with_the_field_named(tmp_path):
     bad = tmp_path / "hw.yaml"
-    bad.write_text("camera: {type: sim}\narm: {type: sim, speed: 3}\nsafety: {workspace_min_m: [0,0,0], workspace_max_m: [1,1,1]}\n")
+    bad.write_text(
+        "camera: {type: sim}\narm: {type: sim, speed: 3}\nsafety: {workspace_min_m: [0,0,0], workspace_max_m: [1,1,1]}\n"
+    )
     result = CliRunner().invoke(app, ["hw", "check", "--config", str(bad)])
     assert result.exit_code != 0
     assert "arm.sim.speed" in str(result.exception)
@@ -68,11 +70,15 @@ def test_check_keeps_a_ur_watchdog_fed_while_timing_the_camera_and_jogging(monke
     oak = install_depthai(monkeypatch)
     oak.period_s = 0.03  # 8 frames take ~0.25 s: longer than the 0.1 s the watchdog allows
     hw = tmp_path / "hw.yaml"
-    hw.write_text(yaml.safe_dump({
-        "camera": {"type": "depthai", "width": 64, "height": 48},
-        "arm": {"type": "ur_rtde", "host": "10.0.0.2", "watchdog_min_hz": 10},
-        "safety": {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6]},
-    }))
+    hw.write_text(
+        yaml.safe_dump(
+            {
+                "camera": {"type": "depthai", "width": 64, "height": 48},
+                "arm": {"type": "ur_rtde", "host": "10.0.0.2", "watchdog_min_hz": 10},
+                "safety": {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6]},
+            }
+        )
+    )
     result = CliRunner().invoke(app, ["hw", "check", "-c", str(hw), "--frames", "8", "--jog", "--jog-mm", "10"])
     assert result.exit_code == 0, result.output
     assert "fps over 8 frames" in result.output and "jog: up to" in result.output
@@ -94,11 +100,15 @@ def test_check_reports_a_camera_without_intrinsics_instead_of_aborting(monkeypat
     for i in range(3):
         Image.fromarray(np.full((24, 32, 3), 40 * i, np.uint8)).save(frames / f"{i}.png")
     hw = tmp_path / "hw.yaml"
-    hw.write_text(yaml.safe_dump({
-        "camera": {"type": "replay", "path": str(frames), "loop": True},  # no intrinsics: they are optional
-        "arm": {"type": "ur_rtde", "host": "10.0.0.2"},
-        "safety": {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6]},
-    }))
+    hw.write_text(
+        yaml.safe_dump(
+            {
+                "camera": {"type": "replay", "path": str(frames), "loop": True},  # no intrinsics: they are optional
+                "arm": {"type": "ur_rtde", "host": "10.0.0.2"},
+                "safety": {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6]},
+            }
+        )
+    )
     result = CliRunner().invoke(app, ["hw", "check", "-c", str(hw), "--frames", "4"])
     assert result.exit_code == 0, result.output
     assert "intrinsics: not configured" in result.output and "32x24" in result.output

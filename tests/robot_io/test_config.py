@@ -13,8 +13,8 @@ from robot_io.config import (
     build_arm,
     build_camera,
     hardware_config_from_dict,
-    load_T_tcp_cam,
     load_hardware_config,
+    load_T_tcp_cam,
 )
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm
@@ -39,8 +39,10 @@ def test_every_example_validates_and_names_known_types(path):
 
 def test_unknown_key_is_an_error_naming_file_and_field(tmp_path):
     p = tmp_path / "hw.yaml"
-    p.write_text("camera: {type: opencv, device: 0, exposure: 3}\narm: {type: sim}\nsafety:\n"
-                 "  workspace_min_m: [0, 0, 0]\n  workspace_max_m: [1, 1, 1]\n")
+    p.write_text(
+        "camera: {type: opencv, device: 0, exposure: 3}\narm: {type: sim}\nsafety:\n"
+        "  workspace_min_m: [0, 0, 0]\n  workspace_max_m: [1, 1, 1]\n"
+    )
     with pytest.raises(HardwareConfigError) as info:
         load_hardware_config(p)
     assert str(p) in str(info.value) and "camera.opencv.exposure" in str(info.value)
@@ -53,25 +55,31 @@ def test_unknown_device_type_lists_the_known_ones():
 
 def test_missing_required_fields_are_named():
     with pytest.raises(HardwareConfigError, match=r"arm.ur_rtde.host"):
-        hardware_config_from_dict({"camera": {"type": "replay", "path": "x"}, "arm": {"type": "ur_rtde"}, "safety": SAFETY})
+        hardware_config_from_dict(
+            {"camera": {"type": "replay", "path": "x"}, "arm": {"type": "ur_rtde"}, "safety": SAFETY}
+        )
     with pytest.raises(HardwareConfigError, match=r"safety.workspace_max_m"):
-        hardware_config_from_dict({"camera": {"type": "sim"}, "arm": {"type": "sim"},
-                                   "safety": {"workspace_min_m": [0, 0, 0]}})
+        hardware_config_from_dict(
+            {"camera": {"type": "sim"}, "arm": {"type": "sim"}, "safety": {"workspace_min_m": [0, 0, 0]}}
+        )
 
 
 def test_out_of_range_values_are_named():
     with pytest.raises(HardwareConfigError, match=r"safety.max_speed_mps"):
-        hardware_config_from_dict({"camera": {"type": "sim"}, "arm": {"type": "sim"},
-                                   "safety": {**SAFETY, "max_speed_mps": -1}})
+        hardware_config_from_dict(
+            {"camera": {"type": "sim"}, "arm": {"type": "sim"}, "safety": {**SAFETY, "max_speed_mps": -1}}
+        )
     with pytest.raises(HardwareConfigError, match=r"arm.ur_rtde.gain"):
-        hardware_config_from_dict({"camera": {"type": "sim"}, "arm": {"type": "ur_rtde", "host": "h", "gain": 5},
-                                   "safety": SAFETY})
+        hardware_config_from_dict(
+            {"camera": {"type": "sim"}, "arm": {"type": "ur_rtde", "host": "h", "gain": 5}, "safety": SAFETY}
+        )
 
 
 def test_sim_camera_needs_the_sim_arm():
     with pytest.raises(HardwareConfigError, match="needs arm.type 'sim'"):
-        hardware_config_from_dict({"camera": {"type": "sim"}, "arm": {"type": "serial", "port": "loop://"},
-                                   "safety": SAFETY})
+        hardware_config_from_dict(
+            {"camera": {"type": "sim"}, "arm": {"type": "serial", "port": "loop://"}, "safety": SAFETY}
+        )
 
 
 def test_unreadable_and_malformed_files_are_named(tmp_path):
@@ -84,8 +92,9 @@ def test_unreadable_and_malformed_files_are_named(tmp_path):
 
 
 def test_factories_return_a_safety_wrapped_arm_and_need_the_world_for_sim_devices():
-    cfg = hardware_config_from_dict({"camera": {"type": "replay", "path": "frames"},
-                                     "arm": {"type": "serial", "port": "loop://"}, "safety": SAFETY})
+    cfg = hardware_config_from_dict(
+        {"camera": {"type": "replay", "path": "frames"}, "arm": {"type": "serial", "port": "loop://"}, "safety": SAFETY}
+    )
     assert isinstance(build_arm(cfg), SafeArm)
     assert build_camera(cfg).name == "replay"
     sim_cfg = hardware_config_from_dict({"camera": {"type": "sim"}, "arm": {"type": "sim"}, "safety": SAFETY})
@@ -96,13 +105,23 @@ def test_factories_return_a_safety_wrapped_arm_and_need_the_world_for_sim_device
 def test_calibration_files_are_loaded_and_validated(tmp_path):
     from calibration.intrinsics import CameraIntrinsics, save_camera_yaml
 
-    save_camera_yaml(tmp_path / "cam.yaml", CameraIntrinsics(np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]]),
-                                                             np.zeros(5), 640, 480))
-    (tmp_path / "T_tcp_cam.yaml").write_text("T_tcp_cam:\n  translation_m: [0.0, -0.05, 0.02]\n  rotvec_rad: [0, 0, 1.5708]\n")
+    save_camera_yaml(
+        tmp_path / "cam.yaml",
+        CameraIntrinsics(np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]]), np.zeros(5), 640, 480),
+    )
+    (tmp_path / "T_tcp_cam.yaml").write_text(
+        "T_tcp_cam:\n  translation_m: [0.0, -0.05, 0.02]\n  rotvec_rad: [0, 0, 1.5708]\n"
+    )
     (tmp_path / "frames").mkdir()
-    cfg = hardware_config_from_dict({"camera": {"type": "replay", "path": "frames", "intrinsics": "cam.yaml"},
-                                     "arm": {"type": "serial", "port": "loop://"}, "safety": SAFETY,
-                                     "T_tcp_cam": "T_tcp_cam.yaml"}, base=tmp_path)
+    cfg = hardware_config_from_dict(
+        {
+            "camera": {"type": "replay", "path": "frames", "intrinsics": "cam.yaml"},
+            "arm": {"type": "serial", "port": "loop://"},
+            "safety": SAFETY,
+            "T_tcp_cam": "T_tcp_cam.yaml",
+        },
+        base=tmp_path,
+    )
     assert build_camera(cfg).intrinsics.K[0, 0] == 600.0
     T = load_T_tcp_cam(cfg.T_tcp_cam)
     assert T[1, 3] == pytest.approx(-0.05) and T[0, 1] == pytest.approx(-1.0, abs=1e-4)

@@ -40,8 +40,9 @@ def camera(request, monkeypatch, tmp_path) -> Camera:
         from robot_io.cameras.sim import SimCamera
 
         return SimCamera(request.getfixturevalue("fresh_world"))
-    from calibration.intrinsics import CameraIntrinsics
     from PIL import Image
+
+    from calibration.intrinsics import CameraIntrinsics
     from robot_io.cameras.replay import ReplayCamera
 
     for i in range(5):

@@ -10,7 +10,7 @@ import os
 import pytest
 from typer.testing import CliRunner
 
-from trials.cli import app
+from trials.cli.main import app
 
 
 @pytest.mark.hardware

@@ -107,16 +107,30 @@ def test_per_step_translation_and_rotation_are_capped(rig, limits):
 
 
 def test_speed_cap_binds_when_tighter_than_step_cap():
-    lim = SafetyLimits(workspace_min_m=(-1, -1, 0), workspace_max_m=(1, 1, 1), max_step_m=0.05,
-                       max_speed_mps=0.1, control_period_s=0.1, max_accel_mps2=1e6)
+    lim = SafetyLimits(
+        workspace_min_m=(-1, -1, 0),
+        workspace_max_m=(1, 1, 1),
+        max_step_m=0.05,
+        max_speed_mps=0.1,
+        control_period_s=0.1,
+        max_accel_mps2=1e6,
+    )
     T_cmd, dp, reasons = limit_command(make_pose(), make_pose(0.6), np.zeros(3), lim)
     assert np.linalg.norm(dp) == pytest.approx(0.01)  # 0.1 m/s * 0.1 s
     assert any("capped" in r for r in reasons)
 
 
 def test_caps_scale_with_the_period_the_command_covers_but_never_beyond_one_loop_period():
-    lim = SafetyLimits(workspace_min_m=(-1, -1, 0), workspace_max_m=(1, 1, 1), max_step_m=0.05, max_step_rad=0.5,
-                       max_speed_mps=0.1, max_speed_radps=1.0, control_period_s=0.1, max_accel_mps2=1e6)
+    lim = SafetyLimits(
+        workspace_min_m=(-1, -1, 0),
+        workspace_max_m=(1, 1, 1),
+        max_step_m=0.05,
+        max_step_rad=0.5,
+        max_speed_mps=0.1,
+        max_speed_radps=1.0,
+        control_period_s=0.1,
+        max_accel_mps2=1e6,
+    )
     T_far = make_pose(0.6, rotvec=(np.pi, 0.0, 0.3))
     T_cmd, dp, reasons = limit_command(make_pose(), T_far, np.zeros(3), lim, period_s=0.02)
     assert np.linalg.norm(dp) == pytest.approx(0.002)  # 0.1 m/s * 20 ms
@@ -153,8 +167,14 @@ def test_a_completed_positioning_move_leaves_the_arm_at_rest_for_a_full_next_ste
 
 
 def test_fast_reversal_is_smoothed_by_the_acceleration_cap():
-    lim = SafetyLimits(workspace_min_m=(-1, -1, 0), workspace_max_m=(1, 1, 1), max_step_m=0.01,
-                       max_speed_mps=1.0, control_period_s=0.02, max_accel_mps2=5.0)
+    lim = SafetyLimits(
+        workspace_min_m=(-1, -1, 0),
+        workspace_max_m=(1, 1, 1),
+        max_step_m=0.01,
+        max_speed_mps=1.0,
+        control_period_s=0.02,
+        max_accel_mps2=5.0,
+    )
     prev = np.array([0.01, 0.0, 0.0])  # moving +x at full step
     _, dp, reasons = limit_command(make_pose(), make_pose(0.3), prev, lim)  # target behind: reverse
     assert np.linalg.norm(dp - prev) == pytest.approx(5.0 * 0.02**2)
@@ -162,8 +182,14 @@ def test_fast_reversal_is_smoothed_by_the_acceleration_cap():
 
 
 def test_workspace_wins_over_acceleration_at_the_wall():
-    lim = SafetyLimits(workspace_min_m=(-1, -1, 0), workspace_max_m=(0.405, 1, 1), max_step_m=0.01,
-                       max_speed_mps=1.0, control_period_s=0.02, max_accel_mps2=0.1)
+    lim = SafetyLimits(
+        workspace_min_m=(-1, -1, 0),
+        workspace_max_m=(0.405, 1, 1),
+        max_step_m=0.01,
+        max_speed_mps=1.0,
+        control_period_s=0.02,
+        max_accel_mps2=0.1,
+    )
     T_cmd, _, reasons = limit_command(make_pose(0.4), make_pose(0.5), np.array([0.01, 0, 0]), lim)
     assert T_cmd[0, 3] == pytest.approx(0.405)
     assert "stopping at the workspace boundary" in reasons

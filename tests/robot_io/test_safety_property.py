@@ -21,10 +21,19 @@ from robot_io.poses import is_valid_pose, pose_from_vec, pose_step
 from robot_io.safety import SafeArm, SafetyLimits
 from tests.robot_io.fakes import RecordingArm, make_pose
 
-LIMITS = SafetyLimits(workspace_min_m=(0.2, -0.3, 0.05), workspace_max_m=(0.7, 0.3, 0.5),
-                      max_step_m=0.01, max_step_rad=0.05, max_speed_mps=0.15, max_speed_radps=0.8,
-                      max_accel_mps2=1.0, control_period_s=1 / 30, max_frame_age_ms=100.0,
-                      max_trial_s=1e6, positioning_speed_mps=0.05)
+LIMITS = SafetyLimits(
+    workspace_min_m=(0.2, -0.3, 0.05),
+    workspace_max_m=(0.7, 0.3, 0.5),
+    max_step_m=0.01,
+    max_step_rad=0.05,
+    max_speed_mps=0.15,
+    max_speed_radps=0.8,
+    max_accel_mps2=1.0,
+    control_period_s=1 / 30,
+    max_frame_age_ms=100.0,
+    max_trial_s=1e6,
+    positioning_speed_mps=0.05,
+)
 TOL = 1e-9
 
 hostile_float = st.one_of(
@@ -33,8 +42,9 @@ hostile_float = st.one_of(
     st.sampled_from([math.nan, math.inf, -math.inf, 1e308, -1e308, 0.0]),
 )
 delta = st.tuples(*[hostile_float] * 6).map(lambda v: ("delta", np.array(v)))
-far_pose = st.tuples(st.floats(-5, 5), st.floats(-5, 5), st.floats(-5, 5),
-                     st.floats(-10, 10), st.floats(-10, 10), st.floats(-10, 10)).map(lambda v: ("pose", pose_from_vec(v)))
+far_pose = st.tuples(
+    st.floats(-5, 5), st.floats(-5, 5), st.floats(-5, 5), st.floats(-10, 10), st.floats(-10, 10), st.floats(-10, 10)
+).map(lambda v: ("pose", pose_from_vec(v)))
 garbage_matrix = st.lists(hostile_float, min_size=16, max_size=16).map(lambda v: ("pose", np.array(v).reshape(4, 4)))
 oscillation = st.floats(0.0, 10.0).map(lambda a: ("osc", a))
 stale = st.floats(100.5, 1e6).map(lambda age_ms: ("stale", age_ms))
@@ -75,10 +85,19 @@ def numpy_dts(seed: int, n: int) -> np.ndarray:
 
 
 # No shrink phase: a failure prints its (reproducible, derandomized) example at once.
-@settings(max_examples=100, deadline=None, derandomize=True, database=None, phases=[Phase.explicit, Phase.generate],
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.large_base_example])
-@given(st.integers(0, 2**32 - 1), st.lists(action, min_size=0, max_size=5),
-       st.tuples(st.floats(0.2, 0.7), st.floats(-0.3, 0.3), st.floats(0.05, 0.5)))
+@settings(
+    max_examples=100,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    phases=[Phase.explicit, Phase.generate],
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.large_base_example],
+)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.lists(action, min_size=0, max_size=5),
+    st.tuples(st.floats(0.2, 0.7), st.floats(-0.3, 0.3), st.floats(0.05, 0.5)),
+)
 def test_hostile_actions_never_produce_a_command_outside_the_limits(seed, drawn, start):
     actions = numpy_actions(seed, ACTIONS_PER_EXAMPLE - len(drawn))
     for i, a in enumerate(drawn):  # spread the hypothesis-drawn actions through the sequence
@@ -102,8 +121,11 @@ def test_hostile_actions_never_produce_a_command_outside_the_limits(seed, drawn,
                 res = safe.step_delta([sign * value, -sign * value, sign * value, sign * value, 0.0, 0.0], t[0])
             else:
                 res = safe.step_delta(np.zeros(6), t[0] - value / 1000.0)
-            if kind == "stale" or (kind == "delta" and not np.isfinite(value).all()) or (
-                    kind == "pose" and not is_valid_pose(value)):
+            if (
+                kind == "stale"
+                or (kind == "delta" and not np.isfinite(value).all())
+                or (kind == "pose" and not is_valid_pose(value))
+            ):
                 assert res.status == "refused" and len(arm.servos) == n_before and arm.stops == stops_before + 1
             sent_at_s += [t[0]] * (len(arm.servos) - n_before)
     kicks_expected = len(actions)
@@ -113,13 +135,17 @@ def test_hostile_actions_never_produce_a_command_outside_the_limits(seed, drawn,
         assert is_valid_pose(T_cmd)
         assert duration == P
         p = T_cmd[:3, 3]
-        assert (p >= np.array(LIMITS.workspace_min_m) - TOL).all() and (p <= np.array(LIMITS.workspace_max_m) + TOL).all()
+        assert (p >= np.array(LIMITS.workspace_min_m) - TOL).all() and (
+            p <= np.array(LIMITS.workspace_max_m) + TOL
+        ).all()
         dp, dr = pose_step(T_before, T_cmd)
         assert dp <= LIMITS.step_cap_m + TOL
         assert dr <= LIMITS.step_cap_rad + 1e-7
         # Real speed: a command covers at most one period, and no more than the time since the last one.
         window_s = P if prev_s is None else min(P, t_s - prev_s)
-        assert dp <= LIMITS.max_speed_mps * window_s + TOL, f"{dp * 1000:.2f} mm {window_s * 1000:.2f} ms after the last command"
+        assert dp <= LIMITS.max_speed_mps * window_s + TOL, (
+            f"{dp * 1000:.2f} mm {window_s * 1000:.2f} ms after the last command"
+        )
         assert dr <= LIMITS.max_speed_radps * window_s + 1e-7
         prev_s, path_m, path_rad = t_s, path_m + dp, path_rad + dr
     if sent_at_s:  # over the whole run: the path length fits the elapsed time (plus the first command's period)

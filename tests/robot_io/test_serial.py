@@ -64,7 +64,7 @@ def test_board_without_banner_is_asked_with_hello(device):
     sim, path = device(send_banner=False)
     with SerialArm(path, boot_timeout_ms=200) as arm:
         assert arm.device_info["proto"] == "1"
-    assert ("HELLO" in [c for _, c in sim.executed])
+    assert "HELLO" in [c for _, c in sim.executed]
 
 
 def test_device_still_booting_after_the_timeout_is_a_clear_error(device):

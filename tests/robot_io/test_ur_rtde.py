@@ -17,11 +17,13 @@ SAFETY = {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6
 
 
 def ur_config(**arm):
-    return hardware_config_from_dict({
-        "camera": {"type": "replay", "path": "frames"},
-        "arm": {"type": "ur_rtde", "host": "10.0.0.2", **arm},
-        "safety": SAFETY,
-    })
+    return hardware_config_from_dict(
+        {
+            "camera": {"type": "replay", "path": "frames"},
+            "arm": {"type": "ur_rtde", "host": "10.0.0.2", **arm},
+            "safety": SAFETY,
+        }
+    )
 
 
 def run_loop(arm, n):
@@ -63,7 +65,7 @@ def test_exception_in_the_loop_stops_the_arm_then_stops_script_and_disconnects(m
             run_loop(arm, 3)
             raise RuntimeError("policy exploded")
     names = ctrl.names()
-    tail = names[names.index("servoStop"):]
+    tail = names[names.index("servoStop") :]
     assert tail.index("servoStop") < tail.index("stopScript") < tail.index("control_disconnect")
     assert "receive_disconnect" in tail
 
@@ -108,8 +110,10 @@ def test_recover_unlocks_through_the_dashboard_then_reuploads(monkeypatch):
     assert names.index("unlockProtectiveStop") < names.index("reuploadScript")
 
 
-@pytest.mark.parametrize("flag,kind", [("emergency_stopped", "emergency_stop"), ("program_running", "program_stopped"),
-                                       ("connected", "connection_lost")])
+@pytest.mark.parametrize(
+    "flag,kind",
+    [("emergency_stopped", "emergency_stop"), ("program_running", "program_stopped"), ("connected", "connection_lost")],
+)
 def test_fault_reports_estop_stopped_script_and_lost_link(monkeypatch, flag, kind):
     ctrl = install_ur(monkeypatch)
     with URArm("10.0.0.2") as arm:

@@ -337,13 +337,18 @@ def test_textured_mesh_file_keeps_its_uv_and_image(tmp_path, meshes, ext):
     m = A.build_mesh(path, 2.0, up_axis="z", placement="keep")
     np.testing.assert_allclose(m.visual.uv, src.visual.uv, atol=1e-6)
     np.testing.assert_allclose(m.extents, 2.0 * src.extents, rtol=1e-6)
-    np.testing.assert_array_equal(np.asarray(m.visual.material.image.convert("RGB")), np.asarray(src.visual.material.image))
+    np.testing.assert_array_equal(
+        np.asarray(m.visual.material.image.convert("RGB")), np.asarray(src.visual.material.image)
+    )
 
 
 def test_a_scan_in_millimetres_is_refused_in_one_line_suggesting_its_units(tmp_path):
     trimesh.creation.box((60.0, 60.0, 190.0)).export(tmp_path / "scan.stl")  # a bottle, exported in mm
-    with pytest.raises(A.AssetError, match=r"scan\.stl: its longest side is 190 m .*not a plausible object \(1 cm to 60 cm\); "
-                                           r"set `units: mm`") as e:
+    with pytest.raises(
+        A.AssetError,
+        match=r"scan\.stl: its longest side is 190 m .*not a plausible object \(1 cm to 60 cm\); "
+        r"set `units: mm`",
+    ) as e:
         A.build_mesh(tmp_path / "scan.stl")
     assert "\n" not in str(e.value)
     m = A.build_mesh(tmp_path / "scan.stl", units="mm")
@@ -358,9 +363,13 @@ def test_a_gltf_file_is_y_up_by_its_spec_unless_told_otherwise(tmp_path):
     m = A.build_mesh(tmp_path / "bottle.glb")
     np.testing.assert_allclose(m.extents, [0.05, 0.08, 0.20], atol=1e-9)  # standing: its height along +z
     assert m.bounds[0][2] == pytest.approx(0.0)
-    np.testing.assert_allclose(A.build_mesh(tmp_path / "bottle.glb", up_axis="z").extents, [0.05, 0.20, 0.08], atol=1e-9)
+    np.testing.assert_allclose(
+        A.build_mesh(tmp_path / "bottle.glb", up_axis="z").extents, [0.05, 0.20, 0.08], atol=1e-9
+    )
     tall_along_y.export(tmp_path / "bottle.obj")
-    np.testing.assert_allclose(A.build_mesh(tmp_path / "bottle.obj", up_axis="y").extents, [0.05, 0.08, 0.20], atol=1e-9)
+    np.testing.assert_allclose(
+        A.build_mesh(tmp_path / "bottle.obj", up_axis="y").extents, [0.05, 0.08, 0.20], atol=1e-9
+    )
     assert A.default_up_axis("x.gltf") == "y" and A.default_up_axis("x.OBJ") == "z"
 
 
@@ -458,7 +467,18 @@ def _bad_files(tmp_path):
     return list(files)
 
 
-BAD = ["garbage.obj", "garbage.stl", "garbage.glb", "garbage.ply", "notes.xyzw", "empty.obj", "nan.obj", "inf.obj", "flat.obj", "points.ply"]
+BAD = [
+    "garbage.obj",
+    "garbage.stl",
+    "garbage.glb",
+    "garbage.ply",
+    "notes.xyzw",
+    "empty.obj",
+    "nan.obj",
+    "inf.obj",
+    "flat.obj",
+    "points.ply",
+]
 
 
 @pytest.mark.parametrize("name", BAD)

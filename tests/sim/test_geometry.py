@@ -6,7 +6,18 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.geometry import compose, invert_T, look_at, make_T, rotation_angle, se3_exp, se3_log, so3_exp, so3_log, transform_points
+from sim.geometry import (
+    compose,
+    invert_T,
+    look_at,
+    make_T,
+    rotation_angle,
+    se3_exp,
+    se3_log,
+    so3_exp,
+    so3_log,
+    transform_points,
+)
 
 unit = st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 1e-3)
 # Angles concentrated at the ends where naive formulas break.

@@ -1,7 +1,6 @@
 """The fast uniform path changes speed only: images are bit-identical with and without it."""
 
 import numpy as np
-import pytest
 
 from sim import gl_fastpath
 from sim.geometry import look_at
@@ -32,8 +31,10 @@ def _render_all(fast: bool, monkeypatch):
         outs = []
         for i, T in enumerate(_views()):
             # Lights change between renders: a light binding wrongly skipped would show.
-            lights = [LightSpec(intensity=1.0 + i, direction=(0.3 - 0.2 * i, 0.2, -1.0)),
-                      LightSpec(type="point", intensity=2.0 * i, color=(1.0, 0.8, 0.6), position_m=(0.2, -0.1, 0.8))]
+            lights = [
+                LightSpec(intensity=1.0 + i, direction=(0.3 - 0.2 * i, 0.2, -1.0)),
+                LightSpec(type="point", intensity=2.0 * i, color=(1.0, 0.8, 0.6), position_m=(0.2, -0.1, 0.8)),
+            ]
             r.set_lights(LightingSpec(ambient=(0.1 * i, 0.2, 0.3), lights=lights[: 1 + i % 2]))
             outs.append(r.render(T, with_ids=True))
         return outs

@@ -19,7 +19,9 @@ def env():
 def test_gymnasiums_env_checker_passes():
     import warnings
 
-    e = gym.make(ENV_ID, image_size=32, render_mode="rgb_array").unwrapped  # made: the checker also tries its render modes
+    e = gym.make(
+        ENV_ID, image_size=32, render_mode="rgb_array"
+    ).unwrapped  # made: the checker also tries its render modes
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # any complaint of the checker fails the test
         check_env(e, skip_render_check=False)

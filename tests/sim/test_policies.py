@@ -45,25 +45,66 @@ def inception_v3_trunk():
         return conv(k, cin, cout) + bn(cout)
 
     def A(cin, pf):
-        return bc(cin, 64, 1) + bc(cin, 48, 1) + bc(48, 64, 5) + bc(cin, 64, 1) + bc(64, 96, 3) + bc(96, 96, 3) + bc(cin, pf, 1)
+        return (
+            bc(cin, 64, 1)
+            + bc(cin, 48, 1)
+            + bc(48, 64, 5)
+            + bc(cin, 64, 1)
+            + bc(64, 96, 3)
+            + bc(96, 96, 3)
+            + bc(cin, pf, 1)
+        )
 
     def B(cin):
         return bc(cin, 384, 3) + bc(cin, 64, 1) + bc(64, 96, 3) + bc(96, 96, 3)
 
     def C(cin, c7):
-        return (bc(cin, 192, 1) + bc(cin, c7, 1) + bc(c7, c7, (1, 7)) + bc(c7, 192, (7, 1))
-                + bc(cin, c7, 1) + 3 * bc(c7, c7, (7, 1)) + bc(c7, 192, (1, 7)) + bc(cin, 192, 1))
+        return (
+            bc(cin, 192, 1)
+            + bc(cin, c7, 1)
+            + bc(c7, c7, (1, 7))
+            + bc(c7, 192, (7, 1))
+            + bc(cin, c7, 1)
+            + 3 * bc(c7, c7, (7, 1))
+            + bc(c7, 192, (1, 7))
+            + bc(cin, 192, 1)
+        )
 
     def D(cin):
-        return bc(cin, 192, 1) + bc(192, 320, 3) + bc(cin, 192, 1) + bc(192, 192, (1, 7)) + bc(192, 192, (7, 1)) + bc(192, 192, 3)
+        return (
+            bc(cin, 192, 1)
+            + bc(192, 320, 3)
+            + bc(cin, 192, 1)
+            + bc(192, 192, (1, 7))
+            + bc(192, 192, (7, 1))
+            + bc(192, 192, 3)
+        )
 
     def E(cin):
-        return (bc(cin, 320, 1) + bc(cin, 384, 1) + 2 * bc(384, 384, (1, 3)) + bc(cin, 448, 1) + bc(448, 384, 3)
-                + 2 * bc(384, 384, (1, 3)) + bc(cin, 192, 1))
+        return (
+            bc(cin, 320, 1)
+            + bc(cin, 384, 1)
+            + 2 * bc(384, 384, (1, 3))
+            + bc(cin, 448, 1)
+            + bc(448, 384, 3)
+            + 2 * bc(384, 384, (1, 3))
+            + bc(cin, 192, 1)
+        )
 
     stem = bc(3, 32, 3) + bc(32, 32, 3) + bc(32, 64, 3) + bc(64, 80, 1) + bc(80, 192, 3)
-    return (stem + A(192, 32) + A(256, 64) + A(288, 64) + B(288) + C(768, 128) + 2 * C(768, 160) + C(768, 192)
-            + D(768) + E(1280) + E(2048))
+    return (
+        stem
+        + A(192, 32)
+        + A(256, 64)
+        + A(288, 64)
+        + B(288)
+        + C(768, 128)
+        + 2 * C(768, 160)
+        + C(768, 192)
+        + D(768)
+        + E(1280)
+        + E(2048)
+    )
 
 
 EXPECTED_PARAMS = {

@@ -7,16 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from sim.policies.checkpoint import (
-    CARD_NAME,
-    WEIGHTS_NAME,
-    ActionScaling,
-    PolicyCard,
-    load_card,
-    load_checkpoint,
-    load_policy,
-    save_checkpoint,
-)
+from sim.policies.card import CARD_NAME, ActionScaling, PolicyCard, load_card
+from sim.policies.checkpoint import WEIGHTS_NAME, load_checkpoint, load_policy, save_checkpoint
 from sim.policies.interface import PolicyError, WhiteBoxRequired, require_white_box
 from sim.policies.onnx_policy import OnnxPolicy, export_onnx
 from sim.policies.policy import VisuomotorPolicy
@@ -34,7 +26,9 @@ def _policy(arch="small_cnn", size=64, seed=0):
 
 
 def _card(p):
-    return PolicyCard(arch=p.config, action=ActionScaling(max_step_m=0.02, max_step_rad=0.1), seed=0, training={"method": "test"})
+    return PolicyCard(
+        arch=p.config, action=ActionScaling(max_step_m=0.02, max_step_rad=0.1), seed=0, training={"method": "test"}
+    )
 
 
 @pytest.fixture(scope="module")
@@ -162,7 +156,9 @@ def test_onnx_matches_torch_on_32_rendered_wrist_camera_images(onnx_pair):
     from sim.world import SimWorld
 
     p, o = onnx_pair
-    with SimWorld(default_scene(), image_size=64, randomization=Randomization(light="random", background="varied")) as world:
+    with SimWorld(
+        default_scene(), image_size=64, randomization=Randomization(light="random", background="varied")
+    ) as world:
         frames = []
         for seed in range(32):
             world.reset(seed)

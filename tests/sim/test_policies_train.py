@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from sim.configs import load_pool, sample_pool
-from sim.policies.checkpoint import ActionScaling, PolicyCard, save_checkpoint
+from sim.policies.card import ActionScaling, PolicyCard
+from sim.policies.checkpoint import save_checkpoint
 from sim.policies.dagger import DaggerConfig, train_dagger
 from sim.policies.interface import PolicyError
 from sim.policies.policy import PolicyArch, VisuomotorPolicy
@@ -35,8 +36,12 @@ def one_torch_thread():
 def spec():
     # Starts nearer the scene and shorter episodes: the same task at a test-sized cost.
     s = default_scene()
-    return s.model_copy(update={"init": s.init.model_copy(update={"r_range_m": (0.25, 0.45)}),
-                                "episode": s.episode.model_copy(update={"max_steps": 40})})
+    return s.model_copy(
+        update={
+            "init": s.init.model_copy(update={"r_range_m": (0.25, 0.45)}),
+            "episode": s.episode.model_copy(update={"max_steps": 40}),
+        }
+    )
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +95,9 @@ def test_ppo_deterministic_action_is_the_exported_policy_action(env, tmp_path):
     assert np.allclose(np.tanh(mean), policy.act(obs.astype(np.float32) / 255), atol=1e-4)
     # The training entry point runs, checkpoints its state and resumes.
     _, prog = train_ppo(arch, env, cfg, DR, tmp_path, progress=False, log=lambda *_: None)
-    _, prog = train_ppo(arch, env, cfg.model_copy(update={"total_timesteps": 128}), DR, tmp_path, progress=False, log=lambda *_: None)
+    _, prog = train_ppo(
+        arch, env, cfg.model_copy(update={"total_timesteps": 128}), DR, tmp_path, progress=False, log=lambda *_: None
+    )
     assert [h["timesteps"] for h in prog["history"]] == [64, 128]
 
 
@@ -123,7 +130,7 @@ def test_presets_resolve_and_reject_unknown_names_and_keys():
 def test_policy_cli_evaluates_and_exports_a_checkpoint(spec, tmp_path):
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     torch.manual_seed(0)
     p = VisuomotorPolicy(arch="small_cnn", image_size=SIZE)
@@ -149,8 +156,13 @@ def test_a_finished_training_drops_its_resume_data_unless_kept(spec, tmp_path, k
     from sim.policies.checkpoint import load_checkpoint
     from sim.policies.train import train_policy
 
-    cfg = resolve_preset("ci", dagger={"iterations": 1, "episodes_per_iter": 8, "num_envs": 8, "grad_steps_per_iter": 2},
-                         final_eval_episodes=2, policy={"arch": "small_cnn", "image_size": SIZE}, env={"image_size": SIZE})
+    cfg = resolve_preset(
+        "ci",
+        dagger={"iterations": 1, "episodes_per_iter": 8, "num_envs": 8, "grad_steps_per_iter": 2},
+        final_eval_episodes=2,
+        policy={"arch": "small_cnn", "image_size": SIZE},
+        env={"image_size": SIZE},
+    )
     said = []
     train_policy(cfg, tmp_path, spec, progress=False, log=said.append, keep_state=keep)
     assert (tmp_path / "train_state").is_dir() == keep

@@ -79,8 +79,12 @@ def test_a_far_absolute_target_is_approached_by_one_limited_step_in_its_directio
 
 
 @settings(max_examples=60, deadline=None)
-@given(p=st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3), r=st.lists(st.floats(-3.14, 3.14), min_size=3, max_size=3),
-       q=st.lists(st.floats(-1e6, 1e6), min_size=3, max_size=3), s=st.lists(st.floats(-20.0, 20.0), min_size=3, max_size=3))
+@given(
+    p=st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3),
+    r=st.lists(st.floats(-3.14, 3.14), min_size=3, max_size=3),
+    q=st.lists(st.floats(-1e6, 1e6), min_size=3, max_size=3),
+    s=st.lists(st.floats(-20.0, 20.0), min_size=3, max_size=3),
+)
 def test_absolute_conversion_is_bounded_and_finite_with_finite_gradients_at_the_extremes(p, r, q, s):
     T = _pose(p, r)[None]
     target = np.array([q + s])
@@ -149,7 +153,9 @@ class _Counting:
     def act(self, images, state=None):
         self.calls += 1
         if self.contract.state_dim:
-            assert state is not None and state.shape == (len(images), self.contract.state_dim) and np.isfinite(state).all()
+            assert (
+                state is not None and state.shape == (len(images), self.contract.state_dim) and np.isfinite(state).all()
+            )
         return self.policy.act(images) if state is None else self.policy.act(images, state)
 
 

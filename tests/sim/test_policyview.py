@@ -47,7 +47,9 @@ def test_center_crop_keeps_square_pixels_and_drops_the_sides_resize_squashes():
     Kl = policy_view_K(K640, 640, 480, 128, "letterbox")
     assert Kc[0, 0] == pytest.approx(Kc[1, 1]) and Kl[0, 0] == pytest.approx(Kl[1, 1])
     assert Kr[0, 0] / Kr[1, 1] == pytest.approx(480 / 640)
-    assert fov_deg(Kc, 128, 128)[0] == pytest.approx(math.degrees(2 * math.atan(240 / 420.0)))  # 480 px of the frame seen
+    assert fov_deg(Kc, 128, 128)[0] == pytest.approx(
+        math.degrees(2 * math.atan(240 / 420.0))
+    )  # 480 px of the frame seen
     assert fov_deg(Kl, 128, 128)[0] == pytest.approx(math.degrees(2 * math.atan(320 / 420.0)), rel=1e-2)  # all 640 px
     img = np.full((480, 640, 3), 200, np.uint8)
     lb = policy_view(img, 128, "letterbox")

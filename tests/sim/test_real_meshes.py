@@ -35,8 +35,11 @@ def test_a_ycb_scan_below_its_origin_rests_on_the_table_centred():
 
 
 def test_a_scan_in_millimetres_is_refused_until_its_units_are_given():
-    with pytest.raises(A.AssetError, match=r"rabbit\.stl: its longest side is 146 m .*set `units: mm` on the object if the file is in mm "
-                                           r"\(14\.6 cm then\)"):
+    with pytest.raises(
+        A.AssetError,
+        match=r"rabbit\.stl: its longest side is 146 m .*set `units: mm` on the object if the file is in mm "
+        r"\(14\.6 cm then\)",
+    ):
         A.build_mesh(D / "scan-rabbit-mm" / "rabbit.stl")
     m, _ = _build("scan-rabbit-mm/rabbit.stl", units="mm")
     assert 0.14 < m.extents.max() < 0.15 and m.bounds[0][2] == pytest.approx(0.0, abs=1e-9)
@@ -66,8 +69,11 @@ def test_a_ply_file_loads():
 
 
 def test_a_mujoco_mesh_is_refused_saying_what_works_and_how_to_convert():
-    with pytest.raises(A.AssetError, match=r"009_gelatin_box\.msh: \.msh is not a mesh format advobj reads \(MuJoCo's binary mesh: "
-                                           r"use the STL/OBJ .*; give DAE, GLB, GLTF, OBJ, OFF, PLY, STL") as e:
+    with pytest.raises(
+        A.AssetError,
+        match=r"009_gelatin_box\.msh: \.msh is not a mesh format advobj reads \(MuJoCo's binary mesh: "
+        r"use the STL/OBJ .*; give DAE, GLB, GLTF, OBJ, OFF, PLY, STL",
+    ) as e:
         A.build_mesh(D / "myosuite-gelatin-box" / "009_gelatin_box.msh")
     assert "\n" not in str(e.value)
 

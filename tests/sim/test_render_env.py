@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from sim.configs import load_pool, sample_pool, save_pool, PoolError
-from sim.env import ReachEnv
 from sim.action import ActionError
+from sim.configs import PoolError, load_pool, sample_pool, save_pool
+from sim.env import ReachEnv
 from sim.render import FACE_BASE, SceneRenderer
 from sim.spec import default_scene
 from sim.world import SimWorld

@@ -53,7 +53,9 @@ def _occluded_views(spec, n: int):
 
 def test_sphere_frustum_test_matches_projection():
     K = np.array([[50.0, 0, 31.5], [0, 50.0, 31.5], [0, 0, 1]])
-    c = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [2.0, 0.0, 1.0], [0.0, 0.0, 20.0], [0.66, 0.0, 1.0], [0.0, 0.0, 0.001]])
+    c = np.array(
+        [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [2.0, 0.0, 1.0], [0.0, 0.0, 20.0], [0.66, 0.0, 1.0], [0.0, 0.0, 0.001]]
+    )
     r = np.array([0.1, 0.1, 0.1, 0.1, 0.05, 0.001])
     out = spheres_outside_frustum(c, r, K, 64, 64, znear=0.01, zfar=10.0)
     # in view, behind, far right, beyond zfar, touching the right edge (u = 64.5 +- 2.5 px), before znear

@@ -40,7 +40,10 @@ def test_interval_contains_the_rate_and_shrinks_with_more_trials():
     for k, n in [(1, 3), (9, 10), (180, 200), (450, 500)]:
         lo, hi = wilson_interval(k, n)
         assert 0.0 <= lo <= k / n <= hi <= 1.0
-    assert wilson_interval(900, 1000)[1] - wilson_interval(900, 1000)[0] < wilson_interval(90, 100)[1] - wilson_interval(90, 100)[0]
+    assert (
+        wilson_interval(900, 1000)[1] - wilson_interval(900, 1000)[0]
+        < wilson_interval(90, 100)[1] - wilson_interval(90, 100)[0]
+    )
 
 
 def test_higher_confidence_gives_a_wider_interval():

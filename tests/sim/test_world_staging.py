@@ -30,7 +30,9 @@ def test_set_scene_swaps_mesh_with_a_cached_renderer(world):
 
     spec = world.spec
     adv = spec.object_index("adversarial")
-    objs = [o.model_copy(update={"mesh": "cube", "texture": None}) if o.role == "adversarial" else o for o in spec.objects]
+    objs = [
+        o.model_copy(update={"mesh": "cube", "texture": None}) if o.role == "adversarial" else o for o in spec.objects
+    ]
     cube = spec.with_updates(objects=[o.model_dump() for o in objs])
     T_objs, T_tcp = world.T_world_objects.copy(), world.T_world_tcp
     before = world.render(with_ids=True).object_mask(adv).sum()
@@ -49,5 +51,9 @@ def test_set_scene_swaps_mesh_with_a_cached_renderer(world):
     finally:
         cached.close()
     with pytest.raises(ValueError, match="objects"):
-        world.set_scene(spec.with_updates(objects=[o.model_dump() for o in spec.objects[:2]] + [
-            {"name": "extra", "mesh": "cube", "role": "distractor"}]))
+        world.set_scene(
+            spec.with_updates(
+                objects=[o.model_dump() for o in spec.objects[:2]]
+                + [{"name": "extra", "mesh": "cube", "role": "distractor"}]
+            )
+        )

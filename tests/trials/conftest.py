@@ -1,7 +1,5 @@
 """Shared fixtures: a tiny untrained policy checkpoint, a short-episode pool and an attack dir."""
 
-import json
-
 import numpy as np
 import pytest
 import torch
@@ -11,7 +9,8 @@ MAX_STEPS = 3
 
 @pytest.fixture(scope="session")
 def tiny_policy_dir(tmp_path_factory):
-    from sim.policies.checkpoint import ActionScaling, PolicyCard, save_checkpoint
+    from sim.policies.card import ActionScaling, PolicyCard
+    from sim.policies.checkpoint import save_checkpoint
     from sim.policies.policy import VisuomotorPolicy
 
     torch.manual_seed(0)
@@ -51,10 +50,10 @@ def mixed_pool_file(tmp_path_factory, short_spec):
 
 def make_attack_dir(path, mesh=None, seed=0, size=16):
     """An attack run directory in the format 'advobj attack run' writes (texture.npy + run.json)."""
-    path.mkdir(parents=True, exist_ok=True)
-    np.save(path / "texture.npy", np.random.default_rng(seed).random((size, size, 3)).astype(np.float32))
-    (path / "run.json").write_text(json.dumps({"config": {"attack": {"adversarial_mesh": mesh}}}))
-    from attack.outputs import write_config_record
+    from attack.artifact import AttackArtifact, write_config_record
+
+    texture = np.random.default_rng(seed).random((size, size, 3)).astype(np.float32)
+    AttackArtifact(texture, {"attack": {"adversarial_mesh": mesh}}).save(path)
     from sim.configs import sample_pool
     from sim.spec import default_scene
 

@@ -48,4 +48,6 @@ def node_of(out: Path, inputs: dict) -> None:
     import ray
 
     out.mkdir(parents=True, exist_ok=True)
-    (out / "node.json").write_text(json.dumps({"node": ray.get_runtime_context().get_node_id(), "gpus": ray.get_gpu_ids()}))
+    (out / "node.json").write_text(
+        json.dumps({"node": ray.get_runtime_context().get_node_id(), "gpus": ray.get_gpu_ids()})
+    )

@@ -11,14 +11,23 @@ import yaml
 from sim.configs import config_part, load_pool, sample_pool, save_pool, spec_fingerprint
 from sim.spec import default_scene, load_scene
 
-TINY_ATTACK = {"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "checkpoint_every": 1,
-               "validation_every": 1, "validation_episodes": 2, "validation_max_steps": 2}
+TINY_ATTACK = {
+    "iterations": 1,
+    "num_envs": 1,
+    "rollout_steps": 1,
+    "texture_size": 8,
+    "checkpoint_every": 1,
+    "validation_every": 1,
+    "validation_episodes": 2,
+    "validation_max_steps": 2,
+}
 
 
 def _policy_dir(tmp_path, straight: bool):
     """A small-CNN checkpoint with its own pool for the built-in scene; ``straight``: always moves
     straight ahead (the camera aims between the objects, so it reaches the goal from some starts)."""
-    from sim.policies.checkpoint import ActionScaling, PolicyCard, save_checkpoint
+    from sim.policies.card import ActionScaling, PolicyCard
+    from sim.policies.checkpoint import save_checkpoint
     from sim.policies.policy import VisuomotorPolicy
 
     torch.manual_seed(0)
@@ -46,32 +55,61 @@ def _own_scene(tmp_path, max_steps: int):
 
 def test_a_policy_that_cannot_do_the_task_in_the_own_scene_is_told_in_one_line(tmp_path):
     from attack.optimize import AttackError
-    from trials.attack_job import attack_job
+    from trials.jobs.attack import attack_job
 
     scene = _own_scene(tmp_path, max_steps=3)  # 3 steps: an untrained policy reaches nothing
-    with pytest.raises(AttackError, match=r"reached the goal in none of the \d+ configurations of this scene tried for the attack part"):
-        attack_job(_policy_dir(tmp_path, straight=False), "quick", tmp_path / "attack.yaml", scene, None, tmp_path / "atk", False,
-                   progress=False, log=lambda _t: None)
+    with pytest.raises(
+        AttackError, match=r"reached the goal in none of the \d+ configurations of this scene tried for the attack part"
+    ):
+        attack_job(
+            _policy_dir(tmp_path, straight=False),
+            "quick",
+            tmp_path / "attack.yaml",
+            scene,
+            None,
+            tmp_path / "atk",
+            False,
+            progress=False,
+            log=lambda _t: None,
+        )
 
 
 def test_an_explicit_pool_for_another_scene_is_refused_saying_how_to_go_on(tmp_path):
     from sim.configs import PoolError
-    from trials.attack_job import attack_job
+    from trials.jobs.attack import attack_job
 
     policy = _policy_dir(tmp_path, straight=False)
     with pytest.raises(PoolError, match=r"made for a different scene .*omit --pool to build one"):
-        attack_job(policy, "quick", None, _own_scene(tmp_path, 3), policy / "feasible_pool.json", tmp_path / "atk", False,
-                   progress=False, log=lambda _t: None)
+        attack_job(
+            policy,
+            "quick",
+            None,
+            _own_scene(tmp_path, 3),
+            policy / "feasible_pool.json",
+            tmp_path / "atk",
+            False,
+            progress=False,
+            log=lambda _t: None,
+        )
 
 
 @pytest.mark.slow
 def test_attack_run_on_an_own_scene_builds_its_task_feasible_pool(tmp_path):
-    from trials.attack_job import attack_job
+    from trials.jobs.attack import attack_job
 
     said = []
     scene = _own_scene(tmp_path, max_steps=40)
-    attack_job(_policy_dir(tmp_path, straight=True), "quick", tmp_path / "attack.yaml", scene, None, tmp_path / "atk", False,
-               progress=False, log=said.append)
+    attack_job(
+        _policy_dir(tmp_path, straight=True),
+        "quick",
+        tmp_path / "attack.yaml",
+        scene,
+        None,
+        tmp_path / "atk",
+        False,
+        progress=False,
+        log=said.append,
+    )
     assert any("is for another scene; building a task-feasible pool" in t for t in said)
     pool = load_pool(tmp_path / "atk" / "feasible_pool.json", load_scene(scene))  # for the own scene, by fingerprint
     assert pool and {config_part(c.seed) for c in pool} <= {"attack", "validation"}  # never the evaluation part

@@ -14,8 +14,8 @@ def test_a_short_attack_on_a_ci_policy_beats_the_clean_arm_on_held_out_configura
     from sim.policies.presets import resolve_preset
     from sim.policies.train import train_policy
     from sim.spec import default_scene
-    from trials.attack_job import attack_job
-    from trials.evaluate import load_eval_config, run_eval
+    from trials.eval.evaluate import load_eval_config, run_eval
+    from trials.jobs.attack import attack_job
 
     torch.set_num_threads(1)
     spec = default_scene()
@@ -27,8 +27,14 @@ def test_a_short_attack_on_a_ci_policy_beats_the_clean_arm_on_held_out_configura
     cfg = tmp_path / "attack.yaml"
     cfg.write_text(yaml.safe_dump({"iterations": 60, "validation_every": 0}))
     attack_job(tmp_path / "policy", "quick", cfg, None, None, tmp_path / "attack", False, progress=False)
-    ecfg = load_eval_config(policy=str(tmp_path / "policy"), conditions=("attack",), episodes=60, num_envs=8, gifs=0,
-                            attack=str(tmp_path / "attack"))
+    ecfg = load_eval_config(
+        policy=str(tmp_path / "policy"),
+        conditions=("attack",),
+        episodes=60,
+        num_envs=8,
+        gifs=0,
+        attack=str(tmp_path / "attack"),
+    )
     s = run_eval(ecfg, tmp_path / "eval", progress=False, report=False)
     manifest = json.loads((tmp_path / "eval" / "manifest.json").read_text())["config"]
     assert manifest["overlap"] == {"attack": 0}

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import imageio.v3 as iio
 
-ADVOBJ = [sys.executable, "-m", "trials.cli"]
+ADVOBJ = [sys.executable, "-m", "trials.cli.main"]
 
 
 def _run(args, tmp_path, env_extra=None):

@@ -7,11 +7,21 @@ from .conftest import MAX_STEPS
 
 @pytest.mark.slow
 def test_demo_writes_report_with_table_plots_and_gifs(tmp_path, monkeypatch, tiny_policy_dir, pool_file):
-    import trials.demo as demo
-    import trials.experiments as ex
+    import trials.experiments.demo as demo
+    import trials.experiments.recipes as ex
 
-    monkeypatch.setattr(demo, "DEMO_BUDGET", dict(attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8},
-                                                  episodes=2, max_steps=MAX_STEPS, num_envs=2, gifs=1, pool=str(pool_file)))
+    monkeypatch.setattr(
+        demo,
+        "DEMO_BUDGET",
+        dict(
+            attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8},
+            episodes=2,
+            max_steps=MAX_STEPS,
+            num_envs=2,
+            gifs=1,
+            pool=str(pool_file),
+        ),
+    )
     monkeypatch.setattr(ex, "ensure_policy", lambda ctx, name="reference", **kw: tiny_policy_dir)
     result = demo.run_demo(tmp_path, log=lambda m: None)
     report = (tmp_path / "report.md").read_text()

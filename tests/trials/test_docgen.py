@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from trials import docgen
+from tools import docgen
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -19,18 +19,28 @@ def test_every_field_of_every_model_is_documented():
     from robot_io.config import HardwareConfig, OpenCVCameraConfig, URArmConfig
     from robot_io.safety import SafetyLimits
     from sim.spec import CameraSpec, SceneSpec
-    from trials.evaluate import EvalConfig
+    from trials.eval.evaluate import EvalConfig
 
     text = docgen.render()
-    for model in (SceneSpec, CameraSpec, AttackConfig, EvalConfig, HardwareConfig, OpenCVCameraConfig, URArmConfig, SafetyLimits):
+    for model in (
+        SceneSpec,
+        CameraSpec,
+        AttackConfig,
+        EvalConfig,
+        HardwareConfig,
+        OpenCVCameraConfig,
+        URArmConfig,
+        SafetyLimits,
+    ):
         section = text.split(f"### {model.__name__}\n", 1)[1].split("\n### ", 1)[0]
         for name in model.model_fields:
             assert f"| `{name}` |" in section, f"{model.__name__}.{name} missing from the reference"
 
 
 def test_rows_carry_type_default_constraint_and_description():
-    from pydantic import BaseModel, Field
     from typing import Annotated, Literal
+
+    from pydantic import BaseModel, Field
 
     class Demo(BaseModel):
         """A demo model."""
@@ -64,4 +74,6 @@ def test_field_notes_name_existing_fields():
     models = {"AttackConfig": "attack.optimize", "SafetyLimits": "robot_io.safety"}
     for model_name, notes in docgen.FIELD_NOTES.items():
         model = getattr(importlib.import_module(models[model_name]), model_name)
-        assert set(notes) <= set(model.model_fields), f"{model_name}: notes for unknown fields {set(notes) - set(model.model_fields)}"
+        assert set(notes) <= set(model.model_fields), (
+            f"{model_name}: notes for unknown fields {set(notes) - set(model.model_fields)}"
+        )

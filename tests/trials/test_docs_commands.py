@@ -95,7 +95,7 @@ DOC_COMMANDS = [c for f in DOC_FILES for c in parse_commands(f)]
 def _root_command():
     import typer.main
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     return typer.main.get_command(app)
 
@@ -133,7 +133,7 @@ def used_options(cmd, rest: list[str]) -> set[str]:
 def check_advobj_line(argv: list[str], where: str) -> None:
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     assert argv and argv[0].endswith("advobj"), where
     cmd, path, rest = resolve(argv[1:])
@@ -144,7 +144,8 @@ def check_advobj_line(argv: list[str], where: str) -> None:
     for tok in rest:
         if tok.startswith("-") and not re.match(r"^-\d", tok):
             assert tok.split("=", 1)[0] in known, (
-                f"{where}: option {tok.split('=', 1)[0]} is not accepted by 'advobj {' '.join(path)}' (it takes {sorted(known)})")
+                f"{where}: option {tok.split('=', 1)[0]} is not accepted by 'advobj {' '.join(path)}' (it takes {sorted(known)})"
+            )
     ctx = cmd.make_context("advobj " + " ".join(path), list(rest))  # types, counts, choices
     ctx.close()
 
@@ -182,7 +183,7 @@ class Artifacts:
         """Run ``advobj argv`` in-process once; a repeated identical invocation reuses the result."""
         from typer.testing import CliRunner
 
-        from trials.cli import app
+        from trials.cli.main import app
 
         key = tuple(argv)
         if key not in self.runs:
@@ -207,7 +208,8 @@ class Artifacts:
         def build():
             import torch
 
-            from sim.policies.checkpoint import ActionScaling, PolicyCard, save_checkpoint
+            from sim.policies.card import ActionScaling, PolicyCard
+            from sim.policies.checkpoint import save_checkpoint
             from sim.policies.policy import VisuomotorPolicy
 
             torch.manual_seed(0)
@@ -323,7 +325,8 @@ class Artifacts:
                 "camera: {width: 32, height: 32}\n"
                 "objects:\n"
                 "  - {name: tomato_soup_can, mesh: tomato_soup_can, role: goal, pose: {x_m: 0.12, y_m: 0.0}}\n"
-                "  - {name: my_object, mesh: meshes/my_object.obj, role: adversarial, pose: {x_m: -0.12, y_m: 0.0}}\n")
+                "  - {name: my_object, mesh: meshes/my_object.obj, role: adversarial, pose: {x_m: -0.12, y_m: 0.0}}\n"
+            )
             return d / "my_scene.yaml"
 
         return self._once("my_scene", build)
@@ -385,8 +388,10 @@ class Artifacts:
             from calibration import synthetic as S
 
             K = S.default_K(640, 480)  # the camera of examples/calibration/cam.yaml
-            planes = [S.tag_plane(0, 0.04, S.camera_facing(0.4, offset_m=(-0.05, 0.0))),
-                      S.tag_plane(2, 0.04, S.camera_facing(0.4, offset_m=(0.05, 0.0)))]
+            planes = [
+                S.tag_plane(0, 0.04, S.camera_facing(0.4, offset_m=(-0.05, 0.0))),
+                S.tag_plane(2, 0.04, S.camera_facing(0.4, offset_m=(0.05, 0.0))),
+            ]
             path = self.calib / "photo.png"
             iio.imwrite(path, S.render_planes(planes, K, 640, 480))
             return path
@@ -395,22 +400,52 @@ class Artifacts:
 
 
 def _tiny_demo(monkeypatch, art: Artifacts):
-    import trials.demo as demo
-    import trials.experiments as ex
+    import trials.experiments.demo as demo
+    import trials.experiments.recipes as ex
 
-    monkeypatch.setattr(demo, "DEMO_BUDGET", dict(attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8,
-                                                                                    "validation_every": 0},
-                                                  episodes=2, max_steps=MAX_STEPS, num_envs=2, gifs=1, pool=str(art.pool)))
+    monkeypatch.setattr(
+        demo,
+        "DEMO_BUDGET",
+        dict(
+            attack_overrides={
+                "iterations": 1,
+                "num_envs": 1,
+                "rollout_steps": 1,
+                "texture_size": 8,
+                "validation_every": 0,
+            },
+            episodes=2,
+            max_steps=MAX_STEPS,
+            num_envs=2,
+            gifs=1,
+            pool=str(art.pool),
+        ),
+    )
     monkeypatch.setattr(ex, "ensure_policy", lambda ctx, name="reference", **kw: art.policy)
 
 
 def _tiny_experiments(monkeypatch, art: Artifacts):
-    import trials.experiments as ex
+    import trials.experiments.recipes as ex
 
-    tiny = dict(policy_preset="ci", target_policy_preset="ci", attack_preset="quick",
-                attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "pool_size": 4,
-                                  "validation_every": 0},
-                episodes=2, max_steps=MAX_STEPS, num_envs=2, gifs=0, pool=str(art.pool), shapes=("dog",))
+    tiny = dict(
+        policy_preset="ci",
+        target_policy_preset="ci",
+        attack_preset="quick",
+        attack_overrides={
+            "iterations": 1,
+            "num_envs": 1,
+            "rollout_steps": 1,
+            "texture_size": 8,
+            "pool_size": 4,
+            "validation_every": 0,
+        },
+        episodes=2,
+        max_steps=MAX_STEPS,
+        num_envs=2,
+        gifs=0,
+        pool=str(art.pool),
+        shapes=("dog",),
+    )
     for preset in ("quick", "paper"):
         monkeypatch.setitem(ex.PRESETS, preset, tiny)
 
@@ -418,36 +453,63 @@ def _tiny_experiments(monkeypatch, art: Artifacts):
 TRANSFER_TARGETS = "--target resnet34={policy} --target vgg16={policy} --target inception_v3={onnx}"
 EVAL_TINY = "--episodes 2 --max-steps 3 --num-envs 2 --gifs 1 --pool {pool}"
 CALIB = {
-    "advobj calibrate board --out board.pdf": Tiny("calibrate board --out {calib}/board.pdf", ("{calib}/board.pdf", "{calib}/board.yaml")),
-    "advobj calibrate intrinsics shots/*.png --board board.yaml --out cam.yaml":
-        Tiny("calibrate intrinsics {shots} --board {board_yaml} --out {calib}/cam.yaml", ("{calib}/cam.yaml",), expect="RMS"),
-    "advobj calibrate tags --ids 0-7 --size-mm 40 --out tags.pdf": Tiny("calibrate tags --ids 0-7 --size-mm 40 --out {calib}/tags.pdf", ("{calib}/tags.pdf",)),
-    "advobj calibrate detect photo.png --camera cam.yaml --registry objects.yaml --json":
-        Tiny("calibrate detect {photo} --camera {root}/examples/calibration/cam.yaml --registry {root}/examples/calibration/objects.yaml --json",
-             expect="goal"),
-    "advobj calibrate handeye samples.yaml --out T_tcp_cam.yaml":
-        Tiny("calibrate handeye {root}/examples/calibration/handeye_samples.yaml --out {calib}/T_tcp_cam.yaml", ("{calib}/T_tcp_cam.yaml",)),
+    "advobj calibrate board --out board.pdf": Tiny(
+        "calibrate board --out {calib}/board.pdf", ("{calib}/board.pdf", "{calib}/board.yaml")
+    ),
+    "advobj calibrate intrinsics shots/*.png --board board.yaml --out cam.yaml": Tiny(
+        "calibrate intrinsics {shots} --board {board_yaml} --out {calib}/cam.yaml", ("{calib}/cam.yaml",), expect="RMS"
+    ),
+    "advobj calibrate tags --ids 0-7 --size-mm 40 --out tags.pdf": Tiny(
+        "calibrate tags --ids 0-7 --size-mm 40 --out {calib}/tags.pdf", ("{calib}/tags.pdf",)
+    ),
+    "advobj calibrate detect photo.png --camera cam.yaml --registry objects.yaml --json": Tiny(
+        "calibrate detect {photo} --camera {root}/examples/calibration/cam.yaml --registry {root}/examples/calibration/objects.yaml --json",
+        expect="goal",
+    ),
+    "advobj calibrate handeye samples.yaml --out T_tcp_cam.yaml": Tiny(
+        "calibrate handeye {root}/examples/calibration/handeye_samples.yaml --out {calib}/T_tcp_cam.yaml",
+        ("{calib}/T_tcp_cam.yaml",),
+    ),
     "advobj calibrate selfcheck": Tiny("calibrate selfcheck", expect="hand-eye"),
-    "advobj calibrate intrinsics left*.jpg --out cam.yaml":
-        Tiny("calibrate intrinsics {chess} --out {calib}/cam_chess.yaml", ("{calib}/cam_chess.yaml",),
-             expect="board: plain chessboard, 9x6 inner corners (found automatically)"),
-    "advobj calibrate intrinsics left*.jpg --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out ost.yaml":
-        Tiny("calibrate intrinsics {chess} --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out {calib}/ost_chess.yaml",
-             ("{calib}/ost_chess.yaml",), expect="(as given)"),
-    "advobj calibrate convert ost.yaml --out cam.yaml":
-        Tiny("calibrate convert {ros_cam} --out {calib}/cam_from_ros.yaml", ("{calib}/cam_from_ros.yaml",), expect="(ros)"),
+    "advobj calibrate intrinsics left*.jpg --out cam.yaml": Tiny(
+        "calibrate intrinsics {chess} --out {calib}/cam_chess.yaml",
+        ("{calib}/cam_chess.yaml",),
+        expect="board: plain chessboard, 9x6 inner corners (found automatically)",
+    ),
+    "advobj calibrate intrinsics left*.jpg --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out ost.yaml": Tiny(
+        "calibrate intrinsics {chess} --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out {calib}/ost_chess.yaml",
+        ("{calib}/ost_chess.yaml",),
+        expect="(as given)",
+    ),
+    "advobj calibrate convert ost.yaml --out cam.yaml": Tiny(
+        "calibrate convert {ros_cam} --out {calib}/cam_from_ros.yaml", ("{calib}/cam_from_ros.yaml",), expect="(ros)"
+    ),
 }
 
-PLAN_LINE = ("advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml "
-             "--sheet runs/plan.pdf")
-RUN_LINE = ("advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session day1 "
-            "--registry objects.yaml --db runs/trials.sqlite")
+PLAN_LINE = (
+    "advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml "
+    "--sheet runs/plan.pdf"
+)
+RUN_LINE = (
+    "advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session day1 "
+    "--registry objects.yaml --db runs/trials.sqlite"
+)
 ATTACK_LINE = "advobj attack run --policy runs/policy-quick --preset quick --out runs/attack"
 PATCH_LINE = "advobj attack run --policy runs/policy-quick --config patch.yaml --out runs/patch"
-ATTACK_OUT = ("{tmp}/attack/texture.png", "{tmp}/attack/texture.npy", "{tmp}/attack/adversarial.glb", "{tmp}/attack/metrics.json",
-              "{tmp}/attack/loss_curves.png", "{tmp}/attack/run.json")
-EVAL_MAIN = Tiny("eval --policy {policy} --attack {attack} --patch {patch} -c attack -c patch -c light_dim " + EVAL_TINY + " --out {tmp}/eval",
-                 ("{tmp}/eval/episodes.csv", "{tmp}/eval/summary.json", "{tmp}/eval/report.md", "{tmp}/eval/manifest.json"))
+ATTACK_OUT = (
+    "{tmp}/attack/texture.png",
+    "{tmp}/attack/texture.npy",
+    "{tmp}/attack/adversarial.glb",
+    "{tmp}/attack/metrics.json",
+    "{tmp}/attack/loss_curves.png",
+    "{tmp}/attack/run.json",
+)
+EVAL_MAIN = Tiny(
+    "eval --policy {policy} --attack {attack} --patch {patch} -c attack -c patch -c light_dim "
+    + EVAL_TINY
+    + " --out {tmp}/eval",
+    ("{tmp}/eval/episodes.csv", "{tmp}/eval/summary.json", "{tmp}/eval/report.md", "{tmp}/eval/manifest.json"),
+)
 
 # documented line (as normalised by parse_commands) -> tiny run
 TINY: dict[str, Tiny] = {
@@ -455,84 +517,164 @@ TINY: dict[str, Tiny] = {
     "make demo": Tiny("demo --out {tmp}/demo", ("{tmp}/demo/report.md",), slow=True, setup=_tiny_demo),
     "make test": Tiny(None, reason="runs this very suite; the parse test dry-runs the target"),
     # ---- README: reference policies
-    "advobj policy train --preset quick --out runs/policy-quick":
-        Tiny("policy train --preset ci --out {tmp}/train-ci --episodes 2", ("{tmp}/train-ci/policy.json", "{tmp}/train-ci/feasible_pool.json"), slow=True),
-    "advobj policy train --preset paper --out runs/policy-paper --threads 2":
-        Tiny("policy train --preset ci --out {tmp}/train-threads --episodes 2 --threads 2", ("{tmp}/train-threads/policy.json",), slow=True),
-    "advobj policy eval runs/policy-quick --episodes 200": Tiny("policy eval {policy_copy} --episodes 2 --num-envs 2", ("{policy_copy}/eval/feasible_pool.json",), expect="clean success"),
-    "advobj policy export runs/policy-quick --onnx policy.onnx": Tiny("policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)),
-    "advobj policy export runs/policy-quick --onnx runs/policy-quick.onnx": Tiny("policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)),
+    "advobj policy train --preset quick --out runs/policy-quick": Tiny(
+        "policy train --preset ci --out {tmp}/train-ci --episodes 2",
+        ("{tmp}/train-ci/policy.json", "{tmp}/train-ci/feasible_pool.json"),
+        slow=True,
+    ),
+    "advobj policy train --preset paper --out runs/policy-paper --threads 2": Tiny(
+        "policy train --preset ci --out {tmp}/train-threads --episodes 2 --threads 2",
+        ("{tmp}/train-threads/policy.json",),
+        slow=True,
+    ),
+    "advobj policy eval runs/policy-quick --episodes 200": Tiny(
+        "policy eval {policy_copy} --episodes 2 --num-envs 2",
+        ("{policy_copy}/eval/feasible_pool.json",),
+        expect="clean success",
+    ),
+    "advobj policy export runs/policy-quick --onnx policy.onnx": Tiny(
+        "policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)
+    ),
+    "advobj policy export runs/policy-quick --onnx runs/policy-quick.onnx": Tiny(
+        "policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)
+    ),
     # ---- workflow: your mesh
-    "advobj scene render my_scene.yaml --seed 0 --size 256 --out runs/scene/my_scene.png":
-        Tiny("scene render {my_scene} --seed 0 --size 32 --out {tmp}/scene/my_scene.png", ("{tmp}/scene/my_scene.png",)),
-    "advobj scene rollout my_scene.yaml --seed 0 --out runs/scene/my_scene_rollout.gif":
-        Tiny("scene rollout {my_scene} --seed 0 --size 32 --out {tmp}/scene/rollout.gif", ("{tmp}/scene/rollout.gif",), expect="reached"),
-    "advobj scene pool my_scene.yaml --n 100 --seed 0 --out runs/scene/pool.json":
-        Tiny("scene pool {my_scene} --n 4 --seed 0 --out {tmp}/scene/pool.json", ("{tmp}/scene/pool.json",)),
+    "advobj scene render my_scene.yaml --seed 0 --size 256 --out runs/scene/my_scene.png": Tiny(
+        "scene render {my_scene} --seed 0 --size 32 --out {tmp}/scene/my_scene.png", ("{tmp}/scene/my_scene.png",)
+    ),
+    "advobj scene rollout my_scene.yaml --seed 0 --out runs/scene/my_scene_rollout.gif": Tiny(
+        "scene rollout {my_scene} --seed 0 --size 32 --out {tmp}/scene/rollout.gif",
+        ("{tmp}/scene/rollout.gif",),
+        expect="reached",
+    ),
+    "advobj scene pool my_scene.yaml --n 100 --seed 0 --out runs/scene/pool.json": Tiny(
+        "scene pool {my_scene} --n 4 --seed 0 --out {tmp}/scene/pool.json", ("{tmp}/scene/pool.json",)
+    ),
     # ---- workflow: policies
-    "advobj policy eval my_policy.onnx --episodes 200 --out runs/my_policy-eval":
-        Tiny("policy eval {onnx_copy} --episodes 2 --num-envs 2 --out {tmp}/my_policy-eval", ("{tmp}/my_policy-eval/feasible_pool.json",)),
+    "advobj policy eval my_policy.onnx --episodes 200 --out runs/my_policy-eval": Tiny(
+        "policy eval {onnx_copy} --episodes 2 --num-envs 2 --out {tmp}/my_policy-eval",
+        ("{tmp}/my_policy-eval/feasible_pool.json",),
+    ),
     # ---- workflow: attack
-    ATTACK_LINE: Tiny("attack run --policy {policy} --preset quick --config {tiny_attack} --out {tmp}/attack", ATTACK_OUT),
-    PATCH_LINE: Tiny("attack run --policy {policy} --config {tiny_patch} --out {tmp}/patch", ("{tmp}/patch/texture.npy", "{tmp}/patch/run.json")),
+    ATTACK_LINE: Tiny(
+        "attack run --policy {policy} --preset quick --config {tiny_attack} --out {tmp}/attack", ATTACK_OUT
+    ),
+    PATCH_LINE: Tiny(
+        "attack run --policy {policy} --config {tiny_patch} --out {tmp}/patch",
+        ("{tmp}/patch/texture.npy", "{tmp}/patch/run.json"),
+    ),
     # ---- evaluation
     "advobj eval --policy runs/policy-quick --attack runs/attack --patch runs/patch -c attack -c patch -c light_dim --episodes 500 --max-steps 60 --out runs/eval": EVAL_MAIN,
     "advobj eval --policy runs/policy --attack runs/attack --patch runs/patch -c attack -c patch -c light_dim --episodes 500 --max-steps 60 --out runs/eval": EVAL_MAIN,
-    "advobj eval --policy runs/policy-quick.onnx --attack runs/attack --episodes 200 --out runs/eval-transfer":
-        Tiny("eval --policy {onnx} --attack {attack} " + EVAL_TINY + " --out {tmp}/eval-transfer", ("{tmp}/eval-transfer/summary.json",)),
-    "advobj experiment table1 --preset quick --out runs/table1-quick":
-        Tiny("experiment table1 --preset quick --policy {policy} --out {tmp}/table1", ("{tmp}/table1/table.md",), slow=True, setup=_tiny_experiments),
-    "advobj experiment table1 --preset quick --policy runs/policy-quick --out runs/table1-quick":
-        Tiny("experiment table1 --preset quick --policy {policy} --out {tmp}/table1", ("{tmp}/table1/table.md",), slow=True, setup=_tiny_experiments),
-    "advobj experiment table2 --preset paper --address HEAD_HOST:6379 --device cuda --out runs/table2-paper":
-        Tiny(None, reason="needs a Ray cluster with GPU nodes; the job layer on a real local cluster is tests/trials/test_jobs_ray.py"),
-    "advobj experiment table2 --preset quick":
-        Tiny("experiment table2 --preset quick --policy {policy} --out {tmp}/table2", ("{tmp}/table2/table.md",), slow=True, setup=_tiny_experiments),
-    "advobj experiment table3 --preset paper":
-        Tiny("experiment table3 --preset paper --policy {policy} --out {tmp}/table3", ("{tmp}/table3/table.md",), slow=True, setup=_tiny_experiments),
-    "advobj experiment transfer --preset quick --target resnet34=runs/policy-r34 --archs resnet34":
-        Tiny("experiment transfer --preset quick --policy {policy} --target resnet34={policy} --archs resnet34 --out {tmp}/transfer",
-             ("{tmp}/transfer/table.md",), slow=True, setup=_tiny_experiments),
-    "advobj experiment lighting --preset quick":
-        Tiny("experiment lighting --preset quick --policy {policy} --out {tmp}/lighting", ("{tmp}/lighting/table.md",), slow=True,
-             setup=_tiny_experiments),
+    "advobj eval --policy runs/policy-quick.onnx --attack runs/attack --episodes 200 --out runs/eval-transfer": Tiny(
+        "eval --policy {onnx} --attack {attack} " + EVAL_TINY + " --out {tmp}/eval-transfer",
+        ("{tmp}/eval-transfer/summary.json",),
+    ),
+    "advobj experiment table1 --preset quick --out runs/table1-quick": Tiny(
+        "experiment table1 --preset quick --policy {policy} --out {tmp}/table1",
+        ("{tmp}/table1/table.md",),
+        slow=True,
+        setup=_tiny_experiments,
+    ),
+    "advobj experiment table1 --preset quick --policy runs/policy-quick --out runs/table1-quick": Tiny(
+        "experiment table1 --preset quick --policy {policy} --out {tmp}/table1",
+        ("{tmp}/table1/table.md",),
+        slow=True,
+        setup=_tiny_experiments,
+    ),
+    "advobj experiment table2 --preset paper --address HEAD_HOST:6379 --device cuda --out runs/table2-paper": Tiny(
+        None,
+        reason="needs a Ray cluster with GPU nodes; the job layer on a real local cluster is tests/trials/test_jobs_ray.py",
+    ),
+    "advobj experiment table2 --preset quick": Tiny(
+        "experiment table2 --preset quick --policy {policy} --out {tmp}/table2",
+        ("{tmp}/table2/table.md",),
+        slow=True,
+        setup=_tiny_experiments,
+    ),
+    "advobj experiment table3 --preset paper": Tiny(
+        "experiment table3 --preset paper --policy {policy} --out {tmp}/table3",
+        ("{tmp}/table3/table.md",),
+        slow=True,
+        setup=_tiny_experiments,
+    ),
+    "advobj experiment transfer --preset quick --target resnet34=runs/policy-r34 --archs resnet34": Tiny(
+        "experiment transfer --preset quick --policy {policy} --target resnet34={policy} --archs resnet34 --out {tmp}/transfer",
+        ("{tmp}/transfer/table.md",),
+        slow=True,
+        setup=_tiny_experiments,
+    ),
+    "advobj experiment lighting --preset quick": Tiny(
+        "experiment lighting --preset quick --policy {policy} --out {tmp}/lighting",
+        ("{tmp}/lighting/table.md",),
+        slow=True,
+        setup=_tiny_experiments,
+    ),
     # ---- fabrication (a cube run: it has a flat net and a tag card footprint)
-    "advobj fabricate runs/attack-cube --out runs/fab-cube --tag-id 3":
-        Tiny("fabricate {attack_cube} --out {tmp}/fab-cube --tag-id 3 --dpi 60",
-             ("{tmp}/fab-cube/sheet.pdf", "{tmp}/fab-cube/layout.json", "{tmp}/fab-cube/adversarial.glb", "{tmp}/fab-cube/print_check.json",
-              "{tmp}/fab-cube/objects.yaml"), expect="PASSED"),
-    "advobj fabricate RUN --out fab": Tiny("fabricate {attack_cube} --out {tmp}/fab --dpi 60 --no-check", ("{tmp}/fab/sheet.pdf",)),
-    "advobj fabricate RUN --out fab --page letter --dpi 300":
-        Tiny("fabricate {attack_cube} --out {tmp}/fab-letter --page letter --dpi 300", ("{tmp}/fab-letter/sheet.pdf", "{tmp}/fab-letter/print_check.png"),
-             slow=True),
-    "advobj fabricate RUN --out fab --tag-id 3 --tag-size-mm 30":
-        Tiny("fabricate {attack_cube} --out {tmp}/fab-tag --tag-id 3 --tag-size-mm 30 --dpi 60 --no-check", ("{tmp}/fab-tag/objects.yaml",)),
-    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff":
-        Tiny("bench tradeoff --policy {policy} --out {tmp}/tradeoff --quick-check --pool {pool} --max-steps 3 --rows eot_envs",
-             ("{tmp}/tradeoff/report.md", "{tmp}/tradeoff/rows.jsonl"), slow=True),
-    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff --train-missing --plot docs/img/tradeoff_pareto.png":
-        Tiny("bench tradeoff --policy {policy} --out {tmp}/tradeoff-doc --quick-check --pool {pool} --max-steps 3 --rows deployment=onnx-fp32 "
-             "--plot {tmp}/tradeoff-doc/pareto.png", ("{tmp}/tradeoff-doc/report.md", "{tmp}/tradeoff-doc/pareto.png"), slow=True,
-             dropped={"--train-missing": "trains two quick-preset policies at 96 and 128 px (minutes each)"}),
+    "advobj fabricate runs/attack-cube --out runs/fab-cube --tag-id 3": Tiny(
+        "fabricate {attack_cube} --out {tmp}/fab-cube --tag-id 3 --dpi 60",
+        (
+            "{tmp}/fab-cube/sheet.pdf",
+            "{tmp}/fab-cube/layout.json",
+            "{tmp}/fab-cube/adversarial.glb",
+            "{tmp}/fab-cube/print_check.json",
+            "{tmp}/fab-cube/objects.yaml",
+        ),
+        expect="PASSED",
+    ),
+    "advobj fabricate RUN --out fab": Tiny(
+        "fabricate {attack_cube} --out {tmp}/fab --dpi 60 --no-check", ("{tmp}/fab/sheet.pdf",)
+    ),
+    "advobj fabricate RUN --out fab --page letter --dpi 300": Tiny(
+        "fabricate {attack_cube} --out {tmp}/fab-letter --page letter --dpi 300",
+        ("{tmp}/fab-letter/sheet.pdf", "{tmp}/fab-letter/print_check.png"),
+        slow=True,
+    ),
+    "advobj fabricate RUN --out fab --tag-id 3 --tag-size-mm 30": Tiny(
+        "fabricate {attack_cube} --out {tmp}/fab-tag --tag-id 3 --tag-size-mm 30 --dpi 60 --no-check",
+        ("{tmp}/fab-tag/objects.yaml",),
+    ),
+    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff": Tiny(
+        "bench tradeoff --policy {policy} --out {tmp}/tradeoff --quick-check --pool {pool} --max-steps 3 --rows eot_envs",
+        ("{tmp}/tradeoff/report.md", "{tmp}/tradeoff/rows.jsonl"),
+        slow=True,
+    ),
+    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff --train-missing --plot docs/img/tradeoff_pareto.png": Tiny(
+        "bench tradeoff --policy {policy} --out {tmp}/tradeoff-doc --quick-check --pool {pool} --max-steps 3 --rows deployment=onnx-fp32 "
+        "--plot {tmp}/tradeoff-doc/pareto.png",
+        ("{tmp}/tradeoff-doc/report.md", "{tmp}/tradeoff-doc/pareto.png"),
+        slow=True,
+        dropped={"--train-missing": "trains two quick-preset policies at 96 and 128 px (minutes each)"},
+    ),
     # ---- calibration (workflow step 7 and calibration.md)
     **CALIB,
     # ---- real trials (the sim hardware config stands in for the cell)
-    "advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml --sheet runs/plan.pdf":
-        Tiny("trial plan --shape cube --texture cube/adv3d={attack_cube} --texture cube/patch={patch} --tcp-poses 1 --object-poses 1 "
-             "--out {tmp}/trials/plan.yaml --sheet {tmp}/trials/plan.pdf", ("{tmp}/trials/plan.yaml", "{tmp}/trials/plan.pdf")),
-    "advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session day1 --registry objects.yaml --db runs/trials.sqlite":
-        Tiny("trial run --hardware {root}/examples/hardware/sim.yaml --policy {onnx} --plan {plan} --session day1 "
-             "--registry {root}/examples/calibration/objects.yaml --db {tmp}/trials/trials.sqlite --auto-confirm",
-             ("{tmp}/trials/trials.sqlite",), expect="trials done"),
-    "advobj trial report --db runs/trials.sqlite --sim cube=runs/eval-cube --out runs/trial-report":
-        Tiny("trial report --db {trial_db} --sim cube={eval} --out {tmp}/trials/report", ("{tmp}/trials/report/report.md", "{tmp}/trials/report/report.json")),
-    "advobj trial export --db runs/trials.sqlite --out runs/trial-tables --format csv":
-        Tiny("trial export --db {trial_db} --out {tmp}/trials/tables --format csv", ("{tmp}/trials/tables/trials.csv", "{tmp}/trials/tables/steps.csv")),
+    "advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml --sheet runs/plan.pdf": Tiny(
+        "trial plan --shape cube --texture cube/adv3d={attack_cube} --texture cube/patch={patch} --tcp-poses 1 --object-poses 1 "
+        "--out {tmp}/trials/plan.yaml --sheet {tmp}/trials/plan.pdf",
+        ("{tmp}/trials/plan.yaml", "{tmp}/trials/plan.pdf"),
+    ),
+    "advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session day1 --registry objects.yaml --db runs/trials.sqlite": Tiny(
+        "trial run --hardware {root}/examples/hardware/sim.yaml --policy {onnx} --plan {plan} --session day1 "
+        "--registry {root}/examples/calibration/objects.yaml --db {tmp}/trials/trials.sqlite --auto-confirm",
+        ("{tmp}/trials/trials.sqlite",),
+        expect="trials done",
+    ),
+    "advobj trial report --db runs/trials.sqlite --sim cube=runs/eval-cube --out runs/trial-report": Tiny(
+        "trial report --db {trial_db} --sim cube={eval} --out {tmp}/trials/report",
+        ("{tmp}/trials/report/report.md", "{tmp}/trials/report/report.json"),
+    ),
+    "advobj trial export --db runs/trials.sqlite --out runs/trial-tables --format csv": Tiny(
+        "trial export --db {trial_db} --out {tmp}/trials/tables --format csv",
+        ("{tmp}/trials/tables/trials.csv", "{tmp}/trials/tables/steps.csv"),
+    ),
     # ---- hardware
-    "advobj hw check --config examples/hardware/sim.yaml":
-        Tiny("hw check --config {root}/examples/hardware/sim.yaml --frames 2", expect="nothing moved"),
-    "advobj hw check --config examples/hardware/sim.yaml --jog --jog-mm 10":
-        Tiny("hw check --config {root}/examples/hardware/sim.yaml --frames 2 --jog --jog-mm 10", expect="back to"),
+    "advobj hw check --config examples/hardware/sim.yaml": Tiny(
+        "hw check --config {root}/examples/hardware/sim.yaml --frames 2", expect="nothing moved"
+    ),
+    "advobj hw check --config examples/hardware/sim.yaml --jog --jog-mm 10": Tiny(
+        "hw check --config {root}/examples/hardware/sim.yaml --frames 2 --jog --jog-mm 10", expect="back to"
+    ),
 }
 
 
@@ -556,21 +698,31 @@ def art(tmp_path_factory):
 def test_the_docs_have_commands_to_check():
     files = {c.file for c in DOC_COMMANDS}
     assert {"README.md", "docs/workflow.md", "docs/calibration.md", "docs/evaluation.md"} <= files
-    assert any(c.text == "make demo" for c in DOC_COMMANDS) and any(c.text.startswith("advobj attack run") for c in DOC_COMMANDS)
+    assert any(c.text == "make demo" for c in DOC_COMMANDS) and any(
+        c.text.startswith("advobj attack run") for c in DOC_COMMANDS
+    )
 
 
 def test_parser_reads_console_bash_and_plain_blocks(tmp_path):
     md = tmp_path / "x.md"
-    md.write_text("text\n```console\n$ advobj eval --policy p \\\n    --episodes 2   # note\nout line\n```\n"
-                  "```bash\nmake demo  # c\necho hi\n```\n```python\nadvobj = 1\n```\n```\nadvobj scene pool --n 3\n```\n")
+    md.write_text(
+        "text\n```console\n$ advobj eval --policy p \\\n    --episodes 2   # note\nout line\n```\n"
+        "```bash\nmake demo  # c\necho hi\n```\n```python\nadvobj = 1\n```\n```\nadvobj scene pool --n 3\n```\n"
+    )
     cmds = parse_commands(md, root=tmp_path)
-    assert [(c.line, c.text) for c in cmds] == [(3, "advobj eval --policy p --episodes 2"), (8, "make demo"), (15, "advobj scene pool --n 3")]
+    assert [(c.line, c.text) for c in cmds] == [
+        (3, "advobj eval --policy p --episodes 2"),
+        (8, "make demo"),
+        (15, "advobj scene pool --n 3"),
+    ]
 
 
 def test_every_documented_command_has_a_tiny_run():
     missing = sorted({f"{c.file}:{c.line}: {c.text}" for c in DOC_COMMANDS if c.text not in TINY})
-    assert not missing, ("documented commands without an entry in TINY (tests/trials/test_docs_commands.py); add a tiny-settings "
-                         "invocation for each:\n" + "\n".join(missing))
+    assert not missing, (
+        "documented commands without an entry in TINY (tests/trials/test_docs_commands.py); add a tiny-settings "
+        "invocation for each:\n" + "\n".join(missing)
+    )
     stale = sorted(set(TINY) - {c.text for c in DOC_COMMANDS})
     assert not stale, "TINY entries for commands no longer in the docs (remove them):\n" + "\n".join(stale)
 
@@ -597,8 +749,12 @@ def test_documented_command_runs_on_tiny_settings(doc, tiny, art, monkeypatch):
     tcmd, tpath, trest = resolve(argv)
     if cmd is not None:
         assert tpath == path, f"TINY entry for '{doc.text}' runs 'advobj {' '.join(tpath)}'"
-        missing = used_options(cmd, rest) - used_options(tcmd, trest) - {option_params(cmd).get(o, o) for o in tiny.dropped}
-        assert not missing, f"TINY entry for '{doc.text}' leaves out documented options {sorted(missing)} (keep them or say why in dropped)"
+        missing = (
+            used_options(cmd, rest) - used_options(tcmd, trest) - {option_params(cmd).get(o, o) for o in tiny.dropped}
+        )
+        assert not missing, (
+            f"TINY entry for '{doc.text}' leaves out documented options {sorted(missing)} (keep them or say why in dropped)"
+        )
     if tiny.setup is not None:
         tiny.setup(monkeypatch, art)
     res = art.invoke(argv)
@@ -616,9 +772,9 @@ def test_workflow_python_block_attacks_a_wrapped_torch_model(art):
     code = _workflow_block("class WhiteBox")
     out = art.tmp / "attack-mine"
     subs = {
-        'image_size=128': 'image_size=32',
+        "image_size=128": "image_size=32",
         'resolve_config("quick", {"iterations": 300})': 'resolve_config("quick", TINY_OVERRIDES)',
-        'load_scene("my_scene.yaml")': 'load_scene(MY_SCENE)',
+        'load_scene("my_scene.yaml")': "load_scene(MY_SCENE)",
         '"runs/attack-mine"': repr(str(out)),
     }
     for old, new in subs.items():
@@ -641,7 +797,9 @@ def test_workflow_python_block_attacks_a_wrapped_torch_model(art):
 
 def _workflow_block(marker: str) -> str:
     blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "workflow.md").read_text(), re.S)
-    assert len(blocks) == 2, "docs/workflow.md should hold two python blocks (the white-box wrapper, the two-input export)"
+    assert len(blocks) == 2, (
+        "docs/workflow.md should hold two python blocks (the white-box wrapper, the two-input export)"
+    )
     (code,) = [b for b in blocks if marker in b]
     return code
 
@@ -736,7 +894,7 @@ def benchmark_lines(path: Path) -> list[tuple[int, list[str]]]:
             continue
         head = line.split(" ", 1)[0]
         if head.startswith("$") and head[1:] in env:
-            line = env[head[1:]] + line[len(head):]
+            line = env[head[1:]] + line[len(head) :]
         tokens = shlex.split(line, comments=True)
         if len(tokens) >= 2 and tokens[0] in ("python", "python3") and tokens[1].startswith("benchmarks/"):
             out.append((start, tokens[1:]))
@@ -750,15 +908,18 @@ def test_the_docs_name_benchmark_commands_to_check():
     assert any(argv[0] == "benchmarks/bench_tradeoff.py" for _, _, argv in BENCH_LINES)
 
 
-@pytest.mark.parametrize("where,argv", [(f"{f}:{no}", argv) for f, no, argv in BENCH_LINES],
-                         ids=[f"{f}:{no}" for f, no, _ in BENCH_LINES])
+@pytest.mark.parametrize(
+    "where,argv", [(f"{f}:{no}", argv) for f, no, argv in BENCH_LINES], ids=[f"{f}:{no}" for f, no, _ in BENCH_LINES]
+)
 def test_documented_benchmark_command_exists_and_takes_its_options(where, argv, _bench_help={}):
     import sys
 
     script = ROOT / argv[0]
     assert script.is_file(), f"{where}: {argv[0]} does not exist"
     if argv[0] not in _bench_help:  # one --help per script
-        r = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+        r = subprocess.run(
+            [sys.executable, str(script), "--help"], capture_output=True, text=True, cwd=ROOT, timeout=120
+        )
         assert r.returncode == 0, f"{where}: {argv[0]} --help failed: {r.stderr[-500:]}"
         _bench_help[argv[0]] = set(re.findall(r"(--[\w-]+)", r.stdout))
     unknown = {t.split("=", 1)[0] for t in argv[1:] if t.startswith("--")} - _bench_help[argv[0]]

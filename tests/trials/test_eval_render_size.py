@@ -4,8 +4,8 @@ import sim.render
 from sim.configs import sample_pool
 from sim.policies.checkpoint import load_policy
 from sim.spec import default_scene
-from trials.conditions import Condition
-from trials.evaluate import rollout_condition
+from trials.eval.conditions import Condition
+from trials.eval.evaluate import rollout_condition
 
 
 def test_eval_rollout_renders_at_the_policy_size(tiny_policy_dir, monkeypatch):

@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
-import trials.evaluate as ev
+import trials.eval.evaluate as ev
 from sim.configs import load_pool
 from sim.policies.checkpoint import load_policy
-from trials.conditions import Sources, build_conditions
-from trials.evaluate import load_eval_config, rollout_condition, run_eval
+from trials.eval.conditions import Sources, build_conditions
+from trials.eval.evaluate import load_eval_config, rollout_condition, run_eval
 
 from .conftest import MAX_STEPS
 
@@ -57,9 +57,19 @@ def test_noise_draws_repeat_for_the_same_seed(tiny_policy_dir, short_spec, pool_
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
 
 
-def test_interrupted_eval_resumes_without_redoing_finished_episodes(tmp_path, monkeypatch, tiny_policy_dir, pool_file, attack_dir):
-    cfg = load_eval_config(policy=str(tiny_policy_dir), conditions=("attack",), episodes=4, max_steps=MAX_STEPS, num_envs=2,
-                           pool=str(pool_file), attack=str(attack_dir), gifs=0)
+def test_interrupted_eval_resumes_without_redoing_finished_episodes(
+    tmp_path, monkeypatch, tiny_policy_dir, pool_file, attack_dir
+):
+    cfg = load_eval_config(
+        policy=str(tiny_policy_dir),
+        conditions=("attack",),
+        episodes=4,
+        max_steps=MAX_STEPS,
+        num_envs=2,
+        pool=str(pool_file),
+        attack=str(attack_dir),
+        gifs=0,
+    )
     real_row = ev._row
     calls = []
 
@@ -85,17 +95,49 @@ def test_interrupted_eval_resumes_without_redoing_finished_episodes(tmp_path, mo
 
 
 def test_eval_writes_rows_summary_report_and_provenance(tmp_path, tiny_policy_dir, pool_file, attack_dir):
-    cfg = load_eval_config(policy=str(tiny_policy_dir), conditions=("attack",), episodes=3, max_steps=MAX_STEPS, num_envs=3,
-                           pool=str(pool_file), attack=str(attack_dir), gifs=1)
+    cfg = load_eval_config(
+        policy=str(tiny_policy_dir),
+        conditions=("attack",),
+        episodes=3,
+        max_steps=MAX_STEPS,
+        num_envs=3,
+        pool=str(pool_file),
+        attack=str(attack_dir),
+        gifs=1,
+    )
     summary = run_eval(cfg, tmp_path, progress=False)
-    for name in ("episodes.csv", "manifest.json", "summary.json", "run.json", "report.md", "bars_by_phi.png", "bars_by_distance.png",
-                 "textures/attack.png"):
+    for name in (
+        "episodes.csv",
+        "manifest.json",
+        "summary.json",
+        "run.json",
+        "report.md",
+        "bars_by_phi.png",
+        "bars_by_distance.png",
+        "textures/attack.png",
+    ):
         assert (tmp_path / name).is_file(), name
     gifs = sorted(p.name for p in (tmp_path / "gifs").iterdir())
     assert any(g.startswith("compare_clean_vs_attack_seed") for g in gifs)
     header = (tmp_path / "episodes.csv").read_text().splitlines()[0].split(",")
-    assert header[:12] == ["condition", "seed", "r_m", "theta_rad", "phi_rad", "outcome", "reached", "success", "targeted",
-                           "steps", "e_trans", "e_rot"] and "min_dist_mustard_bottle" in header
+    assert (
+        header[:12]
+        == [
+            "condition",
+            "seed",
+            "r_m",
+            "theta_rad",
+            "phi_rad",
+            "outcome",
+            "reached",
+            "success",
+            "targeted",
+            "steps",
+            "e_trans",
+            "e_rot",
+        ]
+        and "min_dist_mustard_bottle" in header
+    )
     att = summary["conditions"]["attack"]
     assert att["n"] == 3 and 0 <= att["asr"]["lo"] <= att["asr"]["hi"] <= 1
     assert summary["conditions"]["clean"]["e_trans"]["mean"] == 0.0
@@ -112,21 +154,51 @@ def test_end_to_end_cli_short_attack_then_20_paired_episodes(tmp_path, tiny_poli
     import yaml
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     cfg = tmp_path / "attack.yaml"
-    cfg.write_text(yaml.safe_dump({"iterations": 3, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "pool_size": 8}))
+    cfg.write_text(
+        yaml.safe_dump({"iterations": 3, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "pool_size": 8})
+    )
     runner = CliRunner()
-    res = runner.invoke(app, ["attack", "run", "--policy", str(tiny_policy_dir), "--config", str(cfg), "--out", str(tmp_path / "atk")])
+    res = runner.invoke(
+        app, ["attack", "run", "--policy", str(tiny_policy_dir), "--config", str(cfg), "--out", str(tmp_path / "atk")]
+    )
     assert res.exit_code == 0, res.output
-    res = runner.invoke(app, ["eval", "--policy", str(tiny_policy_dir), "--attack", str(tmp_path / "atk"), "--episodes", "20",
-                              "--max-steps", str(MAX_STEPS), "--num-envs", "10", "--pool", str(pool_file), "--out", str(tmp_path / "ev")])
+    res = runner.invoke(
+        app,
+        [
+            "eval",
+            "--policy",
+            str(tiny_policy_dir),
+            "--attack",
+            str(tmp_path / "atk"),
+            "--episodes",
+            "20",
+            "--max-steps",
+            str(MAX_STEPS),
+            "--num-envs",
+            "10",
+            "--pool",
+            str(pool_file),
+            "--out",
+            str(tmp_path / "ev"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "T-ASR" in res.output and "95% CI" in res.output
     summary = json.loads((tmp_path / "ev" / "summary.json").read_text())
     assert summary["conditions"]["clean"]["n"] == summary["conditions"]["attack"]["n"] == 20
-    clean_seeds = [l.split(",")[1] for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:] if l.startswith("clean,")]
-    attack_seeds = [l.split(",")[1] for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:] if l.startswith("attack,")]
+    clean_seeds = [
+        l.split(",")[1]
+        for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:]
+        if l.startswith("clean,")
+    ]
+    attack_seeds = [
+        l.split(",")[1]
+        for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:]
+        if l.startswith("attack,")
+    ]
     assert sorted(clean_seeds) == sorted(attack_seeds)  # paired: the same 20 configurations
 
 
@@ -151,7 +223,11 @@ def test_feasible_pool_keeps_only_configs_the_clean_policy_solves(tmp_path, monk
     assert [c.seed for c in pool] == want and src == str(tmp_path / "feasible_pool.json")
     assert [c.seed for c in load_pool(tmp_path / "feasible_pool.json", short_spec)] == want
 
-    monkeypatch.setattr(ev, "rollout_condition", lambda p, s, c, configs, n, on_done, f=None: [on_done(j, {"reached": -1}) for j in range(len(configs))])
+    monkeypatch.setattr(
+        ev,
+        "rollout_condition",
+        lambda p, s, c, configs, n, on_done, f=None: [on_done(j, {"reached": -1}) for j in range(len(configs))],
+    )
     with pytest.raises(ev.EvalError, match="nothing is task-feasible"):
         ev.resolve_pool(cfg, None, short_spec, tmp_path / "other", progress=False)
 
@@ -164,8 +240,16 @@ def test_black_box_onnx_target_is_evaluated_on_the_same_configs(tmp_path, tiny_p
     pol, card = load_checkpoint(tiny_policy_dir)
     onnx = tmp_path / "target.onnx"
     export_onnx(pol, onnx, card=card)
-    cfg = load_eval_config(policy=str(onnx), conditions=("attack",), episodes=2, max_steps=MAX_STEPS, num_envs=2,
-                           pool=str(pool_file), attack=str(attack_dir), gifs=0)
+    cfg = load_eval_config(
+        policy=str(onnx),
+        conditions=("attack",),
+        episodes=2,
+        max_steps=MAX_STEPS,
+        num_envs=2,
+        pool=str(pool_file),
+        attack=str(attack_dir),
+        gifs=0,
+    )
     summary = run_eval(cfg, tmp_path / "ev", progress=False, report=False)
     assert summary["conditions"]["attack"]["n"] == 2 and summary["meta"]["policy"].endswith(".onnx")
     seeds = sorted({l.split(",")[1] for l in (tmp_path / "ev" / "episodes.csv").read_text().splitlines()[1:]})

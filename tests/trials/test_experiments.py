@@ -4,17 +4,32 @@ import json
 
 import pytest
 
-from trials.experiments import PAPER, ExperimentError, resolve_experiment, run_experiment
+from trials.experiments.recipes import PAPER, ExperimentError, resolve_experiment, run_experiment
 
 from .conftest import MAX_STEPS
 
-TINY_ATTACK = {"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "pool_size": 4, "checkpoint_every": 1,
-               "validation_every": 0}  # held-out validation is covered in tests/attack/test_best.py
+TINY_ATTACK = {
+    "iterations": 1,
+    "num_envs": 1,
+    "rollout_steps": 1,
+    "texture_size": 8,
+    "pool_size": 4,
+    "checkpoint_every": 1,
+    "validation_every": 0,
+}  # held-out validation is covered in tests/attack/test_best.py
 
 
 def _cfg(pool_file, **kw):
-    return resolve_experiment("quick", attack_overrides=TINY_ATTACK, episodes=2, max_steps=MAX_STEPS, num_envs=2, gifs=0,
-                              pool=str(pool_file), **kw)
+    return resolve_experiment(
+        "quick",
+        attack_overrides=TINY_ATTACK,
+        episodes=2,
+        max_steps=MAX_STEPS,
+        num_envs=2,
+        gifs=0,
+        pool=str(pool_file),
+        **kw,
+    )
 
 
 def test_table1_runs_the_3d_and_patch_attacks_then_writes_the_paper_layout(tmp_path, tiny_policy_dir, pool_file):
@@ -23,18 +38,25 @@ def test_table1_runs_the_3d_and_patch_attacks_then_writes_the_paper_layout(tmp_p
     text = path.read_text()
     assert "| 2D Patch | paper | 73.00 | 77.00" in text and "| 3D Object | paper | 78.00 | 79.00" in text
     assert "| 3D Object | ours |" in text and "70-90 T-ASR" in text
-    assert json.loads((tmp_path / "attacks" / "patch" / "run.json").read_text())["config"]["attack"]["adversarial_mesh"] == "patch"
+    assert (
+        json.loads((tmp_path / "attacks" / "patch" / "run.json").read_text())["config"]["attack"]["adversarial_mesh"]
+        == "patch"
+    )
     summary = json.loads((tmp_path / "evals" / "table1" / "summary.json").read_text())
     assert set(summary["conditions"]) == {"clean", "attack", "patch"} and summary["conditions"]["patch"]["n"] == 2
     # a second run reuses every finished piece
     log.clear()
     run_experiment("table1", _cfg(pool_file), tmp_path, policy=tiny_policy_dir, progress=False, log=log.append)
-    assert any("attack-c2f: finished earlier, reused" in m for m in log) and any("attack-patch: finished earlier, reused" in m for m in log)
+    assert any("attack-c2f: finished earlier, reused" in m for m in log) and any(
+        "attack-patch: finished earlier, reused" in m for m in log
+    )
 
 
 @pytest.mark.slow
 def test_table2_runs_six_attack_variants_and_reports_errors_by_distance(tmp_path, tiny_policy_dir, pool_file):
-    path = run_experiment("table2", _cfg(pool_file), tmp_path, policy=tiny_policy_dir, progress=False, log=lambda m: None)
+    path = run_experiment(
+        "table2", _cfg(pool_file), tmp_path, policy=tiny_policy_dir, progress=False, log=lambda m: None
+    )
     text = path.read_text()
     for key in PAPER["table2"]:
         assert (tmp_path / "attacks" / key / "texture.npy").is_file()
@@ -45,12 +67,27 @@ def test_table2_runs_six_attack_variants_and_reports_errors_by_distance(tmp_path
 
 @pytest.mark.slow
 def test_table3_and_transfer_orchestrate_shapes_conditions_and_targets(tmp_path, tiny_policy_dir, pool_file):
-    p3 = run_experiment("table3", _cfg(pool_file, shapes=("duck",)), tmp_path / "t3", policy=tiny_policy_dir, progress=False, log=lambda m: None)
+    p3 = run_experiment(
+        "table3",
+        _cfg(pool_file, shapes=("duck",)),
+        tmp_path / "t3",
+        policy=tiny_policy_dir,
+        progress=False,
+        log=lambda m: None,
+    )
     t3 = p3.read_text()
     for label in ("Shape: Duck", "Stereo Cam", "Light: Bright", "Light: Dim", "Add Noise", "Bkg Varied"):
         assert f"| {label} |" in t3
     targets = {a: tiny_policy_dir for a in ("resnet34", "vgg16", "inception_v3")}
-    pt = run_experiment("transfer", _cfg(pool_file), tmp_path / "tr", policy=tiny_policy_dir, targets=targets, progress=False, log=lambda m: None)
+    pt = run_experiment(
+        "transfer",
+        _cfg(pool_file),
+        tmp_path / "tr",
+        policy=tiny_policy_dir,
+        targets=targets,
+        progress=False,
+        log=lambda m: None,
+    )
     assert "| vgg16 | black-box target |" in pt.read_text() and "59.68" in pt.read_text()
 
 

@@ -8,16 +8,15 @@ import numpy as np
 import pytest
 
 from tests.trials.conftest import make_attack_dir
-from trials.fabricate import (
+from trials.fabrication.base import FabricationError, sample_bilinear
+from trials.fabrication.fabricate import (
     CHECK_LINE_MM,
     PAGES_MM,
-    FabricationError,
     LayoutTweak,
     build_layout,
     draw_pages,
     load_run,
     region_raster,
-    sample_bilinear,
 )
 
 DPI = 60  # low print resolution keeps the tests fast; the textures below are smooth at this scale
@@ -127,14 +126,15 @@ def test_layout_is_true_scale_and_fits_the_page(runs):
     assert sorted((W, H)) == sorted(PAGES_MM["a4"])
     for thing in doc["pieces"] + doc["items"]:
         x, y = thing["origin_mm"]
-        assert x >= 8 and y >= 8 and x + thing["size_mm"][0] <= W - 8 and y + thing["size_mm"][1] <= H - 8, thing["name"]
+        assert x >= 8 and y >= 8 and x + thing["size_mm"][0] <= W - 8 and y + thing["size_mm"][1] <= H - 8, thing[
+            "name"
+        ]
 
 
 def test_a_piece_too_large_for_the_page_is_named():
-    from tests.trials.conftest import make_attack_dir as _
 
     from sim.assets import build_mesh
-    from trials.fabricate import RunSource
+    from trials.fabrication.fabricate import RunSource
 
     mesh = build_mesh("cube")
     src = RunSource("run", (_pattern(16, 0) * 255).astype(np.uint8), "cube", 1.0, "0" * 64)
@@ -146,7 +146,7 @@ def test_a_piece_too_large_for_the_page_is_named():
 
 # ----------------------------------------------------------------------------- pre-print check
 def _check(run_dir, tweak=LayoutTweak()):
-    from trials.print_check import check_print
+    from trials.fabrication.print_check import check_print
 
     src, mesh, layout = _layout(run_dir, tweak)
     return check_print(layout, draw_pages(layout, src.texture), mesh, src.texture)
@@ -182,7 +182,7 @@ def test_print_back_check_catches_layout_mistakes(runs, shape, tweak, named):
 def _invoke(args):
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     return CliRunner().invoke(app, [str(a) for a in args])
 
@@ -194,8 +194,16 @@ def test_cli_writes_sheet_meshes_check_and_tag_registry(runs, tmp_path):
     res = _invoke(["fabricate", runs["cylinder"], "--out", out, "--dpi", DPI, "--tag-id", 7, "--tag-size-mm", 25])
     assert res.exit_code == 0, res.output
     assert "check PASSED" in res.output
-    for name in ("sheet.pdf", "layout.json", "adversarial.glb", "adversarial_obj/adversarial.obj", "print_check.png",
-                 "print_check.json", "run.json", "objects.yaml"):
+    for name in (
+        "sheet.pdf",
+        "layout.json",
+        "adversarial.glb",
+        "adversarial_obj/adversarial.obj",
+        "print_check.png",
+        "print_check.json",
+        "run.json",
+        "objects.yaml",
+    ):
         assert (out / name).is_file(), name
     layout = json.loads((out / "layout.json").read_text())
     pdf = (out / "sheet.pdf").read_bytes()
@@ -231,7 +239,7 @@ def test_cli_mesh_without_a_net_gets_meshes_only(tmp_path):
 
 
 def _main(monkeypatch, capsys, args):
-    from trials.cli import main
+    from trials.cli.main import main
 
     monkeypatch.setattr(sys, "argv", ["advobj", *map(str, args)])
     with pytest.raises(SystemExit) as exc:
@@ -252,14 +260,16 @@ def test_cli_errors_name_the_file_or_shape(monkeypatch, capsys, tmp_path, runs):
     code, err = _main(monkeypatch, capsys, ["fabricate", mustard, "--out", tmp_path / "o3", "--shape", "duck"])
     assert code == 2 and "--shape duck: no flat net" in err
 
-    code, err = _main(monkeypatch, capsys, ["fabricate", runs["cube"], "--out", tmp_path / "o4", "--page", "b5", "--no-check"])
+    code, err = _main(
+        monkeypatch, capsys, ["fabricate", runs["cube"], "--out", tmp_path / "o4", "--page", "b5", "--no-check"]
+    )
     assert code == 2 and "--page: 'b5'" in err and not (tmp_path / "o4").exists()  # refused before writing
 
 
 def test_bad_dpi_is_refused_before_anything_is_written(tmp_path, monkeypatch, capsys):
     code, err = _main(monkeypatch, capsys, ["fabricate", tmp_path / "no_run", "--out", tmp_path / "o", "--dpi", "0"])
     assert code == 2 and "--dpi" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
-    from trials.fabricate import FabricationError, fabricate
+    from trials.fabrication.fabricate import fabricate
 
     with pytest.raises(FabricationError, match="--dpi"):
         fabricate(tmp_path / "no_run", tmp_path / "o", dpi=0)
@@ -275,7 +285,9 @@ def test_exports_follow_their_formats_glb_y_up_and_obj_says_its_units(tmp_path):
     res = _invoke(["fabricate", run, "--out", tmp_path / "out", "--dpi", DPI, "--units", "mm"])
     assert res.exit_code == 0, res.output
     raw = trimesh.load(tmp_path / "out" / "adversarial.glb", force="mesh")
-    assert raw.extents[1] == pytest.approx(0.19, abs=0.002) and raw.bounds[0][1] == pytest.approx(0.0, abs=1e-6)  # +Y up
+    assert raw.extents[1] == pytest.approx(0.19, abs=0.002) and raw.bounds[0][1] == pytest.approx(
+        0.0, abs=1e-6
+    )  # +Y up
     back = A.build_mesh(tmp_path / "out" / "adversarial.glb", placement="keep")  # read as glTF: standing again
     np.testing.assert_allclose(back.bounds, A.build_mesh("mustard_bottle").bounds, atol=1e-5)
     obj = tmp_path / "out" / "adversarial_obj" / "adversarial.obj"
@@ -291,9 +303,8 @@ def test_tag_id_on_a_mesh_without_a_sheet_is_refused_in_one_line_and_nothing_wri
 
 
 def test_the_optimised_texel_size_is_said_honestly(tmp_path):
-    from trials.fabricate import optimised_texel_size_mm
-
     import sim.assets as A
+    from trials.fabrication.fabricate import optimised_texel_size_mm
 
     cube = A.build_mesh("cube")  # 6 cm cube, its net on the unit UV square
     d = optimised_texel_size_mm(cube, 64, 64)

@@ -5,15 +5,17 @@ from pathlib import Path
 
 import pytest
 
-from trials import findings as fd
+from trials.experiments import findings as fd
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "results"
 
 
 def _arm(events: list[bool], phis=None) -> dict:
-    return {s: {"seed": s, "targeted": e, "success": not e, "phi_rad": (phis or [0.5] * len(events))[s], "r_m": 0.5}
-            for s, e in enumerate(events)}
+    return {
+        s: {"seed": s, "targeted": e, "success": not e, "phi_rad": (phis or [0.5] * len(events))[s], "r_m": 0.5}
+        for s, e in enumerate(events)
+    }
 
 
 def test_paired_counts_discordant_pairs_and_the_verdict_follows_alpha():
@@ -43,18 +45,28 @@ def test_transfer_ratio_interval_brackets_the_ratio():
 
 
 def test_readme_docs_and_findings_md_match_the_committed_data():
-    stale = [str(p.relative_to(ROOT)) for p, text in fd.expected(RESULTS).items() if not p.is_file() or p.read_text() != text]
-    assert not stale, f"regenerate with: python -m trials.findings ({', '.join(stale)} differ from what results/ gives)"
+    stale = [
+        str(p.relative_to(ROOT)) for p, text in fd.expected(RESULTS).items() if not p.is_file() or p.read_text() != text
+    ]
+    assert not stale, (
+        f"regenerate with: python -m trials.experiments.findings ({', '.join(stale)} differ from what results/ gives)"
+    )
 
 
-@pytest.mark.parametrize("recipe", sorted(p.name for p in RESULTS.iterdir() if (p / "episodes.csv").is_file()) if RESULTS.is_dir() else [])
+@pytest.mark.parametrize(
+    "recipe", sorted(p.name for p in RESULTS.iterdir() if (p / "episodes.csv").is_file()) if RESULTS.is_dir() else []
+)
 def test_every_committed_result_has_provenance_held_out_rows_and_at_least_300_pairs_per_arm(recipe):
     d = RESULTS / recipe
     run = json.loads((d / "run.json").read_text())
     ok = [a for a in run["attempts"] if a["exit_code"] == 0]
     assert ok, "no finished attempt"
     for a in run["attempts"]:
-        assert a["command"].startswith("advobj experiment " + recipe.split("-")[0]) and a["commit"] and a["machine"]["cpus"]
+        assert (
+            a["command"].startswith("advobj experiment " + recipe.split("-")[0])
+            and a["commit"]
+            and a["machine"]["cpus"]
+        )
         assert a["wall_s"] > 0 and a["cpu_s"] > 0
     summaries = json.loads((d / "summary.json").read_text())
     rows = fd.load_rows(RESULTS, recipe)
@@ -70,7 +82,11 @@ def test_the_readme_policy_figure_is_the_committed_card():
 
     card = json.loads((RESULTS / "policies" / "policy-quick.json").read_text())
     c, t = card["clean_success"], card["training"]
-    want = (f"**{100 * c['rate']:.1f}% clean success ({c['k']}/{c['n']}, 95% CI {100 * c['lo']:.1f}-{100 * c['hi']:.1f}%) after "
-            f"{t['train_time_s'] / 60:.1f} min of training ({t['train_cpu_s'] / 60:.1f} min CPU)**")
-    block = re.search(r"<!-- policy:start[^>]*-->\n(.*?)\n<!-- policy:end -->", (ROOT / "README.md").read_text(), re.S).group(1)
+    want = (
+        f"**{100 * c['rate']:.1f}% clean success ({c['k']}/{c['n']}, 95% CI {100 * c['lo']:.1f}-{100 * c['hi']:.1f}%) after "
+        f"{t['train_time_s'] / 60:.1f} min of training ({t['train_cpu_s'] / 60:.1f} min CPU)**"
+    )
+    block = re.search(
+        r"<!-- policy:start[^>]*-->\n(.*?)\n<!-- policy:end -->", (ROOT / "README.md").read_text(), re.S
+    ).group(1)
     assert block == want

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from trials.jobs import Grid, GridError, SerialExecutor, input_digest, is_finished
+from trials.jobs.dag import Grid, GridError, SerialExecutor, input_digest, is_finished
 
 H = "tests.trials.jobs_helpers"
 
@@ -35,7 +35,9 @@ def test_a_finished_job_is_reused_and_a_dependency_gets_its_output(tmp_path):
     log = []
     g = grid()
     SerialExecutor(log.append, tee=False).run(g)
-    SerialExecutor(log.append, tee=False).run(g)  # the same grid again (a recipe reading its results): nothing new to say
+    SerialExecutor(log.append, tee=False).run(
+        g
+    )  # the same grid again (a recipe reading its results): nothing new to say
     assert not any("reused" in m for m in log)
     assert json.loads((tmp_path / "b" / "value.json").read_text())["total"] == 5
     assert json.loads((tmp_path / "a" / "value.json").read_text())["torch_threads"] == 1  # threads follow num_cpus
@@ -110,10 +112,19 @@ STEPS = 8
 
 
 def _eval_cfg(policy, pool, attack, **kw):
-    from trials.evaluate import load_eval_config
+    from trials.eval.evaluate import load_eval_config
 
-    return load_eval_config(policy=str(policy), pool=str(pool), attack=str(attack), conditions=("clean", "attack"), episodes=9,
-                            max_steps=STEPS, num_envs=3, gifs=1, **kw)
+    return load_eval_config(
+        policy=str(policy),
+        pool=str(pool),
+        attack=str(attack),
+        conditions=("clean", "attack"),
+        episodes=9,
+        max_steps=STEPS,
+        num_envs=3,
+        gifs=1,
+        **kw,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -130,26 +141,35 @@ def pool8(tmp_path_factory):
 
 
 def _rows(d):
-    from trials.storage import read_rows
+    from trials.eval.episodes import read_rows
 
     return sorted(tuple(sorted((k, repr(v)) for k, v in r.items())) for r in read_rows(d / "episodes.csv"))
 
 
-def test_a_sharded_evaluation_writes_the_same_rows_and_summary_as_the_whole_one(tmp_path, tiny_policy_dir, pool8, attack_dir):
-    from trials.experiments import run_eval_grid
-    from trials.evaluate import run_eval
+def test_a_sharded_evaluation_writes_the_same_rows_and_summary_as_the_whole_one(
+    tmp_path, tiny_policy_dir, pool8, attack_dir
+):
+    from trials.eval.evaluate import run_eval
+    from trials.experiments.recipes import run_eval_grid
 
     cfg = _eval_cfg(tiny_policy_dir, pool8, attack_dir)
     whole = run_eval(cfg, tmp_path / "whole", progress=False)
     sharded = run_eval_grid(cfg, tmp_path / "sharded", SerialExecutor(None), shards=3)
     assert _rows(tmp_path / "whole") == _rows(tmp_path / "sharded") and len(_rows(tmp_path / "whole")) == 18
-    assert json.dumps(whole["conditions"], sort_keys=True) == json.dumps(sharded["conditions"], sort_keys=True)  # NaN-aware
-    assert sorted(p.name for p in (tmp_path / "whole" / "gifs").iterdir()) == sorted(p.name for p in (tmp_path / "sharded" / "gifs").iterdir())
+    assert json.dumps(whole["conditions"], sort_keys=True) == json.dumps(
+        sharded["conditions"], sort_keys=True
+    )  # NaN-aware
+    assert sorted(p.name for p in (tmp_path / "whole" / "gifs").iterdir()) == sorted(
+        p.name for p in (tmp_path / "sharded" / "gifs").iterdir()
+    )
     assert (tmp_path / "sharded" / "report.md").is_file()
     # re-running reuses the finished merge; a different shard count reuses it too (same key)
     log = []
     run_eval_grid(cfg, tmp_path / "sharded", SerialExecutor(log.append, tee=False), shards=2)
-    assert any("eval: finished earlier, reused" in m for m in log) and not (tmp_path / "sharded" / "shards" / "0-of-2").exists()
+    assert (
+        any("eval: finished earlier, reused" in m for m in log)
+        and not (tmp_path / "sharded" / "shards" / "0-of-2").exists()
+    )
 
 
 def test_the_scale_out_docs_quote_the_committed_grid_benchmark():

@@ -24,7 +24,7 @@ import pytest
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 ray = pytest.importorskip("ray")
 
-from trials.jobs import Grid, GridError, RayExecutor, SerialExecutor, is_finished  # noqa: E402
+from trials.jobs.dag import Grid, GridError, RayExecutor, is_finished  # noqa: E402
 
 from .conftest import MAX_STEPS  # noqa: E402
 
@@ -34,7 +34,9 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _ray_pids() -> set[int]:
-    out = subprocess.run(["pgrep", "-f", "ray/core/src/ray/(raylet/raylet|gcs/gcs_server)"], capture_output=True, text=True).stdout
+    out = subprocess.run(
+        ["pgrep", "-f", "ray/core/src/ray/(raylet/raylet|gcs/gcs_server)"], capture_output=True, text=True
+    ).stdout
     return {int(p) for p in out.split()}
 
 
@@ -43,7 +45,9 @@ def cluster():
     from ray.cluster_utils import Cluster
 
     before = _ray_pids()
-    os.environ["PYTHONPATH"] = str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")  # the test helpers on every worker's path
+    os.environ["PYTHONPATH"] = (
+        str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
+    )  # the test helpers on every worker's path
     c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "num_gpus": 0, "node_ip_address": "127.0.0.1"})
     gpu_node = c.add_node(num_cpus=1, num_gpus=1, node_ip_address="127.0.0.1")
     c.wait_for_nodes()
@@ -62,20 +66,45 @@ def _ex(cluster, **kw):
 
 
 def _rows(d):
-    from trials.storage import read_rows
+    from trials.eval.episodes import read_rows
 
     return sorted(tuple(sorted((k, repr(v)) for k, v in r.items())) for r in read_rows(d / "episodes.csv"))
 
 
-def test_a_recipe_grid_on_ray_writes_the_same_rows_and_figures_as_serially(cluster, tmp_path, tiny_policy_dir, pool_file):
-    from trials.experiments import resolve_experiment, run_experiment
+def test_a_recipe_grid_on_ray_writes_the_same_rows_and_figures_as_serially(
+    cluster, tmp_path, tiny_policy_dir, pool_file
+):
+    from trials.experiments.recipes import resolve_experiment, run_experiment
 
-    cfg = resolve_experiment("quick", attack_overrides={"iterations": 1, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "pool_size": 4,
-                                                        "checkpoint_every": 1, "validation_every": 0},
-                             episodes=8, max_steps=MAX_STEPS, num_envs=3, gifs=1, pool=str(pool_file))
+    cfg = resolve_experiment(
+        "quick",
+        attack_overrides={
+            "iterations": 1,
+            "num_envs": 1,
+            "rollout_steps": 1,
+            "texture_size": 8,
+            "pool_size": 4,
+            "checkpoint_every": 1,
+            "validation_every": 0,
+        },
+        episodes=8,
+        max_steps=MAX_STEPS,
+        num_envs=3,
+        gifs=1,
+        pool=str(pool_file),
+    )
     run_experiment("table1", cfg, tmp_path / "serial", policy=tiny_policy_dir, progress=False, log=lambda m: None)
     ex = _ex(cluster)
-    run_experiment("table1", cfg, tmp_path / "ray", policy=tiny_policy_dir, progress=False, log=lambda m: None, executor=ex, shards=2)
+    run_experiment(
+        "table1",
+        cfg,
+        tmp_path / "ray",
+        policy=tiny_policy_dir,
+        progress=False,
+        log=lambda m: None,
+        executor=ex,
+        shards=2,
+    )
     a, b = tmp_path / "serial" / "evals" / "table1", tmp_path / "ray" / "evals" / "table1"
     assert _rows(a) == _rows(b) and len(_rows(a)) == 3 * 8
     sa, sb = (json.loads((d / "summary.json").read_text())["conditions"] for d in (a, b))
@@ -162,20 +191,46 @@ def test_without_a_shared_filesystem_outputs_come_back_to_out(cluster, tmp_path)
 def test_a_job_no_node_can_take_is_refused_in_one_line(cluster, tmp_path):
     g = Grid(tmp_path)
     g.add("greedy", "k", f"{H}:node_of", tmp_path / "greedy", num_cpus=1, num_gpus=4)
-    with pytest.raises(GridError, match=r"^job greedy: asks for 4 GPU\(s\) with 1 CPU\(s\), and no node of the cluster has that"):
+    with pytest.raises(
+        GridError, match=r"^job greedy: asks for 4 GPU\(s\) with 1 CPU\(s\), and no node of the cluster has that"
+    ):
         _ex(cluster).run(g)
 
 
-def test_eval_with_workers_starts_and_stops_its_own_ray_and_matches_serial(cluster, tmp_path, tiny_policy_dir, pool_file, attack_dir):
+def test_eval_with_workers_starts_and_stops_its_own_ray_and_matches_serial(
+    cluster, tmp_path, tiny_policy_dir, pool_file, attack_dir
+):
     if ray.is_initialized():
         ray.shutdown()  # the CLI child starts its own local Ray; this process must not hold one
     before = _ray_pids()
-    common = [sys.executable, "-m", "trials.cli", "eval", "--policy", str(tiny_policy_dir), "--pool", str(pool_file), "--attack",
-              str(attack_dir), "--episodes", "6", "--max-steps", str(MAX_STEPS), "--num-envs", "2", "--gifs", "0"]
+    common = [
+        sys.executable,
+        "-m",
+        "trials.cli.main",
+        "eval",
+        "--policy",
+        str(tiny_policy_dir),
+        "--pool",
+        str(pool_file),
+        "--attack",
+        str(attack_dir),
+        "--episodes",
+        "6",
+        "--max-steps",
+        str(MAX_STEPS),
+        "--num-envs",
+        "2",
+        "--gifs",
+        "0",
+    ]
     env = {**os.environ, "PYOPENGL_PLATFORM": "egl"}
-    serial = subprocess.run(common + ["--out", str(tmp_path / "serial")], capture_output=True, text=True, env=env, cwd=ROOT)
+    serial = subprocess.run(
+        common + ["--out", str(tmp_path / "serial")], capture_output=True, text=True, env=env, cwd=ROOT
+    )
     assert serial.returncode == 0, serial.stderr[-2000:]
-    par = subprocess.run(common + ["--out", str(tmp_path / "ray"), "--workers", "2"], capture_output=True, text=True, env=env, cwd=ROOT)
+    par = subprocess.run(
+        common + ["--out", str(tmp_path / "ray"), "--workers", "2"], capture_output=True, text=True, env=env, cwd=ROOT
+    )
     assert par.returncode == 0, par.stderr[-2000:]
     assert _rows(tmp_path / "serial") == _rows(tmp_path / "ray")
     assert "[grid]" in par.stdout and "jobs done" in par.stdout
@@ -183,21 +238,57 @@ def test_eval_with_workers_starts_and_stops_its_own_ray_and_matches_serial(clust
 
 
 def test_bad_scale_out_options_fail_in_one_line(tmp_path, tiny_policy_dir):
-    for extra, msg in ((["--workers", "2", "--address", "auto"], "give one of them"), (["--address", "127.0.0.1:1"], "--address")):
-        r = subprocess.run([sys.executable, "-m", "trials.cli", "eval", "--policy", str(tiny_policy_dir), "--out", str(tmp_path / "o")] + extra,
-                           capture_output=True, text=True, cwd=ROOT, timeout=120)
+    for extra, msg in (
+        (["--workers", "2", "--address", "auto"], "give one of them"),
+        (["--address", "127.0.0.1:1"], "--address"),
+    ):
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "trials.cli.main",
+                "eval",
+                "--policy",
+                str(tiny_policy_dir),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+            + extra,
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=120,
+        )
         assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr[-800:]
 
 
-def test_the_tradeoff_sweep_runs_its_rows_as_ray_jobs_snapshot_after_its_baseline(cluster, tmp_path, tiny_policy_dir, mixed_pool_file):
-    from trials.tradeoff import BASELINE_KEY, load_tradeoff_config, run_sweep
+def test_the_tradeoff_sweep_runs_its_rows_as_ray_jobs_snapshot_after_its_baseline(
+    cluster, tmp_path, tiny_policy_dir, mixed_pool_file
+):
+    from trials.experiments.tradeoff import BASELINE_KEY, load_tradeoff_config, run_sweep
 
-    cfg = load_tradeoff_config(policy=str(tiny_policy_dir), pool=str(mixed_pool_file), snapshots=(1,), episodes=4, max_steps=MAX_STEPS,
-                               eval_num_envs=2, deploy_episodes=2, latency_reps=2,
-                               attack_overrides={"iterations": 2, "num_envs": 1, "rollout_steps": 1, "texture_size": 8,
-                                                 "checkpoint_every": 1000, "validation_every": 0})
+    cfg = load_tradeoff_config(
+        policy=str(tiny_policy_dir),
+        pool=str(mixed_pool_file),
+        snapshots=(1,),
+        episodes=4,
+        max_steps=MAX_STEPS,
+        eval_num_envs=2,
+        deploy_episodes=2,
+        latency_reps=2,
+        attack_overrides={
+            "iterations": 2,
+            "num_envs": 1,
+            "rollout_steps": 1,
+            "texture_size": 8,
+            "checkpoint_every": 1000,
+            "validation_every": 0,
+        },
+    )
     ex = _ex(cluster)
-    res = {r["key"]: r for r in run_sweep(cfg, tmp_path, ["iterations"], progress=False, log=lambda m: None, executor=ex)}
+    res = {
+        r["key"]: r for r in run_sweep(cfg, tmp_path, ["iterations"], progress=False, log=lambda m: None, executor=ex)
+    }
     base, snap = res[BASELINE_KEY], res["iterations=1"]
     assert base["status"] == "ok" and snap["status"] == "ok", (base.get("traceback"), snap.get("traceback"))
     assert snap["attack_dir"].endswith("iter00001") and base["peak_rss_mb"] > 50

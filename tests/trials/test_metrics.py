@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from trials.metrics import (
+from trials.eval.metrics import (
     DISTANCE_BINS_CM,
     PHI_BINS_DEG,
     action_errors,
@@ -104,14 +104,24 @@ def test_mcnemar_from_outcomes_pairs_edge_cases():
 
 def test_summary_pairs_conditions_by_seed_for_mcnemar():
     from sim.spec import default_scene
-    from trials.report import summarize
+    from trials.eval.report import summarize
 
     spec = default_scene()
     goal, adv = spec.object_index("goal"), spec.object_index("adversarial")
 
     def row(cond, seed, reached):
-        return {"condition": cond, "seed": seed, "r_m": 0.5, "phi_rad": 0.3, "reached": reached, "success": reached == goal,
-                "targeted": reached == adv, "steps": 10, "e_trans": 0.0, "e_rot": 0.0}
+        return {
+            "condition": cond,
+            "seed": seed,
+            "r_m": 0.5,
+            "phi_rad": 0.3,
+            "reached": reached,
+            "success": reached == goal,
+            "targeted": reached == adv,
+            "steps": 10,
+            "e_trans": 0.0,
+            "e_rot": 0.0,
+        }
 
     rows = [row("clean", s, goal) for s in range(6)]
     rows += [row("attack", s, adv) for s in range(5)] + [row("attack", 5, goal)]

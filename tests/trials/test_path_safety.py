@@ -21,24 +21,47 @@ from tests.trials.trial_session_helpers import REPO, sim_hardware, small_plan, t
 from trials.real.plan import PlanError, load_plan
 from trials.real.store import frames_dir, frames_ref, session_frames_dir
 
-ADVOBJ = [sys.executable, "-m", "trials.cli"]
+ADVOBJ = [sys.executable, "-m", "trials.cli.main"]
 
 
 # ---------------------------------------------------------------------- helpers
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("path_safety")
-    return {"policy": tiny_onnx(d / "p.onnx"), "plan": small_plan(d / "plan.yaml", d), "hw": sim_hardware(d / "hw.yaml")}
+    return {
+        "policy": tiny_onnx(d / "p.onnx"),
+        "plan": small_plan(d / "plan.yaml", d),
+        "hw": sim_hardware(d / "hw.yaml"),
+    }
 
 
 def _advobj(args) -> subprocess.CompletedProcess:
-    return subprocess.run(ADVOBJ + [str(a) for a in args], cwd=REPO, env=dict(os.environ), capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        ADVOBJ + [str(a) for a in args], cwd=REPO, env=dict(os.environ), capture_output=True, text=True, timeout=300
+    )
 
 
 def _trial_run(files, db, session, plan=None):
-    return _advobj(["trial", "run", "--hardware", files["hw"], "--policy", files["policy"], "--plan", plan or files["plan"],
-                    "--session", session, "--db", db, "--auto-confirm", "--no-rate-limit", "--max-trials", "1"])
+    return _advobj(
+        [
+            "trial",
+            "run",
+            "--hardware",
+            files["hw"],
+            "--policy",
+            files["policy"],
+            "--plan",
+            plan or files["plan"],
+            "--session",
+            session,
+            "--db",
+            db,
+            "--auto-confirm",
+            "--no-rate-limit",
+            "--max-trials",
+            "1",
+        ]
+    )
 
 
 def _one_error_line(r: subprocess.CompletedProcess) -> str:
@@ -112,8 +135,26 @@ def test_plan_names_that_would_make_a_too_long_trial_id_are_refused_at_planning(
 
 def test_cli_plan_refuses_a_traversal_env_name(tmp_path):
     out = tmp_path / "plan.yaml"
-    line = _one_error_line(_advobj(["trial", "plan", "--out", out, "--env", "../../x", "--shape", "cube", "--condition", "clean",
-                                    "--tcp-poses", "1", "--object-poses", "1"]))
+    line = _one_error_line(
+        _advobj(
+            [
+                "trial",
+                "plan",
+                "--out",
+                out,
+                "--env",
+                "../../x",
+                "--shape",
+                "cube",
+                "--condition",
+                "clean",
+                "--tcp-poses",
+                "1",
+                "--object-poses",
+                "1",
+            ]
+        )
+    )
     assert "--env" in line and "'../../x'" in line
     assert list(tmp_path.iterdir()) == []
 
@@ -154,7 +195,9 @@ def test_session_frames_symlinked_out_of_frames_are_refused(files, tmp_path):
     (db.parent / "frames" / "s").symlink_to(outside, target_is_directory=True)
     before = _snapshot(outside)
     with pytest.raises(UnsafePathError, match=r"^--session: 's' leads to .*outside"):
-        run_session(files["hw"], files["policy"], files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False)
+        run_session(
+            files["hw"], files["policy"], files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False
+        )
     assert _snapshot(outside) == before and not db.exists()
 
 
@@ -183,7 +226,9 @@ def test_safe_names(name):
     assert check_name(name, "--session") == name and name_problem(name) is None
 
 
-@pytest.mark.parametrize("name", ["", ".", "..", ".hidden", "../x", "a/b", "/abs", "a\\b", "x" * 65, "ok\n", "a b", "é", "a\0b"])
+@pytest.mark.parametrize(
+    "name", ["", ".", "..", ".hidden", "../x", "a/b", "/abs", "a\\b", "x" * 65, "ok\n", "a b", "é", "a\0b"]
+)
 def test_unsafe_names(name):
     with pytest.raises(UnsafePathError, match=r"^--session: .*not a safe name"):
         check_name(name, "--session")

@@ -13,8 +13,8 @@ from sim.policies.onnx_policy import OnnxPolicy, export_onnx
 from sim.spec import default_scene
 from tests.policy_zoo import COMBOS, IDS, card_of, contract_of, tiny_policy
 from tests.trials.trial_session_helpers import sim_hardware, small_plan
-from trials.conditions import Condition
-from trials.evaluate import rollout_condition
+from trials.eval.conditions import Condition
+from trials.eval.evaluate import rollout_condition
 from trials.real.operator import AutoOperator
 from trials.real.session import SessionSetupError, run_session
 from trials.real.store import TrialStore
@@ -49,8 +49,19 @@ def test_the_attack_optimises_every_white_box_contract(state, action):
     c = contract_of(state, action)
     spec = default_scene()
     pool = sample_pool(spec, 4, seed=3, part="attack") + sample_pool(spec, 2, seed=3, part="validation")
-    cfg = resolve_config("quick", {"iterations": 2, "num_envs": 2, "rollout_steps": 2, "texture_size": 16, "lr": 0.5,
-                                   "validation_every": 1, "validation_episodes": 2, "validation_max_steps": 3})
+    cfg = resolve_config(
+        "quick",
+        {
+            "iterations": 2,
+            "num_envs": 2,
+            "rollout_steps": 2,
+            "texture_size": 16,
+            "lr": 0.5,
+            "validation_every": 1,
+            "validation_episodes": 2,
+            "validation_max_steps": 3,
+        },
+    )
     run = AttackRun(tiny_policy(c), spec, cfg, pool=pool)
     try:
         before = run.texture.clone()
@@ -116,6 +127,8 @@ def test_the_real_runner_sends_absolute_chunks_as_base_frame_targets_through_the
 
 def test_a_chunk_that_outlives_the_safety_frame_age_limit_is_refused_before_anything_moves(tmp_path):
     c = contract_of((), ("delta_tcp", 4, 3))
-    with pytest.raises(SessionSetupError, match=r"safety.max_frame_age_ms: the policy executes 3 actions per frame at 10 Hz.*200 ms"):
+    with pytest.raises(
+        SessionSetupError, match=r"safety.max_frame_age_ms: the policy executes 3 actions per frame at 10 Hz.*200 ms"
+    ):
         _session(tmp_path, c, max_frame_age_ms=100.0)
     assert not (tmp_path / "t.sqlite").exists()

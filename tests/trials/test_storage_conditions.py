@@ -1,19 +1,38 @@
 """Episode store (append, truncated-line recovery, config guard) and condition building."""
 
-import json
-
 import numpy as np
 import pytest
 
-from trials.conditions import CONDITIONS, ConditionError, Sources, build_conditions, condition_spec, load_attack_source
-from trials.storage import EpisodeStore, StorageError, read_rows
+from trials.eval.conditions import (
+    CONDITIONS,
+    ConditionError,
+    Sources,
+    build_conditions,
+    condition_spec,
+    load_attack_source,
+)
+from trials.eval.episodes import EpisodeStore, StorageError, read_rows
 
 from .conftest import make_attack_dir
 
 
 def _row(cond, seed):
-    return {"condition": cond, "seed": seed, "r_m": 0.5, "theta_rad": 0.1, "phi_rad": 0.2, "outcome": "goal", "reached": 0,
-            "success": True, "targeted": False, "steps": 7, "e_trans": 0.25, "e_rot": float("nan"), "min_dist_a": 0.05, "min_dist_b": 0.3}
+    return {
+        "condition": cond,
+        "seed": seed,
+        "r_m": 0.5,
+        "theta_rad": 0.1,
+        "phi_rad": 0.2,
+        "outcome": "goal",
+        "reached": 0,
+        "success": True,
+        "targeted": False,
+        "steps": 7,
+        "e_trans": 0.25,
+        "e_rot": float("nan"),
+        "min_dist_a": 0.05,
+        "min_dist_b": 0.3,
+    }
 
 
 def test_store_round_trips_rows_and_knows_what_is_done(tmp_path):
@@ -22,7 +41,13 @@ def test_store_round_trips_rows_and_knows_what_is_done(tmp_path):
     again = EpisodeStore(tmp_path, {"x": 1}, ["a", "b"], resume=True)
     assert again.is_done("clean", 3) and again.is_done("attack", 3) and not again.is_done("clean", 4)
     r = again.rows[0]
-    assert r["success"] is True and r["targeted"] is False and r["steps"] == 7 and r["e_trans"] == 0.25 and np.isnan(r["e_rot"])
+    assert (
+        r["success"] is True
+        and r["targeted"] is False
+        and r["steps"] == 7
+        and r["e_trans"] == 0.25
+        and np.isnan(r["e_rot"])
+    )
 
 
 def test_store_drops_a_truncated_last_line_left_by_a_crash(tmp_path):
@@ -45,8 +70,11 @@ def test_store_refuses_a_different_config_and_an_unrequested_resume(tmp_path):
 
 
 def test_every_condition_name_builds_with_its_sources(tmp_path):
-    src = Sources(attack=str(make_attack_dir(tmp_path / "a")), patch=str(make_attack_dir(tmp_path / "p", mesh="patch")),
-                  shapes={s: str(make_attack_dir(tmp_path / s, mesh=s)) for s in ("dog", "duck", "cube", "cylinder")})
+    src = Sources(
+        attack=str(make_attack_dir(tmp_path / "a")),
+        patch=str(make_attack_dir(tmp_path / "p", mesh="patch")),
+        shapes={s: str(make_attack_dir(tmp_path / s, mesh=s)) for s in ("dog", "duck", "cube", "cylinder")},
+    )
     conds = build_conditions(list(CONDITIONS), src)
     assert [c.name for c in conds] == list(CONDITIONS)
     by = {c.name: c for c in conds}
@@ -75,7 +103,9 @@ def test_condition_errors_name_the_missing_option_or_file(tmp_path, short_spec):
 
 
 def test_condition_spec_swaps_the_adversarial_mesh_and_adds_a_stereo_baseline(tmp_path, short_spec):
-    src = Sources(attack=str(make_attack_dir(tmp_path / "a")), shapes={"dog": str(make_attack_dir(tmp_path / "d", mesh="dog"))})
+    src = Sources(
+        attack=str(make_attack_dir(tmp_path / "a")), shapes={"dog": str(make_attack_dir(tmp_path / "d", mesh="dog"))}
+    )
     dog, stereo = build_conditions(["shape_dog", "stereo"], src)[1:]
     s = condition_spec(short_spec, dog)
     assert s.adversarial.mesh == "dog" and s.goal.mesh == short_spec.goal.mesh

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from trials.tradeoff import (
+from trials.experiments.tradeoff import (
     BASELINE_KEY,
     DEPLOYMENTS,
     KNOBS,
@@ -14,17 +14,35 @@ from trials.tradeoff import (
     read_results,
     run_sweep,
     select_rows,
+    write_tradeoff_report,
 )
-from trials.tradeoff_report import pareto_front, write_report
+from trials.experiments.tradeoff_report import pareto_front
 
 from .conftest import MAX_STEPS
 
-TINY_ATTACK = {"iterations": 2, "num_envs": 1, "rollout_steps": 1, "texture_size": 8, "checkpoint_every": 1000, "validation_every": 0}
+TINY_ATTACK = {
+    "iterations": 2,
+    "num_envs": 1,
+    "rollout_steps": 1,
+    "texture_size": 8,
+    "checkpoint_every": 1000,
+    "validation_every": 0,
+}
 
 
 def _tiny(policy, pool, **kw):
-    return load_tradeoff_config(policy=str(policy), pool=str(pool), attack_overrides=TINY_ATTACK, snapshots=(1,), episodes=4,
-                                max_steps=MAX_STEPS, eval_num_envs=2, deploy_episodes=2, latency_reps=2, **kw)
+    return load_tradeoff_config(
+        policy=str(policy),
+        pool=str(pool),
+        attack_overrides=TINY_ATTACK,
+        snapshots=(1,),
+        episodes=4,
+        max_steps=MAX_STEPS,
+        eval_num_envs=2,
+        deploy_episodes=2,
+        latency_reps=2,
+        **kw,
+    )
 
 
 def test_every_knob_of_the_issue_has_rows_with_the_issue_values():
@@ -43,9 +61,14 @@ def test_every_knob_of_the_issue_has_rows_with_the_issue_values():
     assert [(r.overrides, r.note) for r in by["saliency"]] == [({"use_saliency": False}, "baseline: on")]
     assert [r.overrides for r in by["pcgrad"]] == [{"pcgrad": False}]
     assert all(r.overrides["texture_size"] != 64 for r in by["texture_size"])
-    assert {r.value for r in by["policy_resolution"]} == {"96", "128"} and {r.policy for r in by["policy_resolution"]} == {"px96", "px128"}
+    assert {r.value for r in by["policy_resolution"]} == {"96", "128"} and {
+        r.policy for r in by["policy_resolution"]
+    } == {"px96", "px128"}
     # iterations are snapshots of the baseline run, eval_episodes re-evaluates its texture: both depend on it
-    assert [(r.value, r.kind, r.depends) for r in by["iterations"]] == [("30", "snapshot", BASELINE_KEY), ("60", "snapshot", BASELINE_KEY)]
+    assert [(r.value, r.kind, r.depends) for r in by["iterations"]] == [
+        ("30", "snapshot", BASELINE_KEY),
+        ("60", "snapshot", BASELINE_KEY),
+    ]
     assert [(r.value, r.depends) for r in by["eval_episodes"]] == [("500", BASELINE_KEY)]
     assert [r.value for r in by["deployment"]] == list(DEPLOYMENTS)
     assert len({r.key for r in rows}) == len(rows)
@@ -78,8 +101,14 @@ def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, ti
     assert len(lines) == 1
     rec = json.loads(lines[0])
     assert rec["status"] == "ok", rec.get("traceback")
-    assert rec["key"] == "eot_envs=2" and rec["attack_config"]["num_envs"] == 2 and rec["attack_config"]["iterations"] == 2
-    assert rec["episodes"] == 4 and rec["tasr"]["n"] == 4 and 0 <= rec["tasr"]["lo"] <= rec["tasr"]["rate"] <= rec["tasr"]["hi"] <= 1
+    assert (
+        rec["key"] == "eot_envs=2" and rec["attack_config"]["num_envs"] == 2 and rec["attack_config"]["iterations"] == 2
+    )
+    assert (
+        rec["episodes"] == 4
+        and rec["tasr"]["n"] == 4
+        and 0 <= rec["tasr"]["lo"] <= rec["tasr"]["rate"] <= rec["tasr"]["hi"] <= 1
+    )
     assert rec["e_trans"]["n"] == 4 and rec["attack_wall_s"] > 0 and rec["eval_cpu_s"] > 0 and rec["peak_rss_mb"] > 50
     assert len(rec["load_start"]) == 3 and rec["git_commit"] and rec["image_size"] == 32
     run_info = json.loads((tmp_path / "attacks" / "eot_envs_2" / "run.json").read_text())
@@ -107,12 +136,19 @@ def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, ti
     assert bad["status"] == "error" and "not task-feasible" in bad["error"]
     # other settings in the same directory are refused
     with pytest.raises(TradeoffError, match="other settings.*episodes"):
-        run_sweep(_tiny(tiny_policy_dir, mixed_pool_file).model_copy(update={"episodes": 3}), tmp_path, ["eot_envs=2"], progress=False)
+        run_sweep(
+            _tiny(tiny_policy_dir, mixed_pool_file).model_copy(update={"episodes": 3}),
+            tmp_path,
+            ["eot_envs=2"],
+            progress=False,
+        )
 
 
 def test_iteration_rows_evaluate_snapshots_of_the_baseline_run(tmp_path, tiny_policy_dir, mixed_pool_file):
     cfg = _tiny(tiny_policy_dir, mixed_pool_file)
-    res = {r["key"]: r for r in run_sweep(cfg, tmp_path, ["iterations"], progress=False, log=lambda m: None, isolate=False)}
+    res = {
+        r["key"]: r for r in run_sweep(cfg, tmp_path, ["iterations"], progress=False, log=lambda m: None, isolate=False)
+    }
     base, snap = res[BASELINE_KEY], res["iterations=1"]
     assert base["status"] == "ok" and snap["status"] == "ok", (base.get("traceback"), snap.get("traceback"))
     assert snap["attack_dir"].endswith("iter00001") and 0 < snap["attack_wall_s"] <= base["attack_wall_s"]
@@ -129,11 +165,37 @@ def test_pareto_front_on_a_hand_made_set():
 
 
 def _synthetic(key, knob, value, kind, wall, rate, policy="ref", **kw):
-    p = {"k": round(rate * 100), "n": 100, "rate": rate, "lo": max(0, rate - 0.1), "hi": min(1, rate + 0.1), "confidence": 0.95}
+    p = {
+        "k": round(rate * 100),
+        "n": 100,
+        "rate": rate,
+        "lo": max(0, rate - 0.1),
+        "hi": min(1, rate + 0.1),
+        "confidence": 0.95,
+    }
     m = {"mean": 0.2, "lo": 0.15, "hi": 0.25, "n": 100, "confidence": 0.95}
-    rec = {"key": key, "knob": knob, "value": value, "kind": kind, "policy": policy, "status": "ok", "note": "", "image_size": 64,
-           "attack_wall_s": wall, "attack_cpu_s": wall / 2, "eval_wall_s": 60.0, "eval_cpu_s": 30.0, "peak_rss_mb": 700.0, "episodes": 100,
-           "tasr": p, "asr": p, "e_trans": m, "e_rot": m, "load_start": [1.0, 1.0, 1.0], "load_end": [2.0, 1.0, 1.0]}
+    rec = {
+        "key": key,
+        "knob": knob,
+        "value": value,
+        "kind": kind,
+        "policy": policy,
+        "status": "ok",
+        "note": "",
+        "image_size": 64,
+        "attack_wall_s": wall,
+        "attack_cpu_s": wall / 2,
+        "eval_wall_s": 60.0,
+        "eval_cpu_s": 30.0,
+        "peak_rss_mb": 700.0,
+        "episodes": 100,
+        "tasr": p,
+        "asr": p,
+        "e_trans": m,
+        "e_rot": m,
+        "load_start": [1.0, 1.0, 1.0],
+        "load_end": [2.0, 1.0, 1.0],
+    }
     rec.update(kw)
     return rec
 
@@ -145,29 +207,87 @@ def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
         _synthetic("iterations=30", "iterations", "30", "snapshot", 25.0, 0.2),
         _synthetic("eot_envs=1", "eot_envs", "1", "attack", 30.0, 0.1),
         _synthetic("policy_resolution=96", "policy_resolution", "96", "attack", 300.0, 0.7, policy="px96"),
-        _synthetic("eval_episodes=500", "eval_episodes", "500", "episodes", 100.0, 0.55, episodes=500,
-                   subset={"episodes": 100, "tasr": {"k": 60, "n": 100, "rate": 0.6, "lo": 0.5, "hi": 0.7},
-                           "asr": {"k": 60, "n": 100, "rate": 0.6, "lo": 0.5, "hi": 0.7}, "e_trans": {"mean": 0.2, "lo": 0.1, "hi": 0.3, "n": 100},
-                           "e_rot": {"mean": 0.2, "lo": 0.1, "hi": 0.3, "n": 100}}),
-        {"key": "deployment=onnx-int8", "knob": "deployment", "value": "onnx-int8", "kind": "deployment", "policy": "ref", "status": "ok",
-         "latency_ms": lat, "action_err_max": 0.02, "action_err_mean": 0.003, "clean_success": {"k": 49, "n": 50, "rate": 0.98, "lo": 0.9, "hi": 1.0},
-         "model_bytes": 2048, "frames": 300, "peak_rss_mb": 500.0, "load_start": [1, 1, 1], "load_end": [1, 1, 1]},
-        {"key": "sampler=bilinear", "knob": "sampler", "value": "bilinear", "kind": "attack", "policy": "ref", "status": "error",
-         "error": "RuntimeError: boom"},
+        _synthetic(
+            "eval_episodes=500",
+            "eval_episodes",
+            "500",
+            "episodes",
+            100.0,
+            0.55,
+            episodes=500,
+            subset={
+                "episodes": 100,
+                "tasr": {"k": 60, "n": 100, "rate": 0.6, "lo": 0.5, "hi": 0.7},
+                "asr": {"k": 60, "n": 100, "rate": 0.6, "lo": 0.5, "hi": 0.7},
+                "e_trans": {"mean": 0.2, "lo": 0.1, "hi": 0.3, "n": 100},
+                "e_rot": {"mean": 0.2, "lo": 0.1, "hi": 0.3, "n": 100},
+            },
+        ),
+        {
+            "key": "deployment=onnx-int8",
+            "knob": "deployment",
+            "value": "onnx-int8",
+            "kind": "deployment",
+            "policy": "ref",
+            "status": "ok",
+            "latency_ms": lat,
+            "action_err_max": 0.02,
+            "action_err_mean": 0.003,
+            "clean_success": {"k": 49, "n": 50, "rate": 0.98, "lo": 0.9, "hi": 1.0},
+            "model_bytes": 2048,
+            "frames": 300,
+            "peak_rss_mb": 500.0,
+            "load_start": [1, 1, 1],
+            "load_end": [1, 1, 1],
+        },
+        {
+            "key": "sampler=bilinear",
+            "knob": "sampler",
+            "value": "bilinear",
+            "kind": "attack",
+            "policy": "ref",
+            "status": "error",
+            "error": "RuntimeError: boom",
+        },
     ]
     (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"torn')
-    (tmp_path / "machine.json").write_text(json.dumps({"runs": [{"start": {"cpu_model": "Test CPU", "cpu_count": 2, "cpus_usable": 2, "mem_total_gb": 4,
-                                                                            "torch": "2.x", "torch_threads": 1, "onnxruntime": "1.x", "numpy": "2.x",
-                                                                            "python": "3.11", "platform": "linux", "loadavg": [0.5, 0.4, 0.3]}}]}))
+    (tmp_path / "machine.json").write_text(
+        json.dumps(
+            {
+                "runs": [
+                    {
+                        "start": {
+                            "cpu_model": "Test CPU",
+                            "cpu_count": 2,
+                            "cpus_usable": 2,
+                            "mem_total_gb": 4,
+                            "torch": "2.x",
+                            "torch_threads": 1,
+                            "onnxruntime": "1.x",
+                            "numpy": "2.x",
+                            "python": "3.11",
+                            "platform": "linux",
+                            "loadavg": [0.5, 0.4, 0.3],
+                        }
+                    }
+                ]
+            }
+        )
+    )
     assert len(read_results(tmp_path)) == len(rows)  # the torn last line is ignored
-    text = write_report(tmp_path).read_text()
+    text = write_tradeoff_report(tmp_path).read_text()
     assert "Test CPU; 2 logical cores" in text and "torch 2.x with 1 intra-op thread" in text
     assert "| baseline | quick | 64 | 100 | 50 | 60 | 30 | 700 | 100 | 60 [50, 70] |" in text
     assert "| sampler | bilinear |" in text and "failed: RuntimeError: boom" in text
     assert "| eval_episodes=500, first 100 configs | 100 | 60 [50, 70] | 20.0 |" in text
     assert "| onnx-int8 | 1.50 (2.00) | 1.25 | 0.50 | n/a | 2.00e-02 | 3.00e-03 | 49/50 = 98 [90, 100] | 2 |" in text
     # table order follows the knob order of the issue
-    assert text.index("| baseline | quick") < text.index("| iterations | 30") < text.index("| eot_envs | 1") < text.index("| policy_resolution | 96")
+    assert (
+        text.index("| baseline | quick")
+        < text.index("| iterations | 30")
+        < text.index("| eot_envs | 1")
+        < text.index("| policy_resolution | 96")
+    )
     for name in ("tradeoff_pareto.png", "tradeoff_pareto_cpu.png"):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
 
@@ -175,16 +295,39 @@ def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
 def test_cli_help_and_a_tiny_deployment_run(tmp_path, tiny_policy_dir, mixed_pool_file):
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     runner = CliRunner()
     res = runner.invoke(app, ["bench", "tradeoff", "--help"])
     assert res.exit_code == 0 and "--quick-check" in res.output and "--rows" in res.output
     out = tmp_path / "sweep"
-    res = runner.invoke(app, ["bench", "tradeoff", "--quick-check", "--policy", str(tiny_policy_dir), "--pool", str(mixed_pool_file), "--out", str(out),
-                              "--max-steps", str(MAX_STEPS), "--rows", "deployment=onnx-fp32", "--plot", str(tmp_path / "p.png")])
+    res = runner.invoke(
+        app,
+        [
+            "bench",
+            "tradeoff",
+            "--quick-check",
+            "--policy",
+            str(tiny_policy_dir),
+            "--pool",
+            str(mixed_pool_file),
+            "--out",
+            str(out),
+            "--max-steps",
+            str(MAX_STEPS),
+            "--rows",
+            "deployment=onnx-fp32",
+            "--plot",
+            str(tmp_path / "p.png"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     (rec,) = read_results(out)
     assert rec["status"] == "ok", rec.get("traceback")
-    assert rec["action_err_max"] < 1e-4 and rec["latency_ms"]["b1"]["median"] > 0 and rec["latency_ms"]["b8"]["cpu_mean"] > 0 and rec["frames"] > 0
+    assert (
+        rec["action_err_max"] < 1e-4
+        and rec["latency_ms"]["b1"]["median"] > 0
+        and rec["latency_ms"]["b8"]["cpu_mean"] > 0
+        and rec["frames"] > 0
+    )
     assert "| onnx-fp32 |" in (out / "report.md").read_text() and (tmp_path / "p.png").is_file()

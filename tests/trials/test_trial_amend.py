@@ -19,13 +19,22 @@ def session_db(tmp_path_factory):
     d = tmp_path_factory.mktemp("amend")
     plan = small_plan(d / "plan.yaml", d / "tex", n_tcp=2, n_layouts=1, max_steps=4)  # 6 trials planned
     answers = [Decision("adversarial", "the arm brushed the can"), Decision(None, "")]
-    run_session(sim_hardware(d / "hw.yaml"), straight_ahead_onnx(d / "p.onnx"), plan, "s1", d / "t.sqlite",
-                operator=ScriptedOperator(answers, log=None), rate_limit=False, max_trials=2, log=lambda _t: None)
+    run_session(
+        sim_hardware(d / "hw.yaml"),
+        straight_ahead_onnx(d / "p.onnx"),
+        plan,
+        "s1",
+        d / "t.sqlite",
+        operator=ScriptedOperator(answers, log=None),
+        rate_limit=False,
+        max_trials=2,
+        log=lambda _t: None,
+    )
     return d / "t.sqlite"
 
 
 def _cli(monkeypatch, capsys, *args):
-    from trials.cli import main
+    from trials.cli.main import main
 
     monkeypatch.setattr("sys.argv", ["advobj", *args])
     try:
@@ -43,8 +52,24 @@ def test_amend_corrects_a_trial_and_keeps_the_old_value(session_db, monkeypatch,
     with TrialStore(session_db, create=False) as st:
         first, second = [r["trial_id"] for r in st.trial_rows()]
         before = {r["trial_id"]: r for r in st.trial_rows()}[second]
-    code, out, err = _cli(monkeypatch, capsys, "trial", "amend", "--db", str(session_db), "--session", "s1", "--trial", second,
-                          "--outcome", "goal", "--note", "video shows the goal reached", "--reason", "operator pressed n by mistake")
+    code, out, err = _cli(
+        monkeypatch,
+        capsys,
+        "trial",
+        "amend",
+        "--db",
+        str(session_db),
+        "--session",
+        "s1",
+        "--trial",
+        second,
+        "--outcome",
+        "goal",
+        "--note",
+        "video shows the goal reached",
+        "--reason",
+        "operator pressed n by mistake",
+    )
     assert code == 0, err
     assert f"s1/{second}: outcome {before['final_outcome']} -> goal" in out
     with TrialStore(session_db, create=False) as st:
@@ -52,15 +77,27 @@ def test_amend_corrects_a_trial_and_keeps_the_old_value(session_db, monkeypatch,
         assert row["final_outcome"] == "goal" and row["note"] == "video shows the goal reached"
         assert row["operator_outcome"] == (None if before["auto_outcome"] == "goal" else "goal")
         (a,) = st.amendments()
-        assert (a["trial_id"], a["old_final_outcome"], a["old_note"], a["new_final_outcome"]) == (second, before["final_outcome"], "", "goal")
+        assert (a["trial_id"], a["old_final_outcome"], a["old_note"], a["new_final_outcome"]) == (
+            second,
+            before["final_outcome"],
+            "",
+            "goal",
+        )
         assert a["reason"] == "operator pressed n by mistake"
-        assert {r["trial_id"]: r for r in st.trial_rows()}[first]["final_outcome"] == "adversarial"  # the other one untouched
+        assert {r["trial_id"]: r for r in st.trial_rows()}[first][
+            "final_outcome"
+        ] == "adversarial"  # the other one untouched
 
 
-@pytest.mark.parametrize("args,flag", [(["--session", "nope", "--trial", "x", "--outcome", "goal"], "--session: no session 'nope'"),
-                                       (["--session", "s1", "--trial", "x", "--outcome", "goal"], "--trial: no committed trial 'x'"),
-                                       (["--session", "s1", "--trial", "x", "--outcome", "maybe"], "--outcome: 'maybe' is not one of"),
-                                       (["--session", "s1", "--trial", "x"], "give --outcome and/or --note")])
+@pytest.mark.parametrize(
+    "args,flag",
+    [
+        (["--session", "nope", "--trial", "x", "--outcome", "goal"], "--session: no session 'nope'"),
+        (["--session", "s1", "--trial", "x", "--outcome", "goal"], "--trial: no committed trial 'x'"),
+        (["--session", "s1", "--trial", "x", "--outcome", "maybe"], "--outcome: 'maybe' is not one of"),
+        (["--session", "s1", "--trial", "x"], "give --outcome and/or --note"),
+    ],
+)
 def test_amend_refuses_bad_input_in_one_line_and_changes_nothing(session_db, monkeypatch, capsys, args, flag):
     from trials.real.store import TrialStore
 
@@ -74,7 +111,7 @@ def test_amend_refuses_bad_input_in_one_line_and_changes_nothing(session_db, mon
 
 
 def test_the_report_says_the_session_is_incomplete_and_lists_overrides_amendments_and_notes(session_db, tmp_path):
-    from trials.cli import app
+    from trials.cli.main import app
 
     r = CliRunner().invoke(app, ["trial", "report", "--db", str(session_db), "--out", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output

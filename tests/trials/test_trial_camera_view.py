@@ -58,12 +58,19 @@ def test_the_runner_crops_a_wide_frame_instead_of_squashing_it(tmp_path):
 def test_a_checkpoint_policy_carries_its_card_into_the_session(tmp_path):
     import torch
 
-    from sim.policies.checkpoint import PolicyCard, save_checkpoint
+    from sim.policies.card import PolicyCard
+    from sim.policies.checkpoint import save_checkpoint
     from sim.policies.policy import VisuomotorPolicy
     from trials.real.runner import policy_preprocess
 
     torch.manual_seed(0)
     pol = VisuomotorPolicy(arch="small_cnn", image_size=32)
-    card = PolicyCard.model_validate({"arch": pol.config.model_dump(), "action": {"max_step_m": 0.02, "max_step_rad": 0.1}, "preprocess": "letterbox"})
+    card = PolicyCard.model_validate(
+        {
+            "arch": pol.config.model_dump(),
+            "action": {"max_step_m": 0.02, "max_step_rad": 0.1},
+            "preprocess": "letterbox",
+        }
+    )
     save_checkpoint(tmp_path / "ck", pol, card)
     assert policy_preprocess(load_trial_policy(tmp_path / "ck")) == "letterbox"

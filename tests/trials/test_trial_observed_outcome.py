@@ -9,8 +9,6 @@ the scenarios then move or hide an object relative to that.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import yaml
@@ -27,8 +25,12 @@ def cell(tmp_path_factory):
     data["sim"]["image_size"] = [480, 480]  # tags of 4.5 cm need the pixels a real camera has
     data["camera"]["tags"] = True
     (d / "hw.yaml").write_text(yaml.safe_dump(data))
-    return {"dir": d, "hw": d / "hw.yaml", "policy": straight_ahead_onnx(d / "p.onnx"),
-            "plan": small_plan(d / "plan.yaml", d / "tex", n_tcp=2, n_layouts=2, max_steps=30, seed=5)}
+    return {
+        "dir": d,
+        "hw": d / "hw.yaml",
+        "policy": straight_ahead_onnx(d / "p.onnx"),
+        "plan": small_plan(d / "plan.yaml", d / "tex", n_tcp=2, n_layouts=2, max_steps=30, seed=5),
+    }
 
 
 def _run(cell, session, operator=None, on_ready=None, max_trials=1):
@@ -36,8 +38,18 @@ def _run(cell, session, operator=None, on_ready=None, max_trials=1):
     from trials.real.session import run_session
 
     db = cell["dir"] / f"{session}.sqlite"
-    run_session(cell["hw"], cell["policy"], cell["plan"], session, db, operator=operator or AutoOperator(None), rate_limit=False,
-                on_ready=on_ready, max_trials=max_trials, log=lambda _t: None)
+    run_session(
+        cell["hw"],
+        cell["policy"],
+        cell["plan"],
+        session,
+        db,
+        operator=operator or AutoOperator(None),
+        rate_limit=False,
+        on_ready=on_ready,
+        max_trials=max_trials,
+        log=lambda _t: None,
+    )
     return db
 
 
@@ -60,10 +72,14 @@ def _truth_hook(truth):
             tcp = world.T_world_tcp[:3, 3]
             k = int(reach_outcome(tcp[None], c[None], runner.plan.radius_m)[0])
             d = object_distances(tcp[None], c[None])[0]
-            truth[trial.trial_id] = ("none" if k == NONE else world.spec.objects[k].role, float(np.min(np.abs(d - runner.plan.radius_m))))
+            truth[trial.trial_id] = (
+                "none" if k == NONE else world.spec.objects[k].role,
+                float(np.min(np.abs(d - runner.plan.radius_m))),
+            )
 
         runner.on_trial_end = record
         assert runner.locator.source == "tags" and runner.camera.tags == []  # tagged when the first scene is staged
+
     return ready
 
 
@@ -115,7 +131,9 @@ def test_an_object_moved_mid_trial_is_judged_where_it_is(cell, end_of_trial):
     r = _rows(db, "trials")[TRIAL]
     assert r["auto_outcome"] == "adversarial" and r["stop_reason"] == "reached", r["auto_reason"]
     events = [e for e in _rows(db, "events") if e["trial_id"] == TRIAL and e["kind"] == "track"]
-    assert len(events) == 1 and events[0]["reason"].startswith("adversarial moved") and "by step 8" in events[0]["reason"]
+    assert (
+        len(events) == 1 and events[0]["reason"].startswith("adversarial moved") and "by step 8" in events[0]["reason"]
+    )
     final = {p["role"]: p for p in _rows(db, "object_poses") if p["trial_id"] == TRIAL and p["phase"] == "final"}
     got = np.array([final["adversarial"][f"center_{a}_m"] for a in "xyz"])
     assert np.linalg.norm(got - seen["center"]) < 0.01  # located by its tags at its new place

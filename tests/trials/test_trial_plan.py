@@ -10,7 +10,6 @@ import yaml
 from trials.real.plan import (
     PlanError,
     TextureRef,
-    TrialPlan,
     load_plan,
     make_plan,
     plan_sha256,
@@ -22,7 +21,10 @@ CONDS = ["clean", "adv3d", "patch"]
 
 
 def _refs(shapes=SHAPES):
-    return {f"{s}/{c}": TextureRef(path=f"attacks/{s}_{c}", sha256=f"{i:064x}") for i, (s, c) in enumerate((s, c) for s in shapes for c in ("adv3d", "patch"))}
+    return {
+        f"{s}/{c}": TextureRef(path=f"attacks/{s}_{c}", sha256=f"{i:064x}")
+        for i, (s, c) in enumerate((s, c) for s in shapes for c in ("adv3d", "patch"))
+    }
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +45,11 @@ def test_paper_design_30_trials_per_env_shape_condition(plan):
     assert set(untagged.values()) == {30}
     # every cell crosses each of the 5 TCP poses with each of the 6 layouts exactly once
     for e, s, c in untagged:
-        pairs = {(t.tcp_pose, t.object_layout) for t in plan.trials if (t.env, t.shape, t.condition) == (e, s, c) and not t.tags}
+        pairs = {
+            (t.tcp_pose, t.object_layout)
+            for t in plan.trials
+            if (t.env, t.shape, t.condition) == (e, s, c) and not t.tags
+        }
         assert pairs == {(i, j) for i in range(5) for j in range(6)}
     tagged = Counter((t.env, t.shape, t.condition) for t in plan.trials if t.tags == ["dim"])
     assert set(tagged.values()) == {30} and len(tagged) == 12
@@ -89,15 +95,26 @@ def test_order_keeps_each_environment_together_randomized_within(spec, plan):
     block = [t for t in plan.trials if t.env == first_env]
     # within the block the trials are shuffled across shapes, conditions and tags, not run cell by cell
     assert len({(t.shape, t.condition, tuple(t.tags)) for t in block[:12]}) > 3
-    firsts = {make_plan(spec, seed, ["A", "B", "C"], ["cube"], ["clean"], {}, n_tcp_poses=1, n_object_layouts=2).trials[0].env
-              for seed in range(8)}
+    firsts = {
+        make_plan(spec, seed, ["A", "B", "C"], ["cube"], ["clean"], {}, n_tcp_poses=1, n_object_layouts=2).trials[0].env
+        for seed in range(8)
+    }
     assert len(firsts) > 1  # the env order is drawn from the seed too
 
 
 def test_trial_ids_unique_and_stable(plan):
     ids = [t.trial_id for t in plan.trials]
     assert len(set(ids)) == len(ids)
-    t = next(t for t in plan.trials if t.env == "A" and t.shape == "cube" and t.condition == "adv3d" and t.tcp_pose == 2 and t.object_layout == 4 and not t.tags)
+    t = next(
+        t
+        for t in plan.trials
+        if t.env == "A"
+        and t.shape == "cube"
+        and t.condition == "adv3d"
+        and t.tcp_pose == 2
+        and t.object_layout == 4
+        and not t.tags
+    )
     assert t.trial_id == "A-cube-adv3d-t2-o4"
     assert all(re.fullmatch(r"[AB]-(cube|cylinder)-(clean|adv3d|patch)-t[0-4]-o[0-5](-dim)?", i) for i in ids)
     assert plan.trial("A-cube-adv3d-t2-o4-dim").tags == ["dim"]
@@ -184,8 +201,17 @@ def test_pool_restricts_poses(spec):
 def test_placement_sheet_pages(spec, tmp_path):
     from trials.real.sheet import ROWS_PER_PAGE, placement_sheet_pdf, sheet_page_count
 
-    small = make_plan(spec, 0, ["A"], ["cube"], ["clean", "patch"], {"cube/patch": _refs(["cube"])["cube/patch"]},
-                      n_tcp_poses=2, n_object_layouts=3, tags=["occluded"])
+    small = make_plan(
+        spec,
+        0,
+        ["A"],
+        ["cube"],
+        ["clean", "patch"],
+        {"cube/patch": _refs(["cube"])["cube/patch"]},
+        n_tcp_poses=2,
+        n_object_layouts=3,
+        tags=["occluded"],
+    )
     assert len(small.trials) == 2 * 2 * 3 * 2 <= ROWS_PER_PAGE
     path = tmp_path / "sheet.pdf"
     n = placement_sheet_pdf(small, path, spec)
@@ -197,12 +223,34 @@ def test_placement_sheet_pages(spec, tmp_path):
 def test_cli_plan_writes_plan_sheet_and_run_info(tmp_path):
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     out = tmp_path / "plan.yaml"
-    res = CliRunner().invoke(app, ["trial", "plan", "--out", str(out), "--env", "A", "--env", "B", "--shape", "cube",
-                                   "--condition", "clean", "--tcp-poses", "2", "--object-poses", "2", "--seed", "4",
-                                   "--sheet", str(tmp_path / "sheet.pdf")])
+    res = CliRunner().invoke(
+        app,
+        [
+            "trial",
+            "plan",
+            "--out",
+            str(out),
+            "--env",
+            "A",
+            "--env",
+            "B",
+            "--shape",
+            "cube",
+            "--condition",
+            "clean",
+            "--tcp-poses",
+            "2",
+            "--object-poses",
+            "2",
+            "--seed",
+            "4",
+            "--sheet",
+            str(tmp_path / "sheet.pdf"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "8 trials" in res.output and "env B  shape cube" in res.output
     plan = load_plan(out)
@@ -215,10 +263,23 @@ def test_cli_plan_writes_plan_sheet_and_run_info(tmp_path):
 def test_cli_plan_never_overwrites_a_plan_unless_forced(tmp_path):
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     out = tmp_path / "plan.yaml"
-    args = ["trial", "plan", "--out", str(out), "--shape", "cube", "--condition", "clean", "--tcp-poses", "1", "--object-poses", "1"]
+    args = [
+        "trial",
+        "plan",
+        "--out",
+        str(out),
+        "--shape",
+        "cube",
+        "--condition",
+        "clean",
+        "--tcp-poses",
+        "1",
+        "--object-poses",
+        "1",
+    ]
     assert CliRunner().invoke(app, args).exit_code == 0
     before = out.read_bytes()
     res = CliRunner().invoke(app, args + ["--seed", "9"])
@@ -238,31 +299,57 @@ def test_plan_with_a_cells_hardware_draws_start_poses_inside_its_workspace_box(s
     lo, hi = np.array(hw.safety.workspace_min_m), np.array(hw.safety.workspace_max_m)
     free = make_plan(spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2)
     inside = lambda p: bool(np.all(p.T_table_tcp.T()[:3, 3] >= lo) and np.all(p.T_table_tcp.T()[:3, 3] <= hi))  # noqa: E731
-    boxed = make_plan(spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2, workspace=(lo, hi, np.eye(4)))
+    boxed = make_plan(
+        spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2, workspace=(lo, hi, np.eye(4))
+    )
     assert not all(inside(p) for p in free.tcp_poses)  # the sampler alone ignores the cell
     assert all(inside(p) for p in boxed.tcp_poses) and len(boxed.tcp_poses) == 4
     shifted = np.eye(4)
     shifted[0, 3] = 0.5  # the table origin 0.5 m in front of the base
-    moved = make_plan(spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2, workspace=(lo, hi, shifted))
-    assert all(np.all((shifted @ p.T_table_tcp.T())[:3, 3] >= lo) and np.all((shifted @ p.T_table_tcp.T())[:3, 3] <= hi)
-               for p in moved.tcp_poses)
+    moved = make_plan(
+        spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2, workspace=(lo, hi, shifted)
+    )
+    assert all(
+        np.all((shifted @ p.T_table_tcp.T())[:3, 3] >= lo) and np.all((shifted @ p.T_table_tcp.T())[:3, 3] <= hi)
+        for p in moved.tcp_poses
+    )
 
 
 def test_plan_refuses_a_workspace_no_start_pose_fits_in_one_line(spec, tmp_path, monkeypatch, capsys):
     from pathlib import Path
 
-    from trials.cli import main
+    from trials.cli.main import main
 
     data = yaml.safe_load((Path(__file__).resolve().parents[2] / "examples" / "hardware" / "sim.yaml").read_text())
     data["safety"]["workspace_min_m"], data["safety"]["workspace_max_m"] = [0.0, 0.0, 0.01], [0.05, 0.05, 0.05]
     (tmp_path / "hw.yaml").write_text(yaml.safe_dump(data))
-    monkeypatch.setattr("sys.argv", ["advobj", "trial", "plan", "--out", str(tmp_path / "p.yaml"), "--shape", "cube", "--condition",
-                                     "clean", "--tcp-poses", "2", "--object-poses", "1", "--hardware", str(tmp_path / "hw.yaml")])
+    monkeypatch.setattr(
+        "sys.argv",
+        [
+            "advobj",
+            "trial",
+            "plan",
+            "--out",
+            str(tmp_path / "p.yaml"),
+            "--shape",
+            "cube",
+            "--condition",
+            "clean",
+            "--tcp-poses",
+            "2",
+            "--object-poses",
+            "1",
+            "--hardware",
+            str(tmp_path / "hw.yaml"),
+        ],
+    )
     with pytest.raises(SystemExit) as exc:
         main()
     err = [l for l in capsys.readouterr().err.splitlines() if l.strip()]
     assert exc.value.code == 2 and len(err) == 1
-    assert "--hardware: found 0/2 start TCP poses inside the workspace box [0, 0, 0.01] .. [0.05, 0.05, 0.05] m" in err[0]
+    assert (
+        "--hardware: found 0/2 start TCP poses inside the workspace box [0, 0, 0.01] .. [0.05, 0.05, 0.05] m" in err[0]
+    )
     assert re.search(r"spanning x -?\d\.\d+\.\.-?\d\.\d+, y .*, z \d\.\d+\.\.\d\.\d+ m", err[0])
     assert not (tmp_path / "p.yaml").exists()
 
@@ -271,26 +358,58 @@ def test_a_plan_outside_the_cells_box_is_refused_once_not_twice(tmp_path, monkey
     from pathlib import Path
 
     from tests.trials.trial_session_helpers import tiny_onnx
-    from trials.cli import main
+    from trials.cli.main import main
 
     root = Path(__file__).resolve().parents[2]
     data = yaml.safe_load((root / "examples" / "hardware" / "sim.yaml").read_text())
     data["safety"]["workspace_max_m"] = [0.9, 0.9, 0.05]
     data["sim"]["image_size"] = [32, 32]
     (tmp_path / "hw.yaml").write_text(yaml.safe_dump(data))
-    monkeypatch.setattr("sys.argv", ["advobj", "trial", "plan", "--out", str(tmp_path / "p.yaml"), "--shape", "cube", "--condition",
-                                     "clean", "--tcp-poses", "1", "--object-poses", "1"])
+    monkeypatch.setattr(
+        "sys.argv",
+        [
+            "advobj",
+            "trial",
+            "plan",
+            "--out",
+            str(tmp_path / "p.yaml"),
+            "--shape",
+            "cube",
+            "--condition",
+            "clean",
+            "--tcp-poses",
+            "1",
+            "--object-poses",
+            "1",
+        ],
+    )
     try:
         main()
     except SystemExit as exc:
         assert exc.code in (0, None)
     capsys.readouterr()
-    monkeypatch.setattr("sys.argv", ["advobj", "trial", "run", "--hardware", str(tmp_path / "hw.yaml"), "--policy",
-                                     str(tiny_onnx(tmp_path / "p.onnx")), "--plan", str(tmp_path / "p.yaml"), "--session", "s",
-                                     "--db", str(tmp_path / "t.sqlite"), "--auto-confirm", "--no-rate-limit"])
+    monkeypatch.setattr(
+        "sys.argv",
+        [
+            "advobj",
+            "trial",
+            "run",
+            "--hardware",
+            str(tmp_path / "hw.yaml"),
+            "--policy",
+            str(tiny_onnx(tmp_path / "p.onnx")),
+            "--plan",
+            str(tmp_path / "p.yaml"),
+            "--session",
+            "s",
+            "--db",
+            str(tmp_path / "t.sqlite"),
+            "--auto-confirm",
+            "--no-rate-limit",
+        ],
+    )
     with pytest.raises(SystemExit) as exc:
         main()
     cap = capsys.readouterr()
     both = cap.out + cap.err
     assert exc.value.code == 2 and both.count("initial TCP poses outside the safety workspace box") == 1
-

@@ -16,7 +16,11 @@ from trials.real.store import TrialStore
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("policy_error")
-    return {"policy": tiny_onnx(d / "p.onnx"), "plan": small_plan(d / "plan.yaml", d), "hw": sim_hardware(d / "hw.yaml")}
+    return {
+        "policy": tiny_onnx(d / "p.onnx"),
+        "plan": small_plan(d / "plan.yaml", d),
+        "hw": sim_hardware(d / "hw.yaml"),
+    }
 
 
 class _NaNOnCalls:
@@ -37,8 +41,18 @@ def _run(files, db, bad, **kw):
         runner.policy = _NaNOnCalls(runner.policy, bad)
         runner.stop_on_reach = False  # every good trial runs max_steps: the call index of each trial is known
 
-    return run_session(files["hw"], files["policy"], files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False,
-                       on_ready=swap, log=lambda *_: None, **kw)
+    return run_session(
+        files["hw"],
+        files["policy"],
+        files["plan"],
+        "s",
+        db,
+        operator=AutoOperator(log=None),
+        rate_limit=False,
+        on_ready=swap,
+        log=lambda *_: None,
+        **kw,
+    )
 
 
 def test_nan_action_stops_the_trial_as_policy_error_and_the_session_goes_on(files, tmp_path):
@@ -89,17 +103,41 @@ def test_a_version_2_store_is_migrated_keeping_its_trials(tmp_path):
 
     db = tmp_path / "old.sqlite"
     con = sqlite3.connect(db)
-    con.executescript(store_mod._SCHEMA + "INSERT INTO schema_version VALUES (1);" + store_mod._MIGRATIONS[2]
-                      + "UPDATE schema_version SET version = 2;")
-    con.execute("INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
-                "software_version, git_commit, devices_json, calibration_json, config_json) VALUES ('s','t','p','','','','','','','{}','{}','{}')")
-    con.execute("INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, config_json) "
-                "VALUES (1, 't', '', '', '', '{}', '{}')")
+    con.executescript(
+        store_mod._SCHEMA
+        + "INSERT INTO schema_version VALUES (1);"
+        + store_mod._MIGRATIONS[2]
+        + "UPDATE schema_version SET version = 2;"
+    )
+    con.execute(
+        "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
+        "software_version, git_commit, devices_json, calibration_json, config_json) VALUES ('s','t','p','','','','','','','{}','{}','{}')"
+    )
+    con.execute(
+        "INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, config_json) "
+        "VALUES (1, 't', '', '', '', '{}', '{}')"
+    )
     cols = [r[1] for r in con.execute("PRAGMA table_info(trials)")]
     vals = {c: 0 for c in cols if c != "id"}
-    vals.update(session_id=1, trial_id="t1", env="A", shape="cube", condition="clean", tags_json="[]", started_at="t",
-                stop_reason="max_steps", auto_outcome="none", auto_reason="", distances_json="{}", final_outcome="none",
-                frames_dir="f", texture_sha256=None, operator_outcome=None, run_id=1, note="")
+    vals.update(
+        session_id=1,
+        trial_id="t1",
+        env="A",
+        shape="cube",
+        condition="clean",
+        tags_json="[]",
+        started_at="t",
+        stop_reason="max_steps",
+        auto_outcome="none",
+        auto_reason="",
+        distances_json="{}",
+        final_outcome="none",
+        frames_dir="f",
+        texture_sha256=None,
+        operator_outcome=None,
+        run_id=1,
+        note="",
+    )
     con.execute(f"INSERT INTO trials ({', '.join(vals)}) VALUES ({', '.join('?' * len(vals))})", list(vals.values()))
     con.execute("INSERT INTO events VALUES (1, 0.0, 'k', 'a', 'r')")
     con.commit()

@@ -33,10 +33,23 @@ def _wilson(k, n):
 
 def _row(outcome, session="s1", env="A", shape="cube", condition="adv3d", tags=(), operator=None, sha=None, i=[0]):
     i[0] += 1
-    return {"session": session, "trial_id": f"{env}-{shape}-{condition}-{i[0]}", "env": env, "shape": shape, "condition": condition,
-            "tags": list(tags), "auto_outcome": outcome, "operator_outcome": operator,
-            "final_outcome": operator if operator is not None else outcome, "note": "", "n_steps": 10, "stop_reason": "reached",
-            "started_at": "2025-01-01T00:00:00Z", "duration_s": 7.0, "texture_sha256": sha}
+    return {
+        "session": session,
+        "trial_id": f"{env}-{shape}-{condition}-{i[0]}",
+        "env": env,
+        "shape": shape,
+        "condition": condition,
+        "tags": list(tags),
+        "auto_outcome": outcome,
+        "operator_outcome": operator,
+        "final_outcome": operator if operator is not None else outcome,
+        "note": "",
+        "n_steps": 10,
+        "stop_reason": "reached",
+        "started_at": "2025-01-01T00:00:00Z",
+        "duration_s": 7.0,
+        "texture_sha256": sha,
+    }
 
 
 def test_rate_cell_matches_hand_wilson():
@@ -59,7 +72,13 @@ def test_rate_cell_edges_k0_kn_n0():
 
 
 def test_unknown_excluded_and_operator_overrides_auto():
-    rows = [_row("adversarial"), _row("goal"), _row("unknown"), _row("goal", operator="adversarial"), _row("adversarial", operator="unknown")]
+    rows = [
+        _row("adversarial"),
+        _row("goal"),
+        _row("unknown"),
+        _row("goal", operator="adversarial"),
+        _row("adversarial", operator="unknown"),
+    ]
     for r in rows:
         r.pop("final_outcome")  # derived from operator / auto when the store has not filled it
     c = rate_cell(rows)
@@ -69,8 +88,12 @@ def test_unknown_excluded_and_operator_overrides_auto():
 
 
 def test_summary_by_session_env_shape_condition_tag():
-    rows = ([_row("adversarial", session="s1")] * 2 + [_row("goal", session="s2", env="B", shape="cylinder")] * 3
-            + [_row("none", session="s2", condition="clean", tags=["dim"])] + [_row("adversarial", session="s2", tags=["dim", "occluded"])])
+    rows = (
+        [_row("adversarial", session="s1")] * 2
+        + [_row("goal", session="s2", env="B", shape="cylinder")] * 3
+        + [_row("none", session="s2", condition="clean", tags=["dim"])]
+        + [_row("adversarial", session="s2", tags=["dim", "occluded"])]
+    )
     s = summarize_trials(rows)
     assert s["sessions"] == ["s1", "s2"] and s["n_trials"] == 7
     a = s["all"]
@@ -99,27 +122,61 @@ def _sim_dir(tmp_path, name, conditions, sources, adv_mesh="mustard_bottle"):
     d = tmp_path / name
     d.mkdir()
     rate = lambda k, n: {"k": k, "n": n, "rate": k / n, "lo": 0.0, "hi": 1.0, "confidence": 0.95}  # noqa: E731
-    (d / "summary.json").write_text(json.dumps({"conditions": {c: {"n": n, "tasr": rate(k1, n), "asr": rate(k2, n)} for c, (k1, k2, n) in conditions.items()}}))
-    conds = [{"name": c, "source": None if sources.get(c) is None else {"path": "x", "mesh": sources[c][1], "sha256": sources[c][0]}} for c in conditions]
-    (d / "run.json").write_text(json.dumps({"config": {"conditions": conds, "scene": {"objects": [{"role": "adversarial", "mesh": adv_mesh}]}}}))
+    (d / "summary.json").write_text(
+        json.dumps(
+            {
+                "conditions": {
+                    c: {"n": n, "tasr": rate(k1, n), "asr": rate(k2, n)} for c, (k1, k2, n) in conditions.items()
+                }
+            }
+        )
+    )
+    conds = [
+        {
+            "name": c,
+            "source": None if sources.get(c) is None else {"path": "x", "mesh": sources[c][1], "sha256": sources[c][0]},
+        }
+        for c in conditions
+    ]
+    (d / "run.json").write_text(
+        json.dumps({"config": {"conditions": conds, "scene": {"objects": [{"role": "adversarial", "mesh": adv_mesh}]}}})
+    )
     return d
 
 
 def test_table_iv_with_and_without_sim(tmp_path):
     sha = "a" * 64
-    rows = ([_row("adversarial", shape="cube", sha=sha)] * 6 + [_row("goal", shape="cube", sha=sha)] * 4 + [_row("unknown", shape="cube", sha=sha)]
-            + [_row("none", shape="cylinder")] * 2 + [_row("adversarial", env="B", shape="cube", sha="b" * 64)] * 2
-            + [_row("adversarial", shape="cube", condition="clean")] + [_row("adversarial", shape="cube", tags=["dim"], sha=sha)])
+    rows = (
+        [_row("adversarial", shape="cube", sha=sha)] * 6
+        + [_row("goal", shape="cube", sha=sha)] * 4
+        + [_row("unknown", shape="cube", sha=sha)]
+        + [_row("none", shape="cylinder")] * 2
+        + [_row("adversarial", env="B", shape="cube", sha="b" * 64)] * 2
+        + [_row("adversarial", shape="cube", condition="clean")]
+        + [_row("adversarial", shape="cube", tags=["dim"], sha=sha)]
+    )
     bare = table_iv(rows)
     assert [(r["env"], r["shape"], r["n"]) for r in bare] == [("A", "cube", 10), ("A", "cylinder", 2), ("B", "cube", 2)]
     assert bare[0]["real"]["tasr"]["k"] == 6 and bare[0]["sim"]["tasr"] is None
     assert "no sim eval given" in bare[0]["note"] and "1 unknown excluded" in bare[0]["note"]
 
-    cube = load_sim_eval(_sim_dir(tmp_path, "cube", {"clean": (0, 0, 50), "attack": (36, 40, 50), "shape_cube": (30, 35, 50)},
-                                  {"attack": (sha, "cube"), "shape_cube": ("c" * 64, "cube")}))
-    cyl = load_sim_eval(_sim_dir(tmp_path, "cyl", {"shape_cylinder": (38, 42, 50)}, {"shape_cylinder": ("d" * 64, "cylinder")}))
+    cube = load_sim_eval(
+        _sim_dir(
+            tmp_path,
+            "cube",
+            {"clean": (0, 0, 50), "attack": (36, 40, 50), "shape_cube": (30, 35, 50)},
+            {"attack": (sha, "cube"), "shape_cube": ("c" * 64, "cube")},
+        )
+    )
+    cyl = load_sim_eval(
+        _sim_dir(tmp_path, "cyl", {"shape_cylinder": (38, 42, 50)}, {"shape_cylinder": ("d" * 64, "cylinder")})
+    )
     t = table_iv(rows, {"cube": cube, "cylinder": cyl})
-    assert t[0]["sim"]["condition"] == "attack" and t[0]["sim"]["status"] == "sha256 match" and t[0]["sim"]["tasr"]["k"] == 36
+    assert (
+        t[0]["sim"]["condition"] == "attack"
+        and t[0]["sim"]["status"] == "sha256 match"
+        and t[0]["sim"]["tasr"]["k"] == 36
+    )
     # cylinder trials recorded no texture and no plan was given: same shape, texture not verified
     assert t[1]["sim"]["condition"] == "shape_cylinder" and "not matched" in t[1]["note"]
     # env B used another texture: no sim numbers rather than the wrong ones
@@ -150,24 +207,57 @@ def _record(i, outcome, condition="adv3d", tags=(), operator=None, sha=None):
     from trials.real.store import TrialRecord
 
     return TrialRecord(
-        trial_id=f"A-cube-{condition}-t{i}-o0", plan_order=i, env="A", shape="cube", condition=condition, tcp_pose=0, object_layout=0,
-        tags=list(tags), texture_sha256=sha, started_at="2025-01-01T00:00:00Z", duration_s=5.0, stop_reason="reached",
-        auto_outcome=outcome, auto_reason="test", distances_m={}, operator_outcome=operator, note="", placement_checks=1,
-        placement_skipped=False, T_table_tcp_final=np.eye(4), frames_dir="frames")
+        trial_id=f"A-cube-{condition}-t{i}-o0",
+        plan_order=i,
+        env="A",
+        shape="cube",
+        condition=condition,
+        tcp_pose=0,
+        object_layout=0,
+        tags=list(tags),
+        texture_sha256=sha,
+        started_at="2025-01-01T00:00:00Z",
+        duration_s=5.0,
+        stop_reason="reached",
+        auto_outcome=outcome,
+        auto_reason="test",
+        distances_m={},
+        operator_outcome=operator,
+        note="",
+        placement_checks=1,
+        placement_skipped=False,
+        T_table_tcp_final=np.eye(4),
+        frames_dir="frames",
+    )
 
 
 def test_cli_report_end_to_end(tmp_path):
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
     from trials.real.store import SessionInfo, TrialStore
 
     sha = "e" * 64
     db = tmp_path / "trials.sqlite"
     with TrialStore(db) as store:
-        for name, outcomes in (("day1", ["adversarial", "adversarial", "goal", "unknown"]), ("day2", ["none", "goal", "adversarial"])):
-            sid = store.open_session(SessionInfo(name=name, plan_sha256="p", plan_text="", hardware_text="", policy_path="pol", policy_sha256="q",
-                                                 software_version="0", git_commit="g", devices={}, calibration={}))
+        for name, outcomes in (
+            ("day1", ["adversarial", "adversarial", "goal", "unknown"]),
+            ("day2", ["none", "goal", "adversarial"]),
+        ):
+            sid = store.open_session(
+                SessionInfo(
+                    name=name,
+                    plan_sha256="p",
+                    plan_text="",
+                    hardware_text="",
+                    policy_path="pol",
+                    policy_sha256="q",
+                    software_version="0",
+                    git_commit="g",
+                    devices={},
+                    calibration={},
+                )
+            )
             for i, o in enumerate(outcomes):
                 store.commit_trial(sid, _record(i, o, sha=sha, operator="goal" if (name, i) == ("day2", 1) else None))
     sim = _sim_dir(tmp_path, "sim_cube", {"attack": (40, 45, 50)}, {"attack": (sha, None)}, adv_mesh="cube")
@@ -179,7 +269,11 @@ def test_cli_report_end_to_end(tmp_path):
     assert doc["summary"]["sessions"] == ["day1", "day2"] and doc["summary"]["all"]["overall"]["unknown"] == 1
     assert doc["summary"]["by_session"]["day1"]["overall"]["tasr"]["k"] == 2
     assert (out / "report.md").is_file() and (out / "run.json").is_file()
-    res = CliRunner().invoke(app, ["trial", "report", "--db", str(db), "--session", "day2", "--out", str(tmp_path / "r2")])
+    res = CliRunner().invoke(
+        app, ["trial", "report", "--db", str(db), "--session", "day2", "--out", str(tmp_path / "r2")]
+    )
     assert res.exit_code == 0 and json.loads((tmp_path / "r2" / "report.json").read_text())["summary"]["n_trials"] == 3
-    res = CliRunner().invoke(app, ["trial", "report", "--db", str(db), "--session", "day9", "--out", str(tmp_path / "r3")])
+    res = CliRunner().invoke(
+        app, ["trial", "report", "--db", str(db), "--session", "day9", "--out", str(tmp_path / "r3")]
+    )
     assert res.exit_code != 0 and "no session day9" in str(res.exception)

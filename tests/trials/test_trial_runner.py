@@ -18,7 +18,11 @@ from trials.real.store import SessionMismatch, TrialStore
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("trial_runner")
-    return {"policy": tiny_onnx(d / "p.onnx"), "plan": small_plan(d / "plan.yaml", d), "hw": sim_hardware(d / "hw.yaml")}
+    return {
+        "policy": tiny_onnx(d / "p.onnx"),
+        "plan": small_plan(d / "plan.yaml", d),
+        "hw": sim_hardware(d / "hw.yaml"),
+    }
 
 
 def _run(files, db, session="s", **kw):
@@ -38,12 +42,19 @@ def test_placement_check_catches_a_misplaced_object_and_passes_after_correction(
     row = store.trial_rows()[0]
     assert row["placement_checks"] == 2 and not row["placement_skipped"]
     ev = store.con.execute("SELECT kind, action, reason FROM events WHERE kind = 'placement'").fetchall()
-    assert len(ev) == 1 and "adversarial: move 3.0 cm toward -x" in ev[0]["reason"] and "rotate -17 deg" in ev[0]["reason"]
+    assert (
+        len(ev) == 1 and "adversarial: move 3.0 cm toward -x" in ev[0]["reason"] and "rotate -17 deg" in ev[0]["reason"]
+    )
     plan = load_plan(files["plan"])
     layout = plan.object_layout(plan.trial(row["trial_id"]).object_layout).objects
     placed = {r["role"]: r for r in store.con.execute("SELECT * FROM object_poses WHERE phase = 'placement'")}
     for role in ("goal", "adversarial"):
-        assert math.hypot(placed[role]["table_x_m"] - layout[role].xy_m[0], placed[role]["table_y_m"] - layout[role].xy_m[1]) < 1e-9
+        assert (
+            math.hypot(
+                placed[role]["table_x_m"] - layout[role].xy_m[0], placed[role]["table_y_m"] - layout[role].xy_m[1]
+            )
+            < 1e-9
+        )
         assert placed[role]["source"] == "sim"
 
 
@@ -83,7 +94,9 @@ def test_abort_discards_the_trial_in_progress_and_resume_skips_done_trials(files
     plan = load_plan(files["plan"])
     ordered = [t.trial_id for t in sorted(plan.trials, key=lambda t: t.order)]
     # Trial 1 ends after at most max_steps polls (or earlier on reach), so poll max_steps + 2 is inside trial 2.
-    summary = _run(files, db, operator=_AbortAt(plan.max_steps + 2), on_ready=lambda r, w: setattr(r, "stop_on_reach", False))
+    summary = _run(
+        files, db, operator=_AbortAt(plan.max_steps + 2), on_ready=lambda r, w: setattr(r, "stop_on_reach", False)
+    )
     assert summary.aborted and summary.committed == ordered[:1]
     store = TrialStore(db)
     assert [r["trial_id"] for r in store.trial_rows()] == ordered[:1]
@@ -96,8 +109,13 @@ def test_abort_discards_the_trial_in_progress_and_resume_skips_done_trials(files
 
 def test_pause_restarts_the_trial(files, tmp_path):
     db = tmp_path / "t.sqlite"
-    summary = _run(files, db, operator=_AbortAt(at=-1, pause_at=3), max_trials=1,
-                   on_ready=lambda r, w: setattr(r, "stop_on_reach", False))
+    summary = _run(
+        files,
+        db,
+        operator=_AbortAt(at=-1, pause_at=3),
+        max_trials=1,
+        on_ready=lambda r, w: setattr(r, "stop_on_reach", False),
+    )
     assert not summary.aborted and len(summary.committed) == 1
     store = TrialStore(db)
     row = store.trial_rows()[0]
@@ -133,8 +151,17 @@ def test_resume_with_an_edited_hardware_yaml_warns_and_records_the_run(files, tm
     hw = tmp_path / "hw.yaml"
     hw.write_text(files["hw"].read_text() + "# moved the camera cable\n")
     logged = []
-    run_session(hw, files["policy"], files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False, max_trials=1,
-                log=logged.append)
+    run_session(
+        hw,
+        files["policy"],
+        files["plan"],
+        "s",
+        db,
+        operator=AutoOperator(log=None),
+        rate_limit=False,
+        max_trials=1,
+        log=logged.append,
+    )
     assert any("hardware YAML" in line and "since the last run" in line for line in logged), logged
     store = TrialStore(db)
     runs = store.con.execute("SELECT id, hardware_text FROM runs ORDER BY id").fetchall()
@@ -159,7 +186,9 @@ def test_estimated_table_frame_is_stored_and_reused_on_resume(tmp_path, monkeypa
     monkeypatch.setattr(calibration.registry, "load_registry", lambda path: "registry")
     monkeypatch.setattr(robot_io.config, "load_T_tcp_cam", lambda path: np.eye(4))
     monkeypatch.setattr(TagLocator, "observe", lambda self, frame: {})
-    monkeypatch.setattr(TagLocator, "estimate_T_base_table", staticmethod(lambda obs, T_tcp, T_tcp_cam: estimates.append(1) or T_est))
+    monkeypatch.setattr(
+        TagLocator, "estimate_T_base_table", staticmethod(lambda obs, T_tcp, T_tcp_cam: estimates.append(1) or T_est)
+    )
     hw = SimpleNamespace(T_tcp_cam="hand_eye.yaml")
     camera = SimpleNamespace(intrinsics=None, read=lambda: None)
     arm = SimpleNamespace(tcp_pose=lambda: np.eye(4))
@@ -168,8 +197,19 @@ def test_estimated_table_frame_is_stored_and_reused_on_resume(tmp_path, monkeypa
 
     def start(stored):
         loc, T = session_mod._tag_locator(hw, camera, arm, "objects.yaml", None, stored, logged.append)
-        info = SessionInfo(name="s", plan_sha256="a" * 64, plan_text="", hardware_text="", policy_path="p.onnx", policy_sha256="b" * 64,
-                           software_version="0", git_commit="c", devices={}, calibration={}, T_base_table=T)
+        info = SessionInfo(
+            name="s",
+            plan_sha256="a" * 64,
+            plan_text="",
+            hardware_text="",
+            policy_path="p.onnx",
+            policy_sha256="b" * 64,
+            software_version="0",
+            git_commit="c",
+            devices={},
+            calibration={},
+            T_base_table=T,
+        )
         store.open_session(info)
         return loc, T
 
@@ -187,7 +227,17 @@ def test_answers_list_is_keyed_by_run_order_across_a_resume(files, tmp_path):
     answers = tmp_path / "answers.yaml"
     answers.write_text("- {note: first}\n- {outcome: unknown, note: second}\n- {note: third}\n")
     for _ in range(3):  # one trial per sitting: every resume must read the next entry, not entry 0 again
-        run_session(files["hw"], files["policy"], files["plan"], "s", db, answers=answers, rate_limit=False, max_trials=1, log=None)
+        run_session(
+            files["hw"],
+            files["policy"],
+            files["plan"],
+            "s",
+            db,
+            answers=answers,
+            rate_limit=False,
+            max_trials=1,
+            log=None,
+        )
     rows = {r["trial_id"]: r for r in TrialStore(db).trial_rows()}
     assert [rows[t]["note"] for t in ordered[:3]] == ["first", "second", "third"]
     assert rows[ordered[1]]["final_outcome"] == "unknown" and rows[ordered[0]]["operator_outcome"] is None
@@ -214,11 +264,28 @@ def test_closed_operator_input_aborts_like_q(files, tmp_path):
 def test_cli_exits_3_when_the_operator_input_closes(files, tmp_path):
     from typer.testing import CliRunner
 
-    from trials.cli import app
+    from trials.cli.main import app
 
     db = tmp_path / "t.sqlite"
-    r = CliRunner().invoke(app, ["trial", "run", "--hardware", str(files["hw"]), "--policy", str(files["policy"]), "--plan",
-                                 str(files["plan"]), "--session", "s", "--db", str(db), "--no-rate-limit"], input="")
+    r = CliRunner().invoke(
+        app,
+        [
+            "trial",
+            "run",
+            "--hardware",
+            str(files["hw"]),
+            "--policy",
+            str(files["policy"]),
+            "--plan",
+            str(files["plan"]),
+            "--session",
+            "s",
+            "--db",
+            str(db),
+            "--no-rate-limit",
+        ],
+        input="",
+    )
     assert r.exit_code == 3, r.output
     assert r.exception is None or isinstance(r.exception, SystemExit)
     assert "aborted (operator input closed)" in r.output and TrialStore(db).trial_rows() == []
@@ -233,8 +300,14 @@ def _obj(role, x, y, yaw):
 
 
 def test_placement_issues_words_the_correction():
-    planned = {"goal": ObjectPlacement(xy_m=(0.1, 0.0), yaw_rad=0.0), "adversarial": ObjectPlacement(xy_m=(0.0, 0.2), yaw_rad=0.5)}
-    located = {"goal": _obj("goal", 0.105, 0.0, 0.01), "adversarial": _obj("adversarial", 0.0, 0.223, 0.5 + math.radians(12))}
+    planned = {
+        "goal": ObjectPlacement(xy_m=(0.1, 0.0), yaw_rad=0.0),
+        "adversarial": ObjectPlacement(xy_m=(0.0, 0.2), yaw_rad=0.5),
+    }
+    located = {
+        "goal": _obj("goal", 0.105, 0.0, 0.01),
+        "adversarial": _obj("adversarial", 0.0, 0.223, 0.5 + math.radians(12)),
+    }
     issues = placement_issues(planned, located, 0.01, math.radians(5))
     assert [i.role for i in issues] == ["adversarial"]
     assert issues[0].message.startswith("adversarial: move 2.3 cm toward -y, rotate -12 deg")
@@ -258,9 +331,15 @@ def test_tag_locator_maps_camera_observations_to_the_table_frame():
     assert set(loc) == {"goal"}
     np.testing.assert_allclose(loc["goal"].T_table_object, T_table_obj, atol=1e-12)
     assert loc["goal"].tag_ids == (3, 4) and loc["goal"].ambiguous and loc["goal"].centers_for_outcome().shape == (2, 3)
-    np.testing.assert_allclose(TagLocator.estimate_T_base_table(
-        {"table": ObjectObservation("table", invert_T(T_base_tcp @ T_tcp_cam) @ T_base_table, (0,), 0.1, False)},
-        T_base_tcp, T_tcp_cam), T_base_table, atol=1e-12)
+    np.testing.assert_allclose(
+        TagLocator.estimate_T_base_table(
+            {"table": ObjectObservation("table", invert_T(T_base_tcp @ T_tcp_cam) @ T_base_table, (0,), 0.1, False)},
+            T_base_tcp,
+            T_tcp_cam,
+        ),
+        T_base_table,
+        atol=1e-12,
+    )
 
 
 def test_answers_file_validation(tmp_path):
@@ -295,9 +374,17 @@ def test_safety_caps_use_the_plans_loop_period_and_warn_when_they_clip_the_polic
     hw = sim_hardware(tmp_path / "hw.yaml")
     assert yaml.safe_load(hw.read_text())["safety"]["control_period_s"] == pytest.approx(1 / 30, rel=0.01)
     seen, logged = {}, []
-    run_session(hw, straight_ahead_onnx(tmp_path / "ahead.onnx"), plan, "s", tmp_path / "t.sqlite",
-                operator=AutoOperator(log=None), rate_limit=False, log=logged.append,
-                on_ready=lambda runner, world: seen.update(period=runner.arm.limits.control_period_s))
+    run_session(
+        hw,
+        straight_ahead_onnx(tmp_path / "ahead.onnx"),
+        plan,
+        "s",
+        tmp_path / "t.sqlite",
+        operator=AutoOperator(log=None),
+        rate_limit=False,
+        log=logged.append,
+        on_ready=lambda runner, world: seen.update(period=runner.arm.limits.control_period_s),
+    )
     assert seen["period"] == pytest.approx(1 / control_hz)
     warned = [line for line in logged if "steps are clipped" in line]
     assert bool(warned) == clipped, logged

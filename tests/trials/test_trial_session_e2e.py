@@ -21,7 +21,7 @@ from tests.trials.trial_session_helpers import attack_dir, sim_hardware, straigh
 
 def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):
     from sim.outcome import NONE, reach_outcome
-    from trials.cli import app
+    from trials.cli.main import app
     from trials.real import runner as runner_mod
     from trials.real.store import TrialStore
 
@@ -30,8 +30,27 @@ def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):
     hw = sim_hardware(tmp_path / "hw.yaml")
     adv, patch = attack_dir(tmp_path / "adv", "cube"), attack_dir(tmp_path / "patch", "patch", 1)
     plan = tmp_path / "plan.yaml"
-    r = cli.invoke(app, ["trial", "plan", "--out", str(plan), "--shape", "cube", "--texture", f"cube/adv3d={adv}",
-                         "--texture", f"cube/patch={patch}", "--tcp-poses", "2", "--object-poses", "2", "--seed", "5"])
+    r = cli.invoke(
+        app,
+        [
+            "trial",
+            "plan",
+            "--out",
+            str(plan),
+            "--shape",
+            "cube",
+            "--texture",
+            f"cube/adv3d={adv}",
+            "--texture",
+            f"cube/patch={patch}",
+            "--tcp-poses",
+            "2",
+            "--object-poses",
+            "2",
+            "--seed",
+            "5",
+        ],
+    )
     assert r.exit_code == 0, r.output
 
     truth = {}
@@ -52,8 +71,25 @@ def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):
 
     monkeypatch.setattr(runner_mod.TrialRunner, "run", run_with_ground_truth)
     db = tmp_path / "trials.sqlite"
-    r = cli.invoke(app, ["trial", "run", "--hardware", str(hw), "--policy", str(policy), "--plan", str(plan), "--session", "ci",
-                         "--db", str(db), "--auto-confirm", "--no-rate-limit"])
+    r = cli.invoke(
+        app,
+        [
+            "trial",
+            "run",
+            "--hardware",
+            str(hw),
+            "--policy",
+            str(policy),
+            "--plan",
+            str(plan),
+            "--session",
+            "ci",
+            "--db",
+            str(db),
+            "--auto-confirm",
+            "--no-rate-limit",
+        ],
+    )
     assert r.exit_code == 0, r.output
 
     with TrialStore(db, create=False) as store:
@@ -83,12 +119,21 @@ def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):
         rs = [x for x in rows if x["condition"] == cond]
         cell = report["summary"]["all"]["by_condition"][cond]
         assert (cell["n"], cell["tasr"]["k"], cell["asr"]["k"]) == (
-            len(rs), sum(x["final_outcome"] == "adversarial" for x in rs), sum(x["final_outcome"] != "goal" for x in rs)), cond
+            len(rs),
+            sum(x["final_outcome"] == "adversarial" for x in rs),
+            sum(x["final_outcome"] != "goal" for x in rs),
+        ), cond
     adv = [x for x in rows if x["condition"] == "adv3d"]
     k_tasr = sum(x["final_outcome"] == "adversarial" for x in adv)
     k_asr = sum(x["final_outcome"] != "goal" for x in adv)
     (row,) = report["table_iv"]
-    assert (row["env"], row["shape"], row["n"], row["real"]["tasr"]["k"], row["real"]["asr"]["k"]) == ("A", "cube", len(adv), k_tasr, k_asr)
+    assert (row["env"], row["shape"], row["n"], row["real"]["tasr"]["k"], row["real"]["asr"]["k"]) == (
+        "A",
+        "cube",
+        len(adv),
+        k_tasr,
+        k_asr,
+    )
     assert 0 < k_tasr < len(adv) or 0 < k_asr < len(adv)  # a rate strictly between 0 and 1 somewhere in the row
     assert f"| A | cube | – | – | {100 * k_tasr / len(adv):.2f} [" in md and f"| {len(adv)} |" in md
 

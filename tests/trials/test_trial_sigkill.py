@@ -27,13 +27,33 @@ from tests.trials.trial_session_helpers import REPO, sim_hardware, small_plan, t
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("sigkill")
-    return {"policy": tiny_onnx(d / "p.onnx"), "plan": small_plan(d / "plan.yaml", d, n_tcp=3, max_steps=8),
-            "hw": sim_hardware(d / "hw.yaml")}
+    return {
+        "policy": tiny_onnx(d / "p.onnx"),
+        "plan": small_plan(d / "plan.yaml", d, n_tcp=3, max_steps=8),
+        "hw": sim_hardware(d / "hw.yaml"),
+    }
 
 
 def _cmd(files, db):
-    return [sys.executable, "-m", "trials.cli", "trial", "run", "--hardware", str(files["hw"]), "--policy", str(files["policy"]),
-            "--plan", str(files["plan"]), "--session", "k", "--db", str(db), "--auto-confirm", "--no-rate-limit"]
+    return [
+        sys.executable,
+        "-m",
+        "trials.cli.main",
+        "trial",
+        "run",
+        "--hardware",
+        str(files["hw"]),
+        "--policy",
+        str(files["policy"]),
+        "--plan",
+        str(files["plan"]),
+        "--session",
+        "k",
+        "--db",
+        str(db),
+        "--auto-confirm",
+        "--no-rate-limit",
+    ]
 
 
 def _committed(db: Path) -> int:

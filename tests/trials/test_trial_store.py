@@ -6,14 +6,31 @@ import sqlite3
 import numpy as np
 import pytest
 
-from trials.real.store import (EventRecord, ObjectPoseRecord, SessionInfo, SessionMismatch, StepRecord, StoreError,
-                               TrialRecord, TrialStore)
+from trials.real.store import (
+    EventRecord,
+    ObjectPoseRecord,
+    SessionInfo,
+    SessionMismatch,
+    StepRecord,
+    StoreError,
+    TrialRecord,
+    TrialStore,
+)
 
 
 def _info(name="s1", sha="a" * 64):
-    return SessionInfo(name=name, plan_sha256=sha, plan_text="plan: 1", hardware_text="hw: 1", policy_path="p.onnx",
-                       policy_sha256="b" * 64, software_version="0.1.0", git_commit="abc", devices={"arm": {"type": "sim"}},
-                       calibration={"T_tcp_cam": None})
+    return SessionInfo(
+        name=name,
+        plan_sha256=sha,
+        plan_text="plan: 1",
+        hardware_text="hw: 1",
+        policy_path="p.onnx",
+        policy_sha256="b" * 64,
+        software_version="0.1.0",
+        git_commit="abc",
+        devices={"arm": {"type": "sim"}},
+        calibration={"T_tcp_cam": None},
+    )
 
 
 def _T(x):
@@ -23,13 +40,51 @@ def _T(x):
 
 
 def _trial(trial_id="t0", n_steps=3, operator=None):
-    steps = [StepRecord(i, 0.1 * i, 0.1 * i + 0.01, i, [0.1 * i] * 6, _T(0.01 * i), _T(0.01 * i), "ok", "", f"frames/s1/{trial_id}/{i}.png")
-             for i in range(n_steps)]
-    poses = [ObjectPoseRecord("goal", "final", _T(0.3), np.array([0.3, 0.1, 0.05]), (3,), False, 0, "tags"),
-             ObjectPoseRecord("adversarial", "final", None, None, (), False, 0, "tags")]
-    return TrialRecord(trial_id, 0, "A", "cube", "adv3d", 1, 2, ["dim"], "c" * 64, "2026-01-01T00:00:00Z", 4.5, "max_steps",
-                       "unknown", "not detected: adversarial", {"goal": 0.2, "adversarial": None}, operator, "note",
-                       1, False, _T(0.02), f"frames/s1/{trial_id}", steps, poses, [EventRecord(0.5, "safety", "clipped", "why")])
+    steps = [
+        StepRecord(
+            i,
+            0.1 * i,
+            0.1 * i + 0.01,
+            i,
+            [0.1 * i] * 6,
+            _T(0.01 * i),
+            _T(0.01 * i),
+            "ok",
+            "",
+            f"frames/s1/{trial_id}/{i}.png",
+        )
+        for i in range(n_steps)
+    ]
+    poses = [
+        ObjectPoseRecord("goal", "final", _T(0.3), np.array([0.3, 0.1, 0.05]), (3,), False, 0, "tags"),
+        ObjectPoseRecord("adversarial", "final", None, None, (), False, 0, "tags"),
+    ]
+    return TrialRecord(
+        trial_id,
+        0,
+        "A",
+        "cube",
+        "adv3d",
+        1,
+        2,
+        ["dim"],
+        "c" * 64,
+        "2026-01-01T00:00:00Z",
+        4.5,
+        "max_steps",
+        "unknown",
+        "not detected: adversarial",
+        {"goal": 0.2, "adversarial": None},
+        operator,
+        "note",
+        1,
+        False,
+        _T(0.02),
+        f"frames/s1/{trial_id}",
+        steps,
+        poses,
+        [EventRecord(0.5, "safety", "clipped", "why")],
+    )
 
 
 def test_wal_and_round_trip(tmp_path):
@@ -121,8 +176,11 @@ def _with(info, **changes):
 
 
 def test_resume_refuses_another_policy_or_calibration_file_naming_it(tmp_path):
-    info = _with(_info(), calibration={"T_tcp_cam": "1" * 64, "registry": None},
-                 config={"calibration_files": {"T_tcp_cam": "calib/hand_eye.yaml", "registry": None}})
+    info = _with(
+        _info(),
+        calibration={"T_tcp_cam": "1" * 64, "registry": None},
+        config={"calibration_files": {"T_tcp_cam": "calib/hand_eye.yaml", "registry": None}},
+    )
     store = TrialStore(tmp_path / "t.sqlite")
     store.open_session(info)
     assert store.check_resume(info) == []  # the same inputs: resumes silently
@@ -131,13 +189,18 @@ def test_resume_refuses_another_policy_or_calibration_file_naming_it(tmp_path):
     msg = str(err.value)
     assert "policy: sha256 bbbbbbbbbbbb... (p.onnx) at the session's start, now sha256 eeeeeeeeeeee... (q.onnx)" in msg
     assert "calibration T_tcp_cam" not in msg and "start a new --session" in msg
-    other_cal = _with(info, calibration={"T_tcp_cam": "2" * 64, "registry": "3" * 64},
-                      config={"calibration_files": {"T_tcp_cam": "calib/hand_eye2.yaml", "registry": "objects.yaml"}})
+    other_cal = _with(
+        info,
+        calibration={"T_tcp_cam": "2" * 64, "registry": "3" * 64},
+        config={"calibration_files": {"T_tcp_cam": "calib/hand_eye2.yaml", "registry": "objects.yaml"}},
+    )
     with pytest.raises(SessionMismatch) as err:
         store.open_session(other_cal)
     msg = str(err.value)
-    assert ("calibration T_tcp_cam: sha256 111111111111... (calib/hand_eye.yaml) at the session's start, "
-            "now sha256 222222222222... (calib/hand_eye2.yaml)") in msg
+    assert (
+        "calibration T_tcp_cam: sha256 111111111111... (calib/hand_eye.yaml) at the session's start, "
+        "now sha256 222222222222... (calib/hand_eye2.yaml)"
+    ) in msg
     assert "calibration registry: no file at the session's start, now sha256 333333333333... (objects.yaml)" in msg
     assert "policy" not in msg.split("\n")[1]
     assert store.con.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 1  # refused resumes record no run

@@ -18,12 +18,13 @@ def _damaged_store(path):
             store.con.execute(
                 "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
                 "software_version, git_commit, devices_json, calibration_json, config_json) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
-                (f"s{i}", "t", "p", "x" * 1500, "h", "pol", "", "v", "g", "{}", "{}", "{}"))
+                (f"s{i}", "t", "p", "x" * 1500, "h", "pol", "", "v", "g", "{}", "{}", "{}"),
+            )
         store.con.execute("COMMIT")
     data = bytearray(path.read_bytes())
     assert len(data) > 60 * 4096 and data[:16] == b"SQLite format 3\x00"
     mid = (len(data) // 2) // 4096 * 4096
-    data[mid:mid + 4096] = bytes(range(256)) * 16
+    data[mid : mid + 4096] = bytes(range(256)) * 16
     path.write_bytes(bytes(data))
     return path
 
@@ -41,7 +42,11 @@ def damaged(tmp_path):
 
 def test_open_refuses_a_damaged_database_without_writing(damaged):
     before = _state(damaged.parent)
-    for opener in (lambda: TrialStore(damaged), lambda: TrialStore(damaged, create=False), lambda: check_database(damaged)):
+    for opener in (
+        lambda: TrialStore(damaged),
+        lambda: TrialStore(damaged, create=False),
+        lambda: check_database(damaged),
+    ):
         with pytest.raises(StoreError) as info:
             opener()
         msg = str(info.value)
@@ -57,13 +62,29 @@ def test_a_healthy_database_passes(tmp_path):
     check_database(tmp_path / "absent.sqlite")  # a new database: nothing to check
 
 
-@pytest.mark.parametrize("command", [
-    ["trial", "report", "--out", "{out}/report"],
-    ["trial", "export", "--out", "{out}/export"],
-    ["trial", "run", "--hardware", "{hw}", "--policy", "{policy}", "--plan", "{plan}", "--session", "s", "--auto-confirm"],
-], ids=["report", "export", "run"])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["trial", "report", "--out", "{out}/report"],
+        ["trial", "export", "--out", "{out}/export"],
+        [
+            "trial",
+            "run",
+            "--hardware",
+            "{hw}",
+            "--policy",
+            "{policy}",
+            "--plan",
+            "{plan}",
+            "--session",
+            "s",
+            "--auto-confirm",
+        ],
+    ],
+    ids=["report", "export", "run"],
+)
 def test_cli_refuses_a_damaged_database_in_one_line(damaged, tmp_path, monkeypatch, capsys, command):
-    from trials.cli import main
+    from trials.cli.main import main
 
     out = tmp_path / "out"
     hw, policy, plan = tmp_path / "hw.yaml", tmp_path / "p.onnx", tmp_path / "plan.yaml"

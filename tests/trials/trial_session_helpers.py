@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -47,14 +46,21 @@ def straight_ahead_onnx(path: Path, size: int = 32) -> Path:
 
 
 def attack_dir(path: Path, mesh: str, seed: int = 0) -> Path:
-    path.mkdir(parents=True, exist_ok=True)
-    np.save(path / "texture.npy", np.random.default_rng(seed).random((16, 16, 3)).astype(np.float32))
-    (path / "run.json").write_text(json.dumps({"config": {"attack": {"adversarial_mesh": mesh}}}))
-    return path
+    from attack.artifact import AttackArtifact
+
+    texture = np.random.default_rng(seed).random((16, 16, 3)).astype(np.float32)
+    return AttackArtifact(texture, {"attack": {"adversarial_mesh": mesh}}).save(path)
 
 
-def small_plan(out: Path, textures_dir: Path, n_tcp: int = 2, n_layouts: int = 1, max_steps: int = 6, seed: int = 0,
-               conditions=("clean", "adv3d", "patch")) -> Path:
+def small_plan(
+    out: Path,
+    textures_dir: Path,
+    n_tcp: int = 2,
+    n_layouts: int = 1,
+    max_steps: int = 6,
+    seed: int = 0,
+    conditions=("clean", "adv3d", "patch"),
+) -> Path:
     """A cube plan (clean/adv3d/patch x poses x layouts) with short trials, written to ``out``."""
     from sim.spec import default_scene
     from trials.real.plan import make_plan, save_plan, texture_ref
@@ -65,8 +71,17 @@ def small_plan(out: Path, textures_dir: Path, n_tcp: int = 2, n_layouts: int = 1
         textures["cube/adv3d"] = texture_ref(attack_dir(textures_dir / "adv_cube", "cube"), "cube/adv3d", spec)
     if "patch" in conditions:
         textures["cube/patch"] = texture_ref(attack_dir(textures_dir / "patch_cube", "patch", 1), "cube/patch", spec)
-    plan = make_plan(spec, seed, ["A"], ["cube"], list(conditions), textures, n_tcp_poses=n_tcp, n_object_layouts=n_layouts,
-                     max_steps=max_steps)
+    plan = make_plan(
+        spec,
+        seed,
+        ["A"],
+        ["cube"],
+        list(conditions),
+        textures,
+        n_tcp_poses=n_tcp,
+        n_object_layouts=n_layouts,
+        max_steps=max_steps,
+    )
     save_plan(plan, out)
     return out
 

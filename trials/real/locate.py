@@ -61,7 +61,9 @@ class LocatedObject:
     ambiguous: bool = False
     alternatives_center_m: np.ndarray | None = None
     source: str = "tags"
-    visible_fraction: float | None = None  # seen / expected tag area from this view (calibration.registry.visible_tag_fraction)
+    visible_fraction: float | None = (
+        None  # seen / expected tag area from this view (calibration.registry.visible_tag_fraction)
+    )
 
     @property
     def xy_m(self) -> np.ndarray:
@@ -161,8 +163,16 @@ class TagLocator:
                 from calibration.registry import visible_tag_fraction
 
                 vis = visible_tag_fraction(self.registry, role, obs.T_cam_object, obs.tag_ids, self.intrinsics)
-            out[role] = LocatedObject(role, T, T[:3, 3].copy(), tuple(obs.tag_ids), bool(obs.ambiguous),
-                                      np.array(alts) if alts else None, "tags", vis)
+            out[role] = LocatedObject(
+                role,
+                T,
+                T[:3, 3].copy(),
+                tuple(obs.tag_ids),
+                bool(obs.ambiguous),
+                np.array(alts) if alts else None,
+                "tags",
+                vis,
+            )
         return out
 
     @staticmethod
@@ -173,8 +183,12 @@ class TagLocator:
         obs = observations.get("table")
         if obs is None:
             return None
-        return T_base_object(np.asarray(T_base_tcp, dtype=np.float64), np.asarray(T_tcp_cam, dtype=np.float64),
-                             obs.T_cam_object, np.eye(4))
+        return T_base_object(
+            np.asarray(T_base_tcp, dtype=np.float64),
+            np.asarray(T_tcp_cam, dtype=np.float64),
+            obs.T_cam_object,
+            np.eye(4),
+        )
 
 
 @dataclass(frozen=True)
@@ -207,8 +221,9 @@ def _direction(dx: float, dy: float) -> str:
     return " ".join(name for mag, name in parts if mag >= 0.25 * big)
 
 
-def placement_issues(planned: Mapping, located: Mapping[str, LocatedObject], tolerance_m: float,
-                     tolerance_rad: float) -> list[PlacementIssue]:
+def placement_issues(
+    planned: Mapping, located: Mapping[str, LocatedObject], tolerance_m: float, tolerance_rad: float
+) -> list[PlacementIssue]:
     """Objects whose located pose misses the plan by more than a tolerance (empty: placed).
 
     ``planned``: role -> :class:`trials.real.plan.ObjectPlacement` (``xy_m``, ``yaw_rad``).

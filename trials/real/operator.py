@@ -46,8 +46,16 @@ from typing import Protocol
 
 from sim.errors import AdvobjError
 
-__all__ = ["OUTCOMES", "Decision", "Operator", "AutoOperator", "ScriptedOperator", "TerminalOperator", "AnswersError",
-           "load_answers"]
+__all__ = [
+    "OUTCOMES",
+    "Decision",
+    "Operator",
+    "AutoOperator",
+    "ScriptedOperator",
+    "TerminalOperator",
+    "AnswersError",
+    "load_answers",
+]
 
 OUTCOMES = ("goal", "adversarial", "none", "unknown")
 _OVERRIDE_KEYS = {"g": "goal", "a": "adversarial", "n": "none", "u": "unknown"}
@@ -158,11 +166,15 @@ class ScriptedOperator(AutoOperator):
             ids = {t.trial_id for t in plan.trials}
             bad = sorted(set(self.answers) - ids)
             if bad:
-                raise AnswersError(f"{self.source}: trial ids not in the plan: {', '.join(bad[:5])}" + (" ..." if len(bad) > 5 else ""))
+                raise AnswersError(
+                    f"{self.source}: trial ids not in the plan: {', '.join(bad[:5])}" + (" ..." if len(bad) > 5 else "")
+                )
             return
         if len(self.answers) > len(plan.trials):
-            raise AnswersError(f"{self.source}: {len(self.answers)} answers for a plan of {len(plan.trials)} trials "
-                               "(entry i answers the i-th trial of the run order)")
+            raise AnswersError(
+                f"{self.source}: {len(self.answers)} answers for a plan of {len(plan.trials)} trials "
+                "(entry i answers the i-th trial of the run order)"
+            )
         self._position = {t.trial_id: i for i, t in enumerate(sorted(plan.trials, key=lambda t: t.order))}
 
     def confirm(self, trial, result, info: str) -> Decision:
@@ -301,8 +313,10 @@ class TerminalOperator:
         self._discard_typeahead()  # keys pressed during the policy loop must not accept this outcome
         self.show(info)
         if result.reached == "unknown":
-            self.show("  the camera could not tell the outcome: which object did the gripper reach? [g/a/n] say so, "
-                      "[enter/u] keep it unknown")
+            self.show(
+                "  the camera could not tell the outcome: which object did the gripper reach? [g/a/n] say so, "
+                "[enter/u] keep it unknown"
+            )
         keys = "[enter/y] accept   [g/a/n/u] override: goal/adversarial/none/unknown   [t] note   [q] abort"
         then = "[enter/y] confirm   [t] note, then confirm   [b] back: choose again   [q] abort"
         while True:

@@ -98,14 +98,18 @@ class Pose(_Strict):
         """The (4, 4) homogeneous transform."""
         from sim.geometry import make_T, so3_exp
 
-        return make_T(so3_exp(np.asarray(self.rotvec_rad, dtype=np.float64)), np.asarray(self.translation_m, dtype=np.float64))
+        return make_T(
+            so3_exp(np.asarray(self.rotvec_rad, dtype=np.float64)), np.asarray(self.translation_m, dtype=np.float64)
+        )
 
     @staticmethod
     def from_T(T) -> "Pose":
         from sim.geometry import so3_log
 
         T = np.asarray(T, dtype=np.float64)
-        return Pose(translation_m=tuple(float(x) for x in T[:3, 3]), rotvec_rad=tuple(float(x) for x in so3_log(T[:3, :3])))
+        return Pose(
+            translation_m=tuple(float(x) for x in T[:3, 3]), rotvec_rad=tuple(float(x) for x in so3_log(T[:3, :3]))
+        )
 
 
 class ObjectPlacement(_Strict):
@@ -163,10 +167,20 @@ class TrialPlan(_Strict):
     # Bounds a real cell can run (a plan outside them is refused at load, before any device connects).
     radius_m: Annotated[float, Field(gt=0, le=1.0, description="success radius around an object, m")] = 0.10
     max_steps: Annotated[int, Field(gt=0, le=MAX_STEPS, description="policy steps per trial at most")] = 60
-    control_hz: Annotated[float, Field(ge=MIN_CONTROL_HZ, le=MAX_CONTROL_HZ, description=(
-        "policy loop rate; its period 1/control_hz (1 ms to 2 s) becomes the safety layer's control_period_s"))] = 10.0
+    control_hz: Annotated[
+        float,
+        Field(
+            ge=MIN_CONTROL_HZ,
+            le=MAX_CONTROL_HZ,
+            description=(
+                "policy loop rate; its period 1/control_hz (1 ms to 2 s) becomes the safety layer's control_period_s"
+            ),
+        ),
+    ] = 10.0
     placement_tolerance_m: Annotated[float, Field(gt=0, le=0.5, description="object placement check, m")] = 0.01
-    placement_tolerance_rad: Annotated[float, Field(gt=0, le=math.pi, description="object placement check (yaw), rad")] = 0.0873
+    placement_tolerance_rad: Annotated[
+        float, Field(gt=0, le=math.pi, description="object placement check (yaw), rad")
+    ] = 0.0873
     envs: list[str]
     shapes: list[str]
     conditions: list[str]
@@ -192,7 +206,9 @@ class TrialPlan(_Strict):
         for field, items in (("tcp_poses", self.tcp_poses), ("object_layouts", self.object_layouts)):
             for i, item in enumerate(items):
                 if item.index != i:
-                    raise ValueError(f"{field}.{i}.index: expected {i} (indices count 0, 1, 2, ... in list order), got {item.index}")
+                    raise ValueError(
+                        f"{field}.{i}.index: expected {i} (indices count 0, 1, 2, ... in list order), got {item.index}"
+                    )
         for shape in self.shapes:
             for c in TEXTURED:
                 if c in self.conditions and f"{shape}/{c}" not in self.textures:
@@ -210,9 +226,13 @@ class TrialPlan(_Strict):
                 if getattr(t, field) not in allowed:
                     raise ValueError(f"{where}.{field}: {getattr(t, field)!r} is not in the plan's {field}s {allowed}")
             if t.tcp_pose >= len(self.tcp_poses):
-                raise ValueError(f"{where}.tcp_pose: {t.tcp_pose} out of range (the plan has {len(self.tcp_poses)} TCP poses)")
+                raise ValueError(
+                    f"{where}.tcp_pose: {t.tcp_pose} out of range (the plan has {len(self.tcp_poses)} TCP poses)"
+                )
             if t.object_layout >= len(self.object_layouts):
-                raise ValueError(f"{where}.object_layout: {t.object_layout} out of range (the plan has {len(self.object_layouts)} layouts)")
+                raise ValueError(
+                    f"{where}.object_layout: {t.object_layout} out of range (the plan has {len(self.object_layouts)} layouts)"
+                )
         return self
 
     def tcp_pose(self, index: int) -> TcpPose:
@@ -251,7 +271,7 @@ def texture_ref(path: str | Path, key: str, spec=None) -> TextureRef:
     shape itself for ``/adv3d`` (a run on the scene's own adversarial mesh counts when that mesh is
     the shape).
     """
-    from trials.conditions import load_attack_source
+    from trials.eval.conditions import load_attack_source
 
     shape, _, cond = key.partition("/")
     if cond not in TEXTURED or not shape:
@@ -260,7 +280,9 @@ def texture_ref(path: str | Path, key: str, spec=None) -> TextureRef:
     mesh = src.mesh if src.mesh is not None else (spec.adversarial.mesh if spec is not None else None)
     want = "patch" if cond == "patch" else shape
     if mesh != want:
-        raise PlanError(f"--texture {key}={path}: the attack run optimised mesh {mesh!r}, but {key} needs mesh {want!r}")
+        raise PlanError(
+            f"--texture {key}={path}: the attack run optimised mesh {mesh!r}, but {key} needs mesh {want!r}"
+        )
     return TextureRef(path=str(path), sha256=src.sha256)
 
 
@@ -312,7 +334,9 @@ def _draw_configs(spec, rng: np.random.Generator, pool):
         yield sample_config(spec, base + i, centers)
 
 
-def _poses(spec, rng: np.random.Generator, n_tcp: int, n_layouts: int, pool, workspace=None) -> tuple[list[TcpPose], list[ObjectLayout]]:
+def _poses(
+    spec, rng: np.random.Generator, n_tcp: int, n_layouts: int, pool, workspace=None
+) -> tuple[list[TcpPose], list[ObjectLayout]]:
     """``workspace``: ``(min_m, max_m, T_base_table)``, the safety box in the arm's base frame; only
     TCP poses inside it are drawn."""
     from sim.configs import object_local_centers, object_poses_world
@@ -327,7 +351,10 @@ def _poses(spec, rng: np.random.Generator, n_tcp: int, n_layouts: int, pool, wor
         xyy = np.asarray(cfg.object_xy_yaw, dtype=np.float64)
         T_objs = object_poses_world(xyy)
         centers.append(np.einsum("kij,kj->ki", T_objs[:, :3, :3], centers_local) + T_objs[:, :3, 3])
-        objects = {role: ObjectPlacement(xy_m=(float(xyy[k, 0]), float(xyy[k, 1])), yaw_rad=float(xyy[k, 2])) for role, k in (("goal", goal), ("adversarial", adv))}
+        objects = {
+            role: ObjectPlacement(xy_m=(float(xyy[k, 0]), float(xyy[k, 1])), yaw_rad=float(xyy[k, 2]))
+            for role, k in (("goal", goal), ("adversarial", adv))
+        }
         layouts.append(ObjectLayout(index=len(layouts), objects=objects))
     tcps, outside = [], []
     for cfg in stream:
@@ -345,12 +372,18 @@ def _poses(spec, rng: np.random.Generator, n_tcp: int, n_layouts: int, pool, wor
     if workspace is not None and len(tcps) < n_tcp:
         lo, hi, _ = workspace
         span = np.array(outside).reshape(-1, 3)
-        rng_txt = ", ".join(f"{a} {span[:, i].min():.3f}..{span[:, i].max():.3f}" for i, a in enumerate("xyz")) if len(span) else "-"
-        raise PlanError(f"--hardware: found {len(tcps)}/{n_tcp} start TCP poses inside the workspace box "
-                        f"[{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] m (base frame); "
-                        f"{len(outside)} drawn poses fell outside, spanning {rng_txt} m; the scene's start poses "
-                        "(init.r_range_m, init.phi_range_deg, init.region_x_m/region_y_m in the scene YAML) must fit the cell: widen the box if the cell allows it, move the "
-                        "table frame (--table-frame), or use a scene whose start poses lie inside it")
+        rng_txt = (
+            ", ".join(f"{a} {span[:, i].min():.3f}..{span[:, i].max():.3f}" for i, a in enumerate("xyz"))
+            if len(span)
+            else "-"
+        )
+        raise PlanError(
+            f"--hardware: found {len(tcps)}/{n_tcp} start TCP poses inside the workspace box "
+            f"[{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] m (base frame); "
+            f"{len(outside)} drawn poses fell outside, spanning {rng_txt} m; the scene's start poses "
+            "(init.r_range_m, init.phi_range_deg, init.region_x_m/region_y_m in the scene YAML) must fit the cell: widen the box if the cell allows it, move the "
+            "table frame (--table-frame), or use a scene whose start poses lie inside it"
+        )
     if len(layouts) < n_layouts or len(tcps) < n_tcp:
         src = f"the pool's {len(pool)} configurations" if pool is not None else f"{_MAX_DRAWS} sampled configurations"
         raise PlanError(
@@ -403,7 +436,9 @@ def make_plan(
                 raise PlanError(f"--texture: condition {c!r} of shape {s!r} needs --texture {s}/{c}=RUN_DIR")
     unused = sorted(k for k in textures if k.split("/")[0] not in shapes or k.partition("/")[2] not in conditions)
     if unused:
-        raise PlanError(f"--texture: {', '.join(unused)} not used by the plan's shapes {shapes} and conditions {conditions}")
+        raise PlanError(
+            f"--texture: {', '.join(unused)} not used by the plan's shapes {shapes} and conditions {conditions}"
+        )
     if n_tcp_poses < 1 or n_object_layouts < 1:
         raise PlanError(f"--tcp-poses and --object-poses must be at least 1, got {n_tcp_poses} and {n_object_layouts}")
 
@@ -416,11 +451,15 @@ def make_plan(
                 for cond in conditions:
                     for t in range(n_tcp_poses):
                         for o in range(n_object_layouts):
-                            cells.append((trial_id(env, shape, cond, t, o, tag), env, shape, cond, t, o, [tag] if tag else []))
+                            cells.append(
+                                (trial_id(env, shape, cond, t, o, tag), env, shape, cond, t, o, [tag] if tag else [])
+                            )
     for c in cells:
         if name_problem(c[0]) is not None:
-            raise PlanError(f"--env/--shape/--tag: trial id {c[0]!r} ({len(c[0])} characters) is too long; trial ids must be "
-                            f"{SAFE_NAME_RULE}: use shorter names")
+            raise PlanError(
+                f"--env/--shape/--tag: trial id {c[0]!r} ({len(c[0])} characters) is too long; trial ids must be "
+                f"{SAFE_NAME_RULE}: use shorter names"
+            )
     # Environment by environment (a random order of envs), each block in a random order: an
     # environment is a physical setup, and switching it between trials would cost a rebuild each time.
     order = np.empty(len(cells), dtype=np.int64)
@@ -431,14 +470,34 @@ def make_plan(
             order[int(i)] = k
             k += 1
     trials = sorted(
-        (PlannedTrial(trial_id=c[0], order=int(k), env=c[1], shape=c[2], condition=c[3], tcp_pose=c[4], object_layout=c[5], tags=c[6]) for c, k in zip(cells, order)),
+        (
+            PlannedTrial(
+                trial_id=c[0],
+                order=int(k),
+                env=c[1],
+                shape=c[2],
+                condition=c[3],
+                tcp_pose=c[4],
+                object_layout=c[5],
+                tags=c[6],
+            )
+            for c, k in zip(cells, order)
+        ),
         key=lambda t: t.order,
     )
     defaults = {"radius_m": spec.episode.success_radius_m, "max_steps": spec.episode.max_steps}
     try:
         return TrialPlan(
-            seed=int(seed), scene=scene, envs=envs, shapes=shapes, conditions=conditions, tcp_poses=tcps, object_layouts=layouts,
-            textures=dict(textures), trials=trials, **{**defaults, **settings},
+            seed=int(seed),
+            scene=scene,
+            envs=envs,
+            shapes=shapes,
+            conditions=conditions,
+            tcp_poses=tcps,
+            object_layouts=layouts,
+            textures=dict(textures),
+            trials=trials,
+            **{**defaults, **settings},
         )
     except ValidationError as err:
         raise PlanError(format_validation_error(err, "trial plan")) from None

@@ -68,7 +68,9 @@ def _final(row: dict) -> str:
     if out is None:
         out = row["operator_outcome"] if row.get("operator_outcome") is not None else row.get("auto_outcome")
     if out not in OUTCOMES:
-        raise ReportError(f"trial {row.get('session')}/{row.get('trial_id')}: final_outcome {out!r} is not one of {', '.join(OUTCOMES)}")
+        raise ReportError(
+            f"trial {row.get('session')}/{row.get('trial_id')}: final_outcome {out!r} is not one of {', '.join(OUTCOMES)}"
+        )
     return out
 
 
@@ -108,7 +110,13 @@ def _breakdown(rows, confidence: float) -> dict:
         "by_condition": {k: cell(v) for k, v in _by(rows, lambda r: [r["condition"]]).items()},
         # a trial with several tags counts under each of them
         "by_tag": {k: cell(v) for k, v in _by(rows, lambda r: list(r.get("tags") or []) or [UNTAGGED]).items()},
-        "cells": {k: cell(v) for k, v in _by(rows, lambda r: [f"{r['env']}/{r['shape']}/{r['condition']}/{'+'.join(r.get('tags') or []) or UNTAGGED}"]).items()},
+        "cells": {
+            k: cell(v)
+            for k, v in _by(
+                rows,
+                lambda r: [f"{r['env']}/{r['shape']}/{r['condition']}/{'+'.join(r.get('tags') or []) or UNTAGGED}"],
+            ).items()
+        },
     }
 
 
@@ -139,25 +147,55 @@ def audit(rows, planned: dict, amendments) -> dict:
         done = sum(1 for r in rows if r["session"] == s)
         if n_plan and done < n_plan:
             incomplete.append(f"session {s}: {done} of {n_plan} planned trials committed")
-    overrides = [{"session": r["session"], "trial_id": r["trial_id"], "auto": r["auto_outcome"], "operator": r["operator_outcome"],
-                  "note": r.get("note") or ""} for r in rows if r.get("operator_outcome")]
+    overrides = [
+        {
+            "session": r["session"],
+            "trial_id": r["trial_id"],
+            "auto": r["auto_outcome"],
+            "operator": r["operator_outcome"],
+            "note": r.get("note") or "",
+        }
+        for r in rows
+        if r.get("operator_outcome")
+    ]
     notes = [{"session": r["session"], "trial_id": r["trial_id"], "note": r["note"]} for r in rows if r.get("note")]
-    amended = [{"session": a["session"], "trial_id": a["trial_id"], "at": a["amended_at"], "old": a["old_final_outcome"],
-                "new": a["new_final_outcome"], "old_note": a["old_note"], "new_note": a["new_note"], "reason": a["reason"]}
-               for a in amendments]
+    amended = [
+        {
+            "session": a["session"],
+            "trial_id": a["trial_id"],
+            "at": a["amended_at"],
+            "old": a["old_final_outcome"],
+            "new": a["new_final_outcome"],
+            "old_note": a["old_note"],
+            "new_note": a["new_note"],
+            "reason": a["reason"],
+        }
+        for a in amendments
+    ]
     return {"planned": planned, "incomplete": incomplete, "overrides": overrides, "amendments": amended, "notes": notes}
 
 
 def audit_md(a: dict) -> list[str]:
     lines = ["## Completeness, overrides, amendments and notes", ""]
-    lines += [f"- **Incomplete:** {t}." for t in a["incomplete"]] or ["- Every session committed all its planned trials."]
+    lines += [f"- **Incomplete:** {t}." for t in a["incomplete"]] or [
+        "- Every session committed all its planned trials."
+    ]
     lines += ["", f"Operator overrides ({len(a['overrides'])}):", ""]
-    lines += ([f"- {o['session']}/{o['trial_id']}: {o['auto']} -> {o['operator']}" + (f" ({o['note']})" if o["note"] else "")
-               for o in a["overrides"]] or ["- none"])
-    lines += ["", f"Amendments after the session ({len(a['amendments'])}; old values kept in the database's `amendments` table):", ""]
-    lines += ([f"- {x['session']}/{x['trial_id']} at {x['at']}: {x['old']} -> {x['new']}"
-               + (f", note {x['old_note']!r} -> {x['new_note']!r}" if x["old_note"] != x["new_note"] else "")
-               + (f"; reason: {x['reason']}" if x["reason"] else "") for x in a["amendments"]] or ["- none"])
+    lines += [
+        f"- {o['session']}/{o['trial_id']}: {o['auto']} -> {o['operator']}" + (f" ({o['note']})" if o["note"] else "")
+        for o in a["overrides"]
+    ] or ["- none"]
+    lines += [
+        "",
+        f"Amendments after the session ({len(a['amendments'])}; old values kept in the database's `amendments` table):",
+        "",
+    ]
+    lines += [
+        f"- {x['session']}/{x['trial_id']} at {x['at']}: {x['old']} -> {x['new']}"
+        + (f", note {x['old_note']!r} -> {x['new_note']!r}" if x["old_note"] != x["new_note"] else "")
+        + (f"; reason: {x['reason']}" if x["reason"] else "")
+        for x in a["amendments"]
+    ] or ["- none"]
     lines += ["", f"Notes ({len(a['notes'])}):", ""]
     lines += [f"- {n['session']}/{n['trial_id']}: {n['note']}" for n in a["notes"]] or ["- none"]
     return lines + [""]
@@ -214,8 +252,10 @@ def precision_line(prec: dict) -> str:
         need = f"{prec['trials_needed_observed']} trials at the observed {100 * prec['rate']:.1f} % ({need})"
     now = "no rated trials yet"
     if prec["n"]:
-        now = (f"the {prec['n']} trials here give ±{100 * prec['normal_half_width']:.1f} % (normal approximation "
-               f"z·√(p(1−p)/n)) / ±{100 * prec['wilson_half_width']:.1f} % (Wilson half-width)")
+        now = (
+            f"the {prec['n']} trials here give ±{100 * prec['normal_half_width']:.1f} % (normal approximation "
+            f"z·√(p(1−p)/n)) / ±{100 * prec['wilson_half_width']:.1f} % (Wilson half-width)"
+        )
     return f"A ±{h:g} % {pct} % interval on T-ASR needs n = ⌈z²·p(1−p)/h²⌉ = {need}; {now}."
 
 
@@ -231,14 +271,18 @@ def load_sim_eval(eval_dir) -> dict:
     except UnicodeDecodeError:
         raise ReportError(f"{d / 'summary.json'}: not an eval summary (a binary file, not UTF-8 JSON)") from None
     except (json.JSONDecodeError, KeyError, TypeError, RecursionError) as err:
-        raise ReportError(f"{d / 'summary.json'}: not an eval summary ({type(err).__name__}: {' '.join(str(err).split())})") from None
+        raise ReportError(
+            f"{d / 'summary.json'}: not an eval summary ({type(err).__name__}: {' '.join(str(err).split())})"
+        ) from None
     sources, adv_mesh = {}, None
     try:
         cfg = json.loads((d / "run.json").read_text())["config"]
         for c in cfg.get("conditions", []):
             src = c.get("source") or {}
             sources[c["name"]] = {"sha256": src.get("sha256"), "mesh": src.get("mesh")}
-        adv_mesh = next((o["mesh"] for o in (cfg.get("scene") or {}).get("objects", []) if o.get("role") == "adversarial"), None)
+        adv_mesh = next(
+            (o["mesh"] for o in (cfg.get("scene") or {}).get("objects", []) if o.get("role") == "adversarial"), None
+        )
     except (OSError, json.JSONDecodeError, KeyError, TypeError):
         pass  # without run.json the texture identity is unknown: rule 3 of the module docstring
     return {"path": str(d), "conditions": conditions, "sources": sources, "adversarial_mesh": adv_mesh}
@@ -248,7 +292,12 @@ def sim_match(sim: dict, shape: str, real_sha256: str | None) -> dict:
     """The sim condition standing for ``shape`` (rule in the module docstring): ``{condition, status, tasr, asr}``."""
     cands = [c for c in ("attack", f"shape_{shape}") if c in sim["conditions"]]
     none = lambda status: {"condition": None, "status": status, "tasr": None, "asr": None}  # noqa: E731
-    pick = lambda c, status: {"condition": c, "status": status, "tasr": sim["conditions"][c]["tasr"], "asr": sim["conditions"][c]["asr"]}  # noqa: E731
+    pick = lambda c, status: {
+        "condition": c,
+        "status": status,
+        "tasr": sim["conditions"][c]["tasr"],
+        "asr": sim["conditions"][c]["asr"],
+    }  # noqa: E731
     if not cands:
         return none(f"no attack/shape_{shape} condition in sim eval")
     shas = {c: (sim["sources"].get(c) or {}).get("sha256") for c in cands}
@@ -298,8 +347,17 @@ def table_iv(rows, sims: dict | None = None, plan_textures: dict | None = None, 
             notes.append(f"{real['unknown']} unknown excluded")
         if real["policy_error"]:
             notes.append(f"{real['policy_error']} policy_error excluded")
-        out.append({"env": env, "shape": shape, "sim": sim, "sim_dir": None if sim_eval is None else sim_eval["path"],
-                    "real": real, "n": real["n"], "note": "; ".join(notes)})
+        out.append(
+            {
+                "env": env,
+                "shape": shape,
+                "sim": sim,
+                "sim_dir": None if sim_eval is None else sim_eval["path"],
+                "real": real,
+                "n": real["n"],
+                "note": "; ".join(notes),
+            }
+        )
     return out
 
 
@@ -312,7 +370,12 @@ def _pct(p: dict | None, ci: bool = True) -> str:
 
 
 def _cells_md(title: str, cells: dict, key: str) -> list[str]:
-    lines = [f"### {title}", "", f"| {key} | n | T-ASR % [95% CI] | ASR % [95% CI] | unknown |", "|---|---:|---|---|---:|"]
+    lines = [
+        f"### {title}",
+        "",
+        f"| {key} | n | T-ASR % [95% CI] | ASR % [95% CI] | unknown |",
+        "|---|---:|---|---|---:|",
+    ]
     for k, c in cells.items():
         lines.append(f"| {k} | {c['n']} | {_pct(c['tasr'])} | {_pct(c['asr'])} | {c['unknown']} |")
     return lines + [""]
@@ -321,7 +384,10 @@ def _cells_md(title: str, cells: dict, key: str) -> list[str]:
 def _breakdown_md(b: dict) -> list[str]:
     o = b["overall"]
     errors = f", {o['policy_error']} policy_error" if o["policy_error"] else ""
-    lines = [f"All trials: n = {o['n']} rated ({o['unknown']} unknown{errors}), T-ASR {_pct(o['tasr'])} %, ASR {_pct(o['asr'])} %", ""]
+    lines = [
+        f"All trials: n = {o['n']} rated ({o['unknown']} unknown{errors}), T-ASR {_pct(o['tasr'])} %, ASR {_pct(o['asr'])} %",
+        "",
+    ]
     for key, title in (("by_env", "env"), ("by_shape", "shape"), ("by_condition", "condition"), ("by_tag", "tag")):
         lines += _cells_md(f"By {title}", b[key], title)
     lines += _cells_md("By env / shape / condition / tag", b["cells"], "cell")
@@ -329,10 +395,15 @@ def _breakdown_md(b: dict) -> list[str]:
 
 
 def table_iv_md(table: list[dict]) -> list[str]:
-    lines = ["| Env | Shape | Sim T-ASR | Sim ASR | Real T-ASR | Real ASR | n | Note |", "|---|---|---:|---:|---:|---:|---:|---|"]
+    lines = [
+        "| Env | Shape | Sim T-ASR | Sim ASR | Real T-ASR | Real ASR | n | Note |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
+    ]
     for r in table:
-        lines.append(f"| {r['env']} | {r['shape']} | {_pct(r['sim']['tasr'], False)} | {_pct(r['sim']['asr'], False)} | "
-                     f"{_pct(r['real']['tasr'])} | {_pct(r['real']['asr'])} | {r['n']} | {r['note']} |")
+        lines.append(
+            f"| {r['env']} | {r['shape']} | {_pct(r['sim']['tasr'], False)} | {_pct(r['sim']['asr'], False)} | "
+            f"{_pct(r['real']['tasr'])} | {_pct(r['real']['asr'])} | {r['n']} | {r['note']} |"
+        )
     if not table:
         lines.append("| – | – | – | – | – | – | 0 | no untagged adv3d trials |")
     return lines
@@ -344,7 +415,9 @@ def table_precision(table: list[dict], summary: dict, half_width: float = 0.05) 
     if not rated:
         return precision(0, 0, half_width, summary["confidence"]) | {"row": None}
     r = min(rated, key=lambda r: r["n"])
-    return precision(r["real"]["tasr"]["k"], r["n"], half_width, summary["confidence"]) | {"row": f"{r['env']}/{r['shape']}"}
+    return precision(r["real"]["tasr"]["k"], r["n"], half_width, summary["confidence"]) | {
+        "row": f"{r['env']}/{r['shape']}"
+    }
 
 
 def _json_safe(x):
@@ -357,29 +430,50 @@ def _json_safe(x):
     return x
 
 
-def write_trial_report(out_dir, summary: dict, table: list[dict] | None = None, half_width: float = 0.05,
-                       sources: dict | None = None) -> tuple[Path, Path]:
+def write_trial_report(
+    out_dir, summary: dict, table: list[dict] | None = None, half_width: float = 0.05, sources: dict | None = None
+) -> tuple[Path, Path]:
     """Write ``report.md`` (Table IV, the precision line, per-session and pooled tables) and ``report.json``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = table or []
     prec = table_precision(table, summary, half_width)
-    prec_text = (f"Precision ({prec['row']}, the Table IV row with the fewest trials): " if prec["row"] else "Precision: ") + precision_line(prec)
+    prec_text = (
+        f"Precision ({prec['row']}, the Table IV row with the fewest trials): " if prec["row"] else "Precision: "
+    ) + precision_line(prec)
     a = summary.get("audit")
-    md = ["# Real-robot trial report", "",
-          f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): {', '.join(summary['sessions']) or '–'}."
-          + ("".join(f" **Incomplete: {t}.**" for t in a["incomplete"]) if a else ""),
-          "T-ASR = ended at the adversarial object; ASR = did not end at the goal; trials with an unknown outcome are "
-          "excluded from the rates (n = rated trials). Intervals: 95 % Wilson.", "",
-          "## Table IV: sim-to-real transferability (%)", "",
-          "Real: untagged adv3d trials. Sim: the matching condition of the given eval (see the note).", "",
-          *table_iv_md(table), "", prec_text, "", "## All sessions", "", *_breakdown_md(summary["all"])]
+    md = [
+        "# Real-robot trial report",
+        "",
+        f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): {', '.join(summary['sessions']) or '–'}."
+        + ("".join(f" **Incomplete: {t}.**" for t in a["incomplete"]) if a else ""),
+        "T-ASR = ended at the adversarial object; ASR = did not end at the goal; trials with an unknown outcome are "
+        "excluded from the rates (n = rated trials). Intervals: 95 % Wilson.",
+        "",
+        "## Table IV: sim-to-real transferability (%)",
+        "",
+        "Real: untagged adv3d trials. Sim: the matching condition of the given eval (see the note).",
+        "",
+        *table_iv_md(table),
+        "",
+        prec_text,
+        "",
+        "## All sessions",
+        "",
+        *_breakdown_md(summary["all"]),
+    ]
     for s, b in summary["by_session"].items():
         md += [f"## Session {s}", "", *_breakdown_md(b)]
     if a:
         md += audit_md(a)
     md_path, json_path = out / "report.md", out / "report.json"
     md_path.write_text("\n".join(md) + "\n")
-    doc = {"summary": summary, "table_iv": table, "precision": prec, "precision_line": prec_text, "sources": sources or {}}
+    doc = {
+        "summary": summary,
+        "table_iv": table,
+        "precision": prec,
+        "precision_line": prec_text,
+        "sources": sources or {},
+    }
     json_path.write_text(json.dumps(_json_safe(doc), indent=2))
     return md_path, json_path

@@ -54,8 +54,17 @@ import numpy as np
 from sim.errors import AdvobjError
 from trials.real.locate import placement_issues
 from trials.real.operator import Decision
-from trials.real.store import (EventRecord, ObjectPoseRecord, SessionInfo, StepRecord, TrialRecord, clear_frames,
-                               frames_dir, frames_ref, session_frames_dir)
+from trials.real.store import (
+    EventRecord,
+    ObjectPoseRecord,
+    SessionInfo,
+    StepRecord,
+    TrialRecord,
+    clear_frames,
+    frames_dir,
+    frames_ref,
+    session_frames_dir,
+)
 
 __all__ = ["TrialRunner", "RunSummary", "TrialTiming", "ROLES"]
 
@@ -156,10 +165,27 @@ class TrialRunner:
             read (a sim scenario moves or hides an object there).
     """
 
-    def __init__(self, plan, camera, arm, policy, store, operator, locator, session: SessionInfo, action_scale,
-                 stage=None, T_base_table=None, rate_limit: bool = True, on_trial_end: Callable | None = None,
-                 on_step: Callable | None = None, gripper_m: float = 0.06,
-                 stop_on_reach: bool = True, clock: Callable[[], float] = time.monotonic, sleep: Callable = time.sleep):
+    def __init__(
+        self,
+        plan,
+        camera,
+        arm,
+        policy,
+        store,
+        operator,
+        locator,
+        session: SessionInfo,
+        action_scale,
+        stage=None,
+        T_base_table=None,
+        rate_limit: bool = True,
+        on_trial_end: Callable | None = None,
+        on_step: Callable | None = None,
+        gripper_m: float = 0.06,
+        stop_on_reach: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable = time.sleep,
+    ):
         self.plan = plan
         self.camera = camera
         self.arm = arm
@@ -184,7 +210,9 @@ class TrialRunner:
     def run(self, max_trials: int | None = None) -> RunSummary:
         ordered = sorted(self.plan.trials, key=lambda t: t.order)
         self._check_initial_poses(ordered)  # before the session is opened: a refused plan records nothing
-        session_frames_dir(self.store.path, self.session.name)  # a name that is no safe directory: refused, nothing recorded
+        session_frames_dir(
+            self.store.path, self.session.name
+        )  # a name that is no safe directory: refused, nothing recorded
         sid = self.store.open_session(self.session)
         done = self.store.committed_trial_ids(sid)
         todo = [t for t in ordered if t.trial_id not in done]
@@ -192,12 +220,16 @@ class TrialRunner:
         if max_trials is not None:
             todo = todo[: max(0, int(max_trials))]
         if summary.already_done:
-            self.operator.show(f"session {self.session.name}: {summary.already_done} of {len(ordered)} trials already done, resuming")
+            self.operator.show(
+                f"session {self.session.name}: {summary.already_done} of {len(ordered)} trials already done, resuming"
+            )
         current = None
         try:
             for i, trial in enumerate(todo):
                 current = trial
-                self.operator.show(self._header(trial, summary.already_done + i + 1, len(ordered), summary.timings, len(todo) - i))
+                self.operator.show(
+                    self._header(trial, summary.already_done + i + 1, len(ordered), summary.timings, len(todo) - i)
+                )
                 while True:
                     try:
                         rec, timing = self._run_trial(trial)
@@ -210,14 +242,22 @@ class TrialRunner:
                 summary.committed.append(trial.trial_id)
                 summary.timings.append(timing)
                 current = None
-                self.operator.show(f"  committed: {rec.final_outcome}" + (f" (auto: {rec.auto_outcome})" if rec.operator_outcome else "")
-                                   + f", {len(rec.steps)} steps at {timing.loop_hz:.1f} Hz, {rec.stop_reason}")
+                self.operator.show(
+                    f"  committed: {rec.final_outcome}"
+                    + (f" (auto: {rec.auto_outcome})" if rec.operator_outcome else "")
+                    + f", {len(rec.steps)} steps at {timing.loop_hz:.1f} Hz, {rec.stop_reason}"
+                )
         except (_Abort, KeyboardInterrupt, EOFError) as err:
             # EOF: the operator's input closed (terminal gone, answers piped in ran out). Nobody can
             # confirm outcomes any more, so it is an abort like 'q', not a crash with a traceback.
             summary.aborted = True
-            summary.abort_reason = ("Ctrl-C" if isinstance(err, KeyboardInterrupt)
-                                    else "operator input closed" if isinstance(err, EOFError) else "operator abort")
+            summary.abort_reason = (
+                "Ctrl-C"
+                if isinstance(err, KeyboardInterrupt)
+                else "operator input closed"
+                if isinstance(err, EOFError)
+                else "operator abort"
+            )
             self._stop_quietly(f"session aborted ({summary.abort_reason})")
             if current is not None and current.trial_id not in self.store.committed_trial_ids(sid):
                 clear_frames(frames_dir(self.store.path, self.session.name, current.trial_id))
@@ -239,18 +279,25 @@ class TrialRunner:
             if not limits.contains(p):
                 bad[t.tcp_pose] = (p, [t.trial_id])
         if bad:
-            lines = [f"TCP pose {k} at [{', '.join(f'{v:.3f}' for v in p)}] m in the base frame ({len(ids)} trials, e.g. {ids[0]})"
-                     for k, (p, ids) in sorted(bad.items())]
+            lines = [
+                f"TCP pose {k} at [{', '.join(f'{v:.3f}' for v in p)}] m in the base frame ({len(ids)} trials, e.g. {ids[0]})"
+                for k, (p, ids) in sorted(bad.items())
+            ]
             raise PlanOutsideWorkspace(
                 "trial plan: initial TCP poses outside the safety workspace box "
-                f"{list(limits.workspace_min_m)} .. {list(limits.workspace_max_m)} m:\n  " + "\n  ".join(lines)
-                + "\nwiden workspace_min_m / workspace_max_m in the hardware YAML (if the cell allows it) or make a new plan")
+                f"{list(limits.workspace_min_m)} .. {list(limits.workspace_max_m)} m:\n  "
+                + "\n  ".join(lines)
+                + "\nwiden workspace_min_m / workspace_max_m in the hardware YAML (if the cell allows it) or make a new plan"
+            )
 
     def _header(self, trial, k: int, n: int, timings, left: int) -> str:
         per = np.mean([t.overhead_s + t.loop_s + t.commit_s for t in timings]) if timings else float("nan")
-        return (f"[{k}/{n}] {trial.trial_id}: env {trial.env}, shape {trial.shape}, {trial.condition}, TCP pose {trial.tcp_pose}, "
-                f"layout {trial.object_layout}" + (f", tags {','.join(trial.tags)}" if trial.tags else "")
-                + f"   ETA {_fmt_eta(per * left)}")
+        return (
+            f"[{k}/{n}] {trial.trial_id}: env {trial.env}, shape {trial.shape}, {trial.condition}, TCP pose {trial.tcp_pose}, "
+            f"layout {trial.object_layout}"
+            + (f", tags {','.join(trial.tags)}" if trial.tags else "")
+            + f"   ETA {_fmt_eta(per * left)}"
+        )
 
     def _stop_quietly(self, reason: str) -> None:
         try:
@@ -280,7 +327,9 @@ class TrialRunner:
         t3 = self.clock()
 
         n_ev = len(self.arm.events)
-        tracked = {r: (obj, -1) for r, obj in placed.items()}  # role -> (last seen pose, step; -1 = the placement check)
+        tracked = {
+            r: (obj, -1) for r, obj in placed.items()
+        }  # role -> (last seen pose, step; -1 = the placement check)
         import contextlib
 
         with getattr(self.operator, "running", contextlib.nullcontext)():
@@ -295,8 +344,9 @@ class TrialRunner:
 
         result, final, T_table_tcp = self._outcome(T_base_tcp0, stop_reason, events, t0)
         reason = result.reason + "".join(f"; {self._last_seen(role, tracked)}" for role in result.missing)
-        info = (f"  outcome: {result.reached} ({reason}); distances "
-                + ", ".join(f"{k} {'?' if v is None else f'{v * 100:.1f} cm'}" for k, v in result.distances_m.items()))
+        info = f"  outcome: {result.reached} ({reason}); distances " + ", ".join(
+            f"{k} {'?' if v is None else f'{v * 100:.1f} cm'}" for k, v in result.distances_m.items()
+        )
         t5 = self.clock()
         if policy_error:
             # the policy broke, the arm was stopped before that action: no outcome to confirm
@@ -309,19 +359,41 @@ class TrialRunner:
         if decision.abort:
             raise _Abort()
         if decision.outcome is not None and decision.outcome != result.reached:
-            events.append(EventRecord(self.clock() - t0, "operator", "override", f"{result.reached} -> {decision.outcome}"))
+            events.append(
+                EventRecord(self.clock() - t0, "operator", "override", f"{result.reached} -> {decision.outcome}")
+            )
         operator_outcome = decision.outcome if decision.outcome != result.reached else None
 
         poses = [self._pose_record(role, "placement", placed.get(role)) for role in ROLES]
         poses += [self._pose_record(role, "final", final.get(role)) for role in ROLES]
         ref = plan.texture_for(trial)
         rec = TrialRecord(
-            trial_id=trial.trial_id, plan_order=trial.order, env=trial.env, shape=trial.shape, condition=trial.condition,
-            tcp_pose=trial.tcp_pose, object_layout=trial.object_layout, tags=list(trial.tags),
-            texture_sha256=None if ref is None else ref.sha256, started_at=_iso_utc(t_wall), duration_s=self.clock() - t0,
-            stop_reason=stop_reason, auto_outcome=result.reached, auto_reason=reason, distances_m=result.distances_m,
-            operator_outcome=operator_outcome, note=decision.note, placement_checks=checks, placement_skipped=skipped,
-            T_table_tcp_final=T_table_tcp, frames_dir=rel_dir, steps=steps, object_poses=poses, events=events, light_level=light)
+            trial_id=trial.trial_id,
+            plan_order=trial.order,
+            env=trial.env,
+            shape=trial.shape,
+            condition=trial.condition,
+            tcp_pose=trial.tcp_pose,
+            object_layout=trial.object_layout,
+            tags=list(trial.tags),
+            texture_sha256=None if ref is None else ref.sha256,
+            started_at=_iso_utc(t_wall),
+            duration_s=self.clock() - t0,
+            stop_reason=stop_reason,
+            auto_outcome=result.reached,
+            auto_reason=reason,
+            distances_m=result.distances_m,
+            operator_outcome=operator_outcome,
+            note=decision.note,
+            placement_checks=checks,
+            placement_skipped=skipped,
+            T_table_tcp_final=T_table_tcp,
+            frames_dir=rel_dir,
+            steps=steps,
+            object_poses=poses,
+            events=events,
+            light_level=light,
+        )
         timing = TrialTiming(trial.trial_id, t1 - t0, t2 - t1, t3 - t2, t_loop, t5 - t4, 0.0, len(steps))
         return rec, timing
 
@@ -380,8 +452,14 @@ class TrialRunner:
                 d = float(np.linalg.norm(obj.xy_m - ref.xy_m))
                 if d > self.plan.placement_tolerance_m:
                     moved.add(role)
-                    events.append(EventRecord(self.clock() - t0, "track", "moved",
-                                              f"{role} moved {d * 100:.1f} cm from its placement by step {k}"))
+                    events.append(
+                        EventRecord(
+                            self.clock() - t0,
+                            "track",
+                            "moved",
+                            f"{role} moved {d * 100:.1f} cm from its placement by step {k}",
+                        )
+                    )
 
     @staticmethod
     def _last_seen(role: str, tracked) -> str:
@@ -401,7 +479,14 @@ class TrialRunner:
         stop_reason = "max_steps"
         light = None
         moved: set[str] = set()
-        from sim.policies.contract import ActionQueue, call_policy, decode_actions, policy_contract, state_vector, target_pose
+        from sim.policies.contract import (
+            ActionQueue,
+            call_policy,
+            decode_actions,
+            policy_contract,
+            state_vector,
+            target_pose,
+        )
 
         contract = policy_contract(self.policy)
         queue = ActionQueue(contract, 1)
@@ -434,8 +519,10 @@ class TrialRunner:
             if not np.isfinite(action).all():
                 # never sent to the arm (the safety layer would refuse it too) and not a step record:
                 # the action columns hold numbers only
-                stop_reason = (f"{POLICY_ERROR}: the policy output a non-finite action at step {k} "
-                               f"([{', '.join(f'{a:g}' for a in action)}])")
+                stop_reason = (
+                    f"{POLICY_ERROR}: the policy output a non-finite action at step {k} "
+                    f"([{', '.join(f'{a:g}' for a in action)}])"
+                )
                 events.append(EventRecord(self.clock() - t0, "policy", "error", stop_reason))
                 break
             try:
@@ -456,8 +543,20 @@ class TrialRunner:
             T_meas = T_frame = self.arm.tcp_pose()
             name = f"step_{k:03d}.png"
             cv2.imwrite(str(fdir / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-            steps.append(StepRecord(k, frame.timestamp_s - t_start, t_cmd - t_start, int(frame.seq), action.tolist(), res.T_cmd,
-                                    T_meas, res.status, "; ".join(res.reasons), f"{rel_dir}/{name}"))
+            steps.append(
+                StepRecord(
+                    k,
+                    frame.timestamp_s - t_start,
+                    t_cmd - t_start,
+                    int(frame.seq),
+                    action.tolist(),
+                    res.T_cmd,
+                    T_meas,
+                    res.status,
+                    "; ".join(res.reasons),
+                    f"{rel_dir}/{name}",
+                )
+            )
             if res.status == "refused":
                 stop_reason = f"refused: {'; '.join(res.reasons)}"
                 break
@@ -489,9 +588,15 @@ class TrialRunner:
         if unseen:
             stopped = stop_reason.startswith(("fault", "safety_stop", POLICY_ERROR)) or self.arm.fault() is not None
             if stopped:
-                events.append(EventRecord(self.clock() - t0, "outcome", "no_look_again",
-                                          f"not seen from the final pose: {', '.join(unseen)}; the arm stays where the trial "
-                                          f"stopped ({stop_reason.split(':')[0]})"))
+                events.append(
+                    EventRecord(
+                        self.clock() - t0,
+                        "outcome",
+                        "no_look_again",
+                        f"not seen from the final pose: {', '.join(unseen)}; the arm stays where the trial "
+                        f"stopped ({stop_reason.split(':')[0]})",
+                    )
+                )
             else:
                 try:
                     self.arm.move_to(T_base_tcp0)
@@ -502,9 +607,15 @@ class TrialRunner:
                 else:
                     found = [r for r in unseen if r in again]
                     final = {**final, **{r: again[r] for r in found}}
-                    events.append(EventRecord(self.clock() - t0, "outcome", "look_again",
-                                              f"not seen from the final pose: {', '.join(unseen)}; from the start pose: "
-                                              f"{', '.join(found) or 'none of them'}; back at the final pose"))
+                    events.append(
+                        EventRecord(
+                            self.clock() - t0,
+                            "outcome",
+                            "look_again",
+                            f"not seen from the final pose: {', '.join(unseen)}; from the start pose: "
+                            f"{', '.join(found) or 'none of them'}; back at the final pose",
+                        )
+                    )
         positions = {role: final[role].centers_for_outcome() for role in ROLES if role in final}
         return measure_reach(T_table_tcp[:3, 3], positions, ROLES, self.plan.radius_m), final, T_table_tcp
 
@@ -512,5 +623,14 @@ class TrialRunner:
         if obj is None:
             return ObjectPoseRecord(role, phase, None, None, (), False, 0, getattr(self.locator, "source", "tags"))
         n_alt = 0 if obj.alternatives_center_m is None else len(obj.alternatives_center_m)
-        return ObjectPoseRecord(role, phase, obj.T_table_object, obj.center_table_m, obj.tag_ids, obj.ambiguous, n_alt, obj.source,
-                                obj.visible_fraction)
+        return ObjectPoseRecord(
+            role,
+            phase,
+            obj.T_table_object,
+            obj.center_table_m,
+            obj.tag_ids,
+            obj.ambiguous,
+            n_alt,
+            obj.source,
+            obj.visible_fraction,
+        )

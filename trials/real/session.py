@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import math
 from pathlib import Path
 from typing import Callable
@@ -33,7 +32,14 @@ import numpy as np
 from sim.configio import merged
 from sim.errors import AdvobjError
 
-__all__ = ["SessionSetupError", "file_sha256", "device_identity", "load_trial_policy", "load_T_base_table", "run_session"]
+__all__ = [
+    "SessionSetupError",
+    "file_sha256",
+    "device_identity",
+    "load_trial_policy",
+    "load_T_base_table",
+    "run_session",
+]
 
 
 class SessionSetupError(AdvobjError, ValueError):
@@ -90,32 +96,63 @@ def load_T_base_table(path: str | Path) -> np.ndarray:
 
 
 def _scene_spec(plan, hw):
-    from trials.scene_tools import load_spec
+    from trials.jobs.scene import load_spec
 
     if plan.scene is not None:
         return load_spec(Path(plan.scene))
     return load_spec(hw.sim.scene)
 
 
-def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | Path, session: str, db: str | Path,
-                operator=None, answers: str | Path | None = None, auto_confirm: bool = False, registry: str | Path | None = None,
-                table_frame: str | Path | None = None, max_trials: int | None = None, rate_limit: bool | None = None,
-                threads: int = 1, on_trial_end: Callable | None = None, on_ready: Callable | None = None, log=print):
-    """Run (or resume) ``session`` of ``plan_path`` into ``db``; returns the :class:`RunSummary`.
+@dataclasses.dataclass(frozen=True)
+class PreparedSession:
+    """A session with every input loaded and validated, before any device exists
+    (:func:`prepare_session`); :func:`run_prepared` connects the devices and runs it."""
 
-    ``operator``: an explicit :class:`Operator`; else ``auto_confirm`` / ``answers`` pick the
-    scripted ones and the default is the terminal UI. ``rate_limit`` None: on for real arms and for
-    sim arms with ``realtime: true``, off for other sim arms. ``on_ready(runner, world)`` is called
-    before the first trial (tests use it to reach the sim world and stage).
-    """
+    hw: object  # robot_io.config.HardwareConfig, the safety layer at the plan's rate
+    plan: object  # trials.real.plan.TrialPlan
+    plan_path: Path
+    hardware_path: Path
+    policy: object
+    spec: object  # the scene the trials use
+    session_dir: Path
+    db: Path
+    operator: object
+    registry: str | Path | None
+    table_frame: str | Path | None
+    rate_limit: bool
+    info: object  # trials.real.store.SessionInfo (devices filled in when they connect)
+    action_scale: tuple
+
+    @property
+    def sim(self) -> bool:
+        return self.hw.camera.type == "sim"
+
+
+def prepare_session(
+    hardware: str | Path,
+    policy_path: str | Path,
+    plan_path: str | Path,
+    session: str,
+    db: str | Path,
+    operator=None,
+    answers: str | Path | None = None,
+    auto_confirm: bool = False,
+    registry: str | Path | None = None,
+    table_frame: str | Path | None = None,
+    rate_limit: bool | None = None,
+    threads: int = 1,
+    log=print,
+) -> PreparedSession:
+    """Load and check everything a session needs, touching no device: the session name, the
+    database's integrity, the hardware config, the plan, the operator's answers, the policy and its
+    contract against the safety limits, the scene, the calibration files' hashes."""
     import importlib.metadata
 
-    from robot_io.config import build_arm, build_camera, build_world, load_hardware_config
+    from robot_io.config import load_hardware_config
     from sim.runinfo import git_commit
     from trials.real.operator import AutoOperator, ScriptedOperator, TerminalOperator
     from trials.real.plan import load_plan, plan_sha256
-    from trials.real.runner import TrialRunner
-    from trials.real.store import SessionInfo, TrialStore, check_database, session_frames_dir
+    from trials.real.store import SessionInfo, check_database, session_frames_dir
 
     # First of all, before anything is read or written: the session name becomes the directory
     # frames/<session> beside the database, which must stay inside frames/ (no symlink out of it);
@@ -139,82 +176,193 @@ def run_session(hardware: str | Path, policy_path: str | Path, plan_path: str | 
     if hasattr(operator, "check_plan"):
         operator.check_plan(plan)
     if not sim and registry is None:
-        raise SessionSetupError("--registry: a real camera needs the tag registry (objects.yaml) for the placement check and the outcome")
+        raise SessionSetupError(
+            "--registry: a real camera needs the tag registry (objects.yaml) for the placement check and the outcome"
+        )
     policy = load_trial_policy(policy_path, threads)
     S = int(policy.image_size)
     if sim and hw.sim.image_size is None:
-        hw = merged(hw, {"sim": merged(hw.sim, {"image_size": (S, S)}, what="hardware config sim", source=str(policy_path),
-                                       error=SessionSetupError)}, what="hardware config", error=SessionSetupError)
+        sim_cfg = merged(
+            hw.sim, {"image_size": (S, S)}, what="hardware config sim", source=str(policy_path), error=SessionSetupError
+        )
+        hw = merged(hw, {"sim": sim_cfg}, what="hardware config", error=SessionSetupError)
     spec = _scene_spec(plan, hw)
     ep = spec.episode
-    action_scale = [ep.max_step_m] * 3 + [ep.max_step_rad] * 3
+    action_scale = (ep.max_step_m,) * 3 + (ep.max_step_rad,) * 3
     hw = _safety_at_plan_rate(hw, plan, ep, log)
     _check_chunk_frame_age(policy, plan, hw)
+    if rate_limit is None:
+        rate_limit = not (hw.arm.type == "sim" and not hw.arm.realtime)
+    calibration_files = {
+        "T_tcp_cam": hw.T_tcp_cam,
+        "intrinsics": getattr(hw.camera, "intrinsics", None),
+        "registry": registry,
+        "table_frame": table_frame,
+    }
+    info = SessionInfo(
+        name=session,
+        plan_sha256=plan_sha256(plan_path),
+        plan_text=plan_path.read_text(),
+        hardware_text=hardware.read_text(),
+        policy_path=str(policy_path),
+        policy_sha256=file_sha256(policy_path) or "",
+        software_version=importlib.metadata.version("advobj"),
+        git_commit=git_commit(),
+        devices=None,
+        calibration={k: file_sha256(v) for k, v in calibration_files.items()},
+        config={
+            "hardware": str(hardware),
+            "plan": str(plan_path),
+            "policy": str(policy_path),
+            "db": str(db),
+            "registry": registry,
+            "table_frame": table_frame,
+            "rate_limit": rate_limit,
+            "threads": threads,
+            "image_size": S,
+            "action_scale": list(action_scale),
+            "seed": plan.seed,
+            "calibration_files": {k: None if v is None else str(v) for k, v in calibration_files.items()},
+        },
+    )
+    return PreparedSession(
+        hw,
+        plan,
+        plan_path,
+        hardware,
+        policy,
+        spec,
+        session_dir,
+        Path(db),
+        operator,
+        registry,
+        table_frame,
+        rate_limit,
+        info,
+        action_scale,
+    )
 
-    intrinsics = getattr(hw.camera, "intrinsics", None)
-    calibration_files = {"T_tcp_cam": hw.T_tcp_cam, "intrinsics": intrinsics, "registry": registry, "table_frame": table_frame}
-    calibration = {k: file_sha256(v) for k, v in calibration_files.items()}
-    world = build_world(hw) if hw.camera.type == "sim" or hw.arm.type == "sim" else None
-    if world is not None and plan.scene is not None:
-        world.set_scene(spec)
-    stage = None
-    try:
-        camera, arm = build_camera(hw, world), build_arm(hw, world)
-        if rate_limit is None:
-            rate_limit = not (hw.arm.type == "sim" and not hw.arm.realtime)
-        info = SessionInfo(
-            name=session, plan_sha256=plan_sha256(plan_path), plan_text=plan_path.read_text(), hardware_text=hardware.read_text(),
-            policy_path=str(policy_path), policy_sha256=file_sha256(policy_path) or "", software_version=importlib.metadata.version("advobj"),
-            git_commit=git_commit(), devices=None, calibration=calibration,
-            config={"hardware": str(hardware), "plan": str(plan_path), "policy": str(policy_path), "db": str(db), "registry": registry,
-                    "table_frame": table_frame, "rate_limit": rate_limit, "threads": threads, "image_size": S,
-                    "action_scale": action_scale, "seed": plan.seed,
-                    "calibration_files": {k: None if v is None else str(v) for k, v in calibration_files.items()}})
-        store = TrialStore(db)
-        try:
-            for warning in store.check_resume(info):  # a refused resume raises here, before any device connects
-                log(warning)
-        except BaseException:
-            store.close()
-            raise
-        stored_T_base_table = store.stored_T_base_table(session)
-        from sim.runinfo import write_run_info
 
-        write_run_info(session_dir, info.config, plan.seed)
-        try:
-            with camera, arm:
-                # Identities after connecting: drivers read serial numbers from the devices.
-                info = dataclasses.replace(info, devices={"camera": device_identity(camera), "arm": device_identity(arm)})
-                if not sim:
-                    for warning in camera_view_warnings(camera, policy, spec, hw):
-                        log(f"warning: {warning}")
-                for warning in store.device_changes(info):
-                    log(warning)
-                T_base_table = np.eye(4)
-                if sim:
-                    from trials.real.locate import SimLocator
-                    from trials.real.stage import SimStage
+def run_prepared(
+    prep: PreparedSession,
+    max_trials: int | None = None,
+    on_trial_end: Callable | None = None,
+    on_ready: Callable | None = None,
+    log=print,
+):
+    """Connect the devices of a :func:`prepare_session` result and run (or resume) its trials;
+    returns the :class:`RunSummary`. A refused resume is found before any device connects."""
+    import contextlib
 
-                    locator = SimLocator(world)
-                    stage = SimStage(world, plan, plan_path.parent)
-                    if hw.camera.tags:
-                        locator = _sim_tag_locator(camera, world, registry, session_dir, log)
-                else:
-                    locator, T_base_table = _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table, log)
-                info = dataclasses.replace(info, T_base_table=T_base_table)
-                runner = TrialRunner(plan, camera, arm, policy, store, operator, locator, info, action_scale, stage=stage,
-                                     T_base_table=T_base_table, rate_limit=rate_limit, on_trial_end=on_trial_end,
-                                     gripper_m=spec.gripper.opening_m)
-                if on_ready is not None:
-                    on_ready(runner, world)
-                return runner.run(max_trials)
-        finally:
-            store.close()
-    finally:
-        if stage is not None:
-            stage.close()
+    from robot_io.config import build_arm, build_camera, build_world
+    from sim.runinfo import write_run_info
+    from trials.real.runner import TrialRunner
+    from trials.real.store import TrialStore
+
+    log = log or (lambda _text: None)
+    hw, plan, sim, info = prep.hw, prep.plan, prep.sim, prep.info
+    with contextlib.ExitStack() as stack:  # closed in reverse: devices, store, stage, world
+        world = build_world(hw) if hw.camera.type == "sim" or hw.arm.type == "sim" else None
         if world is not None:
-            world.close()
+            stack.callback(world.close)
+        stages: list = []  # closed after the devices and the store, before the world
+        stack.callback(lambda: [st.close() for st in stages])
+        if world is not None and plan.scene is not None:
+            world.set_scene(prep.spec)
+        camera, arm = build_camera(hw, world), build_arm(hw, world)
+        store = TrialStore(prep.db)
+        stack.callback(store.close)
+        for warning in store.check_resume(info):  # a refused resume raises here, before any device connects
+            log(warning)
+        stored_T_base_table = store.stored_T_base_table(info.name)
+        write_run_info(prep.session_dir, info.config, plan.seed)
+        stack.enter_context(camera)
+        stack.enter_context(arm)
+        # Identities after connecting: drivers read serial numbers from the devices.
+        info = dataclasses.replace(info, devices={"camera": device_identity(camera), "arm": device_identity(arm)})
+        if not sim:
+            for warning in camera_view_warnings(camera, prep.policy, prep.spec, hw):
+                log(f"warning: {warning}")
+        for warning in store.device_changes(info):
+            log(warning)
+        T_base_table, stage = np.eye(4), None
+        if sim:
+            from trials.real.locate import SimLocator
+            from trials.real.stage import SimStage
+
+            locator = SimLocator(world)
+            stage = SimStage(world, plan, prep.plan_path.parent)
+            stages.append(stage)
+            if hw.camera.tags:
+                locator = _sim_tag_locator(camera, world, prep.registry, prep.session_dir, log)
+        else:
+            locator, T_base_table = _tag_locator(
+                hw, camera, arm, prep.registry, prep.table_frame, stored_T_base_table, log
+            )
+        info = dataclasses.replace(info, T_base_table=T_base_table)
+        runner = TrialRunner(
+            plan,
+            camera,
+            arm,
+            prep.policy,
+            store,
+            prep.operator,
+            locator,
+            info,
+            list(prep.action_scale),
+            stage=stage,
+            T_base_table=T_base_table,
+            rate_limit=prep.rate_limit,
+            on_trial_end=on_trial_end,
+            gripper_m=prep.spec.gripper.opening_m,
+        )
+        if on_ready is not None:
+            on_ready(runner, world)
+        return runner.run(max_trials)
+
+
+def run_session(
+    hardware: str | Path,
+    policy_path: str | Path,
+    plan_path: str | Path,
+    session: str,
+    db: str | Path,
+    operator=None,
+    answers: str | Path | None = None,
+    auto_confirm: bool = False,
+    registry: str | Path | None = None,
+    table_frame: str | Path | None = None,
+    max_trials: int | None = None,
+    rate_limit: bool | None = None,
+    threads: int = 1,
+    on_trial_end: Callable | None = None,
+    on_ready: Callable | None = None,
+    log=print,
+):
+    """Run (or resume) ``session`` of ``plan_path`` into ``db``: :func:`prepare_session`, then
+    :func:`run_prepared`; returns the :class:`RunSummary`.
+
+    ``operator``: an explicit :class:`Operator`; else ``auto_confirm`` / ``answers`` pick the
+    scripted ones and the default is the terminal UI. ``rate_limit`` None: on for real arms and for
+    sim arms with ``realtime: true``, off for other sim arms. ``on_ready(runner, world)`` is called
+    before the first trial (tests use it to reach the sim world and stage).
+    """
+    prep = prepare_session(
+        hardware,
+        policy_path,
+        plan_path,
+        session,
+        db,
+        operator,
+        answers,
+        auto_confirm,
+        registry,
+        table_frame,
+        rate_limit,
+        threads,
+        log,
+    )
+    return run_prepared(prep, max_trials, on_trial_end, on_ready, log)
 
 
 def camera_view_warnings(camera, policy, spec, hw) -> list[str]:
@@ -233,8 +381,10 @@ def camera_view_warnings(camera, policy, spec, hw) -> list[str]:
     mode = policy_preprocess(policy)
     K_view = policy_view_K(intr.K, intr.width, intr.height, S, mode)
     T_mount = spec.camera.T_tcp_cam if hw.T_tcp_cam is None else load_T_tcp_cam(hw.T_tcp_cam)
-    return [f"camera ({intr.width}x{intr.height}, preprocess {mode} to {S}x{S}): {m}"
-            for m in view_mismatch(K_view, spec.camera.K(S, S), S, T_mount, spec.camera.T_tcp_cam)]
+    return [
+        f"camera ({intr.width}x{intr.height}, preprocess {mode} to {S}x{S}): {m}"
+        for m in view_mismatch(K_view, spec.camera.K(S, S), S, T_mount, spec.camera.T_tcp_cam)
+    ]
 
 
 def _check_chunk_frame_age(policy, plan, hw) -> None:
@@ -247,9 +397,11 @@ def _check_chunk_frame_age(policy, plan, hw) -> None:
     age_ms = (k - 1) * 1000.0 / float(plan.control_hz)
     limit = float(hw.safety.max_frame_age_ms)
     if k > 1 and age_ms >= limit:
-        raise SessionSetupError(f"safety.max_frame_age_ms: the policy executes {k} actions per frame at {plan.control_hz:g} Hz, so its "
-                                f"last action is sent {age_ms:.0f} ms after its frame, beyond the {limit:.0f} ms limit; raise "
-                                f"max_frame_age_ms above {age_ms:.0f} ms in the hardware config or export the policy with a smaller execute")
+        raise SessionSetupError(
+            f"safety.max_frame_age_ms: the policy executes {k} actions per frame at {plan.control_hz:g} Hz, so its "
+            f"last action is sent {age_ms:.0f} ms after its frame, beyond the {limit:.0f} ms limit; raise "
+            f"max_frame_age_ms above {age_ms:.0f} ms in the hardware config or export the policy with a smaller execute"
+        )
 
 
 def _safety_at_plan_rate(hw, plan, episode, log):
@@ -263,18 +415,24 @@ def _safety_at_plan_rate(hw, plan, episode, log):
     period_s = 1.0 / float(plan.control_hz)
     lim = hw.safety
     if not math.isclose(lim.control_period_s, period_s, rel_tol=1e-6):
-        log(f"safety: control_period_s {lim.control_period_s * 1000:.1f} ms (hardware YAML) -> {period_s * 1000:.1f} ms, "
-            f"the plan's control_hz {plan.control_hz:g}: the speed caps assume the loop's real period")
+        log(
+            f"safety: control_period_s {lim.control_period_s * 1000:.1f} ms (hardware YAML) -> {period_s * 1000:.1f} ms, "
+            f"the plan's control_hz {plan.control_hz:g}: the speed caps assume the loop's real period"
+        )
         # validated again: the plan's rate must give a period the safety limits accept
-        lim = merged(lim, {"control_period_s": period_s}, what="safety limits at the plan's control_hz", error=SessionSetupError)
+        lim = merged(
+            lim, {"control_period_s": period_s}, what="safety limits at the plan's control_hz", error=SessionSetupError
+        )
         hw = merged(hw, {"safety": lim}, what="hardware config", error=SessionSetupError)
     cap_m, cap_rad = lim.step_caps()
     if cap_m < episode.max_step_m * (1 - 1e-9) or cap_rad < episode.max_step_rad * (1 - 1e-9):
-        log(f"warning: at {plan.control_hz:g} Hz the safety layer caps a step at {cap_m * 1000:.1f} mm / "
+        log(
+            f"warning: at {plan.control_hz:g} Hz the safety layer caps a step at {cap_m * 1000:.1f} mm / "
             f"{math.degrees(cap_rad):.1f} deg, below the policy's {episode.max_step_m * 1000:.1f} mm / "
             f"{math.degrees(episode.max_step_rad):.1f} deg: steps are clipped, the arm moves slower than in simulation and "
             "trials may end at max_steps; lower the plan's control_hz or raise max_speed_mps / max_speed_radps / "
-            "max_step_m / max_step_rad in the hardware YAML")
+            "max_step_m / max_step_rad in the hardware YAML"
+        )
     return hw
 
 
@@ -294,7 +452,9 @@ def _sim_tag_locator(camera, world, registry, session_dir, log):
         camera.tags = sim_tags(reg)
         return TagLocator(reg, camera.intrinsics, camera.T_tcp_cam, np.eye(4))
     log(f"sim tags: no --registry; each staged object is tagged on its faces (sim_registry), saved under {session_dir}")
-    return _SimTaggedLocator(camera, world, Path(session_dir), TagLocator(None, camera.intrinsics, camera.T_tcp_cam, np.eye(4)))
+    return _SimTaggedLocator(
+        camera, world, Path(session_dir), TagLocator(None, camera.intrinsics, camera.T_tcp_cam, np.eye(4))
+    )
 
 
 class _SimTaggedLocator:
@@ -352,7 +512,9 @@ def _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table=Non
         probe = TagLocator(reg, camera.intrinsics, T_tcp_cam, np.eye(4))
         T_base_table = TagLocator.estimate_T_base_table(probe.observe(camera.read()), arm.tcp_pose(), T_tcp_cam)
         if T_base_table is None:
-            raise SessionSetupError("--table-frame: not given, and no 'table' tag of the registry is visible from the arm's "
-                                    "current pose; give the table frame YAML or move the arm so a table tag is in view")
+            raise SessionSetupError(
+                "--table-frame: not given, and no 'table' tag of the registry is visible from the arm's "
+                "current pose; give the table frame YAML or move the arm so a table tag is in view"
+            )
         log("table frame: estimated from the registry's table tags; stored with the session and reused on resume")
     return TagLocator(reg, camera.intrinsics, T_tcp_cam, T_base_table), T_base_table

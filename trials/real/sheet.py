@@ -88,13 +88,24 @@ def _layout_page(pdf, plan, layout, outlines: dict) -> None:
             poly = _place(outline, p.xy_m, p.yaw_rad)
             style = styles.get(role, dict(color="tab:red", lw=1.6))
             ax.fill(poly[:, 0], poly[:, 1], facecolor=style["color"], alpha=0.08 if i else 0.15, edgecolor="none")
-            ax.plot(*np.vstack([poly, poly[:1]]).T, linestyle=dashes[i % len(dashes)], label=f"{role}: {label}", **style)
+            ax.plot(
+                *np.vstack([poly, poly[:1]]).T, linestyle=dashes[i % len(dashes)], label=f"{role}: {label}", **style
+            )
         head = np.asarray(p.xy_m) + 0.06 * np.array([math.cos(p.yaw_rad), math.sin(p.yaw_rad)])
         ax.annotate("", xy=head, xytext=p.xy_m, arrowprops=dict(arrowstyle="-|>", color="black", lw=1.2))
         ax.plot(*p.xy_m, marker="+", color="black", markersize=10)
         text = f"{role}\nx {100 * p.xy_m[0]:.1f} cm\ny {100 * p.xy_m[1]:.1f} cm\nyaw {math.degrees(p.yaw_rad):.0f}°"
-        ax.text(p.xy_m[0] + 0.045, p.xy_m[1] + 0.045, text, fontsize=8, va="bottom", bbox=dict(facecolor="white", alpha=0.8, edgecolor="0.6"))
-        lines.append(f"{role:<12} x = {100 * p.xy_m[0]:7.1f} cm   y = {100 * p.xy_m[1]:7.1f} cm   yaw = {math.degrees(p.yaw_rad):7.1f}°")
+        ax.text(
+            p.xy_m[0] + 0.045,
+            p.xy_m[1] + 0.045,
+            text,
+            fontsize=8,
+            va="bottom",
+            bbox=dict(facecolor="white", alpha=0.8, edgecolor="0.6"),
+        )
+        lines.append(
+            f"{role:<12} x = {100 * p.xy_m[0]:7.1f} cm   y = {100 * p.xy_m[1]:7.1f} cm   yaw = {math.degrees(p.yaw_rad):7.1f}°"
+        )
     ax.legend(loc="lower left", fontsize=7, framealpha=0.9)
     notes = [
         "Table frame: origin at the table-frame tag, z up.",
@@ -130,11 +141,16 @@ def _tcp_page(pdf, plan) -> None:
             s = -p[2] / z[2]
             hit = f"({100 * (p[0] + s * z[0]):6.1f}, {100 * (p[1] + s * z[1]):6.1f})"
         rv = np.degrees(tcp.T_table_tcp.rotvec_rad)
-        rows.append(f"t{tcp.index:<5} {100 * p[0]:7.1f}  {100 * p[1]:7.1f}  {100 * p[2]:7.1f}    "
-                    f"({rv[0]:7.1f}, {rv[1]:7.1f}, {rv[2]:7.1f})    {hit}")
-    rows += ["", "T_table_tcp: TCP pose in the table frame (translation + axis-angle); the runner drives the arm there",
-             "through the hand-eye and table calibration. Trials per pose: " + ", ".join(
-                 f"t{tcp.index}: {sum(t.tcp_pose == tcp.index for t in plan.trials)}" for tcp in plan.tcp_poses)]
+        rows.append(
+            f"t{tcp.index:<5} {100 * p[0]:7.1f}  {100 * p[1]:7.1f}  {100 * p[2]:7.1f}    "
+            f"({rv[0]:7.1f}, {rv[1]:7.1f}, {rv[2]:7.1f})    {hit}"
+        )
+    rows += [
+        "",
+        "T_table_tcp: TCP pose in the table frame (translation + axis-angle); the runner drives the arm there",
+        "through the hand-eye and table calibration. Trials per pose: "
+        + ", ".join(f"t{tcp.index}: {sum(t.tcp_pose == tcp.index for t in plan.trials)}" for tcp in plan.tcp_poses),
+    ]
     fig.text(0.06, 0.92, "\n".join(rows), fontsize=8, family="monospace", va="top")
     pdf.savefig(fig)
 
@@ -148,9 +164,11 @@ def _order_pages(pdf, plan) -> None:
         fig = Figure(figsize=A4_IN)
         fig.suptitle(f"Run order  (page {page + 1}/{n_pages}, {len(plan.trials)} trials)", fontsize=13, y=0.97)
         rows = [head, "-" * len(head)]
-        for t in plan.trials[page * ROWS_PER_PAGE:(page + 1) * ROWS_PER_PAGE]:
-            rows.append(f"{t.order:>5}  {t.trial_id:<34} {t.env:<5} {t.shape:<10} {t.condition:<6} t{t.tcp_pose:<3} "
-                        f"o{t.object_layout:<5} {','.join(t.tags) or '-':<16} [  ]")
+        for t in plan.trials[page * ROWS_PER_PAGE : (page + 1) * ROWS_PER_PAGE]:
+            rows.append(
+                f"{t.order:>5}  {t.trial_id:<34} {t.env:<5} {t.shape:<10} {t.condition:<6} t{t.tcp_pose:<3} "
+                f"o{t.object_layout:<5} {','.join(t.tags) or '-':<16} [  ]"
+            )
         fig.text(0.04, 0.93, "\n".join(rows), fontsize=8, family="monospace", va="top", linespacing=1.5)
         pdf.savefig(fig)
 
@@ -166,14 +184,18 @@ def placement_sheet_pdf(plan, path, spec=None) -> int:
     matplotlib.use("Agg", force=False)
     from matplotlib.backends.backend_pdf import PdfPages
 
-    from trials.scene_tools import load_spec
+    from trials.jobs.scene import load_spec
 
     spec = load_spec(plan.scene) if spec is None else spec
     adv_meshes = list(plan.shapes) + (["patch"] if "patch" in plan.conditions else [])
     outlines = {
         "goal": {spec.goal.name: footprint_xy_m(spec.goal.mesh, spec.goal.scale, **spec.goal.mesh_kwargs())},
-        "adversarial": {m: footprint_xy_m(m, spec.adversarial.scale, **(spec.adversarial.mesh_kwargs() if m == spec.adversarial.mesh else {}))
-                        for m in adv_meshes},
+        "adversarial": {
+            m: footprint_xy_m(
+                m, spec.adversarial.scale, **(spec.adversarial.mesh_kwargs() if m == spec.adversarial.mesh else {})
+            )
+            for m in adv_meshes
+        },
     }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

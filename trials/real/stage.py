@@ -5,7 +5,7 @@ On a real cell a person places the printed objects. With ``sim`` camera and arm 
 
 * the scene for the trial's shape and condition (the adversarial-role object gets the mesh
   :meth:`trials.real.plan.TrialPlan.mesh_for` names, with the same swap as
-  :func:`trials.conditions.condition_spec`: same pose, the mesh's own default look), and the
+  :func:`trials.eval.conditions.condition_spec`: same pose, the mesh's own default look), and the
   plan's texture on it for ``adv3d`` / ``patch`` (``clean`` keeps the benign look);
 * the object poses of the trial's layout, optionally with a deliberate misplacement
   (:meth:`misplace`) that the live placement check must catch;
@@ -36,15 +36,17 @@ def load_texture(ref, plan_dir: Path | None = None) -> np.ndarray:
 
     A relative path is tried as given, then relative to ``plan_dir``.
     """
-    from trials.conditions import load_attack_source
+    from trials.eval.conditions import load_attack_source
 
     p = Path(ref.path)
     if not p.is_absolute() and not p.exists() and plan_dir is not None:
         p = plan_dir / p
     src = load_attack_source(p)
     if src.sha256 != ref.sha256:
-        raise StageError(f"{p}: texture.npy sha256 {src.sha256[:12]}... differs from the plan's {ref.sha256[:12]}...; "
-                         "the attack run changed since the plan was made")
+        raise StageError(
+            f"{p}: texture.npy sha256 {src.sha256[:12]}... differs from the plan's {ref.sha256[:12]}...; "
+            "the attack run changed since the plan was made"
+        )
     return src.texture
 
 
@@ -83,7 +85,10 @@ class SimStage:
     def _scene(self, mesh: str):
         spec = self.base_spec
         # the plan's mesh goes through validation with the rest of the scene (with_updates)
-        objs = [{**o.model_dump(), "mesh": mesh, "texture": None} if o.role == "adversarial" else o.model_dump() for o in spec.objects]
+        objs = [
+            {**o.model_dump(), "mesh": mesh, "texture": None} if o.role == "adversarial" else o.model_dump()
+            for o in spec.objects
+        ]
         return spec.with_updates(objects=objs)
 
     def prepare(self, trial) -> None:

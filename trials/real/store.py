@@ -391,8 +391,10 @@ def _quick_check(con: sqlite3.Connection, path: Path) -> None:
     rows = [str(r[0]) for r in con.execute("PRAGMA quick_check").fetchall()]
     if rows != ["ok"]:
         more = f" (and {len(rows) - 1} more problems)" if len(rows) > 1 else ""
-        raise StoreError(f"{path}: damaged trial database, refused without writing to it (SQLite quick_check: "
-                         f"{_one_line(rows[0] if rows else 'no answer')}{more}); restore it from a backup or give another --db")
+        raise StoreError(
+            f"{path}: damaged trial database, refused without writing to it (SQLite quick_check: "
+            f"{_one_line(rows[0] if rows else 'no answer')}{more}); restore it from a backup or give another --db"
+        )
 
 
 def check_database(path: str | Path) -> None:
@@ -450,7 +452,9 @@ class TrialStore:
             self.con.close()
             raise
         if mode.lower() != "wal":
-            raise StoreError(f"{self.path}: cannot switch to WAL journal mode (got {mode!r}); is it on a network file system?")
+            raise StoreError(
+                f"{self.path}: cannot switch to WAL journal mode (got {mode!r}); is it on a network file system?"
+            )
 
     def _init_schema(self) -> None:
         have = {r[0] for r in self.con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
@@ -466,8 +470,10 @@ class TrialStore:
             return
         if version != SCHEMA_VERSION:
             newer = isinstance(version, int) and version > SCHEMA_VERSION
-            raise StoreError(f"{self.path}: trial store schema version {version}, this advobj reads version {SCHEMA_VERSION}"
-                             + ("; upgrade advobj" if newer else ""))
+            raise StoreError(
+                f"{self.path}: trial store schema version {version}, this advobj reads version {SCHEMA_VERSION}"
+                + ("; upgrade advobj" if newer else "")
+            )
 
     def _write_schema(self, base: str | None, version: int) -> None:
         """Create the version-1 schema (``base``) and/or migrate from ``version`` to the current one, in one transaction."""
@@ -533,22 +539,32 @@ class TrialStore:
 
         refused = []
         if row["plan_sha256"] != info.plan_sha256:
-            refused.append(f"plan: {what(row['plan_sha256'], config.get('plan'))} at the session's start, "
-                           f"now {what(info.plan_sha256, info.config.get('plan'))}")
+            refused.append(
+                f"plan: {what(row['plan_sha256'], config.get('plan'))} at the session's start, "
+                f"now {what(info.plan_sha256, info.config.get('plan'))}"
+            )
         if row["policy_sha256"] != info.policy_sha256:
-            refused.append(f"policy: {what(row['policy_sha256'] or None, row['policy_path'])} at the session's start, "
-                           f"now {what(info.policy_sha256 or None, info.policy_path)}")
+            refused.append(
+                f"policy: {what(row['policy_sha256'] or None, row['policy_path'])} at the session's start, "
+                f"now {what(info.policy_sha256 or None, info.policy_path)}"
+            )
         old_cal = json.loads(row["calibration_json"])
         for key in sorted(set(old_cal) | set(info.calibration)):
             if old_cal.get(key) != info.calibration.get(key):
-                refused.append(f"calibration {key}: {what(old_cal.get(key), old_files.get(key))} at the session's start, "
-                               f"now {what(info.calibration.get(key), new_files.get(key))}")
+                refused.append(
+                    f"calibration {key}: {what(old_cal.get(key), old_files.get(key))} at the session's start, "
+                    f"now {what(info.calibration.get(key), new_files.get(key))}"
+                )
         if refused:
             raise SessionMismatch(
                 f"session {info.name!r} in {self.path} was started with other inputs; its trials must not be mixed with "
-                "trials run with these:\n  " + "\n  ".join(refused)
-                + "\nresume with the original plan, policy and calibration files, or start a new --session")
-        last = self.con.execute("SELECT * FROM runs WHERE session_id = ? ORDER BY id DESC LIMIT 1", (row["id"],)).fetchone()
+                "trials run with these:\n  "
+                + "\n  ".join(refused)
+                + "\nresume with the original plan, policy and calibration files, or start a new --session"
+            )
+        last = self.con.execute(
+            "SELECT * FROM runs WHERE session_id = ? ORDER BY id DESC LIMIT 1", (row["id"],)
+        ).fetchone()
         if last is None:
             return []
         changed = []
@@ -557,7 +573,9 @@ class TrialStore:
         if last["git_commit"] != info.git_commit:
             changed.append(f"git commit {last['git_commit']} -> {info.git_commit}")
         if last["hardware_text"] != info.hardware_text:
-            changed.append(f"hardware YAML (sha256 {_sha(last['hardware_text'])[:12]}... -> {_sha(info.hardware_text)[:12]}...)")
+            changed.append(
+                f"hardware YAML (sha256 {_sha(last['hardware_text'])[:12]}... -> {_sha(info.hardware_text)[:12]}...)"
+            )
         changed += self._device_change(last, info)
         return self._changes_message(info, last, changed)
 
@@ -565,8 +583,13 @@ class TrialStore:
         """Warnings for devices that differ from the session's last run (call once they are connected:
         a driver reads serial numbers from the device)."""
         row = self.session(info.name)
-        last = None if row is None else self.con.execute(
-            "SELECT * FROM runs WHERE session_id = ? ORDER BY id DESC LIMIT 1", (row["id"],)).fetchone()
+        last = (
+            None
+            if row is None
+            else self.con.execute(
+                "SELECT * FROM runs WHERE session_id = ? ORDER BY id DESC LIMIT 1", (row["id"],)
+            ).fetchone()
+        )
         return [] if last is None else self._changes_message(info, last, self._device_change(last, info))
 
     @staticmethod
@@ -578,14 +601,19 @@ class TrialStore:
 
     @staticmethod
     def _changes_message(info: SessionInfo, last, changed: list[str]) -> list[str]:
-        return [f"session {info.name!r}: {c} since the last run (started {last['started_at']}); "
-                "new trials are recorded under this run (table runs)" for c in changed]
+        return [
+            f"session {info.name!r}: {c} since the last run (started {last['started_at']}); "
+            "new trials are recorded under this run (table runs)"
+            for c in changed
+        ]
 
     def open_session(self, info: SessionInfo) -> int:
         """The id of session ``info.name``: created, or resumed if :meth:`check_resume` allows; records this run."""
         self.check_resume(info)
         row = self.session(info.name)
-        T_json = None if info.T_base_table is None else json.dumps(np.asarray(info.T_base_table, dtype=np.float64).tolist())
+        T_json = (
+            None if info.T_base_table is None else json.dumps(np.asarray(info.T_base_table, dtype=np.float64).tolist())
+        )
         self.con.execute("BEGIN IMMEDIATE")
         try:
             if row is None:
@@ -593,9 +621,22 @@ class TrialStore:
                     "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
                     "software_version, git_commit, devices_json, calibration_json, config_json, T_base_table_json) "
                     "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)",
-                    (info.name, _now_iso(), info.plan_sha256, info.plan_text, info.hardware_text, info.policy_path,
-                     info.policy_sha256, info.software_version, info.git_commit, json.dumps(info.devices),
-                     json.dumps(info.calibration), json.dumps(info.config, default=str), T_json))
+                    (
+                        info.name,
+                        _now_iso(),
+                        info.plan_sha256,
+                        info.plan_text,
+                        info.hardware_text,
+                        info.policy_path,
+                        info.policy_sha256,
+                        info.software_version,
+                        info.git_commit,
+                        json.dumps(info.devices),
+                        json.dumps(info.calibration),
+                        json.dumps(info.config, default=str),
+                        T_json,
+                    ),
+                )
                 sid = int(cur.lastrowid)
             else:
                 sid = int(row["id"])
@@ -604,8 +645,16 @@ class TrialStore:
             cur = self.con.execute(
                 "INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, config_json) "
                 "VALUES (?,?,?,?,?,?,?)",
-                (sid, _now_iso(), info.software_version, info.git_commit, info.hardware_text, json.dumps(info.devices),
-                 json.dumps(info.config, default=str)))
+                (
+                    sid,
+                    _now_iso(),
+                    info.software_version,
+                    info.git_commit,
+                    info.hardware_text,
+                    json.dumps(info.devices),
+                    json.dumps(info.config, default=str),
+                ),
+            )
             self._runs[sid] = int(cur.lastrowid)
             self.con.execute("COMMIT")
         except BaseException:
@@ -639,40 +688,99 @@ class TrialStore:
                 "INSERT INTO trials (session_id, trial_id, plan_order, env, shape, condition, tcp_pose, object_layout, tags_json, "
                 "texture_sha256, started_at, duration_s, n_steps, stop_reason, auto_outcome, auto_reason, distances_json, "
                 "operator_outcome, note, final_outcome, placement_checks, placement_skipped, "
-                + ", ".join(f"tcp_final_{p}" for p in _POSE) + ", frames_dir, run_id, light_level) VALUES (" + ",".join("?" * 31) + ")",
-                (session_id, rec.trial_id, rec.plan_order, rec.env, rec.shape, rec.condition, rec.tcp_pose, rec.object_layout,
-                 json.dumps(list(rec.tags)), rec.texture_sha256, rec.started_at, float(rec.duration_s), len(rec.steps),
-                 rec.stop_reason, rec.auto_outcome, rec.auto_reason, json.dumps(rec.distances_m), rec.operator_outcome,
-                 rec.note or "", rec.final_outcome, int(rec.placement_checks), int(rec.placement_skipped),
-                 *pose_vec(rec.T_table_tcp_final), rec.frames_dir, self._runs.get(session_id),
-                 None if rec.light_level is None else float(rec.light_level)))
+                + ", ".join(f"tcp_final_{p}" for p in _POSE)
+                + ", frames_dir, run_id, light_level) VALUES ("
+                + ",".join("?" * 31)
+                + ")",
+                (
+                    session_id,
+                    rec.trial_id,
+                    rec.plan_order,
+                    rec.env,
+                    rec.shape,
+                    rec.condition,
+                    rec.tcp_pose,
+                    rec.object_layout,
+                    json.dumps(list(rec.tags)),
+                    rec.texture_sha256,
+                    rec.started_at,
+                    float(rec.duration_s),
+                    len(rec.steps),
+                    rec.stop_reason,
+                    rec.auto_outcome,
+                    rec.auto_reason,
+                    json.dumps(rec.distances_m),
+                    rec.operator_outcome,
+                    rec.note or "",
+                    rec.final_outcome,
+                    int(rec.placement_checks),
+                    int(rec.placement_skipped),
+                    *pose_vec(rec.T_table_tcp_final),
+                    rec.frames_dir,
+                    self._runs.get(session_id),
+                    None if rec.light_level is None else float(rec.light_level),
+                ),
+            )
             row = int(cur.lastrowid)
             c.executemany(
                 "INSERT INTO steps VALUES (" + ",".join("?" * 26) + ")",
-                [(row, s.step, float(s.t_frame_s), float(s.t_command_s), int(s.frame_seq), *[float(a) for a in s.action],
-                  *pose_vec(s.T_base_tcp_cmd), *pose_vec(s.T_base_tcp_meas), s.safety_status, s.safety_reason, s.frame_ref)
-                 for s in rec.steps])
+                [
+                    (
+                        row,
+                        s.step,
+                        float(s.t_frame_s),
+                        float(s.t_command_s),
+                        int(s.frame_seq),
+                        *[float(a) for a in s.action],
+                        *pose_vec(s.T_base_tcp_cmd),
+                        *pose_vec(s.T_base_tcp_meas),
+                        s.safety_status,
+                        s.safety_reason,
+                        s.frame_ref,
+                    )
+                    for s in rec.steps
+                ],
+            )
             c.executemany(
                 "INSERT INTO object_poses VALUES (" + ",".join("?" * 19) + ")",
-                [(row, o.role, o.phase, int(o.T_table_object is not None), *pose_vec(o.T_table_object),
-                  None if o.T_table_object is None else float(np.arctan2(o.T_table_object[1, 0], o.T_table_object[0, 0])),
-                  *([None] * 3 if o.center_table_m is None else [float(v) for v in o.center_table_m]),
-                  json.dumps([int(i) for i in o.tag_ids]), int(o.ambiguous), int(o.n_alternatives), o.source,
-                  None if o.visible_fraction is None else float(o.visible_fraction))
-                 for o in rec.object_poses])
-            c.executemany("INSERT INTO events VALUES (?,?,?,?,?)",
-                          [(row, float(e.t_s), e.kind, e.action, e.reason) for e in rec.events])
+                [
+                    (
+                        row,
+                        o.role,
+                        o.phase,
+                        int(o.T_table_object is not None),
+                        *pose_vec(o.T_table_object),
+                        None
+                        if o.T_table_object is None
+                        else float(np.arctan2(o.T_table_object[1, 0], o.T_table_object[0, 0])),
+                        *([None] * 3 if o.center_table_m is None else [float(v) for v in o.center_table_m]),
+                        json.dumps([int(i) for i in o.tag_ids]),
+                        int(o.ambiguous),
+                        int(o.n_alternatives),
+                        o.source,
+                        None if o.visible_fraction is None else float(o.visible_fraction),
+                    )
+                    for o in rec.object_poses
+                ],
+            )
+            c.executemany(
+                "INSERT INTO events VALUES (?,?,?,?,?)",
+                [(row, float(e.t_s), e.kind, e.action, e.reason) for e in rec.events],
+            )
             c.execute("COMMIT")
         except sqlite3.IntegrityError as err:
             c.execute("ROLLBACK")
-            raise StoreError(f"trial {rec.trial_id}: cannot store it ({err}); is another runner working on this session?") from None
+            raise StoreError(
+                f"trial {rec.trial_id}: cannot store it ({err}); is another runner working on this session?"
+            ) from None
         except BaseException:
             c.execute("ROLLBACK")
             raise
         return row
 
-    def amend_trial(self, session: str, trial_id: str, outcome: str | None = None, note: str | None = None,
-                    reason: str = "") -> dict:
+    def amend_trial(
+        self, session: str, trial_id: str, outcome: str | None = None, note: str | None = None, reason: str = ""
+    ) -> dict:
         """Correct a committed trial's outcome and/or note; the replaced values go to ``amendments``.
 
         ``outcome``: goal, adversarial, none or unknown (it becomes the operator's outcome, or clears
@@ -686,33 +794,67 @@ class TrialStore:
         c = self.con
         c.execute("BEGIN IMMEDIATE")
         try:
-            row = c.execute("SELECT t.id, t.auto_outcome, t.operator_outcome, t.final_outcome, t.note FROM trials t "
-                            "JOIN sessions s ON s.id = t.session_id WHERE s.name = ? AND t.trial_id = ?", (session, trial_id)).fetchone()
+            row = c.execute(
+                "SELECT t.id, t.auto_outcome, t.operator_outcome, t.final_outcome, t.note FROM trials t "
+                "JOIN sessions s ON s.id = t.session_id WHERE s.name = ? AND t.trial_id = ?",
+                (session, trial_id),
+            ).fetchone()
             if row is None:
                 known = c.execute("SELECT 1 FROM sessions WHERE name = ?", (session,)).fetchone()
-                raise StoreError(f"--trial: no committed trial {trial_id!r} in session {session!r}" if known
-                                 else f"--session: no session {session!r} in {self.path}")
+                raise StoreError(
+                    f"--trial: no committed trial {trial_id!r} in session {session!r}"
+                    if known
+                    else f"--session: no session {session!r} in {self.path}"
+                )
             if outcome is not None and row["auto_outcome"] == "policy_error":
-                raise StoreError(f"--outcome: trial {trial_id!r} stopped on a policy error (the policy's action was never sent); "
-                                 "its outcome is not the operator's to change, amend its --note only")
+                raise StoreError(
+                    f"--outcome: trial {trial_id!r} stopped on a policy error (the policy's action was never sent); "
+                    "its outcome is not the operator's to change, amend its --note only"
+                )
             new_final = row["final_outcome"] if outcome is None else outcome
-            new_op = row["operator_outcome"] if outcome is None else (None if outcome == row["auto_outcome"] else outcome)
+            new_op = (
+                row["operator_outcome"] if outcome is None else (None if outcome == row["auto_outcome"] else outcome)
+            )
             new_note = row["note"] if note is None else note
             amended_at = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-            c.execute("INSERT INTO amendments VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                      (row["id"], amended_at, row["final_outcome"], row["operator_outcome"], row["note"], new_final, new_note, reason))
-            c.execute("UPDATE trials SET operator_outcome = ?, final_outcome = ?, note = ? WHERE id = ?", (new_op, new_final, new_note, row["id"]))
+            c.execute(
+                "INSERT INTO amendments VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    row["id"],
+                    amended_at,
+                    row["final_outcome"],
+                    row["operator_outcome"],
+                    row["note"],
+                    new_final,
+                    new_note,
+                    reason,
+                ),
+            )
+            c.execute(
+                "UPDATE trials SET operator_outcome = ?, final_outcome = ?, note = ? WHERE id = ?",
+                (new_op, new_final, new_note, row["id"]),
+            )
             c.execute("COMMIT")
         except BaseException:
             c.execute("ROLLBACK")
             raise
-        return {"trial_id": trial_id, "amended_at": amended_at, "old_final_outcome": row["final_outcome"], "new_final_outcome": new_final,
-                "old_note": row["note"], "new_note": new_note, "reason": reason}
+        return {
+            "trial_id": trial_id,
+            "amended_at": amended_at,
+            "old_final_outcome": row["final_outcome"],
+            "new_final_outcome": new_final,
+            "old_note": row["note"],
+            "new_note": new_note,
+            "reason": reason,
+        }
 
     def amendments(self, sessions: Sequence[str] | None = None) -> list[dict]:
-        q = ("SELECT s.name AS session, t.trial_id AS trial_id, a.* FROM amendments a JOIN trials t ON t.id = a.trial_row "
-             "JOIN sessions s ON s.id = t.session_id" + (f" WHERE s.name IN ({','.join('?' * len(sessions))})" if sessions else "")
-             + " ORDER BY a.rowid")
+        q = (
+            "SELECT s.name AS session, t.trial_id AS trial_id, a.* FROM amendments a JOIN trials t ON t.id = a.trial_row "
+            "JOIN sessions s ON s.id = t.session_id"
+            + (f" WHERE s.name IN ({','.join('?' * len(sessions))})" if sessions else "")
+            + " ORDER BY a.rowid"
+        )
         return [dict(r) for r in self.con.execute(q, tuple(sessions or ()))]
 
     def planned_trials(self, session: str) -> int:
@@ -728,8 +870,11 @@ class TrialStore:
     # ------------------------------------------------------------------ reading
     def trial_rows(self, sessions: Sequence[str] | None = None) -> list[dict]:
         """One dict per committed trial (plan order within each session), the report's input."""
-        q = ("SELECT s.name AS session, t.* FROM trials t JOIN sessions s ON s.id = t.session_id"
-             + (f" WHERE s.name IN ({','.join('?' * len(sessions))})" if sessions else "") + " ORDER BY s.id, t.plan_order")
+        q = (
+            "SELECT s.name AS session, t.* FROM trials t JOIN sessions s ON s.id = t.session_id"
+            + (f" WHERE s.name IN ({','.join('?' * len(sessions))})" if sessions else "")
+            + " ORDER BY s.id, t.plan_order"
+        )
         out = []
         for r in self.con.execute(q, tuple(sessions or ())):
             d = dict(r)
@@ -740,8 +885,10 @@ class TrialStore:
         return out
 
     def steps(self, session: str, trial_id: str) -> list[dict]:
-        q = ("SELECT st.* FROM steps st JOIN trials t ON t.id = st.trial_row JOIN sessions s ON s.id = t.session_id "
-             "WHERE s.name = ? AND t.trial_id = ? ORDER BY st.step")
+        q = (
+            "SELECT st.* FROM steps st JOIN trials t ON t.id = st.trial_row JOIN sessions s ON s.id = t.session_id "
+            "WHERE s.name = ? AND t.trial_id = ? ORDER BY st.step"
+        )
         return [dict(r) for r in self.con.execute(q, (session, trial_id))]
 
     def table(self, name: str) -> tuple[list[str], list[tuple]]:
@@ -755,8 +902,10 @@ class TrialStore:
         elif name == "trials":
             q = "SELECT s.name AS session, t.* FROM trials t JOIN sessions s ON s.id = t.session_id ORDER BY s.id, t.plan_order"
         else:
-            q = (f"SELECT s.name AS session, t.trial_id AS trial_id, x.* FROM {name} x JOIN trials t ON t.id = x.trial_row "
-                 "JOIN sessions s ON s.id = t.session_id ORDER BY s.id, t.plan_order, x.rowid")
+            q = (
+                f"SELECT s.name AS session, t.trial_id AS trial_id, x.* FROM {name} x JOIN trials t ON t.id = x.trial_row "
+                "JOIN sessions s ON s.id = t.session_id ORDER BY s.id, t.plan_order, x.rowid"
+            )
         cur = self.con.execute(q)
         cols = [d[0] for d in cur.description]
         return cols, [tuple(r) for r in cur.fetchall()]

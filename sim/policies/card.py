@@ -1,0 +1,110 @@
+"""The policy card (``policy.json``): what a policy is, reads and outputs, and where it came from.
+
+This module owns the card's format; a checkpoint directory (:mod:`sim.policies.checkpoint`) holds
+one beside its weights, and an ONNX file carries one in its metadata
+(:mod:`sim.policies.onnx_policy`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import ConfigDict, Field, ValidationError
+
+from sim.configio import StrictModel
+from sim.policies.contract import PolicyContract
+from sim.policies.interface import PolicyError
+from sim.policies.policy import PolicyArch
+
+__all__ = ["CARD_NAME", "CARD_FORMAT", "ActionScaling", "CleanSuccess", "PolicyCard", "load_card"]
+
+CARD_NAME = "policy.json"
+CARD_FORMAT = "advobj-policy/1"
+_WEIGHTS_NAME = "weights.safetensors"  # named in load_card's error only; the checkpoint owns the weights
+
+
+class _Strict(StrictModel):
+    model_config = ConfigDict(frozen=False)  # cards are completed (hash, time) after validation
+
+
+class ActionScaling(_Strict):
+    """How a network output in [-1, 1] becomes a motion (see :mod:`sim.action`)."""
+
+    max_step_m: float = Field(gt=0, description="translation per step at |a| = 1, m")
+    max_step_rad: float = Field(gt=0, description="rotation per step at |a| = 1, rad")
+    frame: str = "tcp"
+
+
+class CleanSuccess(_Strict):
+    """Clean success rate over ``n`` episodes with its Wilson interval."""
+
+    k: int = Field(ge=0)
+    n: int = Field(ge=0)
+    rate: float | None
+    lo: float
+    hi: float
+    confidence: float
+    episodes_seed: int
+    image_size: int
+
+
+class PolicyCard(_Strict):
+    format: str = CARD_FORMAT
+    arch: PolicyArch
+    action: ActionScaling
+    preprocess: Literal["center_crop", "letterbox", "resize"] = Field(
+        "center_crop",
+        description="how a camera frame of another size becomes the S x S input (sim.policyview): the centred "
+        "square, resized (the sim cameras' square view); the whole frame padded; or squashed",
+    )
+    contract: PolicyContract = Field(
+        default_factory=PolicyContract, description="state inputs and action semantics (sim.policies.contract)"
+    )
+    training: dict[str, Any] = Field(default_factory=dict, description="resolved training config")
+    clean_success: CleanSuccess | None = None
+    seed: int | None = None
+    git_commit: str = "unknown"
+    created_utc: str = ""
+    weights_sha256: str = ""
+
+    def arch_mismatch(self) -> str | None:
+        """Why the built-in network described by ``arch`` cannot honour ``contract`` (None: it can).
+
+        Checked for checkpoints, whose network is rebuilt from ``arch``; an ONNX card's ``arch``
+        only needs the right ``image_size``, since the graph is the user's.
+        """
+        c, a = self.contract, self.arch
+        if a.state_dim != c.state_dim:
+            return f"arch.state_dim is {a.state_dim} but the contract's state {list(c.state)} has {c.state_dim} values"
+        if a.chunk != c.action.chunk:
+            return f"arch.chunk is {a.chunk} but contract.action.chunk is {c.action.chunk}"
+        want = "tanh" if c.action.kind == "delta_tcp" else "linear"
+        if a.output != want:
+            return f"arch.output is {a.output!r} but {c.action.kind} actions need {want!r}"
+        return None
+
+
+def load_card(path: str | Path) -> PolicyCard:
+    """The validated card of checkpoint directory ``path`` (or of a ``policy.json`` file)."""
+    p = Path(path)
+    card_path = p / CARD_NAME if p.is_dir() else p
+    if not card_path.is_file():
+        if p.is_file():
+            raise PolicyError(
+                f"{p}: not a policy checkpoint; expected a directory with {CARD_NAME} and {_WEIGHTS_NAME}, or an .onnx file"
+            )
+        raise PolicyError(f"{p}: no such policy checkpoint (expected a directory with {CARD_NAME})")
+    try:
+        doc = json.loads(card_path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise PolicyError(f"{card_path}: not a JSON policy card ({err})") from None
+    if not isinstance(doc, dict) or doc.get("format") != CARD_FORMAT:
+        raise PolicyError(f"{card_path}: not an advobj policy card (missing format {CARD_FORMAT!r})")
+    try:
+        return PolicyCard.model_validate(doc)
+    except ValidationError as err:
+        e = err.errors()[0]
+        loc = ".".join(str(x) for x in e["loc"])
+        raise PolicyError(f"{card_path}: {loc}: {e['msg']}") from None

@@ -1,0 +1,121 @@
+"""The house rules, checked on the source: the layers, no import loops, the rooms of ``trials/``."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("sim", "calibration", "attack", "robot_io", "trials")
+# sim and calibration are the ground floor; attack and robot_io stand on sim; trials is the top.
+FLOOR = {"sim": 0, "calibration": 0, "attack": 1, "robot_io": 1, "trials": 2}
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for pkg in PACKAGES:
+        for f in (ROOT / pkg).rglob("*.py"):
+            parts = list(f.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            mods[".".join(parts)] = f
+    return mods
+
+
+def _edges(mods: dict[str, Path]) -> dict[str, set[str]]:
+    """Module -> project modules it imports, at the top or inside functions alike (a lazy import
+    still makes a dependency)."""
+
+    def resolve(name: str) -> str | None:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    edges: dict[str, set[str]] = {m: set() for m in mods}
+    for m, f in mods.items():
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    pkg = m.split(".") if f.name == "__init__.py" else m.split(".")[:-1]
+                    base = ".".join(pkg[: len(pkg) - node.level + 1] + ([node.module] if node.module else []))
+                names = [base] + [f"{base}.{a.name}" for a in node.names]
+            else:
+                continue
+            for n in names:
+                t = resolve(n)
+                if t is not None and t != m:
+                    edges[m].add(t)
+    return edges
+
+
+def _cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in edges:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_module_imports_a_higher_floor():
+    edges = _edges(_modules())
+    upward = [f"{a} -> {b}" for a, ts in edges.items() for b in ts if FLOOR[b.split(".")[0]] > FLOOR[a.split(".")[0]]]
+    assert not upward, "imports that run upward:\n" + "\n".join(sorted(upward))
+
+
+def test_there_are_no_import_loops_not_even_through_lazy_imports():
+    loops = _cycles(_edges(_modules()))
+    assert not loops, "import loops: " + "; ".join(" <-> ".join(c) for c in loops)
+
+
+def test_trials_is_split_into_its_rooms_and_the_docs_generator_is_a_dev_tool():
+    rooms = {p.name for p in (ROOT / "trials").iterdir() if p.is_dir() and (p / "__init__.py").is_file()}
+    assert rooms == {"cli", "eval", "experiments", "fabrication", "jobs", "real"}
+    loose = sorted(p.name for p in (ROOT / "trials").glob("*.py") if p.name != "__init__.py")
+    assert not loose, f"modules outside the rooms of trials/: {loose}"
+    assert (ROOT / "tools" / "docgen.py").is_file()
+    cli = [p for p in (ROOT / "trials" / "cli").glob("*.py") if p.name not in ("__init__.py", "options.py")]
+    for f in cli:  # typer apps only: no room below imports the CLI
+        assert "typer" in f.read_text(), f"{f.relative_to(ROOT)} is in trials/cli/ but defines no typer command"
+    edges = _edges(_modules())
+    into_cli = [
+        f"{a} -> {b}"
+        for a, ts in edges.items()
+        for b in ts
+        if b.startswith("trials.cli") and not a.startswith("trials.cli")
+    ]
+    assert not into_cli, "modules outside trials/cli import the CLI:\n" + "\n".join(sorted(into_cli))
+
+
+def test_the_check_itself_sees_a_loop_and_an_upward_import():
+    edges = {"sim.a": {"sim.b"}, "sim.b": {"sim.a"}, "trials.x": set()}
+    assert _cycles(edges) == [["sim.a", "sim.b"]]

@@ -1,0 +1,30 @@
+"""``advobj attack``: optimise a viewpoint-consistent adversarial texture."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, help="Optimise a 3D adversarial texture against a white-box policy.")
+
+
+@app.command()
+def run(
+    policy: Path = typer.Option(..., help="white-box policy checkpoint directory"),
+    preset: str = typer.Option("quick", help="quick | paper"),
+    config: Optional[Path] = typer.Option(None, help="YAML whose fields override the preset's"),
+    scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
+    pool: Optional[Path] = typer.Option(None, help="task-feasible pool JSON (default: the policy's, if any)"),
+    out: Path = typer.Option(Path("runs/attack"), help="run directory"),
+    resume: bool = typer.Option(False, "--resume", help="continue from the run directory's checkpoint"),
+) -> None:
+    """Run the attack; writes the texture, textured meshes, plots and metrics into OUT."""
+    from attack.outputs import summary_lines
+    from trials.jobs.attack import attack_job
+
+    metrics = attack_job(policy, preset, config, scene, pool, out, resume)
+    for line in summary_lines(metrics):
+        typer.echo(line)
+    typer.echo(f"outputs in {out}/")

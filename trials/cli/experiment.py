@@ -1,0 +1,227 @@
+"""``advobj experiment``: the paper's tables as recipes (quick and paper presets)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from trials.cli.grid import ADDRESS, SHARDS, WORKERS
+
+app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
+
+
+def _run(
+    name: str,
+    preset: str,
+    out: Optional[Path],
+    policy: Optional[Path],
+    target: List[str],
+    episodes: Optional[int],
+    scene: Optional[Path],
+    pool: Optional[Path],
+    archs: Optional[str] = None,
+    iterations: Optional[int] = None,
+    grid: tuple = (None, None, None, "cpu"),
+) -> None:
+    from sim.runtime import set_torch_threads
+    from trials.cli.grid import executor
+    from trials.cli.options import key_values
+    from trials.experiments.recipes import resolve_experiment, run_experiment
+
+    set_torch_threads()
+    targets = {arch: Path(d) for arch, d in key_values(target, "--target", "ARCH", "PATH").items()}
+    workers, address, shards, device = grid
+    ex, default_shards = executor(workers, address, typer.echo)
+    cfg = resolve_experiment(
+        preset,
+        episodes=episodes,
+        pool=None if pool is None else str(pool),
+        device=device,
+        attack_overrides=None if iterations is None else {"iterations": iterations},
+        transfer_targets=None if archs is None else tuple(a.strip() for a in archs.split(",") if a.strip()),
+    )
+    path = run_experiment(
+        name,
+        cfg,
+        out or Path("runs") / f"{name}-{preset}",
+        policy,
+        targets,
+        scene,
+        log=typer.echo,
+        executor=ex,
+        shards=shards or default_shards,
+    )
+    typer.echo(path.read_text())
+    typer.echo(f"table: {path}")
+
+
+_PRESET = typer.Option("quick", help="quick (2 CPU cores) or paper (the paper's budget)")
+_OUT = typer.Option(None, help="output directory (default: runs/<experiment>-<preset>); re-running it resumes")
+_POLICY = typer.Option(
+    None, help="reference (source) policy checkpoint; default: train one with the preset's policy preset"
+)
+_EPISODES = typer.Option(None, min=1, help="override the preset's episodes per condition")
+_SCENE = typer.Option(None, help="scene YAML (default: the built-in paper scene)")
+_POOL = typer.Option(None, help="task-feasible pool JSON for every evaluation (default: each policy's own)")
+_ITERATIONS = typer.Option(None, min=1, help="attack iterations of every attack (default: the attack preset's)")
+_DEVICE = typer.Option("cpu", help="torch device of every job; 'cuda' jobs ask Ray for a GPU each")
+
+
+@app.command()
+def table1(
+    preset: str = _PRESET,
+    out: Optional[Path] = _OUT,
+    policy: Optional[Path] = _POLICY,
+    episodes: Optional[int] = _EPISODES,
+    scene: Optional[Path] = _SCENE,
+    pool: Optional[Path] = _POOL,
+    iterations: Optional[int] = _ITERATIONS,
+    workers: Optional[int] = WORKERS,
+    address: Optional[str] = ADDRESS,
+    shards: Optional[int] = SHARDS,
+    device: str = _DEVICE,
+) -> None:
+    """3D adversarial object vs 2D patch, by viewing angle (Table I)."""
+    _run(
+        "table1",
+        preset,
+        out,
+        policy,
+        [],
+        episodes,
+        scene,
+        pool,
+        iterations=iterations,
+        grid=(workers, address, shards, device),
+    )
+
+
+@app.command()
+def table2(
+    preset: str = _PRESET,
+    out: Optional[Path] = _OUT,
+    policy: Optional[Path] = _POLICY,
+    episodes: Optional[int] = _EPISODES,
+    scene: Optional[Path] = _SCENE,
+    pool: Optional[Path] = _POOL,
+    iterations: Optional[int] = typer.Option(
+        None,
+        min=1,
+        help="attack iterations (default: the attack preset's); a smaller "
+        "budget shows the strategies before they saturate",
+    ),
+    workers: Optional[int] = WORKERS,
+    address: Optional[str] = ADDRESS,
+    shards: Optional[int] = SHARDS,
+    device: str = _DEVICE,
+) -> None:
+    """C2F vs F2C vs NS and the targeted / pose / saliency ablations, by distance (Table II)."""
+    _run(
+        "table2",
+        preset,
+        out,
+        policy,
+        [],
+        episodes,
+        scene,
+        pool,
+        iterations=iterations,
+        grid=(workers, address, shards, device),
+    )
+
+
+@app.command()
+def table3(
+    preset: str = _PRESET,
+    out: Optional[Path] = _OUT,
+    policy: Optional[Path] = _POLICY,
+    episodes: Optional[int] = _EPISODES,
+    scene: Optional[Path] = _SCENE,
+    pool: Optional[Path] = _POOL,
+    iterations: Optional[int] = _ITERATIONS,
+    workers: Optional[int] = WORKERS,
+    address: Optional[str] = ADDRESS,
+    shards: Optional[int] = SHARDS,
+    device: str = _DEVICE,
+) -> None:
+    """Shapes, stereo camera, lighting, noise and background (Table III)."""
+    _run(
+        "table3",
+        preset,
+        out,
+        policy,
+        [],
+        episodes,
+        scene,
+        pool,
+        iterations=iterations,
+        grid=(workers, address, shards, device),
+    )
+
+
+@app.command()
+def lighting(
+    preset: str = _PRESET,
+    out: Optional[Path] = _OUT,
+    policy: Optional[Path] = _POLICY,
+    episodes: Optional[int] = _EPISODES,
+    scene: Optional[Path] = _SCENE,
+    pool: Optional[Path] = _POOL,
+    iterations: Optional[int] = _ITERATIONS,
+    workers: Optional[int] = WORKERS,
+    address: Optional[str] = ADDRESS,
+    shards: Optional[int] = SHARDS,
+    device: str = _DEVICE,
+) -> None:
+    """Lighting randomisation in the attack: its cost and what it buys under bright, dim and held-out lights."""
+    _run(
+        "lighting",
+        preset,
+        out,
+        policy,
+        [],
+        episodes,
+        scene,
+        pool,
+        iterations=iterations,
+        grid=(workers, address, shards, device),
+    )
+
+
+@app.command()
+def transfer(
+    preset: str = _PRESET,
+    out: Optional[Path] = _OUT,
+    policy: Optional[Path] = _POLICY,
+    target: List[str] = typer.Option(
+        [],
+        help="ARCH=PATH target policy (resnet34, vgg16, inception_v3; checkpoint or .onnx); "
+        "missing targets are trained",
+    ),
+    episodes: Optional[int] = _EPISODES,
+    scene: Optional[Path] = _SCENE,
+    archs: Optional[str] = typer.Option(
+        None, "--archs", help="comma-separated target architectures to run (default: resnet34,vgg16,inception_v3)"
+    ),
+    iterations: Optional[int] = _ITERATIONS,
+    workers: Optional[int] = WORKERS,
+    address: Optional[str] = ADDRESS,
+    shards: Optional[int] = SHARDS,
+    device: str = _DEVICE,
+) -> None:
+    """Black-box transfer: source attack against ResNet34, VGG16 and Inception-v3 (Table V)."""
+    _run(
+        "transfer",
+        preset,
+        out,
+        policy,
+        target,
+        episodes,
+        scene,
+        None,
+        archs,
+        iterations=iterations,
+        grid=(workers, address, shards, device),
+    )

@@ -1,0 +1,135 @@
+"""The ``advobj`` command line: parse -> build -> run. Sub-commands live beside this file in ``trials/cli/``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from trials.cli import attack as cli_attack
+from trials.cli import bench as cli_bench
+from trials.cli import calibrate as cli_calibrate
+from trials.cli import eval as cli_eval
+from trials.cli import experiment as cli_experiment
+from trials.cli import fabricate as cli_fabricate
+from trials.cli import grid as cli_grid
+from trials.cli import hw as cli_hw
+from trials.cli import policy as cli_policy
+from trials.cli import scene as cli_scene
+from trials.cli import trial as cli_trial
+
+app = typer.Typer(
+    no_args_is_help=True,
+    add_completion=False,
+    help="Red-team wrist-camera visuomotor policies with 3D adversarial objects.",
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        import importlib.metadata
+
+        typer.echo(f"advobj {importlib.metadata.version('advobj')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="print the version and exit"
+    ),
+) -> None:
+    """Red-team wrist-camera visuomotor policies with 3D adversarial objects."""
+
+
+app.add_typer(cli_scene.app, name="scene")
+
+app.add_typer(cli_attack.app, name="attack")
+
+app.command("eval")(cli_eval.eval_command)
+
+app.command("fabricate")(cli_fabricate.fabricate_command)
+
+app.add_typer(cli_experiment.app, name="experiment")
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("runs/demo"), help="output directory"),
+    seed: int = typer.Option(0, min=0),
+    workers: Optional[int] = cli_grid.WORKERS,
+    address: Optional[str] = cli_grid.ADDRESS,
+) -> None:
+    """The main job on the built-in scene, with quick settings."""
+    from trials.cli.eval import format_summary
+    from trials.experiments.demo import run_demo
+
+    ex, _ = cli_grid.executor(workers, address, typer.echo)
+    result = run_demo(out, seed, log=typer.echo, executor=ex)
+    typer.echo(format_summary(result["summary"]))
+    typer.echo(f"demo: report in {result['report']}")
+
+
+app.add_typer(cli_hw.app, name="hw")
+
+
+app.add_typer(cli_calibrate.app, name="calibrate")
+
+app.add_typer(cli_policy.app, name="policy")
+
+app.add_typer(cli_bench.app, name="bench")
+
+app.add_typer(cli_trial.app, name="trial")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def main() -> None:
+    """Run the CLI; every input error ends as one line on stderr (``error: ...``) and exit code 2.
+
+    Errors of the project (:class:`~sim.errors.AdvobjError`), the command line's own usage errors
+    (a bad flag value, a missing option: typer would draw a multi-line box), a pydantic validation
+    of options that reached a model, and an OS error naming a file (``--out`` naming a directory,
+    a read-only folder) all print one line naming the flag, field or file.
+    """
+    import sys
+
+    from pydantic import ValidationError
+    from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
+
+    from sim.errors import AdvobjError, format_validation_error
+
+    def fail(message: str, code: int = 2):
+        typer.secho(f"error: {_one_line(message)}", err=True, fg=typer.colors.RED)
+        sys.exit(code)
+
+    try:
+        rc = app(standalone_mode=False)
+    except AdvobjError as err:
+        fail(str(err), getattr(err, "exit_code", None) or 2)
+    except NoArgsIsHelpError as err:  # 'advobj' or 'advobj trial' alone: the help, as before
+        err.show()
+        sys.exit(2)
+    except UsageError as err:
+        where = err.ctx.command_path if err.ctx is not None else "advobj"
+        fail(f"{where}: {err.format_message()}", err.exit_code if err.exit_code else 2)
+    except ClickException as err:
+        fail(err.format_message(), err.exit_code or 1)
+    except typer.Abort:
+        typer.echo("Aborted!", err=True)
+        sys.exit(1)
+    except ValidationError as err:
+        fail(format_validation_error(err, "options"))
+    except OSError as err:
+        if err.filename is None:
+            raise
+        fail(f"{err.filename}: {err.strerror or err}")
+    sys.exit(rc if isinstance(rc, int) else 0)
+
+
+if __name__ == "__main__":
+    main()

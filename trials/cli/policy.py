@@ -1,0 +1,168 @@
+"""``advobj policy``: train, evaluate and export reference visuomotor policies."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, help="Train, evaluate and export reference visuomotor policies.")
+
+_THREADS_HELP = (
+    "torch intra-op threads; 1 (default) avoids OpenMP spin-wait contention with the CPU renderer "
+    "on small machines, 0 = torch's default"
+)
+
+
+def _set_threads(threads: int) -> None:
+    from sim.runtime import set_torch_threads
+
+    if threads < 0:
+        raise typer.BadParameter("--threads must be >= 0")
+    set_torch_threads(threads)
+
+
+@app.command()
+def train(
+    arch: Optional[str] = typer.Option(
+        None, help="backbone: resnet18, resnet34, vgg16, inception_v3, small_cnn (default: the preset's)"
+    ),
+    preset: str = typer.Option("quick", help="ci, quick or paper"),
+    method: Optional[str] = typer.Option(None, help="dagger or ppo (default: the preset's, dagger)"),
+    out: Path = typer.Option(..., help="output checkpoint directory; an interrupted run there resumes"),
+    scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
+    seed: int = typer.Option(0, min=0),
+    episodes: Optional[int] = typer.Option(None, help="final clean evaluation episodes (default: the preset's)"),
+    curve_episodes: int = typer.Option(
+        0, min=0, help="clean episodes after each iteration/chunk, for a learning curve (time excluded from the budget)"
+    ),
+    stop_at: Optional[float] = typer.Option(
+        None, help="stop once the learning-curve success reaches this (needs --curve-episodes)"
+    ),
+    threads: int = typer.Option(1, help=_THREADS_HELP),
+    keep_state: bool = typer.Option(
+        False,
+        "--keep-state/--no-keep-state",
+        help="keep train_state/ (the resume data, hundreds of MB) "
+        "once training has finished; by default it is deleted and the final weights kept",
+    ),
+    device: str = typer.Option("cpu"),
+    stem: Optional[str] = typer.Option(
+        None,
+        help="ResNet/VGG stem: 'small' (no early downsampling, the default of small presets) "
+        "or 'standard' (ImageNet stem: ~3-5x cheaper per image on CPU)",
+    ),
+) -> None:
+    """Train a policy (DAgger from the privileged expert, or PPO) and evaluate it."""
+    from sim.policies.presets import resolve_preset
+    from sim.policies.train import train_policy
+    from trials.jobs.scene import load_spec
+
+    extra = {} if episodes is None else {"final_eval_episodes": episodes}
+    if stem is not None:
+        if stem not in ("small", "standard"):
+            raise typer.BadParameter(f"--stem: expected 'small' or 'standard', got {stem!r}")
+        extra["policy"] = {"small_stem": stem == "small"}
+    if stop_at is not None and not curve_episodes:
+        raise typer.BadParameter("--stop-at needs --curve-episodes > 0")
+    if curve_episodes:
+        curve = {"eval_episodes": curve_episodes, "stop_at_success": stop_at}
+        extra.update(dagger=curve, ppo=curve)
+    try:
+        cfg = resolve_preset(preset, arch=arch, method=method, seed=seed, **extra)
+    except ValueError as err:
+        raise typer.BadParameter(str(err).splitlines()[0] if "preset" in str(err) else str(err)) from None
+    _set_threads(threads)
+    spec = load_spec(scene)
+    card = train_policy(cfg, out, spec, device=device, log=typer.echo, keep_state=keep_state)
+    t = card.training["train_time_s"]
+    typer.echo(f"trained {cfg.policy.arch} ({cfg.method}, preset {preset}) in {t / 60:.1f} min; checkpoint in {out}/")
+
+
+@app.command("eval")
+def evaluate(
+    policy: Path = typer.Argument(..., help="checkpoint directory or .onnx file"),
+    episodes: int = typer.Option(200, min=1),
+    seed: int = typer.Option(0, min=0, help="first initial-configuration seed"),
+    num_envs: int = typer.Option(16, min=1),
+    scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
+    light: str = typer.Option("fixed", help="fixed, bright, dim or random"),
+    background: str = typer.Option("fixed", help="fixed or varied"),
+    noise: float = typer.Option(0.0, help="sensor noise std (fraction of full scale)"),
+    out: Optional[Path] = typer.Option(None, help="output directory (default: <checkpoint>/eval or <file>-eval/)"),
+    threads: int = typer.Option(1, help=_THREADS_HELP),
+    device: str = typer.Option("cpu"),
+) -> None:
+    """Clean success rate with a 95% Wilson interval; writes the task-feasible pool."""
+    from sim.configs import spec_fingerprint
+    from sim.policies.checkpoint import load_policy
+    from sim.policies.pool import write_feasible_pool
+    from sim.policies.rollout import EnvConfig, evaluate_policy
+    from sim.runinfo import write_run_info
+    from trials.jobs.scene import load_spec
+
+    _set_threads(threads)
+    pol = load_policy(policy, device=device)
+    try:
+        env_cfg = EnvConfig(image_size=pol.image_size, light=light, background=background, noise_std=noise)
+    except ValueError as err:  # pydantic names the offending field
+        raise typer.BadParameter(str(err)) from None
+    spec = load_spec(scene)
+    out = out or (policy / "eval" if policy.is_dir() else policy.with_name(policy.stem + "-eval"))
+    resolved = {
+        "policy": str(policy),
+        "episodes": episodes,
+        "num_envs": num_envs,
+        "env": env_cfg.model_dump(),
+        "scene": {"name": spec.name, "fingerprint": spec_fingerprint(spec)},
+        "white_box": pol.white_box,
+    }
+    write_run_info(out, resolved, seed)
+    res = evaluate_policy(pol, spec, episodes, seed, num_envs, env_cfg)
+    summary = res.summary([o.name for o in spec.objects])
+    (out / "eval.json").write_text(
+        json.dumps(
+            {
+                **summary,
+                "seeds": [seed, seed + episodes - 1],
+                "episodes": [
+                    {"seed": int(s), "success": bool(ok), "reached": int(r), "steps": int(n)}
+                    for s, ok, r, n in zip(res.seeds, res.success, res.reached, res.steps)
+                ],
+            },
+            indent=1,
+        )
+    )
+    pool = write_feasible_pool(
+        out / "feasible_pool.json", spec, res, meta={"policy": str(policy), "seed": seed, "env": env_cfg.model_dump()}
+    )
+    typer.echo(f"clean success: {res.success_rate}")
+    typer.echo(f"task-feasible pool: {int(res.success.sum())} configurations -> {pool}")
+
+
+@app.command()
+def export(
+    policy: Path = typer.Argument(..., help="checkpoint directory"),
+    onnx: Path = typer.Option(..., "--onnx", help="output .onnx file"),
+    opset: int = typer.Option(17, min=17, help="ONNX opset (>= 17)"),
+    check: bool = typer.Option(True, "--check/--no-check", help="compare onnxruntime with torch on 32 random images"),
+) -> None:
+    """Export a checkpoint to ONNX (black-box use, real trials)."""
+    import numpy as np
+
+    from sim.policies.checkpoint import load_checkpoint
+    from sim.policies.onnx_policy import OnnxPolicy, export_onnx
+
+    pol, card = load_checkpoint(policy)
+    export_onnx(pol, onnx, card=card, opset=opset)
+    msg = f"wrote {onnx} (opset {opset}, input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1], output actions (B, 6))"
+    if check:
+        x = np.random.default_rng(0).random((32, 3, pol.image_size, pol.image_size), dtype=np.float32)
+        diff = float(np.abs(OnnxPolicy(onnx).act(x) - pol.act(x)).max())
+        msg += f"; max |onnx - torch| on 32 random images = {diff:.2e}"
+        if diff > 1e-4:
+            typer.secho(msg, fg=typer.colors.RED)
+            raise typer.Exit(1)
+    typer.echo(msg)

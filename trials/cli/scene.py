@@ -1,0 +1,83 @@
+"""``advobj scene``: render the scene, roll out the expert, write config pools."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, help="Render the simulated scene and roll out the expert.")
+
+_SIZE = dict(min=16, max=4096, help="square image size in px, 16-4096 (default: the spec camera's)")
+
+
+def _out_file(out: Path, suffixes: tuple[str, ...], flag: str = "--out") -> Path:
+    """``out`` if it can be written as a file of one of ``suffixes``; checked before any work."""
+    from sim.errors import AdvobjError
+
+    if out.is_dir():
+        raise AdvobjError(f"{flag}: {out} is a directory; give a file name ending in {' or '.join(suffixes)}")
+    if out.suffix.lower() not in suffixes:
+        raise AdvobjError(f"{flag}: {out} must end in {' or '.join(suffixes)}")
+    return out
+
+
+@app.command()
+def render(
+    scene: Optional[Path] = typer.Argument(None, help="scene YAML (default: the built-in paper scene)"),
+    out: Path = typer.Option(Path("scene.png"), help="output PNG"),
+    seed: int = typer.Option(0, min=0, help="initial-configuration seed"),
+    size: Optional[int] = typer.Option(None, **_SIZE),
+) -> None:
+    """Render the wrist-camera view of one initial configuration."""
+    import imageio.v3 as iio
+
+    from trials.jobs.scene import load_spec, render_still
+
+    _out_file(out, (".png",))
+
+    rgb = render_still(load_spec(scene), seed, size)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(out, rgb)
+    typer.echo(f"wrote {out} ({rgb.shape[1]}x{rgb.shape[0]})")
+
+
+@app.command()
+def rollout(
+    scene: Optional[Path] = typer.Argument(None, help="scene YAML (default: the built-in paper scene)"),
+    expert: bool = typer.Option(True, "--expert/--no-expert", help="drive with the privileged expert"),
+    out: Path = typer.Option(Path("rollout.gif"), help="output GIF"),
+    seed: int = typer.Option(0, min=0, help="initial-configuration seed"),
+    size: Optional[int] = typer.Option(None, **_SIZE),
+) -> None:
+    """Roll out one episode and write it as a GIF."""
+    if not expert:
+        raise typer.BadParameter("only --expert rollouts exist here; policies roll out with 'advobj policy eval'")
+    _out_file(out, (".gif",))
+    from trials.jobs.scene import expert_rollout, load_spec, write_gif
+
+    spec = load_spec(scene)
+    frames, info = expert_rollout(spec, seed, size)
+    write_gif(out, frames)
+    reached = int(info["reached"][0])
+    name = spec.objects[reached].name if reached >= 0 else "nothing"
+    typer.echo(f"wrote {out}: {len(frames) - 1} steps, reached {name}")
+
+
+@app.command()
+def pool(
+    scene: Optional[Path] = typer.Argument(None, help="scene YAML (default: the built-in paper scene)"),
+    n: int = typer.Option(100, min=1, help="number of configurations"),
+    seed: int = typer.Option(0, min=0, help="first seed"),
+    out: Path = typer.Option(Path("pool.json"), help="output JSON"),
+) -> None:
+    """Write a pool of initial configurations (reproducible from their seeds)."""
+    from sim.configs import sample_pool, save_pool
+    from trials.jobs.scene import load_spec
+
+    _out_file(out, (".json",))
+
+    spec = load_spec(scene)
+    save_pool(out, spec, sample_pool(spec, n, seed), meta={"seed": seed, "n": n})
+    typer.echo(f"wrote {out}: {n} configurations")

@@ -1,0 +1,1 @@
+"""The evaluation harness: conditions, paired rollouts, metrics, per-episode tables and reports."""

@@ -1,0 +1,209 @@
+"""Evaluation conditions: one CLI name each, built from an explicit name -> builder table.
+
+A :class:`Condition` says how the adversarial object looks (benign, or an attack texture on a
+given mesh) and how the scene is observed (appearance randomisation, stereo). Every condition is
+evaluated on the same task-feasible initial configurations (paired design), with the standard
+pyrender renderer; the differentiable composite is never used.
+
+Textures come from attack run directories (``advobj attack run``): ``texture.npy`` (H, W, 3)
+float32 in [0, 1] and ``run.json`` whose ``config.attack.adversarial_mesh`` names the mesh the
+texture was optimised on (``None`` = the scene's own adversarial mesh).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from sim.errors import AdvobjError
+from sim.variations import Randomization
+
+__all__ = [
+    "ConditionError",
+    "Condition",
+    "AttackSource",
+    "Sources",
+    "CONDITIONS",
+    "SHAPES",
+    "NOISE_STD",
+    "STEREO_BASELINE_M",
+    "load_attack_source",
+    "build_conditions",
+    "condition_spec",
+]
+
+# "Add Noise": Gaussian sensor noise, std as a fraction of full scale (0.03 = 7.7/255).
+NOISE_STD = 0.03
+# Stereo baseline used when the scene spec has none (m): a typical wrist stereo module.
+STEREO_BASELINE_M = 0.06
+SHAPES = ("dog", "duck", "cube", "cylinder")
+
+
+class ConditionError(AdvobjError, ValueError):
+    """An unknown condition, or a condition whose texture source is missing or malformed."""
+
+
+@dataclass(frozen=True)
+class AttackSource:
+    """A texture from an attack run directory and the mesh it was optimised on."""
+
+    path: str
+    texture: np.ndarray = field(repr=False, compare=False)  # (H, W, 3) uint8
+    mesh: str | None  # None = the scene's adversarial mesh
+    sha256: str  # of texture.npy: guards resuming with a changed texture
+    # Ids of the configurations the texture was optimised or selected on (attack/outputs.py's
+    # configs.json); None when the directory has no record (then no overlap can be proven 0).
+    trained_on: frozenset | None = field(default=None, repr=False, compare=False)
+
+    def to_dict(self) -> dict:
+        return {
+            "path": self.path,
+            "mesh": self.mesh,
+            "sha256": self.sha256,
+            "configs_recorded": self.trained_on is not None,
+        }
+
+
+@dataclass(frozen=True)
+class Condition:
+    """How one evaluation arm renders the adversarial object and observes the scene.
+
+    ``texture=None`` is the benign look (the clean control). ``stereo``: the policy sees the
+    left and right cameras and the two actions are averaged (see ``docs/evaluation.md``).
+    """
+
+    name: str
+    source: AttackSource | None = None
+    randomization: Randomization = Randomization()
+    stereo: bool = False
+
+    @property
+    def texture(self) -> np.ndarray | None:
+        return None if self.source is None else self.source.texture
+
+    @property
+    def mesh(self) -> str | None:
+        return None if self.source is None else self.source.mesh
+
+    def to_dict(self) -> dict:
+        r = self.randomization
+        return {
+            "name": self.name,
+            "source": None if self.source is None else self.source.to_dict(),
+            "randomization": {"light": r.light, "background": r.background, "noise_std": r.noise_std},
+            "stereo": self.stereo,
+        }
+
+
+def load_attack_source(path: str | Path) -> AttackSource:
+    """An attack run directory's texture and mesh (:class:`attack.artifact.AttackArtifact`; clear errors if not)."""
+    from attack.artifact import AttackArtifact
+
+    art = AttackArtifact.load(path, error=ConditionError)
+    return AttackSource(str(art.path), art.texture_u8, art.mesh, art.sha256, art.trained_on)
+
+
+@dataclass(frozen=True)
+class Sources:
+    """Attack run directories available to the builders (CLI: --attack, --patch, --shape NAME=DIR)."""
+
+    attack: str | None = None
+    patch: str | None = None
+    shapes: dict = field(default_factory=dict)
+
+
+def _need(path: str | None, option: str, cond: str) -> AttackSource:
+    if path is None:
+        raise ConditionError(f"condition {cond!r} needs an attack run directory: pass {option}")
+    return load_attack_source(path)
+
+
+def _clean(s: Sources) -> Condition:
+    return Condition("clean")
+
+
+def _attack(s: Sources) -> Condition:
+    return Condition("attack", _need(s.attack, "--attack DIR", "attack"))
+
+
+def _patch(s: Sources) -> Condition:
+    src = _need(s.patch, "--patch DIR", "patch")
+    if src.mesh != "patch":
+        raise ConditionError(
+            f"{src.path}: condition 'patch' needs a run with adversarial_mesh 'patch', this one used {src.mesh!r}"
+        )
+    return Condition("patch", src)
+
+
+def _variation(name: str, **kw) -> Callable[[Sources], Condition]:
+    def build(s: Sources) -> Condition:
+        return Condition(name, _need(s.attack, "--attack DIR", name), Randomization(**kw))
+
+    return build
+
+
+def _stereo(s: Sources) -> Condition:
+    return Condition("stereo", _need(s.attack, "--attack DIR", "stereo"), stereo=True)
+
+
+def _shape(shape: str) -> Callable[[Sources], Condition]:
+    def build(s: Sources) -> Condition:
+        src = _need(s.shapes.get(shape), f"--shape {shape}=DIR", f"shape_{shape}")
+        if src.mesh != shape:
+            raise ConditionError(
+                f"{src.path}: condition 'shape_{shape}' needs a run with adversarial_mesh {shape!r}, this one used {src.mesh!r}"
+            )
+        return Condition(f"shape_{shape}", src)
+
+    return build
+
+
+CONDITIONS: dict[str, Callable[[Sources], Condition]] = {
+    "clean": _clean,
+    "attack": _attack,
+    "patch": _patch,
+    "light_bright": _variation("light_bright", light="bright"),
+    "light_dim": _variation("light_dim", light="dim"),
+    # Held-out light levels: a random light per episode (intensity, direction, ambient, tint), drawn
+    # from the configuration's seed, so never one the attack's lighting randomisation trained on.
+    "light_random": _variation("light_random", light="random"),
+    "noise": _variation("noise", noise_std=NOISE_STD),
+    "bkg_varied": _variation("bkg_varied", background="varied"),
+    "stereo": _stereo,
+    **{f"shape_{s}": _shape(s) for s in SHAPES},
+}
+
+
+def build_conditions(names, sources: Sources) -> list[Condition]:
+    """Conditions for ``names`` (``clean`` always first, duplicates dropped)."""
+    ordered = ["clean"] + [n for n in names if n != "clean"]
+    seen, out = set(), []
+    for n in ordered:
+        if n in seen:
+            continue
+        if n not in CONDITIONS:
+            raise ConditionError(f"conditions: unknown condition {n!r}; choose from {', '.join(CONDITIONS)}")
+        seen.add(n)
+        out.append(CONDITIONS[n](sources))
+    return out
+
+
+def condition_spec(spec, cond: Condition):
+    """The scene a condition is rendered in: its mesh swapped in, a stereo baseline if needed.
+
+    The mesh swap is the one :class:`attack.optimize.AttackRun` makes (same object, same pose,
+    other mesh, its own default look), so the texture lands on the UVs it was optimised for.
+    """
+    updates = {}
+    if cond.mesh is not None:
+        objs = [
+            o.model_copy(update={"mesh": cond.mesh, "texture": None}) if o.role == "adversarial" else o
+            for o in spec.objects
+        ]
+        updates["objects"] = [o.model_dump() for o in objs]
+    if cond.stereo and spec.camera.stereo_baseline_m <= 0:
+        updates["camera"] = {**spec.camera.model_dump(), "stereo_baseline_m": STEREO_BASELINE_M}
+    return spec.with_updates(**updates) if updates else spec

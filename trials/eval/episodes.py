@@ -1,0 +1,189 @@
+"""Episode storage: append-only CSV rows (one per episode) plus a manifest of the resolved config.
+
+Layout of an evaluation directory::
+
+    manifest.json     the resolved evaluation config and its hash (written once, before any row)
+    episodes.csv      one row per finished episode, appended and flushed to disk per episode
+    summary.json      aggregated metrics (rewritten at the end)
+
+A crash leaves at worst one truncated last line, which is dropped on reopen; finished episodes are
+never redone. Reopening a directory whose manifest holds a different config is refused.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import os
+from pathlib import Path
+
+from sim.errors import AdvobjError
+
+__all__ = ["StorageError", "EpisodeStore", "BASE_COLUMNS", "config_hash", "read_rows"]
+
+
+class StorageError(AdvobjError, ValueError):
+    """An evaluation directory is malformed or belongs to a different config."""
+
+
+# Per-object minimum distances follow as ``min_dist_<object name>`` (m).
+BASE_COLUMNS = (
+    "condition",
+    "seed",
+    "r_m",
+    "theta_rad",
+    "phi_rad",
+    "outcome",
+    "reached",
+    "success",
+    "targeted",
+    "steps",
+    "e_trans",
+    "e_rot",
+)
+
+_INT = {"seed", "reached", "steps"}
+_BOOL = {"success", "targeted"}
+_STR = {"condition", "outcome", "eval"}  # "eval": the evaluation a row came from, in results/<recipe>/episodes.csv
+
+
+def config_hash(config: dict) -> str:
+    """SHA-256 (first 16 hex digits) of a JSON-able config, key order independent."""
+    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _parse(row: dict) -> dict:
+    out = {}
+    for k, v in row.items():
+        if k in _STR:
+            out[k] = v
+        elif k in _INT:
+            out[k] = int(v)
+        elif k in _BOOL:
+            out[k] = v == "1"
+        else:
+            out[k] = float(v) if v != "" else float("nan")
+    return out
+
+
+def read_rows(path: str | Path) -> list[dict]:
+    """Parsed rows of an ``episodes.csv``; a truncated last line (crash mid-write) is ignored."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    text = path.read_text()
+    lines = text.splitlines(keepends=True)
+    if lines and not lines[-1].endswith("\n"):
+        lines = lines[:-1]
+    if not lines:
+        return []
+    reader = csv.DictReader(io.StringIO("".join(lines)))
+    rows = []
+    for i, r in enumerate(reader, start=2):
+        if None in r or any(v is None for v in r.values()):
+            raise StorageError(f"{path}: line {i} has the wrong number of fields")
+        try:
+            rows.append(_parse(r))
+        except ValueError as err:
+            raise StorageError(f"{path}: line {i}: {err}") from None
+    return rows
+
+
+class EpisodeStore:
+    """Append-only episode rows for one evaluation directory.
+
+    Args:
+        out_dir: the evaluation directory.
+        config: the resolved, JSON-able evaluation config (its hash guards resumption).
+        object_names: scene object names, for the ``min_dist_<name>`` columns.
+        resume: allow a directory that already holds rows of the same config.
+    """
+
+    def __init__(self, out_dir: str | Path, config: dict, object_names, resume: bool = True):
+        self.dir = Path(out_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.columns = list(BASE_COLUMNS) + [f"min_dist_{n}" for n in object_names]
+        self.path = self.dir / "episodes.csv"
+        self.manifest_path = self.dir / "manifest.json"
+        h = config_hash(config)
+        if self.manifest_path.is_file():
+            try:
+                old = json.loads(self.manifest_path.read_text())
+            except json.JSONDecodeError as err:
+                raise StorageError(f"{self.manifest_path}: unreadable manifest ({err})") from None
+            if old.get("config_hash") != h:
+                diff = sorted(
+                    k for k in set(old.get("config", {})) | set(config) if old.get("config", {}).get(k) != config.get(k)
+                )
+                raise StorageError(
+                    f"{self.dir}: holds an evaluation with a different config (fields: {', '.join(diff) or '?'}); "
+                    "use another --out or delete the directory"
+                )
+            if not resume and self.path.is_file() and read_rows(self.path):
+                raise StorageError(
+                    f"{self.dir}: already holds episodes; pass --resume to continue, or use another --out"
+                )
+        else:
+            tmp = self.manifest_path.with_suffix(".json.tmp")
+            tmp.write_text(
+                json.dumps({"format": "advobj-eval/1", "config_hash": h, "config": config}, indent=2, default=str)
+            )
+            tmp.replace(self.manifest_path)
+        self.rows = read_rows(self.path)
+        if self.rows and list(self.rows[0]) != self.columns:
+            raise StorageError(f"{self.path}: columns differ from this scene's ({', '.join(self.columns)})")
+        self._rewrite_clean()
+        self._done = {(r["condition"], r["seed"]) for r in self.rows}
+
+    def _rewrite_clean(self) -> None:
+        """Drop a truncated last line (or write the header) so appends start on a fresh line."""
+        text = self.path.read_text() if self.path.is_file() else ""
+        if text and text.endswith("\n"):
+            return
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, self.columns, lineterminator="\n")
+        w.writeheader()
+        for r in self.rows:
+            w.writerow(self._format(r))
+        tmp = self.path.with_suffix(".csv.tmp")
+        tmp.write_text(buf.getvalue())
+        tmp.replace(self.path)
+
+    @staticmethod
+    def _format(row: dict) -> dict:
+        out = {}
+        for k, v in row.items():
+            if isinstance(v, (bool,)) or k in _BOOL:
+                out[k] = "1" if v else "0"
+            elif isinstance(v, float):
+                out[k] = "" if v != v else repr(v)
+            else:
+                out[k] = v
+        return out
+
+    def is_done(self, condition: str, seed: int) -> bool:
+        return (condition, int(seed)) in self._done
+
+    def append(self, rows: list[dict]) -> None:
+        """Append finished episodes and flush them to disk (fsync) before returning."""
+        if not rows:
+            return
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, self.columns, lineterminator="\n", extrasaction="raise")
+        for r in rows:
+            missing = set(self.columns) - set(r)
+            if missing:
+                raise StorageError(f"episode row lacks columns {sorted(missing)}")
+            w.writerow(self._format(r))
+        with open(self.path, "a") as f:
+            f.write(buf.getvalue())
+            f.flush()
+            os.fsync(f.fileno())
+        for r in rows:
+            self.rows.append(dict(r))
+            self._done.add((r["condition"], int(r["seed"])))
+
+    def condition_rows(self, condition: str) -> list[dict]:
+        return [r for r in self.rows if r["condition"] == condition]

@@ -1,0 +1,1 @@
+"""The paper's recipes, the demo, the speed-vs-accuracy sweep and the findings built from committed results."""

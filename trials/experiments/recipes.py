@@ -1,0 +1,919 @@
+"""The paper's experiments as recipes: locate or train policies, run the attacks, evaluate, tabulate.
+
+Every recipe has a ``quick`` and a ``paper`` preset and writes ``<out>/table.md`` in the paper's
+layout with the paper's numbers beside ours. Work is cached under ``<out>``: a finished policy,
+attack or evaluation is reused, an interrupted one resumes, so a recipe can be re-run after a
+crash and continues where it stopped.
+
+``<out>/policies/<name>/``  trained policies (unless given with ``--policy`` / ``--target``)
+``<out>/attacks/<name>/``   attack runs (``advobj attack run`` layout)
+``<out>/evals/<name>/``     evaluations (``advobj eval`` layout, with report.md)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Literal
+
+from pydantic import Field, ValidationError
+
+from sim.configio import StrictModel
+from sim.errors import AdvobjError, format_validation_error
+
+__all__ = [
+    "ExperimentError",
+    "ExperimentConfig",
+    "PRESETS",
+    "RECIPES",
+    "resolve_experiment",
+    "run_experiment",
+    "PAPER",
+    "table1_markdown",
+]
+
+
+class ExperimentError(AdvobjError, ValueError):
+    """Bad recipe name, preset or inputs."""
+
+
+class ExperimentConfig(StrictModel):
+    """The budget of a recipe run (a preset plus overrides)."""
+
+    preset: str
+    policy_preset: str = Field(description="training preset of the reference (source) policy when none is given")
+    target_policy_preset: str = Field(
+        description="training preset of the black-box target policies when none are given"
+    )
+    attack_preset: str
+    attack_overrides: dict = Field(default_factory=dict, description="AttackConfig fields applied to every attack")
+    episodes: int = Field(ge=1)
+    max_steps: int = Field(60, ge=1)
+    num_envs: int = Field(8, ge=1)
+    shapes: tuple[str, ...] = ("dog", "duck")
+    gifs: int = Field(2, ge=0)
+    pool: str | None = Field(None, description="task-feasible pool for every evaluation (default: each policy's)")
+    transfer_targets: tuple[Literal["resnet34", "vgg16", "inception_v3"], ...] = Field(
+        ("resnet34", "vgg16", "inception_v3"), description="black-box target architectures of the transfer recipe"
+    )
+    device: str = Field("cpu", description="torch device of every job (cuda jobs ask the executor for a GPU)")
+    seed: int = 0
+
+
+PRESETS: dict[str, dict] = {
+    # Runnable on 2 CPU cores: the small-CNN reference policy (advobj policy train --preset quick),
+    # short attacks, 100 episodes per condition.
+    # Targets train with the quick budget too: the 'ci' budget gives a policy that reaches nothing.
+    "quick": dict(
+        policy_preset="quick",
+        target_policy_preset="quick",
+        attack_preset="quick",
+        episodes=100,
+        max_steps=60,
+        num_envs=8,
+        shapes=("dog", "duck"),
+    ),
+    # The paper's budget: ResNet-18 at 128 px, 10k-iteration attacks, 500 episodes of 60 steps.
+    "paper": dict(
+        policy_preset="paper",
+        target_policy_preset="paper",
+        attack_preset="paper",
+        episodes=500,
+        max_steps=60,
+        num_envs=16,
+        shapes=("dog", "duck", "cube", "cylinder"),
+    ),
+}
+
+
+def resolve_experiment(preset: str, **overrides) -> ExperimentConfig:
+    if preset not in PRESETS:
+        raise ExperimentError(f"preset: unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    try:
+        return ExperimentConfig(
+            preset=preset, **{**PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None}}
+        )
+    except ValidationError as err:
+        raise ExperimentError(format_validation_error(err, "experiment config")) from None
+
+
+# ----------------------------------------------------------------------------- the paper's numbers
+PHI_LABELS = ["0-10", "10-20", "20-30", "30-40", "40-50", "50-60", "60-70", "70-90"]
+DIST_LABELS = ["25-36", "36-47", "47-58", "58-69", "69-80"]
+PAPER = {
+    # Table I: (T-ASR per phi bin, ASR per phi bin, T-ASR avg, ASR avg), %
+    "table1": {
+        "patch": (
+            [73.00, 61.40, 54.80, 46.40, 31.00, 27.00, 15.00, 10.60],
+            [77.00, 74.40, 66.80, 65.00, 56.60, 51.80, 48.80, 44.20],
+            39.90,
+            60.58,
+        ),
+        "attack": (
+            [78.00, 74.00, 62.00, 64.00, 60.00, 51.00, 40.00, 34.20],
+            [79.00, 80.00, 77.00, 74.00, 70.00, 62.00, 55.00, 56.60],
+            57.90,
+            69.20,
+        ),
+    },
+    # Table II: per distance bin then Avg: (T-ASR, ASR) pairs and (E_trans, E_rot) pairs
+    "table2": {
+        "ns": (
+            [56.00, 59.60, 69.20, 70.40, 73.80, 75.20, 75.00, 76.80, 94.60, 95.20, 73.72, 75.44],
+            [0.33, 0.042, 0.34, 0.040, 0.31, 0.036, 0.29, 0.034, 0.26, 0.033, 0.31, 0.037],
+        ),
+        "f2c": (
+            [54.40, 55.80, 59.20, 61.60, 67.40, 70.60, 64.80, 67.40, 89.40, 91.40, 67.04, 69.36],
+            [0.32, 0.034, 0.32, 0.034, 0.30, 0.032, 0.28, 0.030, 0.26, 0.029, 0.30, 0.032],
+        ),
+        "c2f_untargeted": (
+            [0.20, 15.00, 0.00, 8.00, 0.00, 10.20, 0.00, 8.40, 0.00, 34.40, 0.04, 15.20],
+            [0.05, 0.006, 0.04, 0.005, 0.03, 0.005, 0.03, 0.004, 0.02, 0.004, 0.04, 0.005],
+        ),
+        "c2f_no_pose": (
+            [60.60, 63.80, 72.20, 73.60, 73.80, 75.60, 72.60, 73.60, 89.80, 91.40, 73.80, 75.60],
+            [0.21, 0.030, 0.22, 0.032, 0.24, 0.035, 0.24, 0.035, 0.26, 0.038, 0.23, 0.034],
+        ),
+        "c2f_no_saliency": (
+            [59.20, 62.60, 73.80, 74.20, 78.60, 79.80, 82.00, 82.80, 96.80, 97.40, 78.08, 79.36],
+            [0.49, 0.061, 0.48, 0.057, 0.43, 0.050, 0.37, 0.045, 0.33, 0.041, 0.42, 0.051],
+        ),
+        "c2f": (
+            [61.60, 65.60, 76.60, 77.00, 82.20, 83.40, 84.20, 85.20, 97.40, 97.60, 80.36, 81.76],
+            [0.53, 0.066, 0.51, 0.060, 0.45, 0.054, 0.40, 0.048, 0.35, 0.044, 0.45, 0.055],
+        ),
+    },
+    # Table III: (T-ASR, ASR) %; cube and cylinder are not in the paper's table
+    "table3": {
+        "attack": (79.80, 81.12),
+        "shape_dog": (60.04, 65.80),
+        "shape_duck": (63.20, 68.32),
+        "stereo": (63.28, 78.91),
+        "light_bright": (77.04, 84.70),
+        "light_dim": (67.80, 72.20),
+        "noise": (75.57, 80.41),
+        "bkg_varied": (77.91, 85.64),
+    },
+    # Table V: (T-ASR, ASR) %
+    "transfer": {
+        "resnet18": (79.08, 81.12),
+        "resnet34": (71.20, 78.32),
+        "vgg16": (59.68, 70.08),
+        "inception_v3": (56.68, 70.28),
+    },
+}
+
+# Table II's rows: label, opt. strategy, (targeted, pose, saliency), AttackConfig overrides
+TABLE2_ROWS = [
+    ("ns", "(a)", "NS", (1, 1, 1), {"schedule": "ns"}),
+    ("f2c", "(b)", "F2C", (1, 1, 1), {"schedule": "f2c"}),
+    ("c2f_untargeted", "(c)", "C2F", (0, 1, 1), {"schedule": "c2f", "loss": "untargeted"}),
+    ("c2f_no_pose", "(d)", "C2F", (1, 0, 1), {"schedule": "c2f", "use_pose": False}),
+    ("c2f_no_saliency", "(e)", "C2F", (1, 1, 0), {"schedule": "c2f", "use_saliency": False}),
+    ("c2f", "(f)", "C2F", (1, 1, 1), {"schedule": "c2f"}),
+    # Not in the paper's table: one schedule stage for the whole run (far only / near only), which
+    # tells whether C2F's gain comes from the ordering or from either end of the distance range.
+    ("coarse", "(g)", "coarse only", (1, 1, 1), {"schedule": "coarse"}),
+    ("fine", "(h)", "fine only", (1, 1, 1), {"schedule": "fine"}),
+    # Controls, not attacks: the starting texture left as it is (one step of 1e-9 moves no 8-bit
+    # texel), uniform noise or mid grey. They separate "any unfamiliar look draws the policy" from
+    # what the optimisation adds.
+    (
+        "random_texture",
+        "(ctl)",
+        "none",
+        (0, 0, 0),
+        {"init_texture": "random", "iterations": 1, "lr": 1e-9, "validation_every": 0},
+    ),
+    (
+        "gray_texture",
+        "(ctl)",
+        "none",
+        (0, 0, 0),
+        {"init_texture": "gray", "iterations": 1, "lr": 1e-9, "validation_every": 0},
+    ),
+]
+TRANSFER_TARGETS = ("resnet34", "vgg16", "inception_v3")
+
+
+# ----------------------------------------------------------------------------- orchestration
+@dataclass
+class Context:
+    """A recipe run: its config, output folder, inputs and the grid of jobs it declares.
+
+    The ``ensure_*`` functions declare jobs (:mod:`trials.jobs.dag`) and return where their outputs
+    will be; reading an evaluation's summary runs every job declared so far (``run_jobs``), so a
+    recipe declares all its work first and the executor runs it serially or on Ray.
+    """
+
+    cfg: ExperimentConfig
+    out: Path
+    policy: Path | None = None
+    targets: dict = field(default_factory=dict)
+    scene: str | None = None
+    progress: bool = True
+    log: Callable[[str], None] = print
+    pools: dict = field(default_factory=dict)  # policy dir -> its evaluation pool file (ensure_pool)
+    executor: object = None
+    shards: int = 1
+    grid: object = None
+
+    def __post_init__(self):
+        from trials.jobs.dag import Grid, SerialExecutor
+
+        self.grid = self.grid or Grid(self.out)
+        self.executor = self.executor or SerialExecutor(self.log, tee=self.progress)
+
+    def spec(self):
+        from trials.jobs.scene import load_spec
+
+        return load_spec(self.scene)
+
+    def eval_spec(self):
+        """The scene with the recipe's episode length: what its evaluations (and pools) are made for."""
+        spec = self.spec()
+        return spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": self.cfg.max_steps})
+
+    def resources(self) -> dict:
+        return job_resources(self.cfg.device)
+
+    def run_jobs(self) -> None:
+        self.executor.run(self.grid)
+
+
+def job_resources(device: str) -> dict:
+    """What one job asks the executor for: a CPU (torch threads follow it), a GPU on CUDA."""
+    return {"num_cpus": 1.0, "num_gpus": 1.0 if str(device).startswith("cuda") else 0.0}
+
+
+def add_eval_jobs(grid, prefix: str, d: Path, fields: dict, inputs: dict, shards: int, resources: dict) -> None:
+    """An evaluation into ``d``: one ``eval`` job, or ``shards`` ``eval-shard`` jobs under
+    ``d/shards`` plus their merge (an ``eval`` job run in the driver, with the whole one's key)."""
+    key = {"fields": fields}
+    if shards <= 1:
+        grid.add(
+            prefix,
+            "eval",
+            "trials.experiments.recipes:job_eval",
+            d,
+            {"fields": fields},
+            inputs,
+            key_params=key,
+            **resources,
+        )
+        return
+    n = int(shards)
+    parts = [
+        grid.add(
+            f"{prefix}-shard{k}of{n}",
+            "eval-shard",
+            "trials.experiments.recipes:job_eval",
+            d / "shards" / f"{k}-of-{n}",
+            {"fields": fields, "shard": [k, n]},
+            inputs,
+            **resources,
+        )
+        for k in range(n)
+    ]
+    grid.add(
+        prefix,
+        "eval",
+        "trials.experiments.recipes:job_eval",
+        d,
+        {"fields": fields, "merge": n},
+        inputs,
+        local=True,
+        after=tuple(parts),
+        key_params=key,
+    )
+
+
+class EvalResult(dict):
+    """An evaluation's summary, read from ``summary.json`` once the grid has run."""
+
+    def __init__(self, ctx: Context, path: Path):
+        super().__init__()
+        self._ctx, self._path = ctx, path
+
+    def _load(self):
+        if not dict.__len__(self):  # dict's own length: not the override below
+            self._ctx.run_jobs()
+            self.update(json.loads((self._path / "summary.json").read_text()))
+
+
+def _loading(name: str):
+    base = getattr(dict, name)
+
+    def method(self, *args):
+        self._load()
+        return base(self, *args)
+
+    method.__name__ = name
+    return method
+
+
+# Every way of reading the dict runs the grid first (once): a recipe declares, then reads.
+for _name in ("__getitem__", "get", "__contains__", "__iter__", "__len__", "keys", "items", "values"):
+    setattr(EvalResult, _name, _loading(_name))
+del _name
+
+
+def _scene_input(ctx: Context) -> dict:
+    return {} if ctx.scene is None else {"scene": ctx.scene}
+
+
+def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None, preset: str | None = None) -> Path:
+    """A policy checkpoint: the one given, else a ``train-policy`` job into ``out/policies/<name>``."""
+    if name == "reference" and ctx.policy is not None:
+        return ctx.policy
+    if name in ctx.targets:
+        return Path(ctx.targets[name])
+    d = ctx.out / "policies" / name
+    preset = preset or ctx.cfg.policy_preset
+    from sim.policies.presets import resolve_preset
+
+    try:
+        resolve_preset(preset, arch=arch, seed=ctx.cfg.seed)
+    except ValueError as err:
+        raise ExperimentError(str(err)) from None
+    ctx.grid.add(
+        f"policy-{name}",
+        "train-policy",
+        "trials.experiments.recipes:job_train_policy",
+        d,
+        {"preset": preset, "arch": arch, "seed": ctx.cfg.seed, "device": ctx.cfg.device},
+        _scene_input(ctx),
+        **ctx.resources(),
+    )
+    return d
+
+
+def job_train_policy(out: Path, inputs: dict, preset: str, arch: str | None, seed: int, device: str = "cpu") -> None:
+    """The ``train-policy`` job: train (or resume, or reuse a finished) policy into ``out``."""
+    from sim.policies.presets import resolve_preset
+    from sim.policies.train import train_policy
+    from trials.jobs.scene import load_spec
+
+    if (out / "policy.json").is_file():
+        print(f"policy: reusing {out}")
+        return
+    from trials.jobs.dag import show_progress
+
+    train_policy(
+        resolve_preset(preset, arch=arch, seed=seed),
+        out,
+        load_spec(inputs.get("scene")),
+        device=device,
+        progress=show_progress(),
+    )
+
+
+def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict) -> Path:
+    """An ``attack`` job into ``out/attacks/<name>``: reused when finished with the same config,
+    resumed if interrupted."""
+    from attack.optimize import resolve_config
+
+    fields = {**ctx.cfg.attack_overrides, **overrides}
+    if str(ctx.cfg.device) != "cpu":
+        fields.setdefault("device", ctx.cfg.device)
+    resolve_config(ctx.cfg.attack_preset, fields)  # a bad override fails now, not inside the grid
+    d = ctx.out / "attacks" / name
+    ctx.grid.add(
+        f"attack-{name}",
+        "attack",
+        "trials.experiments.recipes:job_attack",
+        d,
+        {"preset": ctx.cfg.attack_preset, "fields": fields},
+        {"policy": policy_dir, **_scene_input(ctx)},
+        **ctx.resources(),
+    )
+    return d
+
+
+def job_attack(out: Path, inputs: dict, preset: str, fields: dict) -> None:
+    """The ``attack`` job: run, resume or reuse the attack of ``fields`` into ``out``."""
+    import yaml
+
+    from attack.artifact import TEXTURE_NPY, AttackArtifact
+    from attack.optimize import find_checkpoint, resolve_config
+    from trials.jobs.attack import attack_job
+
+    want = resolve_config(preset, fields).model_dump()
+    if (out / "metrics.json").is_file() and (out / TEXTURE_NPY).is_file():
+        have = AttackArtifact.load(out, error=ExperimentError).attack_config
+        if have != json.loads(json.dumps(want)):
+            raise ExperimentError(f"{out}: holds an attack with a different config; use another --out")
+        print(f"attack: reusing {out}")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    cfg_path = out / "attack_config.yaml"
+    cfg_path.write_text(yaml.safe_dump(fields))
+    resume = find_checkpoint(out) is not None
+    from trials.jobs.dag import show_progress
+
+    attack_job(inputs["policy"], preset, cfg_path, inputs.get("scene"), None, out, resume, progress=show_progress())
+
+
+def _eval_fields(ctx: Context) -> dict:
+    c = ctx.cfg
+    return {
+        "episodes": c.episodes,
+        "max_steps": c.max_steps,
+        "num_envs": c.num_envs,
+        "seed": c.seed,
+        "gifs": c.gifs,
+        "device": c.device,
+    }
+
+
+def ensure_pool(ctx: Context, policy_dir: Path) -> str:
+    """The evaluation pool of a policy: a ``pool`` job (``<out>/pools/<policy>-<hash>/``) built once
+    per recipe run and shared by all its evaluations, so every arm of every table is paired on the
+    same configurations and the clean rollouts that find them are not repeated per evaluation."""
+    c = ctx.cfg
+    if c.pool is not None:
+        return c.pool
+    key = str(policy_dir)
+    if key not in ctx.pools:
+        # Keyed by the resolved path too: two policies in folders of the same name must not share a pool.
+        digest = hashlib.sha256(str(Path(policy_dir).resolve()).encode()).hexdigest()[:8]
+        d = ctx.out / "pools" / f"{Path(policy_dir).name}-{digest}"
+        ctx.grid.add(
+            f"pool-{d.name}",
+            "pool",
+            "trials.experiments.recipes:job_pool",
+            d,
+            {"fields": _eval_fields(ctx)},
+            {"policy": policy_dir, **_scene_input(ctx)},
+            **ctx.resources(),
+        )
+        ctx.pools[key] = str(d / "feasible_pool.json")
+    return ctx.pools[key]
+
+
+def job_pool(out: Path, inputs: dict, fields: dict) -> None:
+    """The ``pool`` job: the policy's task-feasible evaluation-part configurations, saved as
+    ``out/feasible_pool.json`` (from the policy's own pool, topped up as ``advobj eval`` does)."""
+    from sim.configs import save_pool
+    from sim.policies.checkpoint import load_policy
+    from trials.eval.evaluate import load_eval_config, resolve_pool
+    from trials.jobs.dag import show_progress
+    from trials.jobs.scene import load_spec
+
+    ecfg = load_eval_config(
+        policy=str(inputs["policy"]), scene=None if "scene" not in inputs else str(inputs["scene"]), **fields
+    )
+    base = load_spec(ecfg.scene)
+    spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": ecfg.max_steps})
+    out.mkdir(parents=True, exist_ok=True)
+    configs, src = resolve_pool(ecfg, load_policy(ecfg.policy, ecfg.device), spec, out, progress=show_progress())
+    if Path(src) != out / "feasible_pool.json":  # the policy's own pool sufficed: keep a copy as this job's output
+        save_pool(
+            out / "feasible_pool.json",
+            spec,
+            configs,
+            meta={
+                "definition": "configs where the clean policy reaches the goal",
+                "part": "evaluation",
+                "base": src,
+                "from_base": len(configs),
+            },
+        )
+
+
+def ensure_eval(
+    ctx: Context, policy_dir: Path, name: str, conditions, attack=None, patch=None, shapes=None
+) -> EvalResult:
+    """An evaluation into ``out/evals/<name>``: one ``eval-shard`` job, or ``ctx.shards`` of them
+    merged by an ``eval`` job; returns its summary (read once the grid has run)."""
+    pool = ensure_pool(ctx, policy_dir)
+    inputs = {"policy": policy_dir, "pool": pool, "attack": attack, "patch": patch, **_scene_input(ctx)}
+    inputs.update({f"shape_{k}": v for k, v in (shapes or {}).items()})
+    fields = {**_eval_fields(ctx), "conditions": list(conditions)}
+    d = ctx.out / "evals" / name
+    ctx.log(f"eval {name}: {', '.join(conditions)} x {ctx.cfg.episodes} episodes into {d}")
+    add_eval_jobs(ctx.grid, f"eval-{name}", d, fields, inputs, ctx.shards, ctx.resources())
+    return EvalResult(ctx, d)
+
+
+def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, merge: int = 0) -> None:
+    """The ``eval-shard`` job (the whole evaluation, or configurations ``k::K`` with ``shard``) and
+    their merge (``merge=K``: the K shards under ``out/shards`` into ``out``)."""
+    from trials.eval.evaluate import load_eval_config, merge_eval, run_eval
+    from trials.jobs.dag import show_progress
+
+    sv = lambda k: None if k not in inputs else str(inputs[k])  # noqa: E731
+    cfg = load_eval_config(
+        **fields,
+        policy=str(inputs["policy"]),
+        pool=sv("pool"),
+        scene=sv("scene"),
+        attack=sv("attack"),
+        patch=sv("patch"),
+        shapes={k[len("shape_") :]: str(v) for k, v in inputs.items() if k.startswith("shape_")},
+    )
+    if merge:
+        merge_eval(cfg, out, [out / "shards" / f"{k}-of-{merge}" for k in range(merge)])
+    else:
+        run_eval(
+            cfg,
+            out,
+            resume=(out / "manifest.json").is_file(),
+            progress=show_progress(),
+            shard=None if shard is None else tuple(shard),
+            final_pool=True,
+        )
+
+
+def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dict:
+    """``advobj eval`` through the job layer: a ``pool`` job (unless ``cfg.pool`` is given), then
+    the evaluation into ``out`` (the folder ``run_eval`` writes), in ``shards`` jobs merged there."""
+    from trials.jobs.dag import Grid
+
+    out = Path(out)
+    grid = Grid(out)
+    res = job_resources(cfg.device)
+    fields = {
+        k: v
+        for k, v in cfg.model_dump(mode="json").items()
+        if k not in ("policy", "pool", "scene", "attack", "patch", "shapes")
+    }
+    scene = {} if cfg.scene is None else {"scene": cfg.scene}
+    pool = cfg.pool
+    if pool is None:
+        pf = {k: fields[k] for k in ("episodes", "max_steps", "num_envs", "seed", "pool_factor", "device")}
+        grid.add(
+            "pool",
+            "pool",
+            "trials.experiments.recipes:job_pool",
+            out / "pool",
+            {"fields": pf},
+            {"policy": cfg.policy, **scene},
+            **res,
+        )
+        pool = str(out / "pool" / "feasible_pool.json")
+    inputs = {
+        "policy": cfg.policy,
+        "pool": pool,
+        "attack": cfg.attack,
+        "patch": cfg.patch,
+        **scene,
+        **{f"shape_{k}": v for k, v in cfg.shapes.items()},
+    }
+    add_eval_jobs(grid, "eval", out, fields, inputs, shards, res)
+    executor.run(grid)
+    return json.loads((out / "summary.json").read_text())
+
+
+# ----------------------------------------------------------------------------- tables
+def _pct(p: dict) -> str:
+    return "n/a" if not p["n"] else f"{100 * p['rate']:.2f}"
+
+
+def _ci(p: dict) -> str:
+    return "" if not p["n"] else f" [{100 * p['lo']:.0f}, {100 * p['hi']:.0f}]"
+
+
+def _err(m: dict, d: int) -> str:
+    return "n/a" if not m["n"] or m["mean"] != m["mean"] else f"{m['mean']:.{d}f}"
+
+
+def _header(title: str, ctx: Context, note: str = "") -> list[str]:
+    c = ctx.cfg
+    return [
+        f"# {title}",
+        "",
+        f"Preset `{c.preset}`: {c.episodes} episodes per condition (paper: 500), at most {c.max_steps} steps, "
+        f"attack preset `{c.attack_preset}`. Rates in %; overall (Avg) cells of ours carry 95% Wilson intervals in brackets; "
+        "per-bin intervals and episode counts are in each evaluation's report.md (`evals/`). " + note,
+        "",
+    ]
+
+
+def table1(ctx: Context) -> str:
+    ref = ensure_policy(ctx)
+    att = ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"})
+    pat = ensure_attack(ctx, ref, "patch", {"schedule": "c2f", "adversarial_mesh": "patch"})
+    s = ensure_eval(ctx, ref, "table1", ["attack", "patch"], attack=att, patch=pat)
+    return table1_markdown(s, ctx, eval_rows(ctx, "table1"))
+
+
+def eval_rows(ctx: Context, name: str, condition: str | None = None) -> list[dict] | dict[int, dict]:
+    """The episode rows of evaluation ``name`` (``<out>/evals/<name>/episodes.csv``); with
+    ``condition``, that arm's rows keyed by configuration seed (for paired comparisons)."""
+    from trials.eval.episodes import read_rows
+
+    ctx.run_jobs()
+    rows = read_rows(ctx.out / "evals" / name / "episodes.csv")
+    return rows if condition is None else {r["seed"]: r for r in rows if r["condition"] == condition}
+
+
+def table1_markdown(s: dict, ctx: Context, rows: list[dict] | None = None) -> str:
+    """Table I's layout for an evaluation summary holding the ``attack`` and ``patch`` arms; with
+    the evaluation's ``rows``, the paired 3D-vs-patch test per phi and per distance bin too."""
+    lines = _header("Table I: 3D object vs 2D patch by viewing angle phi (deg)", ctx)
+    lines += [
+        "| attack type | source | " + " | ".join(f"{b} T-ASR | {b} ASR" for b in PHI_LABELS + ["Avg"]) + " |",
+        "|---|---|" + "---|---|" * (len(PHI_LABELS) + 1),
+    ]
+    for cond, label in (("patch", "2D Patch"), ("attack", "3D Object")):
+        cs = s["conditions"][cond]
+        ours = [f"{_pct(cs['by_phi'][b]['tasr'])} | {_pct(cs['by_phi'][b]['asr'])}" for b in PHI_LABELS]
+        ours.append(f"{_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])}")
+        t, a, ta, aa = PAPER["table1"][cond]
+        paper = [f"{x:.2f} | {y:.2f}" for x, y in zip(t, a)] + [f"{ta:.2f} | {aa:.2f}"]
+        lines += [f"| {label} | ours | " + " | ".join(ours) + " |", f"| {label} | paper | " + " | ".join(paper) + " |"]
+    lines += [
+        "",
+        "Episodes per phi bin (ours): "
+        + ", ".join(f"{b}: {s['conditions']['attack']['by_phi'][b]['n']}" for b in PHI_LABELS),
+    ]
+    pair = s.get("paired", {}).get("attack vs patch")
+    if pair:
+        lines += [
+            "",
+            f"Paired McNemar exact test, 3D object vs 2D patch on the same configurations: T-ASR "
+            f"{pair['tasr']['b']} configs only 3D / {pair['tasr']['c']} only patch, p = {pair['tasr']['p_value']:.2g}; "
+            f"ASR {pair['asr']['b']} / {pair['asr']['c']}, p = {pair['asr']['p_value']:.2g}.",
+        ]
+    if rows:
+        from trials.experiments.findings import paired_markdown
+
+        a = {r["seed"]: r for r in rows if r["condition"] == "attack"}
+        b = {r["seed"]: r for r in rows if r["condition"] == "patch"}
+        lines += ["", "## Paired T-ASR test by viewing angle phi", ""] + paired_markdown("3D", "patch", a, b, "phi")
+        lines += ["", "## Paired T-ASR test by initial distance r", ""] + paired_markdown("3D", "patch", a, b, "r")
+    return "\n".join(lines) + "\n"
+
+
+def table2(ctx: Context) -> str:
+    ref = ensure_policy(ctx)
+    lines = _header(
+        "Table II: optimisation strategies and loss ablations by initial distance (cm)",
+        ctx,
+        "Second line of each row: E_trans (normalised action units) and E_rot (rad), defined in docs/evaluation.md.",
+    )
+    lines += [
+        "| row | strategy | targeted | pose | saliency | source | "
+        + " | ".join(f"{b} T-ASR/E_trans | {b} ASR/E_rot" for b in DIST_LABELS + ["Avg"])
+        + " |",
+        "|---|---|---|---|---|---|" + "---|---|" * (len(DIST_LABELS) + 1),
+    ]
+    evals = {
+        key: ensure_eval(ctx, ref, f"table2_{key}", ["attack"], attack=ensure_attack(ctx, ref, key, overrides))
+        for key, *_, overrides in TABLE2_ROWS
+    }
+    for key, row, strat, flags, overrides in TABLE2_ROWS:
+        cs = evals[key]["conditions"]["attack"]
+        chk = " | ".join("x" if f else "" for f in flags)
+        rates = [f"{_pct(cs['by_distance'][b]['tasr'])} | {_pct(cs['by_distance'][b]['asr'])}" for b in DIST_LABELS]
+        rates.append(f"{_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])}")
+        errs = [
+            f"{_err(cs['by_distance'][b]['e_trans'], 2)} | {_err(cs['by_distance'][b]['e_rot'], 3)}"
+            for b in DIST_LABELS
+        ]
+        errs.append(f"{_err(cs['e_trans'], 2)} | {_err(cs['e_rot'], 3)}")
+        lines += [
+            f"| {row} | {strat} | {chk} | ours | " + " | ".join(rates) + " |",
+            "| | | | | | ours | " + " | ".join(errs) + " |",
+        ]
+        if key in PAPER["table2"]:
+            pr, pe = PAPER["table2"][key]
+            lines += [
+                "| | | | | | paper | " + " | ".join(f"{x:.2f}" for x in pr) + " |",
+                "| | | | | | paper | "
+                + " | ".join(f"{pe[i]:.2f} | {pe[i + 1]:.3f}" for i in range(0, len(pe), 2))
+                + " |",
+            ]
+        else:
+            lines.append("| | | | | | paper | " + " | ".join(["-"] * (2 * len(DIST_LABELS) + 2)) + " |")
+    from trials.experiments.findings import paired_markdown
+
+    arms = {key: eval_rows(ctx, f"table2_{key}", "attack") for key, *_ in TABLE2_ROWS}
+    for a, b, claim in (
+        ("c2f", "ns", ">="),
+        ("ns", "f2c", ">"),
+        ("c2f", "f2c", ">"),
+        ("c2f", "c2f_untargeted", ">"),
+        ("c2f", "c2f_no_saliency", ">"),
+        ("c2f", "c2f_no_pose", ">"),
+        ("c2f", "coarse", ">="),
+        ("c2f", "fine", ">="),
+    ):
+        if arms.get(a) and arms.get(b):
+            lines += ["", f"## Paired T-ASR test: {a} vs {b}, by initial distance r", ""] + paired_markdown(
+                a, b, arms[a], arms[b], "r", claim
+            )
+    return "\n".join(lines) + "\n"
+
+
+def table3(ctx: Context) -> str:
+    ref = ensure_policy(ctx)
+    att = ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"})
+    shapes = {
+        s: ensure_attack(ctx, ref, f"shape_{s}", {"schedule": "c2f", "adversarial_mesh": s}) for s in ctx.cfg.shapes
+    }
+    conds = (
+        ["attack"]
+        + [f"shape_{s}" for s in ctx.cfg.shapes]
+        + ["stereo", "light_bright", "light_dim", "noise", "bkg_varied"]
+    )
+    s = ensure_eval(ctx, ref, "table3", conds, attack=att, shapes=shapes)
+    labels = {
+        "attack": "Ours",
+        "stereo": "Stereo Cam",
+        "light_bright": "Light: Bright",
+        "light_dim": "Light: Dim",
+        "noise": "Add Noise",
+        "bkg_varied": "Bkg Varied",
+        **{f"shape_{x}": f"Shape: {x.capitalize()}" for x in ctx.cfg.shapes},
+    }
+    lines = _header(
+        "Table III: generalisation and robustness",
+        ctx,
+        "Stereo: the mono policy acts on both cameras of a 6 cm stereo pair and the two actions are averaged (docs/evaluation.md).",
+    )
+    lines += [
+        "| condition | T-ASR (ours) | ASR (ours) | T-ASR (paper) | ASR (paper) | McNemar p vs clean (ASR) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in conds:
+        cs = s["conditions"][c]
+        pt, pa = PAPER["table3"].get(c, (None, None))
+        p = cs.get("vs_clean", {}).get("asr", {}).get("p_value")
+        lines.append(
+            f"| {labels[c]} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])} | "
+            f"{'-' if pt is None else f'{pt:.2f}'} | {'-' if pa is None else f'{pa:.2f}'} | {'-' if p is None else f'{p:.2g}'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def transfer(ctx: Context) -> str:
+    src = ensure_policy(ctx)
+    att = ensure_attack(ctx, src, "c2f", {"schedule": "c2f"})
+    # The source row is the white-box policy whatever its architecture (the paper's is ResNet-18).
+    rows = [("source", src, "source (white-box)", "resnet18")]
+    for arch in ctx.cfg.transfer_targets:
+        rows.append(
+            (arch, ensure_policy(ctx, arch, arch=arch, preset=ctx.cfg.target_policy_preset), "black-box target", arch)
+        )
+    lines = _header(
+        "Table V: transfer from the source policy to other architectures",
+        ctx,
+        "Each target is evaluated on its own task-feasible configurations; the texture is the source policy's attack. "
+        "McNemar p: the attack arm against the same policy's clean arm.",
+    )
+    lines += [
+        "| policy | role | checkpoint arch | T-ASR (ours) | ASR (ours) | McNemar p vs clean (T-ASR) | T-ASR (paper) | ASR (paper) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    missing = [a for a in TRANSFER_TARGETS if a not in ctx.cfg.transfer_targets]
+    evals = {name: ensure_eval(ctx, pdir, f"transfer_{name}", ["attack"], attack=att) for name, pdir, *_ in rows}
+    for name, pdir, role, paper_row in rows:
+        cs = evals[name]["conditions"]["attack"]
+        pt, pa = PAPER["transfer"][paper_row]
+        p = cs.get("vs_clean", {}).get("tasr", {}).get("p_value")
+        lines.append(
+            f"| {name} | {role} | {_arch(pdir)} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])} | "
+            f"{'-' if p is None else f'{p:.2g}'} | {pt:.2f} | {pa:.2f} |"
+        )
+    for arch in missing:
+        pt, pa = PAPER["transfer"][arch]
+        lines.append(
+            f"| {arch} | black-box target | not run (not in transfer_targets) | - | - | - | {pt:.2f} | {pa:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+LIGHT_CONDITIONS = ("attack", "light_bright", "light_dim", "light_random")
+
+
+def lighting(ctx: Context) -> str:
+    """Lighting randomisation in the attack (the paper's sim-to-real measure): what it costs (attack
+    time, T-ASR under the nominal light) and what it buys (T-ASR under the bright and dim presets
+    and under held-out random lights), each texture on the same configurations."""
+    from trials.experiments.findings import paired_markdown
+
+    ref = ensure_policy(ctx)
+    runs = {
+        "fixed light": ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"}),
+        "light randomisation": ensure_attack(ctx, ref, "c2f_light", {"schedule": "c2f", "light_randomization": True}),
+    }
+    evals = {}
+    for label, run in runs.items():
+        name = f"lighting_{run.name}"
+        ensure_eval(ctx, ref, name, LIGHT_CONDITIONS, attack=run)
+        evals[label] = name
+    lines = _header(
+        "Lighting randomisation in the attack: cost and benefit",
+        ctx,
+        "Both textures are evaluated on the same held-out configurations; light_random draws a new light per episode "
+        "from the configuration's seed (never a light the attack saw).",
+    )
+    ctx.run_jobs()
+    cost = {k: json.loads((v / "metrics.json").read_text()) for k, v in runs.items()}
+    lines += [
+        "| attack | seconds / iteration | attack wall (s) | final held-out validation T-ASR (nominal light) |",
+        "|---|---|---|---|",
+    ]
+    for k, m in cost.items():
+        v = (m.get("validation") or {}).get("t_asr") or [float("nan")]
+        lines.append(f"| {k} | {m['seconds_per_iteration']:.3f} | {m['seconds']:.0f} | {v[-1]:.2f} |")
+    for cond in LIGHT_CONDITIONS:
+        a = eval_rows(ctx, evals["light randomisation"], cond)
+        b = eval_rows(ctx, evals["fixed light"], cond)
+        lines += ["", f"## Condition `{cond}`: with vs without lighting randomisation", ""]
+        lines += paired_markdown("randomised", "fixed", a, b, "phi", ">")
+    return "\n".join(lines) + "\n"
+
+
+def _arch(pdir: Path) -> str:
+    try:
+        from sim.policies.card import load_card
+
+        return load_card(pdir).arch.arch
+    except Exception:
+        return "onnx" if str(pdir).endswith(".onnx") else "?"
+
+
+RECIPES: dict[str, Callable[[Context], str]] = {
+    "table1": table1,
+    "table2": table2,
+    "table3": table3,
+    "transfer": transfer,
+    "lighting": lighting,
+}
+
+
+def _check_inputs(ctx: Context) -> None:
+    """Every input the recipe was given, checked before the first (long) job starts: the scene, the
+    pool, the source policy and every target (a checkpoint's card, or an ONNX file that loads)."""
+    from sim.configs import load_pool
+    from sim.policies.card import load_card
+    from sim.policies.checkpoint import load_policy
+
+    spec = ctx.eval_spec()  # also loads the scene: a bad --scene fails here
+    if ctx.cfg.pool is not None:
+        load_pool(ctx.cfg.pool, spec)
+    for flag, path in [("--policy", ctx.policy)] + [(f"--target {k}", v) for k, v in ctx.targets.items()]:
+        if path is None:
+            continue
+        try:
+            load_policy(path) if str(path).lower().endswith(".onnx") else load_card(path)
+        except AdvobjError as err:
+            raise ExperimentError(f"{flag}: {err}") from None
+
+
+def run_experiment(
+    name: str,
+    cfg: ExperimentConfig,
+    out: str | Path,
+    policy=None,
+    targets=None,
+    scene=None,
+    progress=True,
+    log=print,
+    executor=None,
+    shards: int = 1,
+) -> Path:
+    """Run recipe ``name`` (its jobs on ``executor``, serial by default, each evaluation in
+    ``shards`` jobs); returns the path of its ``table.md``."""
+    from sim.runinfo import write_run_info
+
+    if name not in RECIPES:
+        raise ExperimentError(f"unknown experiment {name!r}; choose one of {', '.join(RECIPES)}")
+    unknown = set(targets or {}) - set(cfg.transfer_targets)
+    if unknown:
+        raise ExperimentError(
+            f"--target: unknown target {sorted(unknown)[0]!r}; choose from {', '.join(cfg.transfer_targets)}"
+        )
+    out = Path(out)
+    ctx = Context(
+        cfg,
+        out,
+        None if policy is None else Path(policy),
+        dict(targets or {}),
+        None if scene is None else str(scene),
+        progress,
+        log,
+        executor=executor,
+        shards=int(shards),
+    )
+    _check_inputs(ctx)
+    write_run_info(
+        out,
+        {
+            "job": f"experiment {name}",
+            "experiment": cfg.model_dump(mode="json"),
+            "policy": None if policy is None else str(policy),
+            "targets": {k: str(v) for k, v in (targets or {}).items()},
+            "scene": ctx.scene,
+        },
+        cfg.seed,
+    )
+    table = RECIPES[name](ctx)
+    path = out / "table.md"
+    path.write_text(table)
+    return path

@@ -1,0 +1,143 @@
+"""The attack job behind ``advobj attack run`` and the demo: build, resume, run, write outputs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = ["attack_job", "top_up_attack_pool", "MIN_ATTACK_CONFIGS"]
+
+# Fewer attack-part configurations than this and EOT sees too few viewpoints: build more.
+MIN_ATTACK_CONFIGS = 32
+
+
+def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool = True) -> list:
+    """``pool`` plus task-feasible configurations built for the parts the attack uses ("attack",
+    and "validation" when validation is on) that hold too few (saved as ``out/feasible_pool.json``
+    and reused on resume). The evaluation part is never touched."""
+    from sim.configs import in_part, load_pool, save_pool
+    from trials.eval.evaluate import build_feasible
+
+    path = out / "feasible_pool.json"
+    if path.is_file():
+        return load_pool(path, spec)
+    want = {"attack": MIN_ATTACK_CONFIGS, "validation": cfg.validation_episodes if cfg.validation_every > 0 else 0}
+    extra = []
+    for part, n in want.items():
+        short = n - len(in_part(pool, part))
+        if short > 0:
+            got, tried = build_feasible(
+                policy,
+                spec,
+                part,
+                short,
+                cfg.seed,
+                8,
+                exclude=[c.seed for c in pool],
+                progress=progress,
+                desc=f"feasible pool ({part})",
+            )
+            if not got and not in_part(pool, part):
+                from attack.optimize import AttackError
+
+                raise AttackError(
+                    f"feasible pool: the clean policy reached the goal in none of the {tried} configurations of this "
+                    f"scene tried for the {part} part, so there is nothing to attack from: it does not do the task "
+                    "in this scene (check the scene's objects, their sizes and the camera), or give --pool"
+                )
+            extra += got
+    if not extra:
+        return pool
+    pool = pool + extra
+    save_pool(
+        path,
+        spec,
+        pool,
+        meta={"definition": "configs where the clean policy reaches the goal", "topped_up": len(extra)},
+    )
+    return pool
+
+
+def pool_matches_scene(path: Path, spec) -> bool:
+    """Whether the pool file at ``path`` was made for ``spec`` (its fingerprint); False if unreadable."""
+    import json
+
+    from sim.configs import spec_fingerprint
+
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8")).get("spec_fingerprint") == spec_fingerprint(spec)
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def attack_job(
+    policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True, log=print
+) -> dict:
+    from attack.artifact import write_config_record
+    from attack.optimize import AttackError, AttackRun, find_checkpoint, resolve_config, run_attack
+    from attack.outputs import write_outputs
+    from sim.configio import file_error, read_yaml
+    from sim.configs import PoolError, load_pool
+    from sim.policies.checkpoint import load_policy
+    from sim.policies.pool import feasible_pool_path
+    from sim.runinfo import write_run_info
+    from trials.jobs.scene import load_spec
+
+    overrides = {}
+    if config_path is not None:
+        # An empty file is an empty set of overrides; anything else not a mapping is refused.
+        overrides = read_yaml(config_path, "attack config", error=file_error(AttackError), mapping=False)
+        overrides = {} if overrides is None else overrides
+        if not isinstance(overrides, dict):
+            raise AttackError(f"{config_path}: an attack config must be a mapping of fields")
+    cfg = resolve_config(preset, overrides, source=str(config_path or "<preset>"))
+    spec = load_spec(scene_path)
+    policy = load_policy(policy_dir, cfg.device)
+    if pool_path is not None and not Path(pool_path).is_file():
+        raise AttackError(f"--pool: {pool_path}: no such pool file")
+    pool_file = Path(pool_path) if pool_path is not None else feasible_pool_path(policy_dir)
+    out = Path(out)
+    pool = None
+    if pool_file.is_file():
+        if pool_path is None and not pool_matches_scene(pool_file, spec):
+            # The policy's own pool is for the scene it was trained in; an own scene gets its own
+            # task-feasible configurations (attack and validation parts only), built and kept here.
+            log(
+                f"attack: {pool_file} is for another scene; building a task-feasible pool for "
+                f"{scene_path or 'the built-in scene'} into {out / 'feasible_pool.json'}"
+            )
+            pool_file = out / "feasible_pool.json"
+            pool = []
+        else:
+            try:
+                pool = load_pool(pool_file, spec)
+            except PoolError as err:
+                raise PoolError(
+                    f"{err}; --pool: give a pool made for this scene, or omit --pool to build one"
+                ) from None
+    if pool is not None:
+        pool = top_up_attack_pool(policy, spec, pool, cfg, out, progress)
+    run = AttackRun(policy, spec, cfg, pool=pool, out_dir=out)
+    try:
+        before = run.texture.clone()
+        if resume:
+            ckpt = find_checkpoint(out)
+            if ckpt is None:
+                raise AttackError(f"{out}: --resume given but no checkpoint found there")
+            run.load_checkpoint(ckpt)
+        write_run_info(
+            out,
+            {
+                "job": "attack",
+                "preset": preset,
+                "attack": cfg.model_dump(),
+                "policy": str(policy_dir),
+                "pool": str(pool_file) if pool is not None else None,
+                "scene": spec.model_dump(mode="json"),
+            },
+            cfg.seed,
+        )
+        write_config_record(out, run.pool, run.val_pool)
+        run_attack(run, progress=progress)
+        return write_outputs(run, out, before)
+    finally:
+        run.close()
