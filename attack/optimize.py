@@ -212,10 +212,9 @@ class AttackRun:
             attack_pool, val_pool = in_part(pool, "attack"), in_part(pool, "validation")
         if cfg.adversarial_mesh is not None:
             objs = [
-                o.model_copy(update={"mesh": cfg.adversarial_mesh, "texture": None}) if o.role == "adversarial" else o
-                for o in spec.objects
+                o.with_mesh(cfg.adversarial_mesh) if o.role == "adversarial" else o.model_dump() for o in spec.objects
             ]
-            spec = spec.with_updates(objects=[o.model_dump() for o in objs])
+            spec = spec.with_updates(objects=objs)
         self.spec = spec
         self.image_size = int(policy.image_size)
         from sim.policies.contract import policy_contract

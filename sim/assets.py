@@ -667,7 +667,7 @@ def ensure_uv(mesh: trimesh.Trimesh, name: str) -> trimesh.Trimesh:
     opt = mesh.metadata.get("optimizable_faces")
     if uv is not None and uv.min() >= 0.0 and uv.max() <= 1.0:
         img = image if image is not None else tx.plain_texture(TEXTURE_SIZE)
-        return _make_trimesh(name, vertices, faces, uv, img, opt)
+        return _make_trimesh(name, vertices, faces, uv, img, opt, {"uv_source": "file"})
 
     try:
         new_v, new_f, new_uv, vmap = _atlas(vertices, faces)
@@ -686,7 +686,7 @@ def ensure_uv(mesh: trimesh.Trimesh, name: str) -> trimesh.Trimesh:
         img = tx.finish_bake(rgb, covered)
     else:
         img = tx.plain_texture(size)
-    return _make_trimesh(name, new_v, new_f, new_uv, img, opt)
+    return _make_trimesh(name, new_v, new_f, new_uv, img, opt, {"uv_source": "atlas"})
 
 
 def _check_obj_references(path: Path) -> None:
@@ -840,6 +840,7 @@ def build_mesh(
     up_axis: str | None = None,
     placement: str = "auto",
     warn=None,
+    attack_region: str | os.PathLike | None = None,
 ) -> trimesh.Trimesh:
     """A fresh mesh from a built-in name (:data:`BUILTIN_MESHES`) or a mesh file path, scaled.
 
@@ -857,6 +858,9 @@ def build_mesh(
       it by more than 1 mm; ``keep`` keeps the file's origin (the object frame is the file's).
     * The longest side (after units and scale) must lie within :data:`PLAUSIBLE_SIZE_M`; otherwise
       the mesh is refused in one line suggesting the units that would fit.
+    * ``attack_region``: an image in the file's own UV layout whose white texels mark the faces the
+      attack may change (:func:`attack_region_faces`); the rest keep the file's texture, in the
+      sim and in print. Mesh files with their own UVs only.
     """
     if not isinstance(source, (str, os.PathLike)):
         raise AssetError(f"mesh source must be a built-in name or a file path, got {source!r}")
@@ -867,6 +871,8 @@ def build_mesh(
     if up_axis not in (None, "z", "y") or placement not in ("auto", "keep"):
         raise AssetError(f"{key}: up_axis must be z or y and placement auto or keep, got {up_axis!r} / {placement!r}")
     if isinstance(source, str) and key in BUILTIN_MESHES:
+        if attack_region is not None:
+            raise AssetError(f"{key}: attack_region applies to mesh files; a built-in mesh's optimised faces are fixed")
         mesh = BUILTIN_MESHES[key]()
         if not np.all(s == 1.0):
             mesh.vertices = np.asarray(mesh.vertices) * s
@@ -905,4 +911,39 @@ def build_mesh(
             v = v + shift
         return v
 
-    return load_mesh_file(key, prepare=prepare)
+    mesh = load_mesh_file(key, prepare=prepare)
+    if attack_region is not None:
+        mesh.metadata["optimizable_faces"] = attack_region_faces(mesh, attack_region, key)
+        mesh.metadata["attack_region"] = os.fspath(attack_region)
+    return mesh
+
+
+def attack_region_faces(mesh: trimesh.Trimesh, region: str | os.PathLike, label: str = "mesh") -> np.ndarray:
+    """(F,) bool: the faces whose UV centroid falls on a white (> 50 %) texel of image ``region``.
+
+    The image is read in the mesh's own UV layout (u right, v up, any size); the mesh must keep
+    the UVs of its file (an atlas made here would not match an image painted on the file's).
+    """
+    path = Path(region)
+    if mesh.metadata.get("uv_source") != "file":
+        raise AssetError(
+            f"{label}: attack_region needs the mesh file's own UVs in [0, 1]; this mesh had none (advobj made a UV atlas), "
+            "so an image painted on the file's layout cannot match it: unwrap the mesh (Blender: Smart UV Project) and export again"
+        )
+    try:
+        with Image.open(path) as im:
+            gray = np.asarray(im.convert("L"), dtype=np.float64) / 255.0
+    except FileNotFoundError:
+        raise AssetError(f"{path}: attack_region image not found") from None
+    except (OSError, ValueError, Image.DecompressionBombError) as err:
+        raise AssetError(f"{path}: attack_region is not a readable image ({type(err).__name__}: {err})") from None
+    h, w = gray.shape
+    uv = np.asarray(mesh.visual.uv, float)[np.asarray(mesh.faces)].mean(1)
+    col = np.clip((uv[:, 0] * w).astype(np.int64), 0, w - 1)
+    row = np.clip(((1.0 - uv[:, 1]) * h).astype(np.int64), 0, h - 1)
+    faces = gray[row, col] > 0.5
+    if not faces.any():
+        raise AssetError(
+            f"{path}: attack_region marks no face of {label} white; paint the region to attack white on its UV layout"
+        )
+    return faces

@@ -212,7 +212,7 @@ def sample_pool(spec, n: int, seed: int = 0, part: str | None = None) -> list[In
 # Object fields added after pools were first written, with the defaults that change nothing. On
 # a built-in mesh they never matter, so they are left out of its fingerprint there: every pool a
 # user already has stays valid. On a mesh file they shape the object, so they always count.
-_LATER_OBJECT_DEFAULTS = {"units": "m", "up_axis": None, "placement": "auto"}
+_LATER_OBJECT_DEFAULTS = {"units": "m", "up_axis": None, "placement": "auto", "attack_region": None}
 
 
 def _object_payload(o) -> dict:

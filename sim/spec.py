@@ -117,9 +117,26 @@ class ObjectSpec(_Strict):
         "it moves the mesh); keep: the file's origin is the object frame",
     )
 
+    attack_region: str | None = Field(
+        None,
+        description="an image in the mesh file's own UV layout: its white texels mark the faces the attack may change; "
+        "the rest keep the file's texture (default: every face)",
+    )
+
+    def with_mesh(self, mesh: str) -> dict:
+        """This object's fields with ``mesh`` swapped in and its default look: the texture and, for
+        another mesh, the attack region (an image of this mesh's UV layout) are dropped."""
+        d = {**self.model_dump(), "mesh": mesh, "texture": None}
+        if mesh != self.mesh:
+            d["attack_region"] = None
+        return d
+
     def mesh_kwargs(self) -> dict:
         """The arguments of :func:`sim.assets.build_mesh` besides the source and scale."""
-        return {"units": self.units, "up_axis": self.up_axis, "placement": self.placement}
+        kw = {"units": self.units, "up_axis": self.up_axis, "placement": self.placement}
+        if self.attack_region is not None:
+            kw["attack_region"] = self.attack_region
+        return kw
 
 
 class CameraSpec(_Strict):
@@ -298,19 +315,24 @@ def _resolve_paths(spec: SceneSpec, source: str) -> SceneSpec:
             return str(base / p)
         return p
 
-    def texture(p, field: str):
+    def texture(p, field: str, what: str = "texture"):
         if not isinstance(p, str) or p == "default":
             return p
         target = (base / p).resolve()
         if base not in target.parents:
             raise SpecError(
-                f"{source}: {field}: texture {p!r} lies outside the scene file's folder {base}; "
+                f"{source}: {field}: {what} {p!r} lies outside the scene file's folder {base}; "
                 "put the image next to the scene (or below it) and name it relatively"
             )
         return str(target)
 
     objects = [
-        {**o.model_dump(), "mesh": fix(o.mesh), "texture": texture(o.texture, f"objects.{i}.texture")}
+        {
+            **o.model_dump(),
+            "mesh": fix(o.mesh),
+            "texture": texture(o.texture, f"objects.{i}.texture"),
+            "attack_region": texture(o.attack_region, f"objects.{i}.attack_region", "image"),
+        }
         for i, o in enumerate(spec.objects)
     ]
     table = {**spec.table.model_dump(), "texture": texture(spec.table.texture, "table.texture")}

@@ -127,3 +127,39 @@ def test_the_batched_render_equals_frame_by_frame_pixels_and_gradients_to_float_
     torch.testing.assert_close(g_batch, g_single, rtol=1e-5, atol=1e-6)
     with pytest.raises(ValueError, match="no captures"):
         render_adversarial_batch([], tex)
+
+
+def test_only_the_attack_region_of_a_user_mesh_reaches_the_texture(tmp_path):
+    """A region image on the duck's own UVs: fragments (the only path to the texture's gradient)
+    come from its faces alone, while the rest of the duck keeps rendering in its own texture."""
+    from PIL import Image
+
+    data = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "meshes" / "pybullet-duck" / "duck.obj"
+    a = np.zeros((64, 64), np.uint8)
+    a[:, :32] = 255
+    Image.fromarray(a).save(tmp_path / "left.png")
+    spec = default_scene()
+    objs = [
+        {**o.with_mesh(str(data)), "up_axis": "y", "scale": 0.05, "attack_region": str(tmp_path / "left.png")}
+        if o.role == "adversarial"
+        else o.model_dump()
+        for o in spec.objects
+    ]
+    spec = spec.with_updates(objects=objs)
+    r = SceneRenderer(spec, 128, 128)
+    try:
+        hr = HybridRenderer(r)
+        opt = r.object_mesh(r.face_coded).metadata["optimizable_faces"]
+        assert 0 < opt.sum() < len(opt)
+        w = SimWorld(spec, image_size=128, seed=0, renderer=r)
+        c = w.object_center_array[r.face_coded]
+        seen = set()
+        for phi in (0.0, 1.5, 3.0, 4.5):
+            cap = hr.capture(w, look_at(c + 0.3 * np.array([np.sin(phi), np.cos(phi), 0.4]), c))
+            f = cap.fragments
+            assert opt[f.face].all()  # no pixel of a face outside the region
+            assert f.num_pixels <= cap.adv_mask.sum()
+            seen |= {bool(cap.adv_mask.sum() > f.num_pixels)}
+        assert True in seen  # some views show the duck outside the region too
+    finally:
+        r.close()

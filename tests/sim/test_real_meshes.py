@@ -98,3 +98,70 @@ def test_the_uv_atlas_is_cached_by_content_across_commands(tmp_path, monkeypatch
     np.testing.assert_array_equal(_build("ycb-mustard/006_mustard_bottle.stl")[0].visual.uv, first.visual.uv)
     other, _ = _build("ycb-mustard/006_mustard_bottle.stl", scale=0.5)  # other geometry, other entry
     assert len(list((tmp_path / "cache" / "uv").glob("*.npz"))) == 2 and other.extents.max() < 0.1
+
+
+def _half_mask(path, size=64, left=True):
+    from PIL import Image
+
+    a = np.zeros((size, size), np.uint8)
+    a[:, : size // 2] = 255 if left else 0
+    a[:, size // 2 :] = 0 if left else 255
+    Image.fromarray(a).save(path)
+    return path
+
+
+def test_an_attack_region_image_on_the_files_uv_layout_selects_the_faces_the_attack_may_change(tmp_path):
+    m, _ = _build("pybullet-duck/duck.obj", up_axis="y", scale=0.05, attack_region=_half_mask(tmp_path / "left.png"))
+    opt = m.metadata["optimizable_faces"]
+    u = np.asarray(m.visual.uv)[np.asarray(m.faces)].mean(1)[:, 0]
+    assert 0 < opt.sum() < len(opt) and (u[opt] < 0.5).all() and (u[~opt] >= 0.5).all()
+    img = np.asarray(m.visual.material.image.convert("RGB"))
+    assert img.shape == (512, 512, 3)  # the file's own texture stays on the mesh
+
+
+def test_an_attack_region_is_refused_where_it_cannot_match_the_mesh(tmp_path):
+    mask = _half_mask(tmp_path / "left.png")
+    with pytest.raises(A.AssetError, match="attack_region needs the mesh file's own UVs.*UV atlas"):
+        A.build_mesh(D / "scan-rabbit-mm" / "rabbit.stl", units="mm", attack_region=mask, warn=lambda _t: None)
+    with pytest.raises(A.AssetError, match="attack_region applies to mesh files"):
+        A.build_mesh("cube", attack_region=mask)
+    black = tmp_path / "black.png"
+    from PIL import Image
+
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(black)
+    with pytest.raises(A.AssetError, match="marks no face .* white"):
+        _build("pybullet-duck/duck.obj", up_axis="y", scale=0.05, attack_region=black)
+    with pytest.raises(A.AssetError, match="attack_region image not found"):
+        _build("pybullet-duck/duck.obj", up_axis="y", scale=0.05, attack_region=tmp_path / "none.png")
+    (tmp_path / "bad.png").write_bytes(b"not an image")
+    with pytest.raises(A.AssetError, match="not a readable image"):
+        _build("pybullet-duck/duck.obj", up_axis="y", scale=0.05, attack_region=tmp_path / "bad.png")
+
+
+def test_a_scene_names_its_attack_region_beside_it_and_never_outside(tmp_path):
+    import shutil
+
+    import yaml
+
+    from sim.configs import spec_fingerprint
+    from sim.spec import SpecError, default_scene, load_scene
+
+    shutil.copytree(D / "pybullet-duck", tmp_path / "duck")
+    _half_mask(tmp_path / "region.png")
+    doc = default_scene().model_dump(mode="json")
+    adv = next(o for o in doc["objects"] if o["role"] == "adversarial")
+    adv.update(mesh="duck/duck.obj", up_axis="y", scale=0.05, attack_region="region.png")
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump(doc))
+    spec = load_scene(tmp_path / "scene.yaml")
+    assert spec.adversarial.attack_region == str((tmp_path / "region.png").resolve())
+    without = spec.with_updates(
+        objects=[
+            o.with_mesh(o.mesh) | ({"attack_region": None} if o.role == "adversarial" else {}) for o in spec.objects
+        ]
+    )
+    assert spec_fingerprint(spec) != spec_fingerprint(without)  # the region changes what is attacked
+    assert spec.adversarial.with_mesh("cube")["attack_region"] is None  # another mesh: the region does not apply
+    adv["attack_region"] = "../elsewhere.png"
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(SpecError, match="attack_region: image '../elsewhere.png' lies outside the scene file's folder"):
+        load_scene(tmp_path / "scene.yaml")

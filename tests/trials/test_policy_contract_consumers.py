@@ -12,7 +12,7 @@ from sim.configs import sample_pool
 from sim.policies.onnx_policy import OnnxPolicy, export_onnx
 from sim.spec import default_scene
 from tests.policy_zoo import COMBOS, IDS, card_of, contract_of, tiny_policy
-from tests.trials.trial_session_helpers import sim_hardware, small_plan
+from tests.trials.real.trial_session_helpers import sim_hardware, small_plan
 from trials.eval.conditions import Condition
 from trials.eval.evaluate import rollout_condition
 from trials.real.operator import AutoOperator

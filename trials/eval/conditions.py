@@ -199,11 +199,9 @@ def condition_spec(spec, cond: Condition):
     """
     updates = {}
     if cond.mesh is not None:
-        objs = [
-            o.model_copy(update={"mesh": cond.mesh, "texture": None}) if o.role == "adversarial" else o
-            for o in spec.objects
+        updates["objects"] = [
+            o.with_mesh(cond.mesh) if o.role == "adversarial" else o.model_dump() for o in spec.objects
         ]
-        updates["objects"] = [o.model_dump() for o in objs]
     if cond.stereo and spec.camera.stereo_baseline_m <= 0:
         updates["camera"] = {**spec.camera.model_dump(), "stereo_baseline_m": STEREO_BASELINE_M}
     return spec.with_updates(**updates) if updates else spec

@@ -107,6 +107,34 @@ def optimised_texel_size_mm(mesh, width_px: int, height_px: int) -> dict | None:
     return {"median": q(0.5), "p10": q(0.1), "p90": q(0.9)}
 
 
+def print_texture(mesh, texture_u8: np.ndarray) -> np.ndarray:
+    """The texture to print on ``mesh``: the attack's ``(h, w, 3)`` uint8 texture where the mesh's
+    optimised faces lie in UV space, the mesh file's own texture everywhere else.
+
+    Only a mesh file with its own UVs and an ``attack_region`` keeps part of its texture; then the
+    result has the larger of the two resolutions (the attack's texture resampled bilinearly, as the
+    renderer samples it), and the optimised faces' UV triangles, grown by 2 texels against seams,
+    take the attack's texels. Any other mesh gets the attack's texture as it is.
+    """
+    from PIL import Image, ImageDraw, ImageFilter
+
+    opt = np.asarray(mesh.metadata.get("optimizable_faces", np.ones(len(mesh.faces), bool)), bool)
+    image = getattr(getattr(mesh.visual, "material", None), "image", None)
+    if mesh.metadata.get("uv_source") != "file" or opt.all() or image is None:
+        return texture_u8
+    own = np.asarray(image.convert("RGB"))
+    h, w = max(own.shape[0], texture_u8.shape[0]), max(own.shape[1], texture_u8.shape[1])
+    base = np.asarray(Image.fromarray(own).resize((w, h), Image.BILINEAR)) if own.shape[:2] != (h, w) else own
+    attack = np.asarray(Image.fromarray(texture_u8).resize((w, h), Image.BILINEAR))
+    region = Image.new("L", (w, h), 0)
+    draw = ImageDraw.Draw(region)
+    uv = np.asarray(mesh.visual.uv, float)[np.asarray(mesh.faces)[opt]]
+    for tri in uv:
+        draw.polygon([(u * w, (1.0 - v) * h) for u, v in tri], fill=255)
+    mask = np.asarray(region.filter(ImageFilter.MaxFilter(5))) > 0
+    return np.where(mask[..., None], attack, base).astype(np.uint8)
+
+
 def load_run(run_dir) -> RunSource:
     """Read an ``advobj attack run`` directory (clear errors naming the missing/bad file)."""
     from attack.artifact import AttackArtifact
@@ -121,7 +149,9 @@ def load_run(run_dir) -> RunSource:
         o = next(o for o in default_scene().objects if o.role == "adversarial")
         adv = {"mesh": o.mesh, "scale": o.scale}
     mesh = art.mesh or adv.get("mesh")
-    kw = {k: adv[k] for k in ("units", "up_axis", "placement") if adv.get(k) is not None}
+    kw = {k: adv[k] for k in ("units", "up_axis", "placement", "attack_region") if adv.get(k) is not None}
+    if mesh != adv.get("mesh"):
+        kw.pop("attack_region", None)  # the region is an image of the scene mesh's UV layout
     return RunSource(str(run_dir), art.texture_u8, str(mesh), adv.get("scale", 1.0), art.sha256, kw)
 
 
@@ -1107,7 +1137,14 @@ def fabricate(
         "tweak": asdict(tweak) if tweak != LayoutTweak() else None,
     }
     write_run_info(out, config, None)
-    paths = export_meshes(out, mesh, src.texture, obj_units=obj_units)
+    printed = print_texture(mesh, src.texture)
+    if printed is not src.texture:
+        n_opt = int(np.count_nonzero(mesh.metadata["optimizable_faces"]))
+        log(
+            f"fabricate: {n_opt} of {len(mesh.faces)} faces were optimised (attack_region); the others keep the mesh's own "
+            f"texture, written at {printed.shape[1]} x {printed.shape[0]} texels"
+        )
+    paths = export_meshes(out, mesh, printed, obj_units=obj_units)
     density = optimised_texel_size_mm(mesh, src.texture.shape[1], src.texture.shape[0])
     summary = {"glb": str(paths["glb"]), "obj": str(paths["obj"]), "shape": sheet_shape, "texel_mm": density}
     if density is not None:

@@ -224,10 +224,7 @@ def _render_views(
 
     spec = default_scene()
     objs = [
-        {**o.model_dump(), "mesh": mesh_name, "texture": None, "scale": 1.0}
-        if o.role == "adversarial"
-        else o.model_dump()
-        for o in spec.objects
+        {**o.with_mesh(mesh_name), "scale": 1.0} if o.role == "adversarial" else o.model_dump() for o in spec.objects
     ]
     spec = spec.with_updates(objects=objs)
     k = spec.object_index("adversarial")

@@ -85,10 +85,7 @@ class SimStage:
     def _scene(self, mesh: str):
         spec = self.base_spec
         # the plan's mesh goes through validation with the rest of the scene (with_updates)
-        objs = [
-            {**o.model_dump(), "mesh": mesh, "texture": None} if o.role == "adversarial" else o.model_dump()
-            for o in spec.objects
-        ]
+        objs = [o.with_mesh(mesh) if o.role == "adversarial" else o.model_dump() for o in spec.objects]
         return spec.with_updates(objects=objs)
 
     def prepare(self, trial) -> None:

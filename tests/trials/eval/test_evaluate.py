@@ -8,10 +8,9 @@ import pytest
 import trials.eval.evaluate as ev
 from sim.configs import load_pool
 from sim.policies.checkpoint import load_policy
+from tests.trials.conftest import MAX_STEPS
 from trials.eval.conditions import Sources, build_conditions
 from trials.eval.evaluate import load_eval_config, rollout_condition, run_eval
-
-from .conftest import MAX_STEPS
 
 
 def _first_frames(policy, spec, cond, configs):

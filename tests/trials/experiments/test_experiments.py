@@ -4,9 +4,8 @@ import json
 
 import pytest
 
+from tests.trials.conftest import MAX_STEPS
 from trials.experiments.recipes import PAPER, ExperimentError, resolve_experiment, run_experiment
-
-from .conftest import MAX_STEPS
 
 TINY_ATTACK = {
     "iterations": 1,

@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from sim.paths import SafeName, UnsafePathError, check_name, name_problem, safe_join
-from tests.trials.trial_session_helpers import REPO, sim_hardware, small_plan, tiny_onnx
+from tests.trials.real.trial_session_helpers import REPO, sim_hardware, small_plan, tiny_onnx
 from trials.real.plan import PlanError, load_plan
 from trials.real.store import frames_dir, frames_ref, session_frames_dir
 

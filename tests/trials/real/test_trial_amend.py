@@ -8,7 +8,7 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from tests.trials.trial_session_helpers import sim_hardware, small_plan, straight_ahead_onnx
+from tests.trials.real.trial_session_helpers import sim_hardware, small_plan, straight_ahead_onnx
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.trials.trial_session_helpers import sim_hardware, small_plan, tiny_onnx
+from tests.trials.real.trial_session_helpers import sim_hardware, small_plan, tiny_onnx
 from trials.real.operator import AutoOperator
 from trials.real.plan import load_plan
 from trials.real.report import rate_cell

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.trials.trial_session_helpers import SIM_HW, small_plan, straight_ahead_onnx
+from tests.trials.real.trial_session_helpers import SIM_HW, small_plan, straight_ahead_onnx
 
 TRIAL = "A-cube-adv3d-t0-o0"  # ends at max_steps, reaching nothing
 

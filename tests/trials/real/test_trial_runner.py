@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.trials.trial_session_helpers import sim_hardware, small_plan, straight_ahead_onnx, tiny_onnx
+from tests.trials.real.trial_session_helpers import sim_hardware, small_plan, straight_ahead_onnx, tiny_onnx
 from trials.real.locate import LocatedObject, TagLocator, placement_issues
 from trials.real.operator import AnswersError, AutoOperator, ScriptedOperator, TerminalOperator, load_answers
 from trials.real.plan import ObjectPlacement, load_plan

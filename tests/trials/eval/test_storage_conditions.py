@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from tests.trials.conftest import make_attack_dir
 from trials.eval.conditions import (
     CONDITIONS,
     ConditionError,
@@ -12,8 +13,6 @@ from trials.eval.conditions import (
     load_attack_source,
 )
 from trials.eval.episodes import EpisodeStore, StorageError, read_rows
-
-from .conftest import make_attack_dir
 
 
 def _row(cond, seed):

@@ -9,9 +9,8 @@ import pytest
 from attack.artifact import read_config_record, write_config_record
 from sim.configs import config_id, config_part, load_pool, sample_pool, save_pool
 from sim.spec import default_scene
+from tests.trials.conftest import MAX_STEPS, make_attack_dir
 from trials.eval.evaluate import EvalError, load_eval_config, run_eval
-
-from .conftest import MAX_STEPS, make_attack_dir
 
 TINY_ATTACK = {
     "iterations": 1,

@@ -4,6 +4,7 @@ import json
 
 import pytest
 
+from tests.trials.conftest import MAX_STEPS
 from trials.experiments.tradeoff import (
     BASELINE_KEY,
     DEPLOYMENTS,
@@ -17,8 +18,6 @@ from trials.experiments.tradeoff import (
     write_tradeoff_report,
 )
 from trials.experiments.tradeoff_report import pareto_front
-
-from .conftest import MAX_STEPS
 
 TINY_ATTACK = {
     "iterations": 2,

@@ -9,7 +9,7 @@ from calibration.intrinsics import CameraIntrinsics
 from robot_io.cameras.replay import ReplayCamera
 from robot_io.config import hardware_config_from_dict
 from sim.spec import default_scene
-from tests.trials.trial_session_helpers import SIM_HW, tiny_onnx
+from tests.trials.real.trial_session_helpers import SIM_HW, tiny_onnx
 from trials.real.session import camera_view_warnings, load_trial_policy
 
 

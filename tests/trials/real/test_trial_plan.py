@@ -295,7 +295,7 @@ def test_plan_with_a_cells_hardware_draws_start_poses_inside_its_workspace_box(s
 
     from robot_io.config import load_hardware_config
 
-    hw = load_hardware_config(Path(__file__).resolve().parents[2] / "examples" / "hardware" / "ur_v4l2.yaml")
+    hw = load_hardware_config(Path(__file__).resolve().parents[3] / "examples" / "hardware" / "ur_v4l2.yaml")
     lo, hi = np.array(hw.safety.workspace_min_m), np.array(hw.safety.workspace_max_m)
     free = make_plan(spec, 0, ["A"], ["cube"], ["clean"], {}, n_tcp_poses=4, n_object_layouts=2)
     inside = lambda p: bool(np.all(p.T_table_tcp.T()[:3, 3] >= lo) and np.all(p.T_table_tcp.T()[:3, 3] <= hi))  # noqa: E731
@@ -320,7 +320,7 @@ def test_plan_refuses_a_workspace_no_start_pose_fits_in_one_line(spec, tmp_path,
 
     from trials.cli.main import main
 
-    data = yaml.safe_load((Path(__file__).resolve().parents[2] / "examples" / "hardware" / "sim.yaml").read_text())
+    data = yaml.safe_load((Path(__file__).resolve().parents[3] / "examples" / "hardware" / "sim.yaml").read_text())
     data["safety"]["workspace_min_m"], data["safety"]["workspace_max_m"] = [0.0, 0.0, 0.01], [0.05, 0.05, 0.05]
     (tmp_path / "hw.yaml").write_text(yaml.safe_dump(data))
     monkeypatch.setattr(
@@ -357,10 +357,10 @@ def test_plan_refuses_a_workspace_no_start_pose_fits_in_one_line(spec, tmp_path,
 def test_a_plan_outside_the_cells_box_is_refused_once_not_twice(tmp_path, monkeypatch, capsys):
     from pathlib import Path
 
-    from tests.trials.trial_session_helpers import tiny_onnx
+    from tests.trials.real.trial_session_helpers import tiny_onnx
     from trials.cli.main import main
 
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     data = yaml.safe_load((root / "examples" / "hardware" / "sim.yaml").read_text())
     data["safety"]["workspace_max_m"] = [0.9, 0.9, 0.05]
     data["sim"]["image_size"] = [32, 32]

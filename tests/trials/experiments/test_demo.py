@@ -2,7 +2,7 @@
 
 import pytest
 
-from .conftest import MAX_STEPS
+from tests.trials.conftest import MAX_STEPS
 
 
 @pytest.mark.slow

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 SIM_HW = REPO / "examples" / "hardware" / "sim.yaml"
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.trials.trial_session_helpers import REPO, sim_hardware, small_plan, tiny_onnx
+from tests.trials.real.trial_session_helpers import REPO, sim_hardware, small_plan, tiny_onnx
 
 
 @pytest.fixture(scope="module")

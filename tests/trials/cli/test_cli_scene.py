@@ -12,7 +12,7 @@ ADVOBJ = [sys.executable, "-m", "trials.cli.main"]
 
 def _run(args, tmp_path, env_extra=None):
     env = {**os.environ, **(env_extra or {})}
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     return subprocess.run(ADVOBJ + args, cwd=root, env=env, capture_output=True, text=True, timeout=300)
 
 

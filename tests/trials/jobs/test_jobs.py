@@ -7,7 +7,7 @@ import pytest
 
 from trials.jobs.dag import Grid, GridError, SerialExecutor, input_digest, is_finished
 
-H = "tests.trials.jobs_helpers"
+H = "tests.trials.jobs.jobs_helpers"
 
 
 def _attempts(d):
@@ -176,7 +176,7 @@ def test_the_scale_out_docs_quote_the_committed_grid_benchmark():
     import importlib.util
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     spec = importlib.util.spec_from_file_location("bench_grid", root / "benchmarks" / "bench_grid.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)

@@ -314,3 +314,45 @@ def test_the_optimised_texel_size_is_said_honestly(tmp_path):
     run = make_attack_dir(tmp_path / "run", mesh=None, size=16)
     res = _invoke(["fabricate", run, "--out", tmp_path / "out", "--dpi", DPI])
     assert res.exit_code == 0 and "the optimised texture is 16 x 16 texels; on the object one texel spans" in res.output
+
+
+def test_a_user_mesh_keeps_its_own_texture_outside_the_attack_region_in_print(tmp_path):
+    from pathlib import Path
+
+    from PIL import Image
+
+    import sim.assets as A
+    from attack.artifact import AttackArtifact
+    from sim.spec import default_scene
+    from trials.fabrication.fabricate import print_texture
+
+    duck = Path(__file__).resolve().parents[3] / "tests" / "data" / "meshes" / "pybullet-duck" / "duck.obj"
+    a = np.zeros((64, 64), np.uint8)
+    a[:, :32] = 255
+    Image.fromarray(a).save(tmp_path / "left.png")
+    kw = {"up_axis": "y", "scale": 0.05, "attack_region": str(tmp_path / "left.png")}
+    mesh = A.build_mesh(duck, warn=lambda _t: None, **kw)
+    own = np.asarray(mesh.visual.material.image.convert("RGB"))
+    attack = np.zeros((16, 16, 3), np.uint8)
+    attack[..., 2] = 255  # all blue: easy to tell from the yellow duck
+    out = print_texture(mesh, attack)
+    assert out.shape == own.shape == (512, 512, 3)
+    # the right half of UV space holds no optimised face: the duck's own texels, untouched
+    np.testing.assert_array_equal(out[:, 300:], own[:, 300:])
+    # where an optimised face lies, the attack's texels
+    uv = np.asarray(mesh.visual.uv)[np.asarray(mesh.faces)[mesh.metadata["optimizable_faces"]]].mean(1)
+    rows, cols = ((1 - uv[:, 1]) * 512).astype(int), (uv[:, 0] * 512).astype(int)
+    assert (out[rows, cols] == [0, 0, 255]).all()
+    assert print_texture(A.build_mesh("cube"), attack) is attack  # every face optimised: the attack's texture as it is
+    # end to end: fabricate reads the region from the run's scene and prints the composite
+    spec = default_scene()
+    objs = [{**o.with_mesh(str(duck)), **kw} if o.role == "adversarial" else o.model_dump() for o in spec.objects]
+    scene = spec.with_updates(objects=objs).model_dump(mode="json")
+    tex = np.zeros((16, 16, 3), np.float32)
+    tex[..., 2] = 1.0
+    AttackArtifact(tex, {"attack": {"adversarial_mesh": None}, "scene": scene}).save(tmp_path / "run")
+    res = _invoke(["fabricate", tmp_path / "run", "--out", tmp_path / "out", "--dpi", DPI])
+    assert res.exit_code == 0, res.output
+    assert "keep the mesh's own texture, written at 512 x 512 texels" in res.output
+    png = next((tmp_path / "out" / "adversarial_obj").glob("*.png"))
+    np.testing.assert_array_equal(np.asarray(Image.open(png).convert("RGB"))[:, 300:], own[:, 300:])

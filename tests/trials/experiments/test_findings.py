@@ -7,7 +7,7 @@ import pytest
 
 from trials.experiments import findings as fd
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 RESULTS = ROOT / "results"
 
 

@@ -24,13 +24,12 @@ import pytest
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 ray = pytest.importorskip("ray")
 
+from tests.trials.conftest import MAX_STEPS  # noqa: E402
 from trials.jobs.dag import Grid, GridError, RayExecutor, is_finished  # noqa: E402
 
-from .conftest import MAX_STEPS  # noqa: E402
-
 pytestmark = pytest.mark.ray
-H = "tests.trials.jobs_helpers"
-ROOT = Path(__file__).resolve().parents[2]
+H = "tests.trials.jobs.jobs_helpers"
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _ray_pids() -> set[int]:

@@ -16,7 +16,7 @@ from collections import Counter
 import numpy as np
 from typer.testing import CliRunner
 
-from tests.trials.trial_session_helpers import attack_dir, sim_hardware, straight_ahead_onnx
+from tests.trials.real.trial_session_helpers import attack_dir, sim_hardware, straight_ahead_onnx
 
 
 def test_plan_run_report_export_matches_sim_ground_truth(tmp_path, monkeypatch):

@@ -29,7 +29,7 @@ from typing import Callable
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 MAX_STEPS = 3
 TINY_ATTACK = "iterations: 2\nnum_envs: 1\nrollout_steps: 2\ntexture_size: 16\npool_size: 4\ncheckpoint_every: 1\nvalidation_every: 0\n"
@@ -584,7 +584,7 @@ TINY: dict[str, Tiny] = {
     ),
     "advobj experiment table2 --preset paper --address HEAD_HOST:6379 --device cuda --out runs/table2-paper": Tiny(
         None,
-        reason="needs a Ray cluster with GPU nodes; the job layer on a real local cluster is tests/trials/test_jobs_ray.py",
+        reason="needs a Ray cluster with GPU nodes; the job layer on a real local cluster is tests/trials/jobs/test_jobs_ray.py",
     ),
     "advobj experiment table2 --preset quick": Tiny(
         "experiment table2 --preset quick --policy {policy} --out {tmp}/table2",
@@ -720,7 +720,7 @@ def test_parser_reads_console_bash_and_plain_blocks(tmp_path):
 def test_every_documented_command_has_a_tiny_run():
     missing = sorted({f"{c.file}:{c.line}: {c.text}" for c in DOC_COMMANDS if c.text not in TINY})
     assert not missing, (
-        "documented commands without an entry in TINY (tests/trials/test_docs_commands.py); add a tiny-settings "
+        "documented commands without an entry in TINY (tests/trials/cli/test_docs_commands.py); add a tiny-settings "
         "invocation for each:\n" + "\n".join(missing)
     )
     stale = sorted(set(TINY) - {c.text for c in DOC_COMMANDS})
