@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -31,6 +30,7 @@ import numpy as np
 import torch
 from pydantic import Field, ValidationError
 
+from attack.state import AttackState, better_score, read_best, swap_in
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 
@@ -41,9 +41,8 @@ __all__ = [
     "PRESETS",
     "resolve_config",
     "AttackRun",
+    "attack_step",
     "run_attack",
-    "find_checkpoint",
-    "better_score",
 ]
 
 
@@ -132,28 +131,6 @@ def resolve_config(preset: str, overrides: dict | None = None, source: str = "<o
 
 
 # ---------------------------------------------------------------------------------------------
-@dataclass
-class History:
-    iteration: list[int] = field(default_factory=list)
-    loss_pose: list[float] = field(default_factory=list)
-    loss_saliency: list[float] = field(default_factory=list)
-    loss_ori: list[float] = field(default_factory=list)
-    loss_dist: list[float] = field(default_factory=list)
-    grad_norm: list[float] = field(default_factory=list)
-    stage: list[int] = field(default_factory=list)
-    skipped: int = 0
-    seconds: float = 0.0
-    # Held-out validation (empty when validation_every = 0); val_iteration counts iterations done.
-    val_iteration: list[int] = field(default_factory=list)
-    val_t_asr: list[float] = field(default_factory=list)
-    val_dist_m: list[float] = field(default_factory=list)
-    val_seconds: list[float] = field(default_factory=list)
-    # Pose loss on the validation configurations' first frames: a fixed probe set, so unlike
-    # loss_pose (measured on rollouts that move as the attack succeeds) it is comparable across
-    # iterations. NaN where the pose term is off.
-    val_probe_pose: list[float] = field(default_factory=list)
-
-
 def _benign_texture(mesh, size: int) -> np.ndarray:
     from PIL import Image
 
@@ -256,16 +233,20 @@ class AttackRun:
         )
         self.hybrid = HybridRenderer(self.env.renderer)
         self.adv = self.hybrid.adv
-        self.texture = initial_texture(cfg, self.env.renderer.object_mesh(self.adv))
-        self.iteration = 0
-        self.history = History()
-        self.rng = np.random.default_rng(cfg.seed)
-        self.torch_gen = torch.Generator().manual_seed(cfg.seed)
+        self.state = AttackState.start(initial_texture(cfg, self.env.renderer.object_mesh(self.adv)), cfg.seed)
         self.out_dir = None if out_dir is None else Path(out_dir)
         self._val_env = None
-        # Best validated texture so far: {"iteration", "t_asr", "dist_m"} and its (3, S, S) tensor.
-        self.best: dict | None = None
-        self.best_texture: torch.Tensor | None = None
+
+    # The optimisation state, as attributes of the run (the loop, the outputs and tests read them).
+    texture = property(lambda self: self.state.texture, lambda self, v: setattr(self.state, "texture", v))
+    iteration = property(lambda self: self.state.iteration, lambda self, v: setattr(self.state, "iteration", v))
+    history = property(lambda self: self.state.history, lambda self, v: setattr(self.state, "history", v))
+    rng = property(lambda self: self.state.rng)
+    torch_gen = property(lambda self: self.state.torch_gen)
+    best = property(lambda self: self.state.best, lambda self, v: setattr(self.state, "best", v))
+    best_texture = property(
+        lambda self: self.state.best_texture, lambda self, v: setattr(self.state, "best_texture", v)
+    )
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> dict:
@@ -374,7 +355,7 @@ class AttackRun:
         (tmp / "best.json").write_text(
             json.dumps({**self.best, "score": "t_asr (higher), then dist_m (lower)"}, indent=2)
         )
-        return _swap_in(tmp, self.out_dir / "best")
+        return swap_in(tmp, self.out_dir / "best")
 
     def _write_attack_source(self, d: Path, texture: torch.Tensor, extra: dict) -> None:
         """A texture folder (:class:`attack.artifact.AttackArtifact`): what ``advobj eval --attack DIR`` reads."""
@@ -504,99 +485,31 @@ class AttackRun:
         return g, updated
 
     def step(self) -> dict:
-        """Run one iteration; returns its logged figures."""
-        from attack.schedule import sample_configs, stage_index, stage_params
-        from sim.variations import Randomization, sample_appearance
-
-        cfg, env = self.cfg, self.env
-        params = stage_params(cfg.schedule, self.iteration, cfg.iterations)
-        idx = sample_configs(self.pool_r, params, self.spec.init.r_range_m, cfg.num_envs, self.rng)
-        env.reset_envs(range(cfg.num_envs), configs=[self.pool[i] for i in idx])
-        if cfg.light_randomization:
-            for w in env.worlds:
-                w.appearance = sample_appearance(self.spec, Randomization(light="random"), self.rng)
-        g_pose = torch.zeros_like(self.texture)
-        g_sal = torch.zeros_like(self.texture)
-        sums = {"pose": 0.0, "sal": 0.0, "ori": 0.0, "dist": 0.0}
-        pairs = 0
-        for _ in range(cfg.rollout_steps):
-            active = np.flatnonzero(~env.done)
-            if active.size == 0:
-                break
-            caps = [self.hybrid.capture(env.worlds[i]) for i in active]
-            T = torch.from_numpy(env.T_world_tcp[active]).to(self.device, torch.float32)
-            p_adv = torch.from_numpy(env.object_centers[active, self.adv]).to(self.device, torch.float32)
-            out = self.pair_gradients(caps, T, p_adv)
-            g_pose += out["g_pose"]
-            g_sal += out["g_sal"]
-            sums["pose"] += out["pose"]
-            sums["sal"] += out["sal"]
-            for k in ("ori", "dist"):
-                if k in out["parts"]:
-                    sums[k] += float(out["parts"][k].sum())
-            pairs += len(active)
-            actions = np.zeros((cfg.num_envs, 6))
-            actions[active] = out["actions"].cpu().numpy()
-            env.step(actions)
-        # Mean over image-action pairs (the normalised step makes the scale moot, but the
-        # logged gradient norm is comparable across runs).
-        g_pose /= max(pairs, 1)
-        g_sal /= max(pairs, 1)
-        g, updated = self.apply_update(g_pose, g_sal)
-        h = self.history
-        h.iteration.append(self.iteration)
-        h.loss_pose.append(sums["pose"] / max(pairs, 1))
-        h.loss_saliency.append(sums["sal"] / max(pairs, 1))
-        h.loss_ori.append(sums["ori"] / max(pairs, 1))
-        h.loss_dist.append(sums["dist"] / max(pairs, 1))
-        h.grad_norm.append(float(torch.linalg.vector_norm(g)))
-        h.stage.append(stage_index(self.iteration, cfg.iterations) if cfg.schedule in ("c2f", "f2c") else -1)
-        h.skipped += 0 if updated else 1
-        self.iteration += 1
-        return {"pose": h.loss_pose[-1], "sal": h.loss_saliency[-1], "pairs": pairs, "updated": updated}
+        """Run one iteration (:func:`attack_step` on this run's state); returns its logged figures."""
+        return attack_step(self, self.state)
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self) -> Path:
-        """Atomically write ``out_dir/checkpoint`` (texture, RNG states, history, iteration)."""
-        from safetensors.torch import save_file
-
+        """Atomically write ``out_dir/checkpoint`` (:class:`attack.state.AttackState`'s files)."""
         if self.out_dir is None:
             raise AttackError("out_dir is needed for checkpoints")
-        ckpt = self.out_dir / "checkpoint"
         tmp = self.out_dir / "checkpoint.tmp"
         tmp.mkdir(parents=True, exist_ok=True)
-        save_file(
-            {"texture": self.texture.detach().cpu().contiguous(), "torch_rng": self.torch_gen.get_state()},
-            str(tmp / "state.safetensors"),
-        )
-        state = {
-            "iteration": self.iteration,
-            "config": self.cfg.model_dump(),
-            "numpy_rng": self.rng.bit_generator.state,
-            "history": self.history.__dict__,
-            "best": self.best,
-        }
-        (tmp / "state.json").write_text(json.dumps(state))
+        self.state.write(tmp, self.cfg.model_dump())
         # The evaluation-ready texture of this checkpoint (a user can stop here and use it):
         # checkpoint/ is itself a valid ``advobj eval --attack`` source.
         self._write_attack_source(tmp, self.texture, {"checkpoint_iteration": self.iteration})
-        if self.best_texture is not None:
-            # Resume restores the best texture from here even if best/ was deleted meanwhile.
-            save_file({"texture": self.best_texture.cpu().contiguous()}, str(tmp / "best.safetensors"))
-        return _swap_in(tmp, ckpt)
+        return swap_in(tmp, self.out_dir / "checkpoint")
 
     def load_checkpoint(self, ckpt: str | Path) -> None:
         """Restore a checkpoint written by :meth:`save_checkpoint` (same config required)."""
-        from safetensors.torch import load_file
-
         ckpt = Path(ckpt)
         try:
-            state = json.loads((ckpt / "state.json").read_text())
-            tensors = load_file(str(ckpt / "state.safetensors"))
-        except (OSError, json.JSONDecodeError) as err:
+            state, config = AttackState.read(ckpt, self.device)
+        except (OSError, ValueError, KeyError) as err:
             raise AttackError(f"{ckpt}: unreadable checkpoint ({err})") from None
         # A checkpoint written before a config field existed holds that field's default.
-        saved = AttackConfig(**state["config"])
+        saved = AttackConfig(**config)
         if saved != self.cfg:
             diff = sorted(k for k in AttackConfig.model_fields if getattr(saved, k) != getattr(self.cfg, k))
             hint = "; ".join(f"{k}: checkpoint {getattr(saved, k)!r}, now {getattr(self.cfg, k)!r}" for k in diff)
@@ -604,17 +517,10 @@ class AttackRun:
                 f"{ckpt}: checkpoint was made with a different config (fields: {', '.join(diff)}; {hint}); "
                 "resume with the checkpoint's values or start a new run directory"
             )
-        self.texture = tensors["texture"].to(self.device)
-        self.torch_gen.set_state(tensors["torch_rng"])
-        self.rng.bit_generator.state = state["numpy_rng"]
-        self.iteration = int(state["iteration"])
-        self.history = History(**state["history"])
-        self.best, self.best_texture = state.get("best"), None
-        if self.best is not None and (ckpt / "best.safetensors").is_file():
-            self.best_texture = load_file(str(ckpt / "best.safetensors"))["texture"].to(self.device)
+        self.state = state
         # best/ may be newer than the checkpoint (a crash between the two writes); it is the
         # larger score, and replaying the iterations in between reproduces it exactly.
-        disk = _read_best(ckpt.parent / "best")
+        disk = read_best(ckpt.parent / "best")
         if disk is not None and better_score(disk[0], self.best):
             self.best, self.best_texture = disk[0], disk[1].to(self.device)
 
@@ -625,51 +531,61 @@ class AttackRun:
             self._val_env = None
 
 
-def better_score(new: dict, best: dict | None) -> bool:
-    """Is validation result ``new`` strictly better than ``best``: higher T-ASR, ties broken by the
-    lower mean final distance to the adversarial object (equal on both: not better)."""
-    if best is None:
-        return True
-    if new["t_asr"] != best["t_asr"]:
-        return new["t_asr"] > best["t_asr"]
-    return new["dist_m"] < best["dist_m"]
+def attack_step(run: AttackRun, state: AttackState) -> dict:
+    """One iteration of the attack: EOT rollouts from ``run``'s env under ``state``'s texture, the
+    combined gradient, the normalised step. Advances ``state`` (texture, iteration, history, RNGs)
+    and nothing else of the run's but its env's scratch episodes; returns the logged figures."""
+    if state is not run.state:
+        raise AttackError("attack_step: the state must be the run's own (its helpers read run.state)")
+    from attack.schedule import sample_configs, stage_index, stage_params
+    from sim.variations import Randomization, sample_appearance
 
-
-def _swap_in(tmp: Path, final: Path) -> Path:
-    """Replace directory ``final`` by ``tmp`` by renames: at every instant ``final/`` or
-    ``final.old/`` (see :func:`find_checkpoint`) is complete."""
-    import shutil
-
-    old = final.with_name(final.name + ".old")
-    if final.exists():
-        shutil.rmtree(old, ignore_errors=True)
-        final.replace(old)
-    tmp.replace(final)
-    shutil.rmtree(old, ignore_errors=True)
-    return final
-
-
-def _read_best(best_dir: Path) -> tuple[dict, torch.Tensor] | None:
-    """``(best.json, texture (3, S, S))`` of a ``best/`` directory (or its crash-left ``.old``)."""
-    from attack.artifact import AttackArtifact
-
-    for d in (best_dir, best_dir.with_name(best_dir.name + ".old")):
-        try:
-            info = json.loads((d / "best.json").read_text())
-            tex = AttackArtifact.load(d).texture
-        except (OSError, ValueError):
-            continue
-        return info, torch.from_numpy(np.ascontiguousarray(tex.transpose(2, 0, 1))).to(torch.float32)
-    return None
-
-
-def find_checkpoint(out_dir: str | Path) -> Path | None:
-    """The newest complete checkpoint in ``out_dir`` (``checkpoint/``, else a crash-left ``.old``)."""
-    for name in ("checkpoint", "checkpoint.old"):
-        c = Path(out_dir) / name
-        if (c / "state.json").is_file() and (c / "state.safetensors").is_file():
-            return c
-    return None
+    cfg, env = run.cfg, run.env
+    params = stage_params(cfg.schedule, state.iteration, cfg.iterations)
+    idx = sample_configs(run.pool_r, params, run.spec.init.r_range_m, cfg.num_envs, state.rng)
+    env.reset_envs(range(cfg.num_envs), configs=[run.pool[i] for i in idx])
+    if cfg.light_randomization:
+        for w in env.worlds:
+            w.appearance = sample_appearance(run.spec, Randomization(light="random"), state.rng)
+    g_pose = torch.zeros_like(state.texture)
+    g_sal = torch.zeros_like(state.texture)
+    sums = {"pose": 0.0, "sal": 0.0, "ori": 0.0, "dist": 0.0}
+    pairs = 0
+    for _ in range(cfg.rollout_steps):
+        active = np.flatnonzero(~env.done)
+        if active.size == 0:
+            break
+        caps = [run.hybrid.capture(env.worlds[i]) for i in active]
+        T = torch.from_numpy(env.T_world_tcp[active]).to(run.device, torch.float32)
+        p_adv = torch.from_numpy(env.object_centers[active, run.adv]).to(run.device, torch.float32)
+        out = run.pair_gradients(caps, T, p_adv)
+        g_pose += out["g_pose"]
+        g_sal += out["g_sal"]
+        sums["pose"] += out["pose"]
+        sums["sal"] += out["sal"]
+        for k in ("ori", "dist"):
+            if k in out["parts"]:
+                sums[k] += float(out["parts"][k].sum())
+        pairs += len(active)
+        actions = np.zeros((cfg.num_envs, 6))
+        actions[active] = out["actions"].cpu().numpy()
+        env.step(actions)
+    # Mean over image-action pairs (the normalised step makes the scale moot, but the
+    # logged gradient norm is comparable across runs).
+    g_pose /= max(pairs, 1)
+    g_sal /= max(pairs, 1)
+    g, updated = run.apply_update(g_pose, g_sal)  # steps state.texture
+    h = state.history
+    h.iteration.append(state.iteration)
+    h.loss_pose.append(sums["pose"] / max(pairs, 1))
+    h.loss_saliency.append(sums["sal"] / max(pairs, 1))
+    h.loss_ori.append(sums["ori"] / max(pairs, 1))
+    h.loss_dist.append(sums["dist"] / max(pairs, 1))
+    h.grad_norm.append(float(torch.linalg.vector_norm(g)))
+    h.stage.append(stage_index(state.iteration, cfg.iterations) if cfg.schedule in ("c2f", "f2c") else -1)
+    h.skipped += 0 if updated else 1
+    state.iteration += 1
+    return {"pose": h.loss_pose[-1], "sal": h.loss_saliency[-1], "pairs": pairs, "updated": updated}
 
 
 def run_attack(

@@ -6,15 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from attack.optimize import (
-    AttackError,
-    AttackRun,
-    AttackWarning,
-    better_score,
-    find_checkpoint,
-    resolve_config,
-    run_attack,
-)
+from attack.optimize import AttackError, AttackRun, AttackWarning, resolve_config, run_attack
+from attack.state import better_score, find_checkpoint
 from sim.configs import config_part, sample_pool
 from sim.policies.policy import VisuomotorPolicy
 from sim.spec import default_scene

@@ -5,7 +5,8 @@ import json
 import pytest
 import torch
 
-from attack.optimize import AttackRun, find_checkpoint, resolve_config, run_attack
+from attack.optimize import AttackRun, resolve_config, run_attack
+from attack.state import find_checkpoint
 from sim.configs import sample_pool
 from sim.policies.interface import WhiteBoxRequired
 from sim.policies.policy import VisuomotorPolicy
@@ -121,3 +122,24 @@ def test_ctrl_c_leaves_a_usable_checkpoint(tmp_path, spec_pool):
     again.load_checkpoint(find_checkpoint(tmp_path))
     assert again.iteration == 1 and torch.equal(again.texture, run.texture)
     again.close()
+
+
+def test_attack_step_advances_only_the_state_and_the_hook_sees_every_iteration(spec_pool):
+    from attack.optimize import AttackError, attack_step
+    from attack.state import AttackState
+
+    spec, pool = spec_pool
+    run = AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=pool)
+    try:
+        s = run.state
+        before = s.texture.clone()
+        info = attack_step(run, s)
+        assert s.iteration == 1 and len(s.history.loss_pose) == 1 and info["pairs"] > 0
+        assert not torch.equal(before, s.texture) and run.texture is s.texture
+        with pytest.raises(AttackError, match="the state must be the run's own"):
+            attack_step(run, AttackState.start(before, 0))
+        seen = []
+        run_attack(run, progress=False, on_iteration=lambda r, i: seen.append((r.iteration, i["pairs"])))
+        assert [k for k, _ in seen] == [2, 3, 4]
+    finally:
+        run.close()

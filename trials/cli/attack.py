@@ -22,9 +22,10 @@ def run(
 ) -> None:
     """Run the attack; writes the texture, textured meshes, plots and metrics into OUT."""
     from attack.outputs import summary_lines
-    from trials.jobs.attack import attack_job
+    from trials.jobs.attack import AttackJob
 
-    metrics = attack_job(policy, preset, config, scene, pool, out, resume)
+    job = AttackJob(policy=policy, preset=preset, config=config, scene=scene, pool=pool, out=out, resume=resume)
+    metrics = job.run(log=typer.echo)
     for line in summary_lines(metrics):
         typer.echo(line)
     typer.echo(f"outputs in {out}/")

@@ -397,7 +397,8 @@ def job_attack(out: Path, inputs: dict, preset: str, fields: dict) -> None:
     import yaml
 
     from attack.artifact import TEXTURE_NPY, AttackArtifact
-    from attack.optimize import find_checkpoint, resolve_config
+    from attack.optimize import resolve_config
+    from attack.state import find_checkpoint
     from trials.jobs.attack import attack_job
 
     want = resolve_config(preset, fields).model_dump()

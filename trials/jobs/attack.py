@@ -4,7 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["attack_job", "top_up_attack_pool", "MIN_ATTACK_CONFIGS"]
+from pydantic import Field
+
+from sim.configio import StrictModel
+
+__all__ = ["AttackJob", "attack_job", "top_up_attack_pool", "MIN_ATTACK_CONFIGS"]
 
 # Fewer attack-part configurations than this and EOT sees too few viewpoints: build more.
 MIN_ATTACK_CONFIGS = 32
@@ -73,8 +77,9 @@ def attack_job(
     policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True, log=print
 ) -> dict:
     from attack.artifact import write_config_record
-    from attack.optimize import AttackError, AttackRun, find_checkpoint, resolve_config, run_attack
+    from attack.optimize import AttackError, AttackRun, resolve_config, run_attack
     from attack.outputs import write_outputs
+    from attack.state import find_checkpoint
     from sim.configio import file_error, read_yaml
     from sim.configs import PoolError, load_pool
     from sim.policies.checkpoint import load_policy
@@ -141,3 +146,20 @@ def attack_job(
         return write_outputs(run, out, before)
     finally:
         run.close()
+
+
+class AttackJob(StrictModel):
+    """What ``advobj attack run`` runs (its options, validated): :meth:`run` is :func:`attack_job`."""
+
+    policy: Path = Field(description="white-box policy checkpoint directory")
+    preset: str = "quick"
+    config: Path | None = Field(None, description="YAML whose fields override the preset's")
+    scene: Path | None = Field(None, description="scene YAML (default: the built-in paper scene)")
+    pool: Path | None = Field(None, description="task-feasible pool JSON (default: the policy's, if any)")
+    out: Path = Path("runs/attack")
+    resume: bool = False
+
+    def run(self, progress: bool = True, log=print) -> dict:
+        return attack_job(
+            self.policy, self.preset, self.config, self.scene, self.pool, self.out, self.resume, progress, log
+        )
