@@ -15,7 +15,8 @@ schedule stage), the loss history and every RNG state.
 Anytime quality: every checkpoint holds the evaluation-ready ``texture.npy``; with
 ``validation_every > 0`` a held-out validation pool (the split's "validation" part, disjoint
 from the EOT configurations and from every evaluation) is rolled out with the standard renderer
-every ``validation_every`` iterations, and ``best/`` keeps the texture with the highest validation T-ASR so far (a valid ``advobj eval --attack`` source).
+every ``validation_every`` iterations, and ``best/`` keeps the texture with the highest validation
+T-ASR so far (a valid ``advobj eval --attack`` source).
 """
 
 from __future__ import annotations
@@ -214,8 +215,10 @@ class AttackRun:
                 )
             if len(val_pool) < cfg.validation_episodes:
                 warnings.warn(
-                    f"validation_episodes: the pool holds only {len(val_pool)} configurations of the validation part; validating on "
-                    f"{len(val_pool)} instead of {cfg.validation_episodes}. Give a larger pool (--pool) for a steadier validation "
+                    f"validation_episodes: the pool holds only {len(val_pool)} configurations of the validation "
+                    "part; validating on "
+                    f"{len(val_pool)} instead of {cfg.validation_episodes}. Give a larger pool (--pool) for a "
+                    "steadier validation "
                     "score, or set validation_every: 0",
                     AttackWarning,
                     stacklevel=2,

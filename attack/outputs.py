@@ -1,4 +1,5 @@
-"""What an attack run writes besides its texture folder (:mod:`attack.artifact`): textured meshes, plots and overlays."""
+"""What an attack run writes besides its texture folder (:mod:`attack.artifact`): textured meshes,
+plots and overlays."""
 
 from __future__ import annotations
 
@@ -120,11 +121,12 @@ def summary_lines(metrics: dict) -> list[str]:
         )
     else:
         lines.append(
-            "held-out validation: off (validation_every: 0); evaluate the texture with 'advobj eval' to know what it does"
+            "held-out validation: off (validation_every: 0); evaluate the texture with 'advobj eval' to know "
+            "what it does"
         )
     lines.append(
-        f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f} (first / last tenth of the run): "
-        + POSE_LOSS_NOTE
+        f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f} (first / last tenth of "
+        "the run): " + POSE_LOSS_NOTE
     )
     probe = [x for x in ((v or {}).get("probe_pose_loss") or []) if x == x]
     if probe:

@@ -40,7 +40,8 @@ def main() -> None:
     mx = [r["max_pct"] for r in intr]
     print(
         f"intrinsics (12 images, {args.seeds} seeds): max error median {np.median(mx):.3f} %, worst {max(mx):.3f} %; "
-        f"fx worst {max(r['fx_pct'] for r in intr):.3f} %; RMS reprojection median {np.median([r['rms_px'] for r in intr]):.3f} px; "
+        f"fx worst {max(r['fx_pct'] for r in intr):.3f} %; RMS reprojection median "
+        f"{np.median([r['rms_px'] for r in intr]):.3f} px; "
         f"k1 {np.median([r['k1'] for r in intr]):.4f} (true -0.08); {t_intr:.1f} s per calibration incl. rendering"
     )
 
@@ -54,13 +55,15 @@ def main() -> None:
     for size in (0.06, 0.04):
         r = tag_check(0.5, 0.0, size, n=args.tag_views, seed=2)
         print(
-            f"frontal orientation, {size * 1000:.0f} mm tag at 0.5 m: median {r['orientation_deg_median']:.2f} deg, max "
+            f"frontal orientation, {size * 1000:.0f} mm tag at 0.5 m: median "
+            f"{r['orientation_deg_median']:.2f} deg, max "
             f"{r['orientation_deg_max']:.2f} deg ({r['flagged']}/{r['detected']} flagged)"
         )
     for dist, size in ((0.5, 0.04), (0.35, 0.06)):
         r = tag_check(dist, 70.0, size, n=args.tag_views, seed=3)
         print(
-            f"oblique 70 deg, {size * 1000:.0f} mm at {dist} m: {r['detected']}/{r['n']} detected, {r['flagged']} flagged; "
+            f"oblique 70 deg, {size * 1000:.0f} mm at {dist} m: {r['detected']}/{r['n']} detected, "
+            f"{r['flagged']} flagged; "
             f"position max {r['position_mm_max']:.2f} mm, orientation max {r['orientation_deg_max']:.2f} deg"
         )
 
@@ -68,30 +71,35 @@ def main() -> None:
     p = np.array([r["position_mm"] for r in he])
     d = np.array([r["rotation_deg"] for r in he])
     print(
-        f"hand-eye (park+refine, {len(he)} noisy 15-sample sets): position median {np.median(p):.2f} mm, max {p.max():.2f} mm; "
+        f"hand-eye (park+refine, {len(he)} noisy 15-sample sets): position median {np.median(p):.2f} mm, max "
+        f"{p.max():.2f} mm; "
         f"rotation median {np.median(d):.3f} deg, max {d.max():.3f} deg"
     )
     cp = np.array([r["check_position_mm"] for r in he])
     cd = np.array([r["check_rotation_deg"] for r in he])
     print(
-        f"hand-eye tsai alone: position median {np.median(cp):.2f} mm, max {cp.max():.2f} mm; rotation max {cd.max():.3f} deg"
+        f"hand-eye tsai alone: position median {np.median(cp):.2f} mm, max {cp.max():.2f} mm; rotation max "
+        f"{cd.max():.3f} deg"
     )
     dm = np.array([r["methods_disagreement_mm"] for r in he])
     dd = np.array([r["methods_disagreement_deg"] for r in he])
     print(
-        f"tsai vs park disagreement: median {np.median(dm):.2f} mm / {np.median(dd):.3f} deg, max {dm.max():.2f} mm / {dd.max():.3f} deg"
+        f"tsai vs park disagreement: median {np.median(dm):.2f} mm / {np.median(dd):.3f} deg, max {dm.max():.2f} "
+        f"mm / {dd.max():.3f} deg"
     )
     he25 = [handeye_check(n_samples=25, seed=s) for s in range(args.seeds * 2)]
     p25 = np.array([r["position_mm"] for r in he25])
     d25 = np.array([r["rotation_deg"] for r in he25])
     print(
-        f"hand-eye with 25 samples: position median {np.median(p25):.2f} mm, max {p25.max():.2f} mm; rotation max {d25.max():.3f} deg"
+        f"hand-eye with 25 samples: position median {np.median(p25):.2f} mm, max {p25.max():.2f} mm; rotation max "
+        f"{d25.max():.3f} deg"
     )
     hi = [handeye_images_check(seed=s) for s in range(args.seeds)]
     pi = np.array([r["position_mm"] for r in hi])
     di = np.array([r["rotation_deg"] for r in hi])
     print(
-        f"hand-eye from rendered board images (12 views, {len(hi)} sets): position median {np.median(pi):.2f} mm, max {pi.max():.2f} mm; "
+        f"hand-eye from rendered board images (12 views, {len(hi)} sets): position median {np.median(pi):.2f} mm, "
+        f"max {pi.max():.2f} mm; "
         f"rotation max {di.max():.3f} deg; tsai vs park max {max(r['methods_disagreement_mm'] for r in hi):.2f} mm / "
         f"{max(r['methods_disagreement_deg'] for r in hi):.3f} deg"
     )

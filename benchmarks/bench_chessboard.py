@@ -116,16 +116,19 @@ START, END = "<!-- bench-chessboard:start", "<!-- bench-chessboard:end -->"
 def docs_block(summary: dict) -> str:
     ref, run = summary["reference"], summary["run"]
     lines = [
-        f"Measured by `{run['command']}` at commit `{run['commit'][:12]}` (`results/chessboard/`; board: {summary['board']}):",
+        f"Measured by `{run['command']}` at commit `{run['commit'][:12]}` (`results/chessboard/`; board: "
+        f"{summary['board']}):",
         "",
         "| run | photos used | fx | fy | cx | cy | RMS px | fx, fy, cx, cy minus the reference, % of f |",
         "|---|---|---|---|---|---|---|---|",
-        f"| reference (OpenCV's sample) | 13 | {ref['fx']:.2f} | {ref['fy']:.2f} | {ref['cx']:.2f} | {ref['cy']:.2f} | {ref['rms_px']:.3f} | - |",
+        f"| reference (OpenCV's sample) | 13 | {ref['fx']:.2f} | {ref['fy']:.2f} | {ref['cx']:.2f} | {ref['cy']:.2f} "
+        f"| {ref['rms_px']:.3f} | - |",
     ]
     for name, r in summary["runs"].items():
         d = r["diff_pct_of_f"]
         lines.append(
-            f"| {name} | {r['n_accepted']} | {r['fx']:.2f} | {r['fy']:.2f} | {r['cx']:.2f} | {r['cy']:.2f} | {r['rms_px']:.3f} | "
+            f"| {name} | {r['n_accepted']} | {r['fx']:.2f} | {r['fy']:.2f} | {r['cx']:.2f} | {r['cy']:.2f} | "
+            f"{r['rms_px']:.3f} | "
             f"{d['fx']:+.2f}, {d['fy']:+.2f}, {d['cx']:+.2f}, {d['cy']:+.2f} |"
         )
     return "\n".join(lines)

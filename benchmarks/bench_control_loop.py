@@ -110,7 +110,8 @@ def main() -> None:
         world.close()
     total_med = float(np.median(t_total)) * 1000.0
     print(
-        f"control loop, {args.steps} steps, {S}x{S} px, policy {onnx_path.name}, onnxruntime threads={args.threads} spin={args.spin}, "
+        f"control loop, {args.steps} steps, {S}x{S} px, policy {onnx_path.name}, onnxruntime threads={args.threads} "
+        f"spin={args.spin}, "
         f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}"
     )
     print(f"  camera read (sim render)   {stats(t_cam, c_cam)}")

@@ -80,7 +80,8 @@ def main() -> None:
         for masks in (False, True):
             r = bench(size, args.envs, args.steps, masks)
             print(
-                f"| {size}x{size} | {r['envs']} | {'on' if masks else 'off'} | {r['ms_per_env_frame']:.2f} | {r['render_ms']:.2f} | {r['rest_ms']:.2f} |"
+                f"| {size}x{size} | {r['envs']} | {'on' if masks else 'off'} | {r['ms_per_env_frame']:.2f} | "
+                f"{r['render_ms']:.2f} | {r['rest_ms']:.2f} |"
             )
 
 

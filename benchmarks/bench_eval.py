@@ -87,7 +87,8 @@ def main() -> None:
     env_steps = sum(steps)
     step_s = wall / env_steps
     print(
-        f"arch={args.arch} size={args.size} condition={args.condition} num_envs={args.num_envs} torch_threads={torch.get_num_threads()}"
+        f"arch={args.arch} size={args.size} condition={args.condition} num_envs={args.num_envs} "
+        f"torch_threads={torch.get_num_threads()}"
     )
     print(
         f"  {len(steps)} episodes, {env_steps} env-steps in {wall:.1f} s (incl. env/GL setup); "

@@ -98,11 +98,15 @@ def main() -> None:
     speedup = results["serial"]["wall_s"] / results["ray"]["wall_s"]
     print(f"speed-up at {a.workers} workers: {speedup:.2f}x (target >= 1.6x); same episode rows: {same}")
     print(
-        f"overhead per Ray job (n={len(t)}): submission (or a CPU coming free) to start median {statistics.median(starts):.2f} s, max {max(starts):.2f} s; "
-        f"end to result on the driver median {statistics.median(collects):.3f} s, max {max(collects):.3f} s (target <= 1 s)"
+        f"overhead per Ray job (n={len(t)}): submission (or a CPU coming free) to start median "
+        f"{statistics.median(starts):.2f} "
+        f"s, max {max(starts):.2f} s; "
+        f"end to result on the driver median {statistics.median(collects):.3f} s, max {max(collects):.3f} s "
+        "(target <= 1 s)"
     )
     print(
-        f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; table1 budget: {a.iterations} attack iterations, "
+        f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; table1 budget: {a.iterations} "
+        "attack iterations, "
         f"{a.episodes} episodes x 3 arms, {a.workers} shards on Ray"
     )
     from sim.runinfo import git_commit
@@ -144,19 +148,27 @@ def docs_block(rec: dict) -> str:
             "",
             "| mode | jobs | wall (s) | CPU (s) |",
             "|---|---|---|---|",
-            f"| serial, in-process | {r['serial']['jobs']} | {r['serial']['wall_s']:.1f} | {r['serial']['cpu_s']:.1f} |",
-            f"| Ray, `--workers {g['workers']}` | {r['ray']['jobs']} | {r['ray']['wall_s']:.1f} | {r['ray']['cpu_s']:.1f} |",
+            f"| serial, in-process | {r['serial']['jobs']} | {r['serial']['wall_s']:.1f} | "
+            f"{r['serial']['cpu_s']:.1f} |",
+            f"| Ray, `--workers {g['workers']}` | {r['ray']['jobs']} | {r['ray']['wall_s']:.1f} | "
+            f"{r['ray']['cpu_s']:.1f} |",
             "",
-            f"- Speed-up: **{rec['speedup']:.2f}x** at {g['workers']} workers (target: at least 1.6x). Both modes wrote the same "
+            f"- Speed-up: **{rec['speedup']:.2f}x** at {g['workers']} workers (target: at least 1.6x). Both modes "
+            "wrote the same "
             f"episode rows: {'yes' if rec['same_rows'] else 'NO'}.",
-            f"- Scheduling overhead per Ray job (n = {o['n']}), from submission to the job's start on its worker: median "
-            f"{o['start_delay_s_median']:.2f} s, max {o['start_delay_s_max']:.2f} s, counted from the later of the submission and "
-            "the moment a CPU came free (time queued behind other running jobs is not overhead). The maximum includes starting "
+            f"- Scheduling overhead per Ray job (n = {o['n']}), from submission to the job's start on its "
+            "worker: median "
+            f"{o['start_delay_s_median']:.2f} s, max {o['start_delay_s_max']:.2f} s, counted from the later of the "
+            "submission and "
+            "the moment a CPU came free (time queued behind other running jobs is not overhead). The maximum "
+            "includes starting "
             "a worker process the first time.",
-            f"- From the job's end to its result on the driver: median {o['collect_s_median']:.3f} s, max {o['collect_s_max']:.3f} s "
+            f"- From the job's end to its result on the driver: median {o['collect_s_median']:.3f} s, max "
+            f"{o['collect_s_max']:.3f} s "
             "(target: at most 1 s).",
             f"- Budget: {g['iterations']} attack iterations, {g['episodes']} episodes x 3 arms.",
-            "- The Ray CPU time is the driver's own CPU plus every job's, from their `job.json`; Ray's own daemons are not counted.",
+            "- The Ray CPU time is the driver's own CPU plus every job's, from their `job.json`; Ray's own daemons "
+            "are not counted.",
         ]
     )
 

@@ -78,7 +78,8 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     print(
-        f"torch {torch.__version__}, {torch.get_num_threads()} threads, batch {args.batch}, median of {args.reps}; ms per image"
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, batch {args.batch}, median of {args.reps}; "
+        "ms per image"
     )
     print(f"{'backbone':<14}{'px':>5}{'torch fwd':>12}{'torch fwd+bwd':>15}{'onnxrt fwd':>12}")
     for arch in args.archs.split(","):

@@ -178,7 +178,8 @@ def bench_frustum_clutter(spec, states, size, n: int) -> None:
     t_on, t_off, d_rgb, d_ids = cull_on_off(r, cstates, True)
     r.close()
     print(
-        f"[frustum cull, cluttered] the same {len(cstates)} frames with {n} extra objects ({len(cspec.objects)} in all): "
+        f"[frustum cull, cluttered] the same {len(cstates)} frames with {n} extra objects "
+        f"({len(cspec.objects)} in all): "
         f"{np.mean(culled):.1f} objects culled per frame on average"
     )
     print(
@@ -277,7 +278,8 @@ def bench_previous_frame(spec, states, episodes, size, max_pairs: int = 300) -> 
     print(
         f"[previous-frame background, not shipped] {len(diffs)} pairs of consecutive frames of one episode "
         f"(gripper excluded): max |rgb diff| median {statistics.median(diffs)}, max {max(diffs)}; "
-        f"mean |diff| median {statistics.median(means):.2f}/255; pixels changed: median {statistics.median(fracs):.1%}, "
+        f"mean |diff| median {statistics.median(means):.2f}/255; pixels changed: median "
+        f"{statistics.median(fracs):.1%}, "
         f"min {min(fracs):.1%}"
     )
 
@@ -347,7 +349,8 @@ def bench_validation(spec, policy_dir, size) -> None:
     print(
         f"[validation] quick preset ({cfg.validation_episodes} held-out episodes, <= {spec.episode.max_steps} steps, "
         f"{run.image_size}px): {v:.2f} s/call; attack step {s:.2f} s/iteration; per quick run {calls} calls = "
-        f"{calls * v:.0f} s on top of {cfg.iterations} x {s:.2f} = {cfg.iterations * s:.0f} s (+{calls * v / (cfg.iterations * s):.0%})"
+        f"{calls * v:.0f} s on top of {cfg.iterations} x {s:.2f} = {cfg.iterations * s:.0f} s "
+        f"(+{calls * v / (cfg.iterations * s):.0%})"
     )
 
 

@@ -65,7 +65,9 @@ def main() -> None:
         print(f"| {lam} | {lam * q[1]:.4f} | [{lam * q[0]:.4f}, {lam * q[2]:.4f}] |")
     if cosines:
         print(
-            f"cosine(g_pose, g_sal): median {statistics.median(cosines):+.3f}, negative in {sum(c < 0 for c in cosines)} of {len(cosines)}"
+            f"cosine(g_pose, g_sal): median {statistics.median(cosines):+.3f}, negative in "
+            f"{sum(c < 0 for c in cosines)} "
+            f"of {len(cosines)}"
         )
 
 

@@ -1,6 +1,7 @@
 """tag36h11 recall and corner accuracy: AprilTag 3 (``pupil-apriltags``, the default) vs ``cv2.aruco``.
 
-    .venv/bin/python benchmarks/bench_tags.py [--views 600] [--out results/tags] [--photos tests/data/photos/apriltag-swarmathon]
+    .venv/bin/python benchmarks/bench_tags.py [--views 600] [--out results/tags] \\
+        [--photos tests/data/photos/apriltag-swarmathon]
 
 Synthetic part: OpenGL renders of one 40 mm tag36h11 tag on the docs' camera (640x480, 70 deg
 horizontal FOV), at a random distance that puts the tag's side between about 6 and 60 px, tilted
@@ -251,29 +252,35 @@ def docs_block(summary: dict) -> str:
         "",
         "| images | tags | AprilTag 3 | cv2.aruco |",
         "|---|---|---|---|",
-        f"| real photos ({p['photos']}, the AprilTag library's test set) | {p['expected_tags']} | {a3['detected']} | {cv['detected']} |",
-        f"| ... tags under 25 px a side | {p['expected_under_25px']} | {a3['detected_under_25px']} | {cv['detected_under_25px']} |",
+        f"| real photos ({p['photos']}, the AprilTag library's test set) | {p['expected_tags']} | {a3['detected']} "
+        f"| {cv['detected']} |",
+        f"| ... tags under 25 px a side | {p['expected_under_25px']} | {a3['detected_under_25px']} | "
+        f"{cv['detected_under_25px']} |",
         f"| ... detections matching no expected tag | - | {a3['unexpected']} | {cv['unexpected']} |",
     ]
     for lo, hi in SIDE_BINS:
         k = f"{lo}-{hi}px"
         label = f"{lo}-{hi} px" if hi < 1000 else f">= {lo} px"
         lines.append(
-            f"| renders, tag side {label} | {s['apriltag3']['by_side'][k]['n']} | {s['apriltag3']['by_side'][k]['detected']} | "
+            f"| renders, tag side {label} | {s['apriltag3']['by_side'][k]['n']} | "
+            f"{s['apriltag3']['by_side'][k]['detected']} | "
             f"{s['aruco']['by_side'][k]['detected']} |"
         )
     lines += [
         "",
         f"- Corners on the real photos: both paths' raw corners lie within {a3['raw_vs_library_px_median']:.3f} / "
         f"{cv['raw_vs_library_px_median']:.3f} px (median) of the library's own expected corners; after our edge "
-        f"refinement the two paths agree to {p['agreement_px_median']:.3f} px median, {p['agreement_px_max']:.3f} px max "
+        f"refinement the two paths agree to {p['agreement_px_median']:.3f} px median, "
+        f"{p['agreement_px_max']:.3f} px max "
         f"(n = {p['both_detected']} tags both found).",
         f"- Corners on the renders, against the true projection (after edge refinement): median "
         f"{s['apriltag3']['corner_err_px_median']:.3f} px (AprilTag 3) and {s['aruco']['corner_err_px_median']:.3f} px "
-        f"(cv2.aruco), p95 {s['apriltag3']['corner_err_px_p95']:.3f} / {s['aruco']['corner_err_px_p95']:.3f} px, each over "
+        f"(cv2.aruco), p95 {s['apriltag3']['corner_err_px_p95']:.3f} / {s['aruco']['corner_err_px_p95']:.3f} px, "
+        "each over "
         "the tags it found; false ids: "
         f"{s['apriltag3']['false_ids']} / {s['aruco']['false_ids']}.",
-        "- Under 15 px a side neither finds a rendered tag: under 2 px per cell (8 cells across), blurred by the renderer's texture "
+        "- Under 15 px a side neither finds a rendered tag: under 2 px per cell (8 cells across), blurred by the "
+        "renderer's texture "
         "filtering and 0.8 px of blur, leaves nothing to decode.",
     ]
     return "\n".join(lines)
@@ -331,20 +338,24 @@ def main(argv=None) -> int:
     for b, s in summary["synthetic"].items():
         bins = ", ".join(f"{k} {v['detected']}/{v['n']}" for k, v in s["by_side"].items())
         print(
-            f"synthetic {b:9s}: {s['detected']}/{s['n']} found ({bins}); corner error median {s['corner_err_px_median']:.3f} px, "
+            f"synthetic {b:9s}: {s['detected']}/{s['n']} found ({bins}); corner error median "
+            f"{s['corner_err_px_median']:.3f} px, "
             f"p95 {s['corner_err_px_p95']:.3f} px; {s['false_ids']} false id(s)"
         )
     if "photos" in summary:
         p = summary["photos"]  # printed as measured
         for b in BACKENDS:
             print(
-                f"photos    {b:9s}: {p[b]['detected']}/{p['expected_tags']} expected tags found ({p[b]['detected_under_25px']}/"
-                f"{p['expected_under_25px']} under 25 px), {p[b]['unexpected']} unexpected; raw corners vs the library's: median "
+                f"photos    {b:9s}: {p[b]['detected']}/{p['expected_tags']} expected tags found "
+                f"({p[b]['detected_under_25px']}/"
+                f"{p['expected_under_25px']} under 25 px), {p[b]['unexpected']} unexpected; raw corners vs the "
+                "library's: median "
                 f"{p[b]['raw_vs_library_px_median']:.3f} px"
             )
         if p["both_detected"]:
             print(
-                f"photos agreement: median {p['agreement_px_median']:.3f} px, max {p['agreement_px_max']:.3f} px over {p['both_detected']} tags"
+                f"photos agreement: median {p['agreement_px_median']:.3f} px, max {p['agreement_px_max']:.3f} px "
+                f"over {p['both_detected']} tags"
             )
     print(f"wrote {out}/summary.json; {summary['run']['wall_s']} s wall, {summary['run']['cpu_s']} s CPU")
     if a.write_docs:

@@ -44,7 +44,8 @@ def main() -> None:
     }
     print(f"# {size}x{size} policy image, 256x256 texture; cores={os.cpu_count()} torch={torch.__version__}")
     print(
-        "| texture | distance | phi | pixels | MAE bilinear (/255) | MAE trilinear (/255) | ms bilinear fwd+bwd | ms trilinear fwd+bwd |"
+        "| texture | distance | phi | pixels | MAE bilinear (/255) | MAE trilinear (/255) | ms bilinear fwd+bwd | "
+        "ms trilinear fwd+bwd |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for tname, tex in textures.items():
@@ -71,7 +72,8 @@ def main() -> None:
                         ts.append(1000 * (time.perf_counter() - t0))
                     times.append(statistics.median(ts))
                 print(
-                    f"| {tname} | {dist} m | {phi} deg | {int(m.sum())} | {row[0]:.2f} | {row[1]:.2f} | {times[0]:.2f} | {times[1]:.2f} |"
+                    f"| {tname} | {dist} m | {phi} deg | {int(m.sum())} | {row[0]:.2f} | {row[1]:.2f} | {times[0]:.2f} "
+                    f"| {times[1]:.2f} |"
                 )
     r.set_object_texture(adv, None)
     r.close()

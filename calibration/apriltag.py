@@ -170,7 +170,8 @@ def resolve_dictionary(dictionary: str | int | None) -> str:
             if getattr(cv2.aruco, attr) == int(dictionary):
                 return name
         raise ValueError(
-            f"dictionary: OpenCV dictionary id {int(dictionary)} is not supported; choose from {', '.join(TAG_DICTIONARIES)}"
+            f"dictionary: OpenCV dictionary id {int(dictionary)} is not supported; choose from "
+            f"{', '.join(TAG_DICTIONARIES)}"
         )
     name = str(dictionary).strip().upper().removeprefix("DICT_")
     if name in ("TAG36H11", "APRILTAG_36H11", "36H11"):

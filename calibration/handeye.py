@@ -118,7 +118,8 @@ def check_motion_diversity(T_base_tcp, options: HandEyeOptions | None = None) ->
         raise DegenerateDataError(
             f"hand-eye: all rotations are about nearly the same axis (TCP frame {np.round(dom, 2).tolist()}, "
             f"spread {spread:.1f} deg < {opt.min_axis_spread_deg:g} deg), which leaves T_tcp_cam undetermined: "
-            f"add poses that rotate the gripper about a perpendicular axis, e.g. {np.round(perp, 2).tolist()} in the TCP frame"
+            f"add poses that rotate the gripper about a perpendicular axis, e.g. {np.round(perp, 2).tolist()} in "
+            "the TCP frame"
         )
     return DiversityReport(n, int(keep.sum()), max_rot, spread, dom)
 
@@ -234,7 +235,8 @@ class HandEyeResult:
         return (
             f"T_tcp_cam ({self.method}): t = {np.round(self.T_tcp_cam[:3, 3] * 1000, 2).tolist()} mm, "
             f"rotvec = {np.round(so3_log(self.T_tcp_cam[:3, :3]), 4).tolist()} rad\n"
-            f"{self.method.split('+')[0]} vs {self.check_method}: {self.disagreement_m * 1000:.2f} mm, {self.disagreement_deg:.3f} deg\n"
+            f"{self.method.split('+')[0]} vs {self.check_method}: {self.disagreement_m * 1000:.2f} mm, "
+            f"{self.disagreement_deg:.3f} deg\n"
             f"residuals over {len(self.residual_position_m)} samples: RMS {self.rms_position_m * 1000:.2f} mm, "
             f"{self.rms_rotation_deg:.3f} deg (max {self.residual_position_m.max() * 1000:.2f} mm, "
             f"{self.residual_rotation_deg.max():.3f} deg)"

@@ -84,7 +84,8 @@ class BoardSpec(Strict):
         n = (self.squares_x * self.squares_y) // 2
         if n > cv2.aruco.getPredefinedDictionary(self.dictionary_id).bytesList.shape[0]:
             raise ValueError(
-                f"a {self.squares_x}x{self.squares_y} board needs {n} markers; dictionary {self.dictionary} is too small"
+                f"a {self.squares_x}x{self.squares_y} board needs {n} markers; dictionary {self.dictionary} "
+                "is too small"
             )
         return self
 
@@ -583,7 +584,8 @@ def calibrate_intrinsics(
     for k in ("fx", "fy"):
         if k in std and 100 * std[k] / K[0 if k == "fx" else 1, 0 if k == "fx" else 1] > opt.max_focal_std_pct:
             warn.append(
-                f"{k} is uncertain: std {std[k]:.2f} px ({100 * std[k] / K[0 if k == 'fx' else 1, 0 if k == 'fx' else 1]:.2f} %, "
+                f"{k} is uncertain: std {std[k]:.2f} px "
+                f"({100 * std[k] / K[0 if k == 'fx' else 1, 0 if k == 'fx' else 1]:.2f} %, "
                 f"threshold {opt.max_focal_std_pct:g} %); add views at other tilts and distances"
             )
     if coverage < opt.min_coverage:

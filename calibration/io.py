@@ -162,7 +162,8 @@ def write_yaml(path, data: dict, header: str | None = None) -> Path:
 
 
 def read_image(path) -> np.ndarray:
-    """An image file as (H, W) grey or (H, W, 3|4) RGB(A) array; unreadable files raise :class:`CalibrationFileError`."""
+    """An image file as (H, W) grey or (H, W, 3|4) RGB(A) array; unreadable files raise
+    :class:`CalibrationFileError`."""
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

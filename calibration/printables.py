@@ -230,7 +230,8 @@ def board_pdf(path, board: BoardSpec, margin_mm: float = 8.0, px_per_square: int
         x,
         y + h_mm + 4.0,
         f"ChArUco {board.squares_x}x{board.squares_y}, square {board.square_size_m * 1000:g} mm, "
-        f"marker {board.marker_size_m * 1000:g} mm, DICT_{board.dictionary}{', legacy pattern' if board.legacy_pattern else ''}",
+        f"marker {board.marker_size_m * 1000:g} mm, "
+        f"DICT_{board.dictionary}{', legacy pattern' if board.legacy_pattern else ''}",
         fontsize=7,
         va="top",
     )

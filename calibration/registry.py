@@ -138,9 +138,10 @@ def visible_tag_fraction(
     """How much of an object's tag area that should be visible was seen: an occlusion measure.
 
     From the object's pose, each of its registered tags that faces the camera (view angle under
-    ~75 deg), is at least 10 px a side and lies wholly in the image is *expected*; the result is the projected area of the expected tags that were
-    detected over the area of all expected ones (1.0 = nothing hidden; 0.4 = 60 % of the print
-    area the camera should see is covered). None when no tag is expected (nothing to measure).
+    ~75 deg), is at least 10 px a side and lies wholly in the image is *expected*; the result is the
+    projected area of the expected tags that were detected over the area of all expected ones
+    (1.0 = nothing hidden; 0.4 = 60 % of the print area the camera should see is covered). None when
+    no tag is expected (nothing to measure).
     """
     expected, seen = 0.0, 0.0
     seen_ids = set(int(i) for i in seen_ids)

@@ -76,7 +76,9 @@ class SafetyLimits(StrictModel):
             raise ValueError("workspace bounds must be finite")
         if not (lo < hi).all():
             raise ValueError(
-                f"workspace_min_m {list(self.workspace_min_m)} must be below workspace_max_m {list(self.workspace_max_m)} on every axis"
+                f"workspace_min_m {list(self.workspace_min_m)} must be below workspace_max_m "
+                f"{list(self.workspace_max_m)} "
+                "on every axis"
             )
         if self.positioning_speed_mps > self.max_speed_mps:
             raise ValueError("positioning_speed_mps must not exceed max_speed_mps")

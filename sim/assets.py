@@ -698,7 +698,8 @@ def _check_obj_references(path: Path) -> None:
         target = (base / name).resolve()
         if base not in target.parents:
             raise AssetError(
-                f"{path}: {what} {name!r} lies outside the mesh's folder {base}; keep materials and images beside the mesh"
+                f"{path}: {what} {name!r} lies outside the mesh's folder {base}; keep materials and images "
+                "beside the mesh"
             )
         return target
 
@@ -735,7 +736,8 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None
     if path.suffix.lower() not in _MESH_EXTS:
         hint = (
             (
-                " (MuJoCo's binary mesh: use the STL/OBJ the MJCF was made from, or write the loaded model's mesh_vert/mesh_face "
+                " (MuJoCo's binary mesh: use the STL/OBJ the MJCF was made from, or write the loaded model's "
+                "mesh_vert/mesh_face "
                 "out with trimesh)"
             )
             if path.suffix.lower() == ".msh"
@@ -899,13 +901,15 @@ def build_mesh(
             say = warn or (lambda text: warnings.warn(text, stacklevel=4))
             if lo[2] < -PLACEMENT_WARN_M:
                 say(
-                    f"{key}: the mesh reaches {-lo[2] * 100:.1f} cm below its origin (below the table): rested on its lowest point"
+                    f"{key}: the mesh reaches {-lo[2] * 100:.1f} cm below its origin (below the table): rested on "
+                    "its lowest point"
                 )
             elif lo[2] > PLACEMENT_WARN_M:
                 say(f"{key}: the mesh floats {lo[2] * 100:.1f} cm above its origin: rested on its lowest point")
             if np.hypot(shift[0], shift[1]) > PLACEMENT_WARN_M:
                 say(
-                    f"{key}: the origin is {np.hypot(shift[0], shift[1]) * 100:.1f} cm from the base centre in x/y: recentred "
+                    f"{key}: the origin is {np.hypot(shift[0], shift[1]) * 100:.1f} cm from the base centre in x/y: "
+                    "recentred "
                     "(placement: keep keeps the file's origin)"
                 )
             v = v + shift
@@ -927,8 +931,10 @@ def attack_region_faces(mesh: trimesh.Trimesh, region: str | os.PathLike, label:
     path = Path(region)
     if mesh.metadata.get("uv_source") != "file":
         raise AssetError(
-            f"{label}: attack_region needs the mesh file's own UVs in [0, 1]; this mesh had none (advobj made a UV atlas), "
-            "so an image painted on the file's layout cannot match it: unwrap the mesh (Blender: Smart UV Project) and export again"
+            f"{label}: attack_region needs the mesh file's own UVs in [0, 1]; this mesh had none (advobj made a "
+            "UV atlas), "
+            "so an image painted on the file's layout cannot match it: unwrap the mesh (Blender: Smart UV Project) "
+            "and export again"
         )
     try:
         with Image.open(path) as im:

@@ -110,7 +110,8 @@ def view_mismatch(
         )
     if abs(K_view[0, 0] / K_view[1, 1] - 1.0) > 0.02:
         out.append(
-            f"pixels are {K_view[0, 0] / K_view[1, 1]:.2f} times as wide as tall in the policy's view (a squashed frame); "
+            f"pixels are {K_view[0, 0] / K_view[1, 1]:.2f} times as wide as tall in the policy's view (a "
+            "squashed frame); "
             "use preprocess center_crop or letterbox"
         )
     off = np.hypot(K_view[0, 2] - K_train[0, 2], K_view[1, 2] - K_train[1, 2])

@@ -222,8 +222,10 @@ def model_rows(model: type[BaseModel]) -> list[tuple[str, str, str, str, str]]:
 
 # Intros for models whose class has no docstring (file schemas kept private in their modules).
 MODEL_NOTES = {
-    "_CameraFile": "`cam.yaml`: intrinsics written by `advobj calibrate intrinsics` (OpenCV pinhole; `dist` = k1 k2 p1 p2 k3).",
-    "_HandEyeFile": "`T_tcp_cam.yaml`: written by `advobj calibrate handeye`; the hardware config's `T_tcp_cam` reads it "
+    "_CameraFile": "`cam.yaml`: intrinsics written by `advobj calibrate intrinsics` (OpenCV pinhole; `dist` = k1 "
+    "k2 p1 p2 k3).",
+    "_HandEyeFile": "`T_tcp_cam.yaml`: written by `advobj calibrate handeye`; the hardware config's "
+    "`T_tcp_cam` reads it "
     "(a bare `{translation_m, rotvec_rad}` mapping is accepted too).",
     "TagEntry": "One registered tag: the object it sits on, its printed size and its pose relative to the object.",
     "HardwareConfig": "The hardware YAML (`--config` of `advobj hw check`).",
@@ -237,7 +239,8 @@ FIELD_NOTES = {
         "rollout_steps": "policy steps per rollout; each step's view is one image-action pair",
         "lambda_dist": "weight of the distance term in L_pose = L_ori + lambda_dist * L_dist",
         "lambda_sal": "weight of the saliency term (Grad-CAM attention on the goal)",
-        "loss": "targeted: pull the policy toward the adversarial object; untargeted: push its action away from the clean one",
+        "loss": "targeted: pull the policy toward the adversarial object; untargeted: push its action away from "
+        "the clean one",
         "use_pose": "include the pose loss (ablation switch)",
         "use_saliency": "include the saliency loss (ablation switch)",
         "pcgrad": "combine the pose and saliency gradients with PCGrad",
@@ -246,14 +249,16 @@ FIELD_NOTES = {
         "texture_size": "side of the optimised texture, px",
         "init_texture": "starting texture: the object's own look, flat grey, or noise",
         "light_randomization": "randomise the lights during optimisation (EOT over lighting)",
-        "print_aware": "EOT over print colour shifts: a random per-channel gain (0.85-1.15) and bias (+-0.05) each iteration",
+        "print_aware": "EOT over print colour shifts: a random per-channel gain (0.85-1.15) and bias (+-0.05) "
+        "each iteration",
         "checkpoint_every": "iterations between resumable checkpoints",
         "seed": "seeds the configuration draws and every RNG of the run",
         "device": "torch device (cpu, cuda)",
     },
     "SafetyLimits": {
         "workspace_min_m": "lower corner of the box (base frame) the TCP must stay in",
-        "workspace_max_m": "upper corner of that box; policy steps are clipped into it, positioning moves outside it refused",
+        "workspace_max_m": "upper corner of that box; policy steps are clipped into it, positioning moves outside "
+        "it refused",
         "max_step_m": "translation per control step, cap",
         "max_step_rad": "rotation per control step, cap",
         "max_speed_mps": "translation speed cap; step cap = min(max_step_m, max_speed_mps * control_period_s)",

@@ -93,7 +93,8 @@ def load_card(path: str | Path) -> PolicyCard:
     if not card_path.is_file():
         if p.is_file():
             raise PolicyError(
-                f"{p}: not a policy checkpoint; expected a directory with {CARD_NAME} and {_WEIGHTS_NAME}, or an .onnx file"
+                f"{p}: not a policy checkpoint; expected a directory with {CARD_NAME} and {_WEIGHTS_NAME}, or an "
+                ".onnx file"
             )
         raise PolicyError(f"{p}: no such policy checkpoint (expected a directory with {CARD_NAME})")
     try:

@@ -191,7 +191,8 @@ def train_dagger(
                 f"{state.dir}: holds a run with a different config; use a new --out or delete that directory"
             )
         log(
-            f"resuming after iteration {prog['iterations_done']} ({len(images)} frames, {prog['elapsed_s']:.0f} s so far)"
+            f"resuming after iteration {prog['iterations_done']} ({len(images)} frames, "
+            f"{prog['elapsed_s']:.0f} s so far)"
         )
     clean = EnvConfig(image_size=env_cfg.image_size)
     N = cfg.num_envs

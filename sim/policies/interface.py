@@ -43,7 +43,8 @@ def prepare_images(images, image_size: int) -> np.ndarray:
         a = a[None]
     if a.ndim != 4:
         raise PolicyError(
-            f"images: expected (B, {image_size}, {image_size}, 3) uint8 or (B, 3, {image_size}, {image_size}) float, got shape {a.shape}"
+            f"images: expected (B, {image_size}, {image_size}, 3) uint8 or (B, 3, {image_size}, {image_size}) float, "
+            f"got shape {a.shape}"
         )
     if a.dtype == np.uint8:
         if a.shape[-1] != 3:

@@ -150,7 +150,8 @@ class OnnxPolicy:
         D = self.contract.state_dim
         if D and self.state_name is None:
             raise PolicyError(
-                f"{self.path}: the card's contract reads state {list(self.contract.state)} but the graph has no state input"
+                f"{self.path}: the card's contract reads state {list(self.contract.state)} but the graph has no "
+                "state input"
             )
         if self.state_name is not None:
             st = inputs[1].shape
@@ -161,7 +162,8 @@ class OnnxPolicy:
                 )
             if len(st) != 2 or (isinstance(st[1], int) and st[1] != D):
                 raise PolicyError(
-                    f"{self.path}: input {self.state_name!r} must be (B, {D}) for state {list(self.contract.state)}, got {st}"
+                    f"{self.path}: input {self.state_name!r} must be (B, {D}) for state "
+                    f"{list(self.contract.state)}, got {st}"
                 )
 
     def act(self, images, state=None) -> np.ndarray:

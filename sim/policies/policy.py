@@ -104,7 +104,8 @@ class VisuomotorPolicy(nn.Module):
             x.ndim != 4 or x.shape[1] != 3 or tuple(x.shape[2:]) != (self.image_size, self.image_size)
         ):
             raise PolicyError(
-                f"images: policy expects (B, 3, {self.image_size}, {self.image_size}) float in [0, 1], got {tuple(x.shape)}"
+                f"images: policy expects (B, 3, {self.image_size}, {self.image_size}) float in [0, 1], got "
+                f"{tuple(x.shape)}"
             )
         return self.backbone((x - self.mean) / self.std)
 

@@ -3,8 +3,8 @@
 Camera pose from (r, theta, phi) around the adversarial object -> standard render -> fragments ->
 texture sampler -> composite -> policy -> pose and Grad-CAM saliency losses -> PCGrad -> update,
 driven through :class:`attack.optimize.AttackRun` over the full grid phi in {0, 89.9} deg x
-r in {0.05, 0.15, 2.0} m x all-0 / all-1 / random textures, a fully occluded object, an object out of view, a camera inside the
-object's bounding box and a single-pixel mask.
+r in {0.05, 0.15, 2.0} m x all-0 / all-1 / random textures, a fully occluded object, an object out
+of view, a camera inside the object's bounding box and a single-pixel mask.
 """
 
 import dataclasses

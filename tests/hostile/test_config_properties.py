@@ -148,7 +148,8 @@ def test_hardware_paths_resolved_by_a_validated_merge(tmp_path):
 
     p = tmp_path / "hw.yaml"
     p.write_text(
-        "camera: {type: replay, path: frames}\narm: {type: sim}\nsafety: {workspace_min_m: [0, 0, 0], workspace_max_m: [1, 1, 1]}\n"
+        "camera: {type: replay, path: frames}\narm: {type: sim}\nsafety: {workspace_min_m: [0, 0, 0], workspace_max_m: "
+        "[1, 1, 1]}\n"
         "T_tcp_cam: hand_eye.yaml\n"
     )
     cfg = load_hardware_config(p)

@@ -287,7 +287,10 @@ def install_ur(monkeypatch, ctrl: FakeURController | None = None) -> FakeURContr
 
 # ---------------------------------------------------------------------------- depthai
 
-XLINK_MESSAGE = "Communication exception - possible device error. Original message 'Couldn't read data from stream: 'out' (X_LINK_ERROR)'"
+XLINK_MESSAGE = (
+    "Communication exception - possible device error. Original message 'Couldn't read data from stream: "
+    "'out' (X_LINK_ERROR)'"
+)
 
 
 class FakeOak:

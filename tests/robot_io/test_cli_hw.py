@@ -54,7 +54,8 @@ def test_check_with_jog_moves_up_and_back(lend_world):
 def test_check_rejects_a_bad_config_with_the_field_named(tmp_path):
     bad = tmp_path / "hw.yaml"
     bad.write_text(
-        "camera: {type: sim}\narm: {type: sim, speed: 3}\nsafety: {workspace_min_m: [0,0,0], workspace_max_m: [1,1,1]}\n"
+        "camera: {type: sim}\narm: {type: sim, speed: 3}\nsafety: {workspace_min_m: [0,0,0], workspace_max_m: "
+        "[1,1,1]}\n"
     )
     result = CliRunner().invoke(app, ["hw", "check", "--config", str(bad)])
     assert result.exit_code != 0

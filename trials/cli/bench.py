@@ -1,4 +1,5 @@
-"""``advobj bench``: measured trade-offs (parse -> :class:`trials.experiments.tradeoff.TradeoffJob` -> run, as ``benchmarks/bench_tradeoff.py``)."""
+"""``advobj bench``: measured trade-offs (parse -> :class:`trials.experiments.tradeoff.TradeoffJob` -> run,
+as ``benchmarks/bench_tradeoff.py``)."""
 
 from __future__ import annotations
 

@@ -181,7 +181,8 @@ def intrinsics(
     K = res.camera.K
     sd = res.std_px
     typer.echo(
-        f"RMS {res.rms_px:.3f} px over {len(res.images) - len(res.rejected)} image(s); fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
+        f"RMS {res.rms_px:.3f} px over {len(res.images) - len(res.rejected)} image(s); fx={K[0, 0]:.2f} "
+        f"fy={K[1, 1]:.2f} "
         f"cx={K[0, 2]:.2f} cy={K[1, 2]:.2f}; wrote {out}"
     )
     if sd:
@@ -348,7 +349,8 @@ def selfcheck(seed: int = typer.Option(0, min=0, help="random seed")) -> None:
 
     i = intrinsics_check(n_images=8, seed=seed)
     typer.echo(
-        f"intrinsics: max error {i['max_pct']:.3f} % (fx {i['fx_pct']:.3f}, fy {i['fy_pct']:.3f}), RMS {i['rms_px']:.3f} px"
+        f"intrinsics: max error {i['max_pct']:.3f} % (fx {i['fx_pct']:.3f}, fy {i['fy_pct']:.3f}), RMS "
+        f"{i['rms_px']:.3f} px"
     )
     t = tag_check(n=5, seed=seed)
     typer.echo(

@@ -19,7 +19,8 @@ def eval_command(
         "--condition",
         "-c",
         help="condition name (repeatable); 'clean' always runs. "
-        "Names: clean attack patch light_bright light_dim light_random noise bkg_varied stereo shape_dog shape_duck shape_cube shape_cylinder",
+        "Names: clean attack patch light_bright light_dim light_random noise bkg_varied stereo shape_dog shape_duck "
+        "shape_cube shape_cylinder",
     ),
     attack: Optional[Path] = typer.Option(
         None, help="attack run directory (texture for attack/variation/stereo conditions)"
@@ -50,7 +51,8 @@ def eval_command(
     threads: int = typer.Option(
         1,
         min=0,
-        help="torch threads; 1 (default) avoids OpenMP spin-waits stealing the CPU renderer's cores, 0 = torch's default",
+        help="torch threads; 1 (default) avoids OpenMP spin-waits stealing the CPU renderer's cores, 0 = "
+        "torch's default",
     ),
     workers: Optional[int] = cli_grid.WORKERS,
     address: Optional[str] = cli_grid.ADDRESS,

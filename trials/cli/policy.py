@@ -157,7 +157,10 @@ def export(
 
     pol, card = load_checkpoint(policy)
     export_onnx(pol, onnx, card=card, opset=opset)
-    msg = f"wrote {onnx} (opset {opset}, input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1], output actions (B, 6))"
+    msg = (
+        f"wrote {onnx} (opset {opset}, input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1], output "
+        "actions (B, 6))"
+    )
     if check:
         x = np.random.default_rng(0).random((32, 3, pol.image_size, pol.image_size), dtype=np.float32)
         diff = float(np.abs(OnnxPolicy(onnx).act(x) - pol.act(x)).max())

@@ -33,7 +33,8 @@ def plan_command(
     tag: List[str] = typer.Option(
         [],
         "--tag",
-        help="scenario tag, e.g. dim, bright, dynamic_lighting, occluded, moved_object; each adds a full block of trials",
+        help="scenario tag, e.g. dim, bright, dynamic_lighting, occluded, moved_object; each adds a full "
+        "block of trials",
     ),
     tcp_poses: int = typer.Option(5, "--tcp-poses", min=1, help="initial TCP poses"),
     object_poses: int = typer.Option(6, "--object-poses", min=1, help="object layouts"),
@@ -171,7 +172,8 @@ def run_command(
 
         typer.echo(
             f"{len(t)} trials committed; policy loop {np.median([x.loop_hz for x in t]):.1f} Hz median, "
-            f"per-trial overhead {np.median([x.overhead_s for x in t]):.2f} s median (placement + move + outcome + commit)"
+            f"per-trial overhead {np.median([x.overhead_s for x in t]):.2f} s median (placement + move + "
+            "outcome + commit)"
         )
     if summary.aborted:
         typer.secho(
@@ -258,7 +260,8 @@ def report_command(
         missing = sorted(set(session) - set(store.session_names()))
         if missing:
             raise ReportError(
-                f"--session: no session {', '.join(missing)} in {db} (have: {', '.join(store.session_names()) or 'none'})"
+                f"--session: no session {', '.join(missing)} in {db} (have: "
+                f"{', '.join(store.session_names()) or 'none'})"
             )
         rows = store.trial_rows(list(session) or None)
         names = list(session) or store.session_names()

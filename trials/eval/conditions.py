@@ -154,7 +154,8 @@ def _shape(shape: str) -> Callable[[Sources], Condition]:
         src = _need(s.shapes.get(shape), f"--shape {shape}=DIR", f"shape_{shape}")
         if src.mesh != shape:
             raise ConditionError(
-                f"{src.path}: condition 'shape_{shape}' needs a run with adversarial_mesh {shape!r}, this one used {src.mesh!r}"
+                f"{src.path}: condition 'shape_{shape}' needs a run with adversarial_mesh {shape!r}, this one used "
+                f"{src.mesh!r}"
             )
         return Condition(f"shape_{shape}", src)
 

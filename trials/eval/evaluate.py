@@ -321,7 +321,8 @@ def resolve_pool(
     feasible = configs + extra
     if not feasible:
         raise EvalError(
-            f"policy {cfg.policy}: reached the goal in none of {tried} candidate configurations; nothing is task-feasible"
+            f"policy {cfg.policy}: reached the goal in none of {tried} candidate configurations; nothing is "
+            "task-feasible"
         )
     save_pool(
         path,
@@ -399,7 +400,8 @@ def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: boo
     if leaked and not cfg.allow_overlap:
         k, v = next(iter(leaked.items()))
         raise EvalError(
-            f"condition {k!r}: its texture was optimised or selected on {v} of the {len(configs)} evaluation configurations "
+            f"condition {k!r}: its texture was optimised or selected on {v} of the {len(configs)} evaluation "
+            "configurations "
             "(an in-sample score); use a pool of the evaluation part, or pass --allow-overlap to score it anyway"
         )
     unknown = sorted(k for k, v in overlap.items() if v is None)
@@ -407,7 +409,8 @@ def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: boo
         import warnings
 
         warnings.warn(
-            f"condition(s) {', '.join(unknown)}: the texture directory records no training configurations (configs.json), "
+            f"condition(s) {', '.join(unknown)}: the texture directory records no training configurations "
+            "(configs.json), "
             "so its overlap with the evaluation cannot be checked",
             EvalWarning,
             stacklevel=3,

@@ -206,13 +206,17 @@ def write_report(out: str | Path, summary: dict, conds=()) -> Path:
     lines = [
         "# Evaluation report",
         "",
-        f"Policy: `{meta.get('policy', '?')}`; goal `{summary['goal']}`, adversarial object `{summary['adversarial']}`; "
-        f"{meta.get('episodes_available', '?')} task-feasible configurations (of {meta.get('episodes_requested', '?')} requested) "
-        f"from `{meta.get('pool', '?')}`, episodes of at most {meta.get('max_steps', '?')} steps, same configurations for every condition.",
+        f"Policy: `{meta.get('policy', '?')}`; goal `{summary['goal']}`, adversarial object "
+        f"`{summary['adversarial']}`; "
+        f"{meta.get('episodes_available', '?')} task-feasible configurations (of {meta.get('episodes_requested', '?')} "
+        "requested) "
+        f"from `{meta.get('pool', '?')}`, episodes of at most {meta.get('max_steps', '?')} steps, same configurations "
+        "for every condition.",
         "",
         _overlap_line(meta.get("overlap")),
         "",
-        "| condition | n | T-ASR % [95% CI] | ASR % [95% CI] | E_trans [95% CI] | E_rot rad [95% CI] | McNemar p vs clean (ASR) | (T-ASR) |",
+        "| condition | n | T-ASR % [95% CI] | ASR % [95% CI] | E_trans [95% CI] | E_rot rad [95% CI] | McNemar p "
+        "vs clean (ASR) | (T-ASR) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for c in names:
@@ -221,7 +225,8 @@ def write_report(out: str | Path, summary: dict, conds=()) -> Path:
         pa = _fmt_p(vs["asr"]["p_value"]) if vs else "-"
         pt = _fmt_p(vs["tasr"]["p_value"]) if vs else "-"
         lines.append(
-            f"| {c} | {s['n']} | {fmt_rate(s['tasr'])} | {fmt_rate(s['asr'])} | {fmt_err(s['e_trans'])} | {fmt_err(s['e_rot'], 4)} | {pa} | {pt} |"
+            f"| {c} | {s['n']} | {fmt_rate(s['tasr'])} | {fmt_rate(s['asr'])} | {fmt_err(s['e_trans'])} | "
+            f"{fmt_err(s['e_rot'], 4)} | {pa} | {pt} |"
         )
     for key, title, unit in (("by_phi", "viewing angle phi", "deg"), ("by_distance", "initial distance", "cm")):
         labels = [k for k in summary["conditions"][names[0]][key] if k != "outside"]

@@ -70,7 +70,8 @@ def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
     head = [
         "# advobj demo: 3D adversarial object vs 2D patch",
         "",
-        f"Reference policy `{policy.relative_to(out) if policy.is_relative_to(out) else policy}`, attacks in `attacks/`, "
+        f"Reference policy `{policy.relative_to(out) if policy.is_relative_to(out) else policy}`, attacks in "
+        "`attacks/`, "
         f"evaluation in `{eval_dir.relative_to(out).as_posix()}/`. Quick budget: this is a smoke-scale reproduction, "
         "not the paper's numbers.",
         "",

@@ -133,7 +133,8 @@ def paired_markdown(
         f"**{name_a} vs {name_b}** (claim: {name_a} {claim} {name_b} in T-ASR): {_pair_text(name_a, name_b, pr)}, "
         f"p = {_p(pr.p)}: **{verdict(pr, claim)}** at alpha = {ALPHA}.",
         "",
-        f"| {'phi (deg)' if key == 'phi' else 'r (cm)'} | n | {name_a} T-ASR % | {name_b} T-ASR % | only {name_a} / only {name_b} | p | verdict |",
+        f"| {'phi (deg)' if key == 'phi' else 'r (cm)'} | n | {name_a} T-ASR % | {name_b} T-ASR % | only {name_a} "
+        f"/ only {name_b} | p | verdict |",
         "|---|---|---|---|---|---|---|",
     ]
     for lab, q in paired_by_bin(a, b, key):
@@ -412,7 +413,8 @@ def render_details(f: dict) -> str:
         "",
         f"Overall: {f['F1']['ours_overall']}, p = {_p(f['F1']['overall'].p)}.",
         "",
-        f"Below phi = {OBLIQUE_PHI_DEG:.0f} deg: {_pair_text('3D', 'patch', f['F1']['top'])}, p = {_p(f['F1']['top'].p)}; "
+        f"Below phi = {OBLIQUE_PHI_DEG:.0f} deg: {_pair_text('3D', 'patch', f['F1']['top'])}, p = "
+        f"{_p(f['F1']['top'].p)}; "
         f"at and above it: {f['F1']['ours']}, p = {_p(f['F1']['test'].p)}.",
         "",
         "| phi bin | n | 3D T-ASR % | patch T-ASR % | only 3D / only patch | p |",
@@ -420,7 +422,8 @@ def render_details(f: dict) -> str:
     ]
     for lab, pr in f["F1"]["by_bin"]:
         lines.append(
-            f"| {lab} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p) if pr.n else '-'} |"
+            f"| {lab} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | "
+            f"{_p(pr.p) if pr.n else '-'} |"
             if pr.n
             else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - |"
         )
@@ -430,7 +433,8 @@ def render_details(f: dict) -> str:
             "",
             "## F1 against the ResNet-18 policy at 128 px (results/table1-paper/)",
             "",
-            f"Overall: {fp['ours_overall']}, p = {_p(fp['overall'].p)}; at phi >= {OBLIQUE_PHI_DEG:.0f} deg: {fp['ours']}, "
+            f"Overall: {fp['ours_overall']}, p = {_p(fp['overall'].p)}; at phi >= {OBLIQUE_PHI_DEG:.0f} deg: "
+            f"{fp['ours']}, "
             f"p = {_p(fp['test'].p)}.",
             "",
             "| phi bin | n | 3D T-ASR % | patch T-ASR % | only 3D / only patch | p |",
@@ -462,19 +466,25 @@ def render_details(f: dict) -> str:
         rates = ", ".join(f"{k} {100 * v:.1f}%" for k, v in sat["rates"].items())
         head = (
             f"T-ASR of every arm on the same {sat['n']} configurations: {rates}. Some optimised attack "
-            f"({', '.join(sat['attacks'])}) reaches the adversarial object in {sat['union']} of them ({100 * share:.1f}%); "
+            f"({', '.join(sat['attacks'])}) reaches the adversarial object in {sat['union']} of them "
+            f"({100 * share:.1f}%); "
             f"the best single attack reaches {100 * best:.1f}%. "
         )
         if share - best <= 0.05:
             body = (
                 "Each strong attack reaches about what all of them reach together: they saturate a ceiling set by the "
                 f"configurations. Of the {sat['missed']} configurations no attack reaches, {sat['missed_top']} "
-                f"({100 * sat['missed_top'] / max(1, sat['missed']):.0f}%) start at phi < 20 deg, where {100 * sat['top_share']:.0f}% "
-                "of all configurations start. At this budget the schedules and the saliency term can only differ on the few "
+                f"({100 * sat['missed_top'] / max(1, sat['missed']):.0f}%) start at phi < 20 deg, where "
+                f"{100 * sat['top_share']:.0f}% "
+                "of all configurations start. At this budget the schedules and the saliency term can only differ "
+                "on the few "
                 "configurations below the ceiling."
             )
         else:
-            body = "The union is well above the best single attack: at this budget the attacks have not saturated, so they can differ."
+            body = (
+                "The union is well above the best single attack: at this budget the attacks have not saturated, "
+                "so they can differ."
+            )
         lines += [f"## Saturation of the table2 attacks ({name})", "", head + body, ""]
     t40 = f["_table2_40"]
     if t40.get("c2f"):
@@ -505,7 +515,8 @@ def render_details(f: dict) -> str:
             "## Lighting randomisation in the attack (results/lighting/)",
             "",
             f"Attack cost: {c.get('c2f_light', float('nan')):.3f} s / iteration with lighting randomisation vs "
-            f"{c.get('c2f', float('nan')):.3f} s without (one run each, wall time). T-ASR of the two textures on the same held-out "
+            f"{c.get('c2f', float('nan')):.3f} s without (one run each, wall time). T-ASR of the two textures on "
+            "the same held-out "
             "configurations, per evaluation light (claim: randomised > fixed):",
             "",
             "| evaluation light | n | randomised % | fixed % | only randomised / only fixed | p | verdict |",
@@ -513,7 +524,8 @@ def render_details(f: dict) -> str:
         ]
         for cond, pr in lt["by_condition"].items():
             lines.append(
-                f"| {cond} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p)} | {verdict(pr)} |"
+                f"| {cond} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p)} | "
+                f"{verdict(pr)} |"
             )
         lines.append("")
     u = f.get("_untargeted") or {}
@@ -521,9 +533,12 @@ def render_details(f: dict) -> str:
         lines += [
             "## Why the untargeted attack scores a high T-ASR here",
             "",
-            f"The untargeted attack diverts {u['diverted']} of {u['n']} episodes from the goal, and {u['to_adv']} of those "
-            f"({100 * u['to_adv'] / max(1, u['diverted']):.0f}%) end at the adversarial object: the built-in scene has only "
-            "two objects, so a policy pushed off the goal mostly reaches the other one. The paper's near-zero untargeted "
+            f"The untargeted attack diverts {u['diverted']} of {u['n']} episodes from the goal, and "
+            f"{u['to_adv']} of those "
+            f"({100 * u['to_adv'] / max(1, u['diverted']):.0f}%) end at the adversarial object: the built-in "
+            "scene has only "
+            "two objects, so a policy pushed off the goal mostly reaches the other one. The paper's near-zero "
+            "untargeted "
             "T-ASR needs a scene where leaving the goal does not mean reaching the adversarial object.",
             "",
         ]
@@ -543,7 +558,8 @@ def render_details(f: dict) -> str:
         else:
             vc = d["vs_clean"]
             lines.append(
-                f"- {target}: T-ASR {d['k']}/{d['n']}; ratio to white-box {d['ratio']:.2f} [{d['lo']:.2f}, {d['hi']:.2f}]: **{v}**; "
+                f"- {target}: T-ASR {d['k']}/{d['n']}; ratio to white-box {d['ratio']:.2f} [{d['lo']:.2f}, "
+                f"{d['hi']:.2f}]: **{v}**; "
                 f"vs its clean arm p = {_p(vc.p)}"
             )
     short = [t for t, d, v in f["F5"]["parts"] if d is not None and v == "does not hold"]

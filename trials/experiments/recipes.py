@@ -587,7 +587,8 @@ def _header(title: str, ctx: Context, note: str = "") -> list[str]:
         f"# {title}",
         "",
         f"Preset `{c.preset}`: {c.episodes} episodes per condition (paper: 500), at most {c.max_steps} steps, "
-        f"attack preset `{c.attack_preset}`. Rates in %; overall (Avg) cells of ours carry 95% Wilson intervals in brackets; "
+        f"attack preset `{c.attack_preset}`. Rates in %; overall (Avg) cells of ours carry 95% Wilson intervals in "
+        "brackets; "
         "per-bin intervals and episode counts are in each evaluation's report.md (`evals/`). " + note,
         "",
     ]
@@ -734,7 +735,8 @@ def table3(ctx: Context) -> str:
     lines = _header(
         "Table III: generalisation and robustness",
         ctx,
-        "Stereo: the mono policy acts on both cameras of a 6 cm stereo pair and the two actions are averaged (docs/evaluation.md).",
+        "Stereo: the mono policy acts on both cameras of a 6 cm stereo pair and the two actions are averaged "
+        "(docs/evaluation.md).",
     )
     lines += [
         "| condition | T-ASR (ours) | ASR (ours) | T-ASR (paper) | ASR (paper) | McNemar p vs clean (ASR) |",
@@ -746,7 +748,8 @@ def table3(ctx: Context) -> str:
         p = cs.get("vs_clean", {}).get("asr", {}).get("p_value")
         lines.append(
             f"| {labels[c]} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])} | "
-            f"{'-' if pt is None else f'{pt:.2f}'} | {'-' if pa is None else f'{pa:.2f}'} | {'-' if p is None else f'{p:.2g}'} |"
+            f"{'-' if pt is None else f'{pt:.2f}'} | {'-' if pa is None else f'{pa:.2f}'} | "
+            f"{'-' if p is None else f'{p:.2g}'} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -767,7 +770,8 @@ def transfer(ctx: Context) -> str:
         "McNemar p: the attack arm against the same policy's clean arm.",
     )
     lines += [
-        "| policy | role | checkpoint arch | T-ASR (ours) | ASR (ours) | McNemar p vs clean (T-ASR) | T-ASR (paper) | ASR (paper) |",
+        "| policy | role | checkpoint arch | T-ASR (ours) | ASR (ours) | McNemar p vs clean (T-ASR) | T-ASR (paper) "
+        "| ASR (paper) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     missing = [a for a in TRANSFER_TARGETS if a not in ctx.cfg.transfer_targets]
@@ -777,7 +781,8 @@ def transfer(ctx: Context) -> str:
         pt, pa = PAPER["transfer"][paper_row]
         p = cs.get("vs_clean", {}).get("tasr", {}).get("p_value")
         lines.append(
-            f"| {name} | {role} | {_arch(pdir)} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])} | "
+            f"| {name} | {role} | {_arch(pdir)} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | "
+            f"{_pct(cs['asr'])}{_ci(cs['asr'])} | "
             f"{'-' if p is None else f'{p:.2g}'} | {pt:.2f} | {pa:.2f} |"
         )
     for arch in missing:

@@ -214,7 +214,8 @@ def build_rows(cfg: TradeoffConfig) -> list[Row]:
             "attack",
             "ref",
             note=f"{base.iterations} it, {base.num_envs} envs x {base.rollout_steps} steps, "
-            f"texture {base.texture_size}, {base.sampler}, saliency {'on' if base.use_saliency else 'off'}, pcgrad {'on' if base.pcgrad else 'off'}",
+            f"texture {base.texture_size}, {base.sampler}, saliency {'on' if base.use_saliency else 'off'}, pcgrad "
+            f"{'on' if base.pcgrad else 'off'}",
         )
     ]
     rows += [
@@ -793,7 +794,8 @@ def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
                     rec["subset"] = _subset_summary(rec["eval_dir"], cfg.episodes, spec)
                     if rec["eval_pool"].startswith(str(out)):
                         rec["note"] += (
-                            f"; its own feasible set (candidate seeds from {cfg.big_seed}), built inside the timed evaluation"
+                            f"; its own feasible set (candidate seeds from {cfg.big_seed}), built inside the timed "
+                            "evaluation"
                         )
                     else:
                         rec["note"] += "; the policy's own feasible pool (overlaps the attack's EOT pool)"

@@ -82,9 +82,12 @@ def attack_table(rows: list[dict], knobs: tuple[str, ...] = ()) -> str:
             lines.append(f"| {r['knob']} | {r['value']} | | | | | | | | | | | | | failed: {r.get('error', '')} |")
             continue
         lines.append(
-            f"| {r['knob']} | {r['value']} | {r.get('image_size', '')} | {_num(r.get('attack_wall_s'))} | {_num(r.get('attack_cpu_s'))} | "
-            f"{_num(r.get('eval_wall_s'))} | {_num(r.get('eval_cpu_s'))} | {_num(r.get('peak_rss_mb'))} | {r.get('episodes', '')} | "
-            f"{_rate(r.get('tasr'))} | {_rate(r.get('asr'))} | {_mean(r.get('e_trans'))} | {_mean(r.get('e_rot'), 4)} | {_load(r)} | "
+            f"| {r['knob']} | {r['value']} | {r.get('image_size', '')} | {_num(r.get('attack_wall_s'))} | "
+            f"{_num(r.get('attack_cpu_s'))} | "
+            f"{_num(r.get('eval_wall_s'))} | {_num(r.get('eval_cpu_s'))} | {_num(r.get('peak_rss_mb'))} | "
+            f"{r.get('episodes', '')} | "
+            f"{_rate(r.get('tasr'))} | {_rate(r.get('asr'))} | {_mean(r.get('e_trans'))} | {_mean(r.get('e_rot'), 4)} "
+            f"| {_load(r)} | "
             f"{r.get('note', '')} |"
         )
     return "\n".join(lines) + "\n"
@@ -107,18 +110,21 @@ def episodes_table(rows: list[dict]) -> str:
     base = [r for r in _ok(rows, ("attack",)) if r["knob"] == "baseline"]
     for r in base:
         lines.append(
-            f"| baseline row (fixed set) | {r['episodes']} | {_rate(r['tasr'])} | {width(r['tasr'])} | {_rate(r['asr'])} | "
+            f"| baseline row (fixed set) | {r['episodes']} | {_rate(r['tasr'])} | {width(r['tasr'])} | "
+            f"{_rate(r['asr'])} | "
             f"{width(r['asr'])} | {ci(r['e_trans'])} | {_num(r['eval_wall_s'])} | {_num(r['eval_cpu_s'])} |"
         )
     for r in _ok(rows, ("episodes",)):
         s = r.get("subset")
         if s:
             lines.append(
-                f"| eval_episodes={r['value']}, first {s['episodes']} configs | {s['episodes']} | {_rate(s['tasr'])} | {width(s['tasr'])} | "
+                f"| eval_episodes={r['value']}, first {s['episodes']} configs | {s['episodes']} | {_rate(s['tasr'])} "
+                f"| {width(s['tasr'])} | "
                 f"{_rate(s['asr'])} | {width(s['asr'])} | {ci(s['e_trans'])} | (inside the row below) | |"
             )
         lines.append(
-            f"| eval_episodes={r['value']} | {r['episodes']} | {_rate(r['tasr'])} | {width(r['tasr'])} | {_rate(r['asr'])} | "
+            f"| eval_episodes={r['value']} | {r['episodes']} | {_rate(r['tasr'])} | {width(r['tasr'])} | "
+            f"{_rate(r['asr'])} | "
             f"{width(r['asr'])} | {ci(r['e_trans'])} | {_num(r['eval_wall_s'])} | {_num(r['eval_cpu_s'])} |"
         )
     return "\n".join(lines) + "\n"
@@ -126,7 +132,8 @@ def episodes_table(rows: list[dict]) -> str:
 
 def deployment_table(rows: list[dict], knobs: tuple[str, ...] = ()) -> str:
     lines = [
-        "| variant | wall ms/image, batch 1 (median, p90) | CPU ms/image, batch 1 (mean) | wall ms/image, batch 8 (median) | "
+        "| variant | wall ms/image, batch 1 (median, p90) | CPU ms/image, batch 1 (mean) | wall ms/image, batch 8 "
+        "(median) | "
         "CPU ms/image, batch 8 (mean) | max abs action error vs torch fp32 | "
         "mean abs action error | clean success on the eval set [95% CI] | model KB | peak MB | load 1-min |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
@@ -140,9 +147,11 @@ def deployment_table(rows: list[dict], knobs: tuple[str, ...] = ()) -> str:
         succ = "n/a" if not cs else f"{cs['k']}/{cs['n']} = {_rate(cs)}"
         kb = "n/a" if r.get("model_bytes") is None else f"{r['model_bytes'] / 1024:.0f}"
         lines.append(
-            f"| {r['value']} | {lat['b1']['median']:.2f} ({lat['b1']['p90']:.2f}) | {_num(lat['b1'].get('cpu_mean'), 2)} | "
+            f"| {r['value']} | {lat['b1']['median']:.2f} ({lat['b1']['p90']:.2f}) | "
+            f"{_num(lat['b1'].get('cpu_mean'), 2)} | "
             f"{lat['b8']['median']:.2f} | {_num(lat['b8'].get('cpu_mean'), 2)} | "
-            f"{r['action_err_max']:.2e} | {r['action_err_mean']:.2e} | {succ} | {kb} | {_num(r.get('peak_rss_mb'))} | {_load(r)} |"
+            f"{r['action_err_max']:.2e} | {r['action_err_mean']:.2e} | {succ} | {kb} | {_num(r.get('peak_rss_mb'))} "
+            f"| {_load(r)} |"
         )
     n = next((r["frames"] for r in rows if r["kind"] == "deployment" and r.get("status") == "ok"), None)
     if n:
@@ -159,8 +168,10 @@ def machine_markdown(machine: dict) -> str:
     s = runs[0]["start"]
     loads = [(r["start"]["loadavg"], r.get("end", {}).get("loadavg")) for r in runs]
     lines = [
-        f"- CPU: {s['cpu_model']}; {s['cpu_count']} logical cores ({s['cpus_usable']} usable), {s.get('mem_total_gb')} GB RAM",
-        f"- torch {s['torch']} with {s['torch_threads']} intra-op thread(s) per row process; onnxruntime {s['onnxruntime']} "
+        f"- CPU: {s['cpu_model']}; {s['cpu_count']} logical cores ({s['cpus_usable']} usable), "
+        f"{s.get('mem_total_gb')} GB RAM",
+        f"- torch {s['torch']} with {s['torch_threads']} intra-op thread(s) per row process; onnxruntime "
+        f"{s['onnxruntime']} "
         f"(intra-op threads = the same); numpy {s['numpy']}; Python {s['python']}; {s['platform']}",
         "- load average (1, 5, 15 min) at start -> end of each sweep invocation: "
         + "; ".join(f"{_fmt_load(a)} -> {_fmt_load(b)}" for a, b in loads),

@@ -1096,8 +1096,10 @@ def fabricate(
         # The paper optimises under lighting randomisation for the real cell; a fixed-light texture
         # may lose much of its effect under the cell's own lights (experiment lighting measures it).
         log(
-            "fabricate: warning: this texture was optimised under the scene's fixed light (light_randomization: false); "
-            "for a real cell, optimise with light_randomization: true ('advobj experiment lighting' measures the difference)"
+            "fabricate: warning: this texture was optimised under the scene's fixed light "
+            "(light_randomization: false); "
+            "for a real cell, optimise with light_randomization: true ('advobj experiment lighting' measures the "
+            "difference)"
         )
     try:
         mesh = build_mesh(src.mesh, src.scale, **src.mesh_kwargs)
@@ -1141,7 +1143,8 @@ def fabricate(
     if printed is not src.texture:
         n_opt = int(np.count_nonzero(mesh.metadata["optimizable_faces"]))
         log(
-            f"fabricate: {n_opt} of {len(mesh.faces)} faces were optimised (attack_region); the others keep the mesh's own "
+            f"fabricate: {n_opt} of {len(mesh.faces)} faces were optimised (attack_region); the others keep the "
+            "mesh's own "
             f"texture, written at {printed.shape[1]} x {printed.shape[0]} texels"
         )
     paths = export_meshes(out, mesh, printed, obj_units=obj_units)
@@ -1149,13 +1152,16 @@ def fabricate(
     summary = {"glb": str(paths["glb"]), "obj": str(paths["obj"]), "shape": sheet_shape, "texel_mm": density}
     if density is not None:
         log(
-            f"fabricate: the optimised texture is {src.texture.shape[1]} x {src.texture.shape[0]} texels; on the object one texel spans "
-            f"{density['median']:.2f} mm (median over the optimised faces; {density['p10']:.2f}-{density['p90']:.2f} mm for 80 % of "
+            f"fabricate: the optimised texture is {src.texture.shape[1]} x {src.texture.shape[0]} texels; on the "
+            "object one texel spans "
+            f"{density['median']:.2f} mm (median over the optimised faces; {density['p10']:.2f}-{density['p90']:.2f} "
+            "mm for 80 % of "
             f"their area), whatever the print resolution"
         )
     if sheet_shape is None:
         log(
-            f"fabricate: {src.mesh!r} has no flat net; wrote {paths['glb'].name} and {paths['obj'].parent.name}/ for colour 3D printing "
+            f"fabricate: {src.mesh!r} has no flat net; wrote {paths['glb'].name} and {paths['obj'].parent.name}/ "
+            "for colour 3D printing "
             f"(sheets exist for {', '.join(SHEET_SHAPES)})"
         )
         summary["seconds"] = time.perf_counter() - t0
@@ -1182,7 +1188,8 @@ def fabricate(
         sheet_seconds=time.perf_counter() - t0,
     )
     log(
-        f"fabricate: wrote {out / 'sheet.pdf'} ({layout.n_pages} page(s), {layout.page_mm[0]:g} x {layout.page_mm[1]:g} mm, "
+        f"fabricate: wrote {out / 'sheet.pdf'} ({layout.n_pages} page(s), {layout.page_mm[0]:g} x "
+        f"{layout.page_mm[1]:g} mm, "
         f"{dpi} dpi, {summary['sheet_seconds']:.1f} s): print at 100 % and check the {CHECK_LINE_MM:g} mm line"
     )
     if check:

@@ -66,7 +66,8 @@ class CheckResult:
     @property
     def failures(self) -> list[str]:
         out = [
-            f"piece {s['piece']}: {s['measure']} printed {s['printed_mm']:.2f} mm, the object needs {s['expected_mm']:.2f} mm"
+            f"piece {s['piece']}: {s['measure']} printed {s['printed_mm']:.2f} mm, the object needs "
+            f"{s['expected_mm']:.2f} mm"
             for s in self.scale
             if abs(s["error_mm"]) > self.max_scale_mm
         ]

@@ -3,9 +3,9 @@
 Jobs
     A :class:`Job` is one call ``fn(out, inputs, **params)`` of a module-level function (named
     ``"module:function"``, so any node with advobj installed can import it): ``train-policy``,
-    ``pool``, ``attack``, ``eval`` (whole, or the merge of its shards) and ``eval-shard`` in the recipes, ``tradeoff-row`` in the
-    speed-vs-accuracy sweep. ``inputs`` maps a role to a path; an input that another job produces
-    makes that job a dependency, so an evaluation waits for its texture.
+    ``pool``, ``attack``, ``eval`` (whole, or the merge of its shards) and ``eval-shard`` in the
+    recipes, ``tradeoff-row`` in the speed-vs-accuracy sweep. ``inputs`` maps a role to a path; an
+    input that another job produces makes that job a dependency, so an evaluation waits for its texture.
 
 Keys
     A job's key is the SHA-256 of its kind, function, parameters, its inputs' keys and

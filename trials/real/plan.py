@@ -231,7 +231,8 @@ class TrialPlan(_Strict):
                 )
             if t.object_layout >= len(self.object_layouts):
                 raise ValueError(
-                    f"{where}.object_layout: {t.object_layout} out of range (the plan has {len(self.object_layouts)} layouts)"
+                    f"{where}.object_layout: {t.object_layout} out of range (the plan has "
+                    f"{len(self.object_layouts)} layouts)"
                 )
         return self
 
@@ -381,13 +382,15 @@ def _poses(
             f"--hardware: found {len(tcps)}/{n_tcp} start TCP poses inside the workspace box "
             f"[{', '.join(f'{v:g}' for v in lo)}] .. [{', '.join(f'{v:g}' for v in hi)}] m (base frame); "
             f"{len(outside)} drawn poses fell outside, spanning {rng_txt} m; the scene's start poses "
-            "(init.r_range_m, init.phi_range_deg, init.region_x_m/region_y_m in the scene YAML) must fit the cell: widen the box if the cell allows it, move the "
+            "(init.r_range_m, init.phi_range_deg, init.region_x_m/region_y_m in the scene YAML) must fit the cell: "
+            "widen the box if the cell allows it, move the "
             "table frame (--table-frame), or use a scene whose start poses lie inside it"
         )
     if len(layouts) < n_layouts or len(tcps) < n_tcp:
         src = f"the pool's {len(pool)} configurations" if pool is not None else f"{_MAX_DRAWS} sampled configurations"
         raise PlanError(
-            f"found {len(layouts)}/{n_layouts} object layouts and {len(tcps)}/{n_tcp} TCP poses valid for every layout in {src}; "
+            f"found {len(layouts)}/{n_layouts} object layouts and {len(tcps)}/{n_tcp} TCP poses valid for every "
+            f"layout in {src}; "
             "use fewer poses or layouts, a larger pool, or another seed"
         )
     return tcps, layouts
@@ -509,8 +512,8 @@ def design_summary(plan: TrialPlan) -> list[str]:
     tags = sorted({tag for t in plan.trials for tag in t.tags})
     lines = [
         f"{len(plan.trials)} trials, seed {plan.seed}, scene {plan.scene or 'built-in'}",
-        f"design: {len(plan.tcp_poses)} TCP poses x {len(plan.object_layouts)} object layouts = {per_block} trials per env x shape x condition"
-        + (f", plus one such block per tag ({', '.join(tags)})" if tags else ""),
+        f"design: {len(plan.tcp_poses)} TCP poses x {len(plan.object_layouts)} object layouts = {per_block} trials "
+        "per env x shape x condition" + (f", plus one such block per tag ({', '.join(tags)})" if tags else ""),
         f"envs {', '.join(plan.envs)}; shapes {', '.join(plan.shapes)}; conditions {', '.join(plan.conditions)}",
     ]
     counts: dict[tuple, int] = {}
@@ -527,7 +530,7 @@ Frames: the table frame = the simulator's world frame (z up, origin on the table
 Object placements: base centre xy (m) and yaw (rad) per scene role; TCP poses: T_table_tcp.
 Conditions: clean = the shape's benign look; adv3d = the shape with textures['<shape>/adv3d'];
 patch = the built-in 'patch' mesh with textures['<shape>/patch'] where the adversarial object stands.
-Each scenario tag adds one full block of trials carrying that tag (trial id suffix -<tag>)."""
+Each scenario tag adds one full block of trials carrying that tag (trial id suffix -<tag>)."""  # noqa: E501 (written into plan files as is)
 
 
 def save_plan(plan: TrialPlan, path: str | Path) -> Path:

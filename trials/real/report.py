@@ -69,7 +69,8 @@ def _final(row: dict) -> str:
         out = row["operator_outcome"] if row.get("operator_outcome") is not None else row.get("auto_outcome")
     if out not in OUTCOMES:
         raise ReportError(
-            f"trial {row.get('session')}/{row.get('trial_id')}: final_outcome {out!r} is not one of {', '.join(OUTCOMES)}"
+            f"trial {row.get('session')}/{row.get('trial_id')}: final_outcome {out!r} is not one of "
+            f"{', '.join(OUTCOMES)}"
         )
     return out
 
@@ -261,7 +262,8 @@ def precision_line(prec: dict) -> str:
 
 # ----------------------------------------------------------------------------- sim side
 def load_sim_eval(eval_dir) -> dict:
-    """``{path, conditions: summary['conditions'], sources: {name: {sha256, mesh}}, adversarial_mesh}`` of an eval dir."""
+    """``{path, conditions: summary['conditions'], sources: {name: {sha256, mesh}}, adversarial_mesh}``
+    of an eval dir."""
     d = Path(eval_dir)
     try:
         summary = json.loads((d / "summary.json").read_text())
@@ -385,7 +387,8 @@ def _breakdown_md(b: dict) -> list[str]:
     o = b["overall"]
     errors = f", {o['policy_error']} policy_error" if o["policy_error"] else ""
     lines = [
-        f"All trials: n = {o['n']} rated ({o['unknown']} unknown{errors}), T-ASR {_pct(o['tasr'])} %, ASR {_pct(o['asr'])} %",
+        f"All trials: n = {o['n']} rated ({o['unknown']} unknown{errors}), T-ASR {_pct(o['tasr'])} %, ASR "
+        f"{_pct(o['asr'])} %",
         "",
     ]
     for key, title in (("by_env", "env"), ("by_shape", "shape"), ("by_condition", "condition"), ("by_tag", "tag")):
@@ -445,7 +448,8 @@ def write_trial_report(
     md = [
         "# Real-robot trial report",
         "",
-        f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): {', '.join(summary['sessions']) or '–'}."
+        f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): "
+        f"{', '.join(summary['sessions']) or '–'}."
         + ("".join(f" **Incomplete: {t}.**" for t in a["incomplete"]) if a else ""),
         "T-ASR = ended at the adversarial object; ASR = did not end at the goal; trials with an unknown outcome are "
         "excluded from the rates (n = rated trials). Intervals: 95 % Wilson.",

@@ -27,8 +27,9 @@ Per trial, in this order:
    object not seen from there (the camera is close to the objects at the end of a reach) is looked
    for again from the trial's start pose, where the placement check saw it; the arm moves there
    and back to the final pose through the safety layer, so the operator judges the trial where it
-   ended (not after a fault, a safety stop or a policy error: then the arm stays). One still not seen (a hand took it, its tags are hidden) makes the
-   outcome ``unknown``, never a guess from where it was placed; the reason says where it was last seen.
+   ended (not after a fault, a safety stop or a policy error: then the arm stays). One still not
+   seen (a hand took it, its tags are hidden) makes the outcome ``unknown``, never a guess from
+   where it was placed; the reason says where it was last seen.
 6. The operator confirms or overrides the outcome, with an optional note (an ``unknown`` outcome
    is put to the operator as a question).
 7. The trial is committed in one transaction (:meth:`TrialStore.commit_trial`), frames first.
@@ -280,20 +281,23 @@ class TrialRunner:
                 bad[t.tcp_pose] = (p, [t.trial_id])
         if bad:
             lines = [
-                f"TCP pose {k} at [{', '.join(f'{v:.3f}' for v in p)}] m in the base frame ({len(ids)} trials, e.g. {ids[0]})"
+                f"TCP pose {k} at [{', '.join(f'{v:.3f}' for v in p)}] m in the base frame ({len(ids)} trials, "
+                f"e.g. {ids[0]})"
                 for k, (p, ids) in sorted(bad.items())
             ]
             raise PlanOutsideWorkspace(
                 "trial plan: initial TCP poses outside the safety workspace box "
                 f"{list(limits.workspace_min_m)} .. {list(limits.workspace_max_m)} m:\n  "
                 + "\n  ".join(lines)
-                + "\nwiden workspace_min_m / workspace_max_m in the hardware YAML (if the cell allows it) or make a new plan"
+                + "\nwiden workspace_min_m / workspace_max_m in the hardware YAML (if the cell allows it) or make "
+                "a new plan"
             )
 
     def _header(self, trial, k: int, n: int, timings, left: int) -> str:
         per = np.mean([t.overhead_s + t.loop_s + t.commit_s for t in timings]) if timings else float("nan")
         return (
-            f"[{k}/{n}] {trial.trial_id}: env {trial.env}, shape {trial.shape}, {trial.condition}, TCP pose {trial.tcp_pose}, "
+            f"[{k}/{n}] {trial.trial_id}: env {trial.env}, shape {trial.shape}, {trial.condition}, TCP pose "
+            f"{trial.tcp_pose}, "
             f"layout {trial.object_layout}"
             + (f", tags {','.join(trial.tags)}" if trial.tags else "")
             + f"   ETA {_fmt_eta(per * left)}"

@@ -416,7 +416,8 @@ def _safety_at_plan_rate(hw, plan, episode, log):
     lim = hw.safety
     if not math.isclose(lim.control_period_s, period_s, rel_tol=1e-6):
         log(
-            f"safety: control_period_s {lim.control_period_s * 1000:.1f} ms (hardware YAML) -> {period_s * 1000:.1f} ms, "
+            f"safety: control_period_s {lim.control_period_s * 1000:.1f} ms (hardware YAML) -> "
+            f"{period_s * 1000:.1f} ms, "
             f"the plan's control_hz {plan.control_hz:g}: the speed caps assume the loop's real period"
         )
         # validated again: the plan's rate must give a period the safety limits accept
@@ -429,7 +430,8 @@ def _safety_at_plan_rate(hw, plan, episode, log):
         log(
             f"warning: at {plan.control_hz:g} Hz the safety layer caps a step at {cap_m * 1000:.1f} mm / "
             f"{math.degrees(cap_rad):.1f} deg, below the policy's {episode.max_step_m * 1000:.1f} mm / "
-            f"{math.degrees(episode.max_step_rad):.1f} deg: steps are clipped, the arm moves slower than in simulation and "
+            f"{math.degrees(episode.max_step_rad):.1f} deg: steps are clipped, the arm moves slower than in "
+            "simulation and "
             "trials may end at max_steps; lower the plan's control_hz or raise max_speed_mps / max_speed_radps / "
             "max_step_m / max_step_rad in the hardware YAML"
         )

@@ -104,14 +104,16 @@ def _layout_page(pdf, plan, layout, outlines: dict) -> None:
             bbox=dict(facecolor="white", alpha=0.8, edgecolor="0.6"),
         )
         lines.append(
-            f"{role:<12} x = {100 * p.xy_m[0]:7.1f} cm   y = {100 * p.xy_m[1]:7.1f} cm   yaw = {math.degrees(p.yaw_rad):7.1f}°"
+            f"{role:<12} x = {100 * p.xy_m[0]:7.1f} cm   y = {100 * p.xy_m[1]:7.1f} cm   yaw = "
+            f"{math.degrees(p.yaw_rad):7.1f}°"
         )
     ax.legend(loc="lower left", fontsize=7, framealpha=0.9)
     notes = [
         "Table frame: origin at the table-frame tag, z up.",
         "Positions are base centres; yaw is about +z from the table +x axis;",
         "the arrow shows the object's +x axis (heading).",
-        f"Placement tolerance: {100 * plan.placement_tolerance_m:.1f} cm, {math.degrees(plan.placement_tolerance_rad):.1f}°.",
+        f"Placement tolerance: {100 * plan.placement_tolerance_m:.1f} cm, "
+        f"{math.degrees(plan.placement_tolerance_rad):.1f}°.",
         "",
         *lines,
         "",
@@ -159,7 +161,10 @@ def _order_pages(pdf, plan) -> None:
     from matplotlib.figure import Figure
 
     n_pages = math.ceil(len(plan.trials) / ROWS_PER_PAGE)
-    head = f"{'order':>5}  {'trial id':<34} {'env':<5} {'shape':<10} {'cond':<6} {'tcp':<4} {'layout':<6} {'tags':<16} done"
+    head = (
+        f"{'order':>5}  {'trial id':<34} {'env':<5} {'shape':<10} {'cond':<6} {'tcp':<4} {'layout':<6} "
+        f"{'tags':<16} done"
+    )
     for page in range(n_pages):
         fig = Figure(figsize=A4_IN)
         fig.suptitle(f"Run order  (page {page + 1}/{n_pages}, {len(plan.trials)} trials)", fontsize=13, y=0.97)

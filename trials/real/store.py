@@ -201,7 +201,7 @@ ALTER TABLE trials ADD COLUMN run_id INTEGER REFERENCES runs(id);
 INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, config_json)
     SELECT id, created_at, software_version, git_commit, hardware_text, devices_json, config_json FROM sessions ORDER BY id;
 UPDATE trials SET run_id = (SELECT r.id FROM runs r WHERE r.session_id = trials.session_id);
-""",
+""",  # noqa: E501 (the migration SQL as run)
     3: "policy_error",  # the outcome CHECKs of trials gain 'policy_error': a table rebuild (_allow_policy_error)
     # Version 4: corrections of committed trials, each with the values it replaced.
     4: """
@@ -387,7 +387,8 @@ def _one_line(err) -> str:
 
 
 def _quick_check(con: sqlite3.Connection, path: Path) -> None:
-    """``PRAGMA quick_check`` of an open database; a damaged one raises :class:`StoreError` (one line, nothing written)."""
+    """``PRAGMA quick_check`` of an open database; a damaged one raises :class:`StoreError` (one line,
+    nothing written)."""
     rows = [str(r[0]) for r in con.execute("PRAGMA quick_check").fetchall()]
     if rows != ["ok"]:
         more = f" (and {len(rows) - 1} more problems)" if len(rows) > 1 else ""
@@ -476,7 +477,8 @@ class TrialStore:
             )
 
     def _write_schema(self, base: str | None, version: int) -> None:
-        """Create the version-1 schema (``base``) and/or migrate from ``version`` to the current one, in one transaction."""
+        """Create the version-1 schema (``base``) and/or migrate from ``version`` to the current one, in
+        one transaction."""
         steps = [] if base is None else [base]
         steps += [_MIGRATIONS[v] for v in range(version + 1, SCHEMA_VERSION + 1)]
         self.con.execute("PRAGMA foreign_keys=OFF")  # a table rebuild drops a referenced table (checked below)
@@ -557,7 +559,8 @@ class TrialStore:
                 )
         if refused:
             raise SessionMismatch(
-                f"session {info.name!r} in {self.path} was started with other inputs; its trials must not be mixed with "
+                f"session {info.name!r} in {self.path} was started with other inputs; its trials must not be "
+                "mixed with "
                 "trials run with these:\n  "
                 + "\n  ".join(refused)
                 + "\nresume with the original plan, policy and calibration files, or start a new --session"
@@ -618,7 +621,8 @@ class TrialStore:
         try:
             if row is None:
                 cur = self.con.execute(
-                    "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
+                    "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, "
+                    "policy_sha256, "
                     "software_version, git_commit, devices_json, calibration_json, config_json, T_base_table_json) "
                     "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)",
                     (
@@ -643,7 +647,8 @@ class TrialStore:
                 if row["T_base_table_json"] is None and T_json is not None:  # a session from schema version 1
                     self.con.execute("UPDATE sessions SET T_base_table_json = ? WHERE id = ?", (T_json, sid))
             cur = self.con.execute(
-                "INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, config_json) "
+                "INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, "
+                "config_json) "
                 "VALUES (?,?,?,?,?,?,?)",
                 (
                     sid,
@@ -685,8 +690,10 @@ class TrialStore:
         c.execute("BEGIN IMMEDIATE")
         try:
             cur = c.execute(
-                "INSERT INTO trials (session_id, trial_id, plan_order, env, shape, condition, tcp_pose, object_layout, tags_json, "
-                "texture_sha256, started_at, duration_s, n_steps, stop_reason, auto_outcome, auto_reason, distances_json, "
+                "INSERT INTO trials (session_id, trial_id, plan_order, env, shape, condition, tcp_pose, object_layout, "
+                "tags_json, "
+                "texture_sha256, started_at, duration_s, n_steps, stop_reason, auto_outcome, auto_reason, "
+                "distances_json, "
                 "operator_outcome, note, final_outcome, placement_checks, placement_skipped, "
                 + ", ".join(f"tcp_final_{p}" for p in _POSE)
                 + ", frames_dir, run_id, light_level) VALUES ("
@@ -850,7 +857,8 @@ class TrialStore:
 
     def amendments(self, sessions: Sequence[str] | None = None) -> list[dict]:
         q = (
-            "SELECT s.name AS session, t.trial_id AS trial_id, a.* FROM amendments a JOIN trials t ON t.id = a.trial_row "
+            "SELECT s.name AS session, t.trial_id AS trial_id, a.* FROM amendments a JOIN trials t ON t.id = "
+            "a.trial_row "
             "JOIN sessions s ON s.id = t.session_id"
             + (f" WHERE s.name IN ({','.join('?' * len(sessions))})" if sessions else "")
             + " ORDER BY a.rowid"
@@ -900,10 +908,14 @@ class TrialStore:
         elif name == "runs":
             q = "SELECT s.name AS session, r.* FROM runs r JOIN sessions s ON s.id = r.session_id ORDER BY r.id"
         elif name == "trials":
-            q = "SELECT s.name AS session, t.* FROM trials t JOIN sessions s ON s.id = t.session_id ORDER BY s.id, t.plan_order"
+            q = (
+                "SELECT s.name AS session, t.* FROM trials t JOIN sessions s ON s.id = t.session_id ORDER BY s.id, "
+                "t.plan_order"
+            )
         else:
             q = (
-                f"SELECT s.name AS session, t.trial_id AS trial_id, x.* FROM {name} x JOIN trials t ON t.id = x.trial_row "
+                f"SELECT s.name AS session, t.trial_id AS trial_id, x.* FROM {name} x JOIN trials t ON t.id = "
+                "x.trial_row "
                 "JOIN sessions s ON s.id = t.session_id ORDER BY s.id, t.plan_order, x.rowid"
             )
         cur = self.con.execute(q)

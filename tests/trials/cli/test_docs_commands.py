@@ -32,7 +32,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[3]
 DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 MAX_STEPS = 3
-TINY_ATTACK = "iterations: 2\nnum_envs: 1\nrollout_steps: 2\ntexture_size: 16\npool_size: 4\ncheckpoint_every: 1\nvalidation_every: 0\n"
+TINY_ATTACK = (
+    "iterations: 2\nnum_envs: 1\nrollout_steps: 2\ntexture_size: 16\npool_size: 4\ncheckpoint_every: "
+    "1\nvalidation_every: 0\n"
+)
 
 
 # ============================================================================ reading the docs
@@ -144,7 +147,8 @@ def check_advobj_line(argv: list[str], where: str) -> None:
     for tok in rest:
         if tok.startswith("-") and not re.match(r"^-\d", tok):
             assert tok.split("=", 1)[0] in known, (
-                f"{where}: option {tok.split('=', 1)[0]} is not accepted by 'advobj {' '.join(path)}' (it takes {sorted(known)})"
+                f"{where}: option {tok.split('=', 1)[0]} is not accepted by 'advobj {' '.join(path)}' (it takes "
+                f"{sorted(known)})"
             )
     ctx = cmd.make_context("advobj " + " ".join(path), list(rest))  # types, counts, choices
     ctx.close()
@@ -463,7 +467,8 @@ CALIB = {
         "calibrate tags --ids 0-7 --size-mm 40 --out {calib}/tags.pdf", ("{calib}/tags.pdf",)
     ),
     "advobj calibrate detect photo.png --camera cam.yaml --registry objects.yaml --json": Tiny(
-        "calibrate detect {photo} --camera {root}/examples/calibration/cam.yaml --registry {root}/examples/calibration/objects.yaml --json",
+        "calibrate detect {photo} --camera {root}/examples/calibration/cam.yaml --registry "
+        "{root}/examples/calibration/objects.yaml --json",
         expect="goal",
     ),
     "advobj calibrate handeye samples.yaml --out T_tcp_cam.yaml": Tiny(
@@ -476,8 +481,10 @@ CALIB = {
         ("{calib}/cam_chess.yaml",),
         expect="board: plain chessboard, 9x6 inner corners (found automatically)",
     ),
-    "advobj calibrate intrinsics left*.jpg --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out ost.yaml": Tiny(
-        "calibrate intrinsics {chess} --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out {calib}/ost_chess.yaml",
+    "advobj calibrate intrinsics left*.jpg --board chessboard --inner-corners 9x6 --square-mm 25 --format "
+    "ros --out ost.yaml": Tiny(
+        "calibrate intrinsics {chess} --board chessboard --inner-corners 9x6 --square-mm 25 --format ros --out "
+        "{calib}/ost_chess.yaml",
         ("{calib}/ost_chess.yaml",),
         expect="(as given)",
     ),
@@ -487,7 +494,8 @@ CALIB = {
 }
 
 PLAN_LINE = (
-    "advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml "
+    "advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out "
+    "runs/plan.yaml "
     "--sheet runs/plan.pdf"
 )
 RUN_LINE = (
@@ -564,8 +572,10 @@ TINY: dict[str, Tiny] = {
         ("{tmp}/patch/texture.npy", "{tmp}/patch/run.json"),
     ),
     # ---- evaluation
-    "advobj eval --policy runs/policy-quick --attack runs/attack --patch runs/patch -c attack -c patch -c light_dim --episodes 500 --max-steps 60 --out runs/eval": EVAL_MAIN,
-    "advobj eval --policy runs/policy --attack runs/attack --patch runs/patch -c attack -c patch -c light_dim --episodes 500 --max-steps 60 --out runs/eval": EVAL_MAIN,
+    "advobj eval --policy runs/policy-quick --attack runs/attack --patch runs/patch -c attack -c patch "
+    "-c light_dim --episodes 500 --max-steps 60 --out runs/eval": EVAL_MAIN,
+    "advobj eval --policy runs/policy --attack runs/attack --patch runs/patch -c attack -c patch -c "
+    "light_dim --episodes 500 --max-steps 60 --out runs/eval": EVAL_MAIN,
     "advobj eval --policy runs/policy-quick.onnx --attack runs/attack --episodes 200 --out runs/eval-transfer": Tiny(
         "eval --policy {onnx} --attack {attack} " + EVAL_TINY + " --out {tmp}/eval-transfer",
         ("{tmp}/eval-transfer/summary.json",),
@@ -584,7 +594,8 @@ TINY: dict[str, Tiny] = {
     ),
     "advobj experiment table2 --preset paper --address HEAD_HOST:6379 --device cuda --out runs/table2-paper": Tiny(
         None,
-        reason="needs a Ray cluster with GPU nodes; the job layer on a real local cluster is tests/trials/jobs/test_jobs_ray.py",
+        reason="needs a Ray cluster with GPU nodes; the job layer on a real local cluster is "
+        "tests/trials/jobs/test_jobs_ray.py",
     ),
     "advobj experiment table2 --preset quick": Tiny(
         "experiment table2 --preset quick --policy {policy} --out {tmp}/table2",
@@ -599,7 +610,8 @@ TINY: dict[str, Tiny] = {
         setup=_tiny_experiments,
     ),
     "advobj experiment transfer --preset quick --target resnet34=runs/policy-r34 --archs resnet34": Tiny(
-        "experiment transfer --preset quick --policy {policy} --target resnet34={policy} --archs resnet34 --out {tmp}/transfer",
+        "experiment transfer --preset quick --policy {policy} --target resnet34={policy} --archs resnet34 --out "
+        "{tmp}/transfer",
         ("{tmp}/transfer/table.md",),
         slow=True,
         setup=_tiny_experiments,
@@ -635,12 +647,15 @@ TINY: dict[str, Tiny] = {
         ("{tmp}/fab-tag/objects.yaml",),
     ),
     "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff": Tiny(
-        "bench tradeoff --policy {policy} --out {tmp}/tradeoff --quick-check --pool {pool} --max-steps 3 --rows eot_envs",
+        "bench tradeoff --policy {policy} --out {tmp}/tradeoff --quick-check --pool {pool} --max-steps 3 "
+        "--rows eot_envs",
         ("{tmp}/tradeoff/report.md", "{tmp}/tradeoff/rows.jsonl"),
         slow=True,
     ),
-    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff --train-missing --plot docs/img/tradeoff_pareto.png": Tiny(
-        "bench tradeoff --policy {policy} --out {tmp}/tradeoff-doc --quick-check --pool {pool} --max-steps 3 --rows deployment=onnx-fp32 "
+    "advobj bench tradeoff --policy runs/policy-quick --out runs/tradeoff --train-missing --plot "
+    "docs/img/tradeoff_pareto.png": Tiny(
+        "bench tradeoff --policy {policy} --out {tmp}/tradeoff-doc --quick-check --pool {pool} --max-steps 3 --rows "
+        "deployment=onnx-fp32 "
         "--plot {tmp}/tradeoff-doc/pareto.png",
         ("{tmp}/tradeoff-doc/report.md", "{tmp}/tradeoff-doc/pareto.png"),
         slow=True,
@@ -649,12 +664,15 @@ TINY: dict[str, Tiny] = {
     # ---- calibration (workflow step 7 and calibration.md)
     **CALIB,
     # ---- real trials (the sim hardware config stands in for the cell)
-    "advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch --out runs/plan.yaml --sheet runs/plan.pdf": Tiny(
-        "trial plan --shape cube --texture cube/adv3d={attack_cube} --texture cube/patch={patch} --tcp-poses 1 --object-poses 1 "
+    "advobj trial plan --shape cube --texture cube/adv3d=runs/attack-cube --texture cube/patch=runs/patch "
+    "--out runs/plan.yaml --sheet runs/plan.pdf": Tiny(
+        "trial plan --shape cube --texture cube/adv3d={attack_cube} --texture cube/patch={patch} --tcp-poses 1 "
+        "--object-poses 1 "
         "--out {tmp}/trials/plan.yaml --sheet {tmp}/trials/plan.pdf",
         ("{tmp}/trials/plan.yaml", "{tmp}/trials/plan.pdf"),
     ),
-    "advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session day1 --registry objects.yaml --db runs/trials.sqlite": Tiny(
+    "advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session "
+    "day1 --registry objects.yaml --db runs/trials.sqlite": Tiny(
         "trial run --hardware {root}/examples/hardware/sim.yaml --policy {onnx} --plan {plan} --session day1 "
         "--registry {root}/examples/calibration/objects.yaml --db {tmp}/trials/trials.sqlite --auto-confirm",
         ("{tmp}/trials/trials.sqlite",),
@@ -753,7 +771,8 @@ def test_documented_command_runs_on_tiny_settings(doc, tiny, art, monkeypatch):
             used_options(cmd, rest) - used_options(tcmd, trest) - {option_params(cmd).get(o, o) for o in tiny.dropped}
         )
         assert not missing, (
-            f"TINY entry for '{doc.text}' leaves out documented options {sorted(missing)} (keep them or say why in dropped)"
+            f"TINY entry for '{doc.text}' leaves out documented options {sorted(missing)} (keep them or say why "
+            "in dropped)"
         )
     if tiny.setup is not None:
         tiny.setup(monkeypatch, art)

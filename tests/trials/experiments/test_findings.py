@@ -83,7 +83,8 @@ def test_the_readme_policy_figure_is_the_committed_card():
     card = json.loads((RESULTS / "policies" / "policy-quick.json").read_text())
     c, t = card["clean_success"], card["training"]
     want = (
-        f"**{100 * c['rate']:.1f}% clean success ({c['k']}/{c['n']}, 95% CI {100 * c['lo']:.1f}-{100 * c['hi']:.1f}%) after "
+        f"**{100 * c['rate']:.1f}% clean success ({c['k']}/{c['n']}, 95% CI "
+        f"{100 * c['lo']:.1f}-{100 * c['hi']:.1f}%) after "
         f"{t['train_time_s'] / 60:.1f} min of training ({t['train_cpu_s'] / 60:.1f} min CPU)**"
     )
     block = re.search(

@@ -112,7 +112,8 @@ def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, ti
     assert len(rec["load_start"]) == 3 and rec["git_commit"] and rec["image_size"] == 32
     run_info = json.loads((tmp_path / "attacks" / "eot_envs_2" / "run.json").read_text())
     assert run_info["config"]["attack"]["num_envs"] == 2 and "git_commit" in run_info
-    # the fixed evaluation set: the pool's first 4 evaluation-part configurations; the attack sampled from the attack part
+    # the fixed evaluation set: the pool's first 4 evaluation-part configurations; the attack
+    # sampled from the attack part
     eval_seeds = json.loads((tmp_path / "evals" / "eot_envs_2" / "run.json").read_text())["config"]["seeds"]
     assert len(eval_seeds) == 4 and (tmp_path / "eval_sets" / "ref.json").is_file()
     assert json.loads((tmp_path / "machine.json").read_text())["runs"][0]["start"]["cpu_count"] >= 1

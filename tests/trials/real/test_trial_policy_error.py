@@ -111,10 +111,12 @@ def test_a_version_2_store_is_migrated_keeping_its_trials(tmp_path):
     )
     con.execute(
         "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
-        "software_version, git_commit, devices_json, calibration_json, config_json) VALUES ('s','t','p','','','','','','','{}','{}','{}')"
+        "software_version, git_commit, devices_json, calibration_json, config_json) VALUES "
+        "('s','t','p','','','','','','','{}','{}','{}')"
     )
     con.execute(
-        "INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, config_json) "
+        "INSERT INTO runs (session_id, started_at, software_version, git_commit, hardware_text, devices_json, "
+        "config_json) "
         "VALUES (1, 't', '', '', '', '{}', '{}')"
     )
     cols = [r[1] for r in con.execute("PRAGMA table_info(trials)")]

@@ -16,8 +16,10 @@ def _damaged_store(path):
         store.con.execute("BEGIN")
         for i in range(150):
             store.con.execute(
-                "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, policy_sha256, "
-                "software_version, git_commit, devices_json, calibration_json, config_json) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                "INSERT INTO sessions (name, created_at, plan_sha256, plan_text, hardware_text, policy_path, "
+                "policy_sha256, "
+                "software_version, git_commit, devices_json, calibration_json, config_json) VALUES "
+                "(?,?,?,?,?,?,?,?,?,?,?,?)",
                 (f"s{i}", "t", "p", "x" * 1500, "h", "pol", "", "v", "g", "{}", "{}", "{}"),
             )
         store.con.execute("COMMIT")
