@@ -132,3 +132,20 @@ def test_a_chunk_that_outlives_the_safety_frame_age_limit_is_refused_before_anyt
     ):
         _session(tmp_path, c, max_frame_age_ms=100.0)
     assert not (tmp_path / "t.sqlite").exists()
+
+
+def test_a_policy_whose_outputs_do_not_fit_its_card_is_refused_before_any_device(tmp_path):
+    from sim.policies.contract import ActionContract, PolicyContract
+    from sim.policies.onnx_policy import attach_card
+
+    p = tiny_policy(contract_of((), ("delta_tcp", 1, 1)))
+    path = export_onnx(p, tmp_path / "p.onnx")
+    card = card_of(p).model_copy(update={"contract": PolicyContract(action=ActionContract(chunk=4, execute=1))})
+    attach_card(path, card)  # the card says chunks of 4, the graph outputs one action
+    hw = sim_hardware(tmp_path / "hw.yaml")
+    plan = small_plan(tmp_path / "plan.yaml", tmp_path, n_tcp=1, max_steps=3, conditions=("clean",))
+    with pytest.raises(
+        SessionSetupError, match=r"p\.onnx: .*needs outputs of shape \(1, 4, 6\) or \(1, 24\), got \(1, 6\)"
+    ):
+        run_session(hw, path, plan, "s", tmp_path / "t.sqlite", rate_limit=False, operator=AutoOperator(log=None))
+    assert not (tmp_path / "t.sqlite").exists()

@@ -191,6 +191,7 @@ def prepare_session(
     action_scale = (ep.max_step_m,) * 3 + (ep.max_step_rad,) * 3
     hw = _safety_at_plan_rate(hw, plan, ep, log)
     _check_chunk_frame_age(policy, plan, hw)
+    _check_policy_outputs(policy, spec, policy_path)
     if rate_limit is None:
         rate_limit = not (hw.arm.type == "sim" and not hw.arm.realtime)
     calibration_files = {
@@ -385,6 +386,26 @@ def camera_view_warnings(camera, policy, spec, hw) -> list[str]:
         f"camera ({intr.width}x{intr.height}, preprocess {mode} to {S}x{S}): {m}"
         for m in view_mismatch(K_view, spec.camera.K(S, S), S, T_mount, spec.camera.T_tcp_cam)
     ]
+
+
+def _check_policy_outputs(policy, spec, policy_path) -> None:
+    """Ask the policy once, on a grey frame from the start of a reach, before any device exists: an
+    output its contract cannot read (shape, a missing state input) fails the session here, in one
+    line, instead of in the middle of the first trial."""
+    from sim.policies.contract import call_policy, decode_actions, policy_contract, state_vector
+    from sim.policies.interface import PolicyError
+
+    c = policy_contract(policy)
+    S = int(policy.image_size)
+    T = np.eye(4)
+    T[2, 3] = 0.3
+    try:
+        raw = call_policy(
+            policy, np.full((1, S, S, 3), 128, np.uint8), state_vector(c, T[None], spec.gripper.opening_m)
+        )
+        decode_actions(np.asarray(raw, dtype=np.float64), c, 1)
+    except PolicyError as err:
+        raise SessionSetupError(f"{policy_path}: {err}") from None
 
 
 def _check_chunk_frame_age(policy, plan, hw) -> None:
