@@ -92,7 +92,7 @@ def read_config_record(texture_dir: str | Path) -> set[str] | None:
         if cand.is_file():
             try:
                 doc = json.loads(cand.read_text())
-                if doc.get("format") != _RECORD_FORMAT:
+                if not isinstance(doc, dict) or doc.get("format") != _RECORD_FORMAT:
                     raise ValueError(f"format is not {_RECORD_FORMAT!r}")
                 return {e["id"] for part in ("attack", "validation") for e in doc[part]}
             except (OSError, ValueError, KeyError, TypeError) as err:

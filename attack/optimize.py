@@ -406,7 +406,8 @@ class AttackRun:
         a = self.next_delta(out, T_world_tcp)  # the action executed next, as a delta_tcp motion
         zero = imgs.sum() * 0.0
         need_cam = cfg.use_saliency and cfg.lambda_sal > 0
-        S = grad_cam(A, out.flatten(1)) if need_cam else None
+        # Grad-CAM of the motion executed next (the pose loss's action), whatever the action kind
+        S = grad_cam(A, a) if need_cam else None
         adv_m = torch.from_numpy(np.stack([c.adv_mask for c in caps])).to(self.device)
         goal_m = torch.from_numpy(np.stack([c.goal_mask for c in caps])).to(self.device)
         parts = {}

@@ -137,7 +137,7 @@ def summary_lines(metrics: dict) -> list[str]:
     return lines
 
 
-def gradcam_overlay(policy, image: torch.Tensor, state: torch.Tensor | None = None) -> np.ndarray:
+def gradcam_overlay(policy, image: torch.Tensor, state: torch.Tensor | None = None, to_action=None) -> np.ndarray:
     """``image (3, H, W)`` (and the policy's ``state (1, D)``) -> (H, W, 3) uint8 with the Grad-CAM
     map blended in red."""
     import torch.nn.functional as F
@@ -147,7 +147,9 @@ def gradcam_overlay(policy, image: torch.Tensor, state: torch.Tensor | None = No
     x = image[None].detach().clone().requires_grad_(True)  # gives A a graph (weights are frozen)
     A = policy.features(x)
     out = policy.head(A) if state is None else policy.head(A, state)
-    S = grad_cam(A, out.flatten(1)).detach()[0]
+    # ``to_action``: the head's output -> the motion executed next (AttackRun.next_delta), as the
+    # saliency loss explains it; without it, the whole output
+    S = grad_cam(A, to_action(out) if to_action is not None else out.flatten(1)).detach()[0]
     S = F.interpolate(S[None, None], size=image.shape[-2:], mode="bilinear", align_corners=False)[0, 0]
     S = (S / S.max().clamp_min(1e-12)).cpu().numpy()
     rgb = image.detach().cpu().permute(1, 2, 0).numpy()
@@ -177,13 +179,20 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
     before = render_adversarial(cap, texture_before.to(run.device), run.cfg.sampler)
     after = render_adversarial(cap, run.texture, run.cfg.sampler)
     seed = run.pool[0].seed
-    st = run.policy_state(torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32))
+    T0 = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32)
+    st = run.policy_state(T0)
+
+    def motion(o):
+        return run.next_delta(o, T0)
+
     iio.imwrite(
         out / "gradcam_before_after.png",
         hstack(
             [
-                labelled(gradcam_overlay(run.policy, before, st), f"Grad-CAM, starting texture (config {seed})"),
-                labelled(gradcam_overlay(run.policy, after, st), f"Grad-CAM, final texture (config {seed})"),
+                labelled(
+                    gradcam_overlay(run.policy, before, st, motion), f"Grad-CAM, starting texture (config {seed})"
+                ),
+                labelled(gradcam_overlay(run.policy, after, st, motion), f"Grad-CAM, final texture (config {seed})"),
             ]
         ),
     )

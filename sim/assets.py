@@ -922,6 +922,39 @@ def build_mesh(
     return mesh
 
 
+def region_texture(mesh: trimesh.Trimesh, texture_u8: np.ndarray) -> np.ndarray:
+    """The texture to put on ``mesh`` for an attack texture ``(h, w, 3)`` uint8: the attack's texels
+    where the mesh's optimised faces lie in UV space, the mesh file's own texture everywhere else.
+
+    The one composition behind every look of an attacked object: the renderer applies it to any
+    texture set on a mesh (evaluation, the attack's validation, staged trials) and ``advobj
+    fabricate`` prints it, so outside an ``attack_region`` all of them show what the attack's
+    training renders saw there (the file's texture).
+
+    Only a mesh file with its own UVs and an ``attack_region`` keeps part of its texture; then the
+    result has the larger of the two resolutions (the attack's texture resampled bilinearly, as the
+    renderer samples it), and the optimised faces' UV triangles, grown by 2 texels against seams,
+    take the attack's texels. Any other mesh gets the attack's texture as it is.
+    """
+    from PIL import ImageFilter
+
+    opt = np.asarray(mesh.metadata.get("optimizable_faces", np.ones(len(mesh.faces), bool)), bool)
+    image = getattr(getattr(mesh.visual, "material", None), "image", None)
+    if mesh.metadata.get("uv_source") != "file" or opt.all() or image is None:
+        return texture_u8
+    own = np.asarray(image.convert("RGB"))
+    h, w = max(own.shape[0], texture_u8.shape[0]), max(own.shape[1], texture_u8.shape[1])
+    base = np.asarray(Image.fromarray(own).resize((w, h), Image.BILINEAR)) if own.shape[:2] != (h, w) else own
+    attack = np.asarray(Image.fromarray(texture_u8).resize((w, h), Image.BILINEAR))
+    region = Image.new("L", (w, h), 0)
+    draw = ImageDraw.Draw(region)
+    uv = np.asarray(mesh.visual.uv, float)[np.asarray(mesh.faces)[opt]]
+    for tri in uv:
+        draw.polygon([(u * w, (1.0 - v) * h) for u, v in tri], fill=255)
+    mask = np.asarray(region.filter(ImageFilter.MaxFilter(5))) > 0
+    return np.where(mask[..., None], attack, base).astype(np.uint8)
+
+
 def attack_region_faces(mesh: trimesh.Trimesh, region: str | os.PathLike, label: str = "mesh") -> np.ndarray:
     """(F,) bool: the faces whose UV centroid falls on a white (> 50 %) texel of image ``region``.
 

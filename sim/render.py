@@ -38,6 +38,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np
 import trimesh
 
+from sim.assets import region_texture
 from sim.geometry import make_T, so3_exp
 
 __all__ = [
@@ -482,14 +483,20 @@ class SceneRenderer:
         if image is None:
             image, color = obj.texture, obj.flat_color
         else:
-            image, color = np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3]), None
+            image, color = (
+                region_texture(obj.mesh, np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3])),
+                None,
+            )
         obj.color.mesh = textured_pyrender_mesh(obj.mesh, image, color)
 
     def add_variant(self, k: int, variant: str, image: np.ndarray | None, color=(1.0, 1.0, 1.0)) -> None:
         """Register an alternative look of object ``k`` selectable per render (e.g. white albedo)."""
         import pyrender
 
-        node = pyrender.Node(mesh=textured_pyrender_mesh(self._objects[k].mesh, image, color), matrix=np.eye(4))
+        mesh = self._objects[k].mesh
+        if image is not None:
+            image = region_texture(mesh, np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3]))
+        node = pyrender.Node(mesh=textured_pyrender_mesh(mesh, image, color), matrix=np.eye(4))
         self.scene.add_node(node)
         self._objects[k].variants[variant] = node
 

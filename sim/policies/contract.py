@@ -7,8 +7,9 @@ everywhere. It travels in the policy card (checkpoint ``policy.json`` or ONNX me
 **State input** (optional, in ``state`` order, concatenated into one ``(B, D)`` float32 vector):
 
 * ``tcp_pose``: 6 values, the TCP position ``[x, y, z]`` (m) and orientation as an axis-angle
-  vector ``[rx, ry, rz]`` (rad), both in the arm's base frame (the sim's world frame is the base
-  frame of its floating gripper);
+  vector ``[rx, ry, rz]`` (rad), in the task's frame: the table frame (z up, origin on the table
+  top), which is the sim's world frame. On the real cell the runner converts the arm's base-frame
+  pose with the calibrated ``T_base_table``;
 * ``gripper``: 1 value, the finger opening (m). A reach task never closes the gripper, so the
   sim and the real cell both report the scene's ``gripper.opening_m``.
 
@@ -18,10 +19,11 @@ executed, one per control step, before the policy is asked again. Each action is
 
 * ``delta_tcp``: a normalised motion in the current TCP frame, ``[-1, 1]^6`` scaled by the
   card's ``max_step_m`` / ``max_step_rad`` (:mod:`sim.action`);
-* ``absolute_tcp``: a target pose ``[x, y, z (m), rx, ry, rz (rad)]`` in the base frame. One
-  step moves toward it by at most the scene's step limits: the motion is the ``delta_tcp`` that
-  reaches the target, scaled down as a whole (direction kept) until every component is within
-  ``[-1, 1]``. The real cell sends the target itself; the safety layer clips the step.
+* ``absolute_tcp``: a target pose ``[x, y, z (m), rx, ry, rz (rad)]`` in the same table frame.
+  One step moves toward it by at most the scene's step limits: the motion is the ``delta_tcp``
+  that reaches the target, scaled down as a whole (direction kept) until every component is within
+  ``[-1, 1]``. The real runner makes the same step from the measured TCP pose and sends it through
+  the safety layer, which stays the backstop.
 
 The attack's pose loss takes the intended next TCP position and heading of the first action of
 a chunk after this conversion, so it means the same thing for every action kind.
@@ -51,7 +53,6 @@ __all__ = [
     "decode_actions",
     "first_action",
     "to_delta",
-    "target_pose",
     "call_policy",
     "ActionQueue",
 ]
@@ -64,7 +65,7 @@ class ActionContract(StrictModel):
     kind: Literal["delta_tcp", "absolute_tcp"] = Field(
         "delta_tcp",
         description="delta_tcp: normalised TCP-frame motion in [-1, 1]^6; absolute_tcp: target pose [x, y, z (m), "
-        "rx, ry, rz (rad)] in the base frame",
+        "rx, ry, rz (rad)] in the table frame (the sim's world frame)",
     )
     chunk: int = Field(1, ge=1, le=128, description="K: actions the policy outputs per call")
     execute: int = Field(
@@ -189,15 +190,6 @@ def to_delta(T_base_tcp, actions, kind: str, max_step_m: float, max_step_rad: fl
         return a / scale
     a = np.concatenate([dp, drot], -1)
     return a / np.maximum(np.abs(a).max(-1, keepdims=True), 1.0)
-
-
-def target_pose(action) -> np.ndarray:
-    """``T_base_target (4, 4)`` of one ``absolute_tcp`` action ``[x, y, z, rx, ry, rz]``."""
-    a = np.asarray(action, dtype=np.float64).reshape(6)
-    T = np.eye(4)
-    T[:3, :3] = so3_exp(a[3:])
-    T[:3, 3] = a[:3]
-    return T
 
 
 def call_policy(policy, images, state):

@@ -33,6 +33,13 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
 
     if opset < 17:
         raise PolicyError(f"opset: need >= 17, got {opset}")
+    from sim.policies.contract import policy_contract
+
+    if card is None and not policy_contract(policy).is_default:
+        # without the card the file could not say what its state input or its chunks mean
+        raise PolicyError(
+            f"card: a policy with the contract ({policy_contract(policy).describe()}) needs its card in the file"
+        )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     s = policy.image_size

@@ -163,3 +163,47 @@ def test_only_the_attack_region_of_a_user_mesh_reaches_the_texture(tmp_path):
         assert True in seen  # some views show the duck outside the region too
     finally:
         r.close()
+
+
+def test_every_rendered_look_of_a_region_attacked_mesh_keeps_the_files_texture_outside_the_region(tmp_path):
+    """Evaluation, validation and staged trials put the attack texture on the mesh through the
+    renderer; outside the region it must show the file's texture, as the attack's training saw."""
+    from PIL import Image
+
+    data = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "meshes" / "pybullet-duck" / "duck.obj"
+    a = np.zeros((64, 64), np.uint8)
+    a[:, :32] = 255
+    Image.fromarray(a).save(tmp_path / "left.png")
+    spec = default_scene()
+    objs = [
+        {**o.with_mesh(str(data)), "up_axis": "y", "scale": 0.05, "attack_region": str(tmp_path / "left.png")}
+        if o.role == "adversarial"
+        else o.model_dump()
+        for o in spec.objects
+    ]
+    spec = spec.with_updates(objects=objs)
+    r = SceneRenderer(spec, 128, 128)
+    try:
+        adv = r.face_coded
+        w = SimWorld(spec, image_size=128, seed=0, renderer=r)
+        c = w.object_center_array[adv]
+        blue = np.zeros((16, 16, 3), np.uint8)
+        blue[..., 2] = 255
+        r.add_variant(adv, "attack", blue)
+        counts = []
+        for phi in (0.0, 1.5, 3.0, 4.5):
+            T = look_at(c + 0.3 * np.array([np.sin(phi), np.cos(phi), 0.4]), c)
+            looks = [r.render(T, with_ids=True, variants={adv: "attack"})]  # evaluation's variant
+            r.set_object_texture(adv, blue)  # validation's and staging's re-texture
+            looks.append(r.render(T, with_ids=True))
+            r.set_object_texture(adv, None)
+            for out in looks:
+                px = out.rgb[out.object_mask(adv)].astype(int)
+                counts.append(((px[:, 2] > px[:, 0] + 30).sum(), (px[:, 0] > px[:, 2] + 30).sum()))
+        seen = [k for k in counts if sum(k) > 0]
+        assert seen
+        # the region shows the attack's blue, the rest the duck's own yellow, in both looks
+        assert any(b > 0 for b, _ in seen[0::2]) and any(y > 0 for _, y in seen[0::2])
+        assert any(b > 0 for b, _ in seen[1::2]) and any(y > 0 for _, y in seen[1::2])
+    finally:
+        r.close()

@@ -176,9 +176,20 @@ def test_every_contract_rolls_out_in_the_env_asking_the_policy_once_per_executed
 
 
 def test_an_onnx_graph_with_a_state_input_but_no_card_is_refused_naming_the_fix(tmp_path):
+    import onnx
+
+    from sim.policies.onnx_policy import CARD_METADATA_KEY
+
     c = contract_of(("tcp_pose",), ("delta_tcp", 1, 1))
     p = tiny_policy(c)
-    path = export_onnx(p, tmp_path / "p.onnx")  # no card
+    path = export_onnx(p, tmp_path / "p.onnx", card_of(p))
+    model = onnx.load(str(path))  # as a file exported by other code would be: no card
+    keep = [(e.key, e.value) for e in model.metadata_props if e.key != CARD_METADATA_KEY]
+    del model.metadata_props[:]
+    for k, v in keep:
+        e = model.metadata_props.add()
+        e.key, e.value = k, v
+    onnx.save(model, str(path))
     with pytest.raises(PolicyError, match="no card says what it holds.*attach_card"):
         OnnxPolicy(path)
     attach_card(path, card_of(p))
@@ -214,3 +225,24 @@ def test_a_checkpoint_card_whose_contract_does_not_fit_its_network_is_refused(tm
     (tmp_path / "policy.json").write_text(json.dumps(doc))
     with pytest.raises(PolicyError, match="arch.state_dim is 6 but the contract's state"):
         load_checkpoint(tmp_path)
+
+
+def test_the_step_toward_an_absolute_target_is_the_same_in_any_frame_the_pose_and_target_share():
+    """The real runner converts the arm's base-frame pose to the table frame the policy speaks; the
+    TCP-frame motion toward a target is the same as toward that target mapped to the base frame."""
+    T_base_table = _pose([0.4, -0.2, 0.05], [0.0, 0.0, 1.2])
+    T_table_tcp = _pose([0.05, 0.1, 0.3], [3.0, 0.2, 0.0])
+    target_table = np.array([0.3, 0.0, 0.1, 2.8, 0.1, 0.3])
+    T_base_target = T_base_table @ _pose(target_table[:3], target_table[3:])
+    from sim.geometry import so3_log
+
+    target_base = np.concatenate([T_base_target[:3, 3], so3_log(T_base_target[:3, :3])])
+    a_table = to_delta(T_table_tcp[None], target_table[None], "absolute_tcp", STEP_M, STEP_RAD)
+    a_base = to_delta((T_base_table @ T_table_tcp)[None], target_base[None], "absolute_tcp", STEP_M, STEP_RAD)
+    np.testing.assert_allclose(a_table, a_base, atol=1e-9)
+
+
+def test_export_without_a_card_is_refused_for_a_contract_the_file_could_not_state(tmp_path):
+    p = tiny_policy(contract_of((), ("delta_tcp", 4, 2)))
+    with pytest.raises(PolicyError, match="needs its card in the file"):
+        export_onnx(p, tmp_path / "p.onnx")

@@ -107,34 +107,6 @@ def optimised_texel_size_mm(mesh, width_px: int, height_px: int) -> dict | None:
     return {"median": q(0.5), "p10": q(0.1), "p90": q(0.9)}
 
 
-def print_texture(mesh, texture_u8: np.ndarray) -> np.ndarray:
-    """The texture to print on ``mesh``: the attack's ``(h, w, 3)`` uint8 texture where the mesh's
-    optimised faces lie in UV space, the mesh file's own texture everywhere else.
-
-    Only a mesh file with its own UVs and an ``attack_region`` keeps part of its texture; then the
-    result has the larger of the two resolutions (the attack's texture resampled bilinearly, as the
-    renderer samples it), and the optimised faces' UV triangles, grown by 2 texels against seams,
-    take the attack's texels. Any other mesh gets the attack's texture as it is.
-    """
-    from PIL import Image, ImageDraw, ImageFilter
-
-    opt = np.asarray(mesh.metadata.get("optimizable_faces", np.ones(len(mesh.faces), bool)), bool)
-    image = getattr(getattr(mesh.visual, "material", None), "image", None)
-    if mesh.metadata.get("uv_source") != "file" or opt.all() or image is None:
-        return texture_u8
-    own = np.asarray(image.convert("RGB"))
-    h, w = max(own.shape[0], texture_u8.shape[0]), max(own.shape[1], texture_u8.shape[1])
-    base = np.asarray(Image.fromarray(own).resize((w, h), Image.BILINEAR)) if own.shape[:2] != (h, w) else own
-    attack = np.asarray(Image.fromarray(texture_u8).resize((w, h), Image.BILINEAR))
-    region = Image.new("L", (w, h), 0)
-    draw = ImageDraw.Draw(region)
-    uv = np.asarray(mesh.visual.uv, float)[np.asarray(mesh.faces)[opt]]
-    for tri in uv:
-        draw.polygon([(u * w, (1.0 - v) * h) for u, v in tri], fill=255)
-    mask = np.asarray(region.filter(ImageFilter.MaxFilter(5))) > 0
-    return np.where(mask[..., None], attack, base).astype(np.uint8)
-
-
 def load_run(run_dir) -> RunSource:
     """Read an ``advobj attack run`` directory (clear errors naming the missing/bad file)."""
     from attack.artifact import AttackArtifact
@@ -1139,7 +1111,9 @@ def fabricate(
         "tweak": asdict(tweak) if tweak != LayoutTweak() else None,
     }
     write_run_info(out, config, None)
-    printed = print_texture(mesh, src.texture)
+    from sim.assets import region_texture
+
+    printed = region_texture(mesh, src.texture)
     if printed is not src.texture:
         n_opt = int(np.count_nonzero(mesh.metadata["optimizable_faces"]))
         log(

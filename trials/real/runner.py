@@ -489,7 +489,7 @@ class TrialRunner:
             decode_actions,
             policy_contract,
             state_vector,
-            target_pose,
+            to_delta,
         )
 
         contract = policy_contract(self.policy)
@@ -515,7 +515,8 @@ class TrialRunner:
             if queue.needs([0]):
                 # A new chunk from this frame; its later actions keep this frame as the one the
                 # policy saw (the safety layer's frame-age check is on it).
-                state = state_vector(contract, T_frame, self.gripper_m)
+                # Poses in the contract are in the task's frame: the table frame, the sim's world frame.
+                state = state_vector(contract, self.T_table_base @ T_frame, self.gripper_m)
                 raw = np.asarray(call_policy(self.policy, self._policy_image(frame.rgb)[None], state), dtype=np.float64)
                 queue.push([0], decode_actions(raw, contract, 1))
                 seen = frame
@@ -529,11 +530,17 @@ class TrialRunner:
                 )
                 events.append(EventRecord(self.clock() - t0, "policy", "error", stop_reason))
                 break
+            # The sim's own step toward the action (an absolute target: the limited motion toward it
+            # from the measured pose, direction kept); the safety layer stays the backstop.
+            delta = to_delta(
+                (self.T_table_base @ T_frame)[None],
+                action[None],
+                contract.action.kind,
+                float(self.action_scale[0]),
+                float(self.action_scale[3]),
+            )[0]
             try:
-                if contract.action.kind == "absolute_tcp":
-                    res = self.arm.step(target_pose(action), seen)
-                else:
-                    res = self.arm.step_delta(np.clip(action, -1.0, 1.0) * self.action_scale, seen)
+                res = self.arm.step_delta(delta * self.action_scale, seen)
             except SafetyStop as err:
                 stop_reason = f"safety_stop: {err}"
                 break

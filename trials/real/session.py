@@ -190,8 +190,8 @@ def prepare_session(
     ep = spec.episode
     action_scale = (ep.max_step_m,) * 3 + (ep.max_step_rad,) * 3
     hw = _safety_at_plan_rate(hw, plan, ep, log)
-    _check_chunk_frame_age(policy, plan, hw)
-    _check_policy_outputs(policy, spec, policy_path)
+    inference_s = _check_policy_outputs(policy, spec, policy_path)
+    _check_chunk_frame_age(policy, plan, hw, inference_s)
     if rate_limit is None:
         rate_limit = not (hw.arm.type == "sim" and not hw.arm.realtime)
     calibration_files = {
@@ -388,40 +388,50 @@ def camera_view_warnings(camera, policy, spec, hw) -> list[str]:
     ]
 
 
-def _check_policy_outputs(policy, spec, policy_path) -> None:
-    """Ask the policy once, on a grey frame from the start of a reach, before any device exists: an
-    output its contract cannot read (shape, a missing state input) fails the session here, in one
-    line, instead of in the middle of the first trial."""
+def _check_policy_outputs(policy, spec, policy_path) -> float:
+    """Ask the policy twice, on a grey frame from the start of a reach, before any device exists: an
+    output its contract cannot read (shape, a missing state input) or a runtime error of the model
+    fails the session here, in one line, instead of in the middle of the first trial. Returns the
+    second (warm) call's time in seconds, the inference latency a chunk's frame age includes."""
+    import time
+
     from sim.policies.contract import call_policy, decode_actions, policy_contract, state_vector
-    from sim.policies.interface import PolicyError
 
     c = policy_contract(policy)
     S = int(policy.image_size)
     T = np.eye(4)
     T[2, 3] = 0.3
-    try:
-        raw = call_policy(
-            policy, np.full((1, S, S, 3), 128, np.uint8), state_vector(c, T[None], spec.gripper.opening_m)
-        )
-        decode_actions(np.asarray(raw, dtype=np.float64), c, 1)
-    except PolicyError as err:
-        raise SessionSetupError(f"{policy_path}: {err}") from None
+    image, state = np.full((1, S, S, 3), 128, np.uint8), state_vector(c, T[None], spec.gripper.opening_m)
+    elapsed = 0.0
+    for _ in range(2):
+        t0 = time.perf_counter()
+        try:
+            raw = call_policy(policy, image, state)
+            decode_actions(np.asarray(raw, dtype=np.float64), c, 1)
+        except Exception as err:  # any model: onnxruntime and torch raise their own types
+            raise SessionSetupError(
+                f"{policy_path}: the policy fails on a test frame: {' '.join(str(err).split())}"
+            ) from None
+        elapsed = time.perf_counter() - t0
+    return elapsed
 
 
-def _check_chunk_frame_age(policy, plan, hw) -> None:
+def _check_chunk_frame_age(policy, plan, hw, inference_s: float = 0.0) -> None:
     """Refuse a policy whose chunks outlive the safety layer's frame-age limit: the k-th action of
-    a chunk is sent (k - 1) control periods after the frame it was computed from."""
+    a chunk is sent (k - 1) control periods, plus the policy's inference time, after the frame it
+    was computed from."""
     from sim.policies.contract import policy_contract
 
     c = policy_contract(policy)
     k = c.action.execute
-    age_ms = (k - 1) * 1000.0 / float(plan.control_hz)
+    age_ms = (k - 1) * 1000.0 / float(plan.control_hz) + 1000.0 * float(inference_s)
     limit = float(hw.safety.max_frame_age_ms)
     if k > 1 and age_ms >= limit:
         raise SessionSetupError(
             f"safety.max_frame_age_ms: the policy executes {k} actions per frame at {plan.control_hz:g} Hz, so its "
-            f"last action is sent {age_ms:.0f} ms after its frame, beyond the {limit:.0f} ms limit; raise "
-            f"max_frame_age_ms above {age_ms:.0f} ms in the hardware config or export the policy with a smaller execute"
+            f"last action is sent {age_ms:.0f} ms after its frame (inference {1000 * inference_s:.0f} ms included), "
+            f"beyond the {limit:.0f} ms limit; raise max_frame_age_ms above {age_ms:.0f} ms in the hardware config or "
+            "export the policy with a smaller execute"
         )
 
 

@@ -323,8 +323,8 @@ def test_a_user_mesh_keeps_its_own_texture_outside_the_attack_region_in_print(tm
 
     import sim.assets as A
     from attack.artifact import AttackArtifact
+    from sim.assets import region_texture as print_texture
     from sim.spec import default_scene
-    from trials.fabrication.fabricate import print_texture
 
     duck = Path(__file__).resolve().parents[3] / "tests" / "data" / "meshes" / "pybullet-duck" / "duck.obj"
     a = np.zeros((64, 64), np.uint8)
