@@ -129,23 +129,27 @@ def test_the_batched_render_equals_frame_by_frame_pixels_and_gradients_to_float_
         render_adversarial_batch([], tex)
 
 
-def test_only_the_attack_region_of_a_user_mesh_reaches_the_texture(tmp_path):
-    """A region image on the duck's own UVs: fragments (the only path to the texture's gradient)
-    come from its faces alone, while the rest of the duck keeps rendering in its own texture."""
+def _duck_with_left_half_region(tmp_path):
+    """The default scene with pybullet's textured duck as the adversarial object, attacked on the
+    left half of its own UV layout only."""
+    from pathlib import Path
+
     from PIL import Image
 
-    data = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "meshes" / "pybullet-duck" / "duck.obj"
+    duck = Path(__file__).resolve().parents[1] / "data" / "meshes" / "pybullet-duck" / "duck.obj"
     a = np.zeros((64, 64), np.uint8)
     a[:, :32] = 255
     Image.fromarray(a).save(tmp_path / "left.png")
     spec = default_scene()
-    objs = [
-        {**o.with_mesh(str(data)), "up_axis": "y", "scale": 0.05, "attack_region": str(tmp_path / "left.png")}
-        if o.role == "adversarial"
-        else o.model_dump()
-        for o in spec.objects
-    ]
-    spec = spec.with_updates(objects=objs)
+    region = {"up_axis": "y", "scale": 0.05, "attack_region": str(tmp_path / "left.png")}
+    objs = [{**o.with_mesh(str(duck)), **region} if o.role == "adversarial" else o.model_dump() for o in spec.objects]
+    return spec.with_updates(objects=objs)
+
+
+def test_only_the_attack_region_of_a_user_mesh_reaches_the_texture(tmp_path):
+    """A region image on the duck's own UVs: fragments (the only path to the texture's gradient)
+    come from its faces alone, while the rest of the duck keeps rendering in its own texture."""
+    spec = _duck_with_left_half_region(tmp_path)
     r = SceneRenderer(spec, 128, 128)
     try:
         hr = HybridRenderer(r)
@@ -168,20 +172,7 @@ def test_only_the_attack_region_of_a_user_mesh_reaches_the_texture(tmp_path):
 def test_every_rendered_look_of_a_region_attacked_mesh_keeps_the_files_texture_outside_the_region(tmp_path):
     """Evaluation, validation and staged trials put the attack texture on the mesh through the
     renderer; outside the region it must show the file's texture, as the attack's training saw."""
-    from PIL import Image
-
-    data = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "meshes" / "pybullet-duck" / "duck.obj"
-    a = np.zeros((64, 64), np.uint8)
-    a[:, :32] = 255
-    Image.fromarray(a).save(tmp_path / "left.png")
-    spec = default_scene()
-    objs = [
-        {**o.with_mesh(str(data)), "up_axis": "y", "scale": 0.05, "attack_region": str(tmp_path / "left.png")}
-        if o.role == "adversarial"
-        else o.model_dump()
-        for o in spec.objects
-    ]
-    spec = spec.with_updates(objects=objs)
+    spec = _duck_with_left_half_region(tmp_path)
     r = SceneRenderer(spec, 128, 128)
     try:
         adv = r.face_coded
