@@ -16,11 +16,30 @@ import numpy as np
 from sim.errors import AdvobjError
 from sim.geometry import _is_torch, so3_exp
 
-__all__ = ["ActionError", "check_actions", "next_tcp_pose", "intended_position", "intended_heading"]
+__all__ = [
+    "ActionError",
+    "POLICY_ERROR",
+    "nonfinite_rows",
+    "check_actions",
+    "next_tcp_pose",
+    "intended_position",
+    "intended_heading",
+]
 
 
 class ActionError(AdvobjError, ValueError):
     """Actions that are not finite or have the wrong shape."""
+
+
+# The one rule, in the sim and on the real arm: a policy output with any NaN or +-inf is a policy
+# error. The episode (or trial) ends there with this outcome; nothing is clipped into a motion.
+POLICY_ERROR = "policy_error"
+
+
+def nonfinite_rows(actions) -> np.ndarray:
+    """``(B,)`` bool: the rows of ``actions: (B, ...)`` holding any NaN or +-inf (a policy error)."""
+    a = np.asarray(actions, dtype=np.float64)
+    return ~np.isfinite(a.reshape(len(a), -1)).all(axis=1)
 
 
 def check_actions(actions: np.ndarray, num_envs: int) -> np.ndarray:

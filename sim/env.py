@@ -97,6 +97,7 @@ class ReachEnv:
         self._masks: list = [None] * self.num_envs
         self.steps = np.zeros(self.num_envs, np.int64)
         self.done = np.zeros(self.num_envs, bool)
+        self.policy_error = np.zeros(self.num_envs, bool)  # ended by a non-finite action (sim.action.POLICY_ERROR)
         self.reached = np.full(self.num_envs, NONE, np.int64)
         self.min_dist = np.full((self.num_envs, len(spec.objects)), np.inf)
 
@@ -137,6 +138,7 @@ class ReachEnv:
             "success": self.reached == self.goal_index,
             "step": self.steps.copy(),
             "done": self.done.copy(),
+            "policy_error": self.policy_error.copy(),
             "seeds": np.array([w.config.seed for w in self.worlds]),
         }
         if self.render_masks:
@@ -169,6 +171,7 @@ class ReachEnv:
                 w.reset(seed=None if seeds is None else seeds[j])
             self.steps[i] = 0
             self.done[i] = False
+            self.policy_error[i] = False
             self.reached[i] = NONE
             self.min_dist[i] = object_distances(w.T_world_tcp[None, :3, 3], w.object_center_array[None])[0]
             self._render(i)
@@ -208,6 +211,17 @@ class ReachEnv:
         for i in np.flatnonzero(active):
             self._render(i)
         return self._obs.copy(), reward, terminated, truncated, self._info()
+
+    def end_with_policy_error(self, indices) -> None:
+        """End the episodes in ``indices`` where they stand: their policy gave a non-finite action.
+
+        The one rule shared with the real runner (:data:`sim.action.POLICY_ERROR`): such an action is
+        never executed, clipped or replaced; the episode ends with no object reached.
+        """
+        idx = np.asarray(list(indices), dtype=np.int64)
+        self.done[idx] = True
+        self.reached[idx] = NONE
+        self.policy_error[idx] = True
 
     def expert_actions(self) -> np.ndarray:
         """(N, 6) privileged expert actions for the current states."""

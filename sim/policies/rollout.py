@@ -12,6 +12,7 @@ from typing import Callable, Literal
 import numpy as np
 from pydantic import Field
 
+from sim.action import nonfinite_rows
 from sim.configio import StrictModel
 from sim.stats import Proportion, proportion
 
@@ -73,6 +74,11 @@ class EpisodeResults:
     steps: np.ndarray  # (n,) int steps taken
     min_goal_dist: np.ndarray  # (n,) m closest approach to the goal centre
     configs: list = field(default_factory=list)  # (n,) sim.configs.InitialConfig
+    policy_error: np.ndarray | None = None  # (n,) bool ended by a non-finite action; None = all False
+
+    def __post_init__(self):
+        if self.policy_error is None:
+            self.policy_error = np.zeros(len(self.seeds), bool)
 
     @property
     def success_rate(self) -> Proportion:
@@ -83,6 +89,7 @@ class EpisodeResults:
             "success": self.success_rate.to_dict(),
             "mean_steps": float(self.steps.mean()) if len(self.steps) else None,
             "mean_min_goal_dist_m": float(self.min_goal_dist.mean()) if len(self.steps) else None,
+            "policy_errors": int(self.policy_error.sum()),
         }
         if object_names is not None:
             counts = {name: int((self.reached == k).sum()) for k, name in enumerate(object_names)}
@@ -109,7 +116,8 @@ def rollout(
         starts: initial configurations (:class:`sim.configs.InitialConfig`) or seeds, one episode each.
         policy: what acts; its contract says what it reads and what its output means.
         on_done: ``on_done(j, slot, result)`` as episode ``j`` (index into ``starts``) ends, with
-            ``result``: ``reached`` (object index, -1 none), ``steps``, ``min_dist (K,)`` m,
+            ``result``: ``reached`` (object index, -1 none), ``policy_error`` (the policy output a
+            non-finite action, which is never executed: the episode ended there), ``steps``, ``min_dist (K,)`` m,
             ``T_world_tcp (4, 4)`` final pose, ``config``.
         query: ``query(slots, state) -> raw outputs (len(slots), ...)`` for the slots that need a
             new chunk, ``state`` their ``(len(slots), D)`` state or None; default: the policy on
@@ -159,11 +167,18 @@ def rollout(
             if need:
                 raw = query(need, state_vector(contract, env.T_world_tcp[need], gripper_m))
                 queue.push(need, decode_actions(np.asarray(raw, dtype=np.float64), contract, len(need)))
-            actions = np.zeros((N, 6))
-            actions[active] = to_delta(
-                env.T_world_tcp[active], queue.pop(active), contract.action.kind, env.max_step_m, env.max_step_rad
-            )
-            env.step(actions)
+            chosen = queue.pop(active)
+            bad = nonfinite_rows(chosen)
+            if bad.any():  # a policy error (sim.action.POLICY_ERROR), as on the real arm: never executed
+                env.end_with_policy_error([active[k] for k in np.flatnonzero(bad)])
+                active = [i for k, i in enumerate(active) if not bad[k]]
+                chosen = chosen[~bad]
+            if active:
+                actions = np.zeros((N, 6))
+                actions[active] = to_delta(
+                    env.T_world_tcp[active], chosen, contract.action.kind, env.max_step_m, env.max_step_rad
+                )
+                env.step(actions)
         for i in range(N):
             if slot[i] >= 0 and env.done[i]:
                 j = slot[i]
@@ -172,6 +187,7 @@ def rollout(
                     i,
                     {
                         "reached": int(env.reached[i]),
+                        "policy_error": bool(env.policy_error[i]),
                         "steps": int(env.steps[i]),
                         "min_dist": env.min_dist[i].copy(),
                         "T_world_tcp": env.worlds[i].T_world_tcp.copy(),
@@ -200,6 +216,7 @@ def run_episodes(env, policy, seeds, progress=None) -> EpisodeResults:
     reached = np.full(n, -1, np.int64)
     steps = np.zeros(n, np.int64)
     min_goal = np.zeros(n)
+    perr = np.zeros(n, bool)
     configs = [None] * n
     goal = env.goal_index
 
@@ -207,13 +224,14 @@ def run_episodes(env, policy, seeds, progress=None) -> EpisodeResults:
         reached[j] = res["reached"]
         success[j] = res["reached"] == goal
         steps[j] = res["steps"]
+        perr[j] = res["policy_error"]
         min_goal[j] = res["min_dist"][goal]
         configs[j] = res["config"]
         if progress is not None:
             progress(1)
 
     rollout(env, seeds, policy, done)
-    return EpisodeResults(np.asarray(seeds, np.int64), success, reached, steps, min_goal, configs)
+    return EpisodeResults(np.asarray(seeds, np.int64), success, reached, steps, min_goal, configs, perr)
 
 
 def evaluate_policy(

@@ -128,8 +128,8 @@ def evaluate(
                 **summary,
                 "seeds": [seed, seed + episodes - 1],
                 "episodes": [
-                    {"seed": int(s), "success": bool(ok), "reached": int(r), "steps": int(n)}
-                    for s, ok, r, n in zip(res.seeds, res.success, res.reached, res.steps)
+                    {"seed": int(s), "success": bool(ok), "reached": int(r), "steps": int(n), "policy_error": bool(e)}
+                    for s, ok, r, n, e in zip(res.seeds, res.success, res.reached, res.steps, res.policy_error)
                 ],
             },
             indent=1,
@@ -139,6 +139,11 @@ def evaluate(
         out / "feasible_pool.json", spec, res, meta={"policy": str(policy), "seed": seed, "env": env_cfg.model_dump()}
     )
     typer.echo(f"clean success: {res.success_rate}")
+    if res.policy_error.any():
+        typer.echo(
+            f"policy errors: {int(res.policy_error.sum())} of {len(res.seeds)} episodes ended on a non-finite "
+            "action (never executed; counted as failures)"
+        )
     typer.echo(f"task-feasible pool: {int(res.success.sum())} configurations -> {pool}")
 
 

@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 from pydantic import Field, ValidationError
 
+from sim.action import POLICY_ERROR
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
 
@@ -208,6 +209,7 @@ def rollout_condition(
                 j,
                 {
                     "reached": res["reached"],
+                    "policy_error": res["policy_error"],
                     "steps": res["steps"],
                     "min_dist": res["min_dist"],
                     "e_trans": float(err[i, 0] / n) if n else float("nan"),
@@ -360,7 +362,9 @@ def _row(cond_name: str, config, res: dict, spec) -> dict:
     goal, adv = spec.object_index("goal"), spec.object_index("adversarial")
     reached = res["reached"]
     outcome = (
-        "none"
+        POLICY_ERROR  # a non-finite action ended the episode (the real runner's rule too)
+        if res.get("policy_error")
+        else "none"
         if reached < 0
         else ("goal" if reached == goal else ("adversarial" if reached == adv else spec.objects[reached].name))
     )
