@@ -14,7 +14,21 @@ import numpy as np
 
 from sim.errors import AdvobjError
 
-__all__ = ["Policy", "PolicyError", "WhiteBoxRequired", "prepare_images", "require_white_box"]
+__all__ = [
+    "IMAGE_SIZE_MIN_PX",
+    "IMAGE_SIZE_MAX_PX",
+    "Policy",
+    "PolicyError",
+    "WhiteBoxRequired",
+    "prepare_images",
+    "require_white_box",
+]
+
+
+# The square input sizes a policy may take (px): the one range for the built-in network's arch, the
+# env's render size and a loaded file's input (checked before anything renders at that size).
+IMAGE_SIZE_MIN_PX = 32
+IMAGE_SIZE_MAX_PX = 512
 
 
 class PolicyError(AdvobjError, ValueError):

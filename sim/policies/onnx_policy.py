@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.policies.interface import PolicyError, prepare_images
+from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError, prepare_images
 
 __all__ = ["export_onnx", "attach_card", "OnnxPolicy", "CARD_METADATA_KEY", "DEFAULT_OPSET"]
 
@@ -134,6 +134,11 @@ class OnnxPolicy:
         self.input_name, self.output_name = inputs[0].name, outputs[0].name
         self.state_name = inputs[1].name if len(inputs) == 2 else None
         self.image_size = int(shape[2])
+        if not IMAGE_SIZE_MIN_PX <= self.image_size <= IMAGE_SIZE_MAX_PX:
+            raise PolicyError(
+                f"{self.path}: input {inputs[0].name!r} takes {self.image_size} px images; advobj renders "
+                f"{IMAGE_SIZE_MIN_PX}..{IMAGE_SIZE_MAX_PX} px"
+            )
         meta = self.session.get_modelmeta().custom_metadata_map
         self.card = None
         if CARD_METADATA_KEY in meta:

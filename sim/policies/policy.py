@@ -24,7 +24,7 @@ from torch import nn
 
 from sim.configio import StrictModel
 from sim.policies.backbones import BACKBONES, build_backbone
-from sim.policies.interface import PolicyError, prepare_images
+from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError, prepare_images
 
 __all__ = ["PolicyArch", "VisuomotorPolicy", "IMAGENET_MEAN", "IMAGENET_STD", "ACTION_DIM"]
 
@@ -39,7 +39,7 @@ class PolicyArch(StrictModel):
     """Everything needed to rebuild the network (stored in the policy card)."""
 
     arch: ArchName = "resnet18"
-    image_size: int = Field(64, ge=32, le=512, description="square input size, px")
+    image_size: int = Field(64, ge=IMAGE_SIZE_MIN_PX, le=IMAGE_SIZE_MAX_PX, description="square input size, px")
     small_stem: bool = True
     head_channels: int = Field(32, ge=1)
     head_hidden: int = Field(256, ge=1)

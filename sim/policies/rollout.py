@@ -14,6 +14,7 @@ from pydantic import Field
 
 from sim.action import nonfinite_rows
 from sim.configio import StrictModel
+from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX
 from sim.stats import Proportion, proportion
 
 __all__ = [
@@ -31,7 +32,7 @@ __all__ = [
 class EnvConfig(StrictModel):
     """How the training/evaluation env renders: image size and appearance randomisation."""
 
-    image_size: int = Field(64, ge=32, le=512)
+    image_size: int = Field(64, ge=IMAGE_SIZE_MIN_PX, le=IMAGE_SIZE_MAX_PX)
     light: Literal["fixed", "bright", "dim", "random"] = "fixed"
     background: Literal["fixed", "varied", "mixed"] = "fixed"
     noise_std: float = Field(0.0, ge=0.0, le=0.5)
