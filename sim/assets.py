@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 import warnings
 from functools import lru_cache
 from pathlib import Path
@@ -274,6 +275,7 @@ def _cylinder(radius: float, z0: float, z1: float, xy, sections: int = 12):
 
 
 _ATLAS_MEMO: dict[str, tuple] = {}
+_NPY_HEADER_MAX = 4096  # bytes: an npy header of the arrays below is ~128
 
 
 def atlas_cache_dir() -> Path | None:
@@ -285,6 +287,142 @@ def atlas_cache_dir() -> Path | None:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "advobj" / "uv"
 
 
+def _read_regular(path, cap: int, label: str, follow: bool = True) -> bytes:
+    """The bytes of regular file ``path``, refused (:class:`AssetError` naming ``label``) when it is
+    not a regular file (a FIFO or device is never waited on) or holds more than ``cap`` bytes;
+    ``follow=False`` also refuses a symlink. Memory stays within ``cap``."""
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | (0 if follow else os.O_NOFOLLOW)
+    try:
+        fd = os.open(path, flags)
+    except OSError as err:
+        raise AssetError(f"{label}: cannot read ({err.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise AssetError(f"{label}: not a regular file")
+        if st.st_size > cap:
+            raise AssetError(f"{label}: {st.st_size:,} bytes, more than the {cap:,} advobj reads")
+        chunks, left = [], cap + 1
+        while left > 0:
+            chunk = os.read(fd, min(left, 1 << 24))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            left -= len(chunk)
+        if left <= 0:
+            raise AssetError(f"{label}: more than the {cap:,} bytes advobj reads")
+        return b"".join(chunks)
+    except OSError as err:
+        raise AssetError(f"{label}: cannot read ({err.strerror})") from None
+    finally:
+        os.close(fd)
+
+
+def _atlas_entry_limits(n_faces: int) -> dict[str, tuple[np.dtype, int]]:
+    """Member -> (dtype, largest element count) of an atlas cache entry for ``n_faces`` faces:
+    xatlas splits vertices along seams, at most one per face corner."""
+    corners = 3 * n_faces
+    return {
+        "key": (np.dtype(np.uint8), 64),
+        "vmap": (np.dtype(np.int64), corners),
+        "idx": (np.dtype(np.int64), corners),
+        "uv": (np.dtype(np.float64), 2 * corners),
+    }
+
+
+def _read_atlas_entry(entry: Path, key: str, n_vertices: int, n_faces: int):
+    """``(vmap, idx, uv)`` from cache file ``entry`` when it is a regular file (never a symlink)
+    holding the atlas of ``key`` for a mesh of ``n_vertices`` and ``n_faces``; None otherwise.
+
+    Reading is bounded: the file size, each member's declared size and its npy header's shape are
+    checked against what this mesh's atlas can take before anything is decompressed, and no more
+    than that is ever inflated.
+    """
+    import io
+    import zipfile
+
+    limits = _atlas_entry_limits(n_faces)
+    cap = sum(d.itemsize * n + _NPY_HEADER_MAX + 512 for d, n in limits.values()) + 4096
+    try:
+        data = _read_regular(entry, cap, str(entry), follow=False)
+    except AssetError:
+        return None
+    arrays = {}
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as z:
+            infos = {i.filename: i for i in z.infolist()}
+            if sorted(infos) != sorted(f"{m}.npy" for m in limits):
+                return None
+            for member, (dtype, most) in limits.items():
+                info = infos[f"{member}.npy"]
+                if info.file_size > dtype.itemsize * most + _NPY_HEADER_MAX:
+                    return None
+                with z.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    if version == (1, 0):
+                        shape, fortran, got = np.lib.format.read_array_header_1_0(f, max_header_size=_NPY_HEADER_MAX)
+                    elif version == (2, 0):
+                        shape, fortran, got = np.lib.format.read_array_header_2_0(f, max_header_size=_NPY_HEADER_MAX)
+                    else:
+                        return None
+                    count = math.prod(shape)
+                    if got != dtype or fortran or count > most:
+                        return None
+                    raw = f.read(count * dtype.itemsize + 1)
+                if len(raw) != count * dtype.itemsize:
+                    return None
+                arrays[member] = np.frombuffer(raw, dtype).reshape(shape)
+    except Exception:  # noqa: BLE001 - a damaged zip (truncated, bad CRC, odd compression): a miss, rebuilt
+        return None
+    vmap, idx, uv = arrays["vmap"], arrays["idx"], arrays["uv"]
+    n = len(vmap)
+    ok = (
+        arrays["key"].tobytes() == key.encode()
+        and vmap.ndim == 1
+        and idx.shape == (n_faces, 3)
+        and uv.shape == (n, 2)
+        and (n == 0 or (vmap.min() >= 0 and vmap.max() < n_vertices))
+        and (idx.size == 0 or (idx.min() >= 0 and idx.max() < n))
+        and bool(np.all(np.isfinite(uv)))
+        and (uv.size == 0 or (uv.min() >= 0.0 and uv.max() <= 1.0))
+    )
+    return (vmap.copy(), idx.copy(), uv.copy()) if ok else None
+
+
+def _write_atlas_entry(folder: Path, key: str, hit) -> None:
+    """Store ``hit`` as ``folder/<key>.npz``: written to a fresh temporary file (O_EXCL, random
+    name) and renamed over the entry, so no planted link is ever written through."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{key}.", suffix=".tmp", dir=folder)
+    except OSError:
+        return  # a read-only cache only costs the rebuild next time
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, key=np.frombuffer(key.encode(), np.uint8), vmap=hit[0], idx=hit[1], uv=hit[2])
+        os.replace(tmp, folder / f"{key}.npz")
+    except OSError:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+
+
+def _atlas_key(v32: np.ndarray, f32: np.ndarray) -> str:
+    """The cache key of an atlas: sha256 (hex) of xatlas's version and the float32 vertices and
+    uint32 faces it sees."""
+    import hashlib
+    import importlib.metadata
+
+    try:
+        version = importlib.metadata.version("xatlas")
+    except importlib.metadata.PackageNotFoundError:
+        version = "?"
+    return hashlib.sha256(version.encode() + v32.tobytes() + b"|" + f32.tobytes()).hexdigest()
+
+
 def _atlas(vertices: np.ndarray, faces: np.ndarray):
     """xatlas charts + packing. Returns vertices (V', 3), faces (F, 3) (same order), uv (V', 2)
     and ``vmapping`` (V',) into the input vertices.
@@ -292,53 +430,36 @@ def _atlas(vertices: np.ndarray, faces: np.ndarray):
     An atlas costs seconds for a scan (10 s at 20k faces) and every command that builds the mesh
     needs it, so it is cached by the content it depends on (the sha256 of the float32 vertices and
     faces xatlas sees, and xatlas's version): in memory, and on disk in :func:`atlas_cache_dir`
-    as a plain ``.npz`` (arrays only, read without pickle; a damaged entry is rebuilt).
+    as a plain ``.npz`` (arrays only, read without pickle, :func:`_read_atlas_entry`). An entry that
+    is not a regular file, is damaged, or does not hold this mesh's atlas (its key, shapes, index
+    and UV ranges) is dropped and rebuilt.
     """
-    import hashlib
-    import importlib.metadata
-
     import xatlas
 
     v32, f32 = np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.uint32)
-    try:
-        version = importlib.metadata.version("xatlas")
-    except importlib.metadata.PackageNotFoundError:
-        version = "?"
-    key = hashlib.sha256(version.encode() + v32.tobytes() + b"|" + f32.tobytes()).hexdigest()
+    key = _atlas_key(v32, f32)
     hit = _ATLAS_MEMO.get(key)
     folder = atlas_cache_dir()
-    if hit is None and folder is not None and (folder / f"{key}.npz").is_file():
+    if hit is None and folder is not None:
+        entry = folder / f"{key}.npz"
         try:
-            with np.load(folder / f"{key}.npz", allow_pickle=False) as z:
-                hit = (z["vmap"].astype(np.int64), z["idx"].astype(np.int64), z["uv"].astype(np.float64))
-            vmap, idx, uv = hit
-            if not (
-                vmap.ndim == 1
-                and idx.ndim == 2
-                and idx.shape == f32.shape
-                and uv.shape == (len(vmap), 2)
-                and (len(vmap) == 0 or (vmap.min() >= 0 and vmap.max() < len(v32)))
-                and idx.min() >= 0
-                and idx.max() < len(vmap)
-            ):
-                raise ValueError("inconsistent atlas arrays")
-        except Exception:  # noqa: BLE001 - damaged (a truncated zip), foreign or inconsistent: drop it, rebuild below
-            hit = None
-            try:
-                (folder / f"{key}.npz").unlink()
-            except OSError:
-                pass
+            st = os.lstat(entry)
+        except OSError:
+            st = None  # no entry: a miss
+        if st is not None:
+            hit = _read_atlas_entry(entry, key, len(v32), len(f32))
+            if hit is None:
+                if not stat.S_ISREG(st.st_mode):
+                    warnings.warn(f"{entry}: UV atlas cache entry is not a regular file: replaced", stacklevel=2)
+                try:
+                    entry.unlink()  # a link itself, never its target
+                except OSError:
+                    pass
     if hit is None:
         vmap, idx, uv = xatlas.parametrize(v32, f32)
         hit = (np.asarray(vmap, np.int64), np.asarray(idx, np.int64), np.clip(np.asarray(uv, np.float64), 0.0, 1.0))
         if folder is not None:
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-                tmp = folder / f".{key}.{os.getpid()}.npz"
-                np.savez(tmp, vmap=hit[0], idx=hit[1], uv=hit[2])
-                os.replace(tmp, folder / f"{key}.npz")
-            except OSError:
-                pass  # a read-only cache only costs the rebuild next time
+            _write_atlas_entry(folder, key, hit)
     _ATLAS_MEMO[key] = hit
     vmap, idx, uv = hit
     return np.asarray(vertices, np.float64)[vmap], idx.copy(), uv.copy(), vmap.copy()
