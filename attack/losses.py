@@ -16,6 +16,8 @@ __all__ = [
     "grad_cam",
     "masked_mean",
     "saliency_loss",
+    "deviation_loss",
+    "goal_attention_loss",
     "untargeted_loss",
 ]
 
@@ -92,14 +94,25 @@ def saliency_loss(S: torch.Tensor, adv_mask: torch.Tensor, goal_mask: torch.Tens
     return -masked_mean(S, resize_mask(adv_mask, hw)) + masked_mean(S, resize_mask(goal_mask, hw))
 
 
+def deviation_loss(actions: torch.Tensor, actions_clean: torch.Tensor) -> torch.Tensor:
+    """``-||a - a_gt||^2`` per pair ``(B,)``: push the action away from the clean one (untargeted).
+
+    actions, actions_clean: (B, 6); the clean actions are constants (detached).
+    """
+    return -((actions - actions_clean.detach()) ** 2).sum(-1)
+
+
+def goal_attention_loss(S: torch.Tensor, goal_mask: torch.Tensor, lambda_sal: float) -> torch.Tensor:
+    """``lambda_sal * mean_{M_goal}(S)`` per image ``(B,)``: take attention off the goal (untargeted).
+
+    S: (B, h, w); goal_mask: (B, H, W) bool, resized to the feature grid here.
+    """
+    return lambda_sal * masked_mean(S, resize_mask(goal_mask, S.shape[-2:]))
+
+
 def untargeted_loss(
     actions: torch.Tensor, actions_clean: torch.Tensor, S: torch.Tensor, goal_mask: torch.Tensor, lambda_sal: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ablation's untargeted objective, split into its two terms ``(B,)`` each.
-
-    ``-||a - a_gt||^2`` (push the action away from the clean one) and
-    ``lambda_sal * mean_{M_goal}(S)`` (take attention off the goal).
-    """
-    dev = -((actions - actions_clean.detach()) ** 2).sum(-1)
-    sal = lambda_sal * masked_mean(S, resize_mask(goal_mask, S.shape[-2:]))
-    return dev, sal
+    """The ablation's untargeted objective, split into its two terms ``(B,)`` each:
+    :func:`deviation_loss` and :func:`goal_attention_loss`."""
+    return deviation_loss(actions, actions_clean), goal_attention_loss(S, goal_mask, lambda_sal)

@@ -6,8 +6,13 @@ Each iteration (paper Sec. III-B/C):
    Beta weights over camera distance;
 2. roll each out for ``rollout_steps`` steps, the policy acting on ``I_adv`` (hybrid render under
    the current texture); rollouts only provide viewpoints (no backprop through the dynamics);
-3. accumulate the gradients of the pose and saliency terms over all image-action pairs, combine
-   them with PCGrad (summed), and take ``T <- clip(T - lr * g / ||g||, 0, 1)``.
+3. accumulate the gradient of each objective term (:mod:`attack.objective`: the pose and saliency
+   terms) over all image-action pairs, combine them with PCGrad over the N terms (summed), and take
+   ``T <- clip(T - lr * g / ||g||, 0, 1)``.
+
+Steps 1-2 are the frame source's (:class:`attack.sources.SimRollouts`); step 3 is the objective's
+and :func:`attack_step`'s. :class:`AttackRun` holds the machinery (env, renderer, policy,
+objective, source); :class:`attack.state.AttackState` everything an iteration advances.
 
 A run is resumable bit-for-bit: a checkpoint holds the texture, the iteration (which fixes the
 schedule stage), the loss history and every RNG state.
@@ -31,6 +36,8 @@ import numpy as np
 import torch
 from pydantic import Field, ValidationError
 
+from attack.objective import build_objective
+from attack.sources import SimRollouts
 from attack.state import AttackState, better_score, read_best, swap_in
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
@@ -224,7 +231,6 @@ class AttackRun:
                     stacklevel=2,
                 )
             self.val_pool = val_pool[: cfg.validation_episodes]
-        self.pool_r = np.array([c.r_m for c in self.pool])
         randomization = Randomization(light="random") if cfg.light_randomization else None
         self.env = ReachEnv(
             spec,
@@ -236,20 +242,11 @@ class AttackRun:
         )
         self.hybrid = HybridRenderer(self.env.renderer)
         self.adv = self.hybrid.adv
+        self.objective = build_objective(cfg, spec.episode)
+        self.source = SimRollouts(self.env, self.hybrid, spec, self.pool, cfg, self.device)
         self.state = AttackState.start(initial_texture(cfg, self.env.renderer.object_mesh(self.adv)), cfg.seed)
         self.out_dir = None if out_dir is None else Path(out_dir)
         self._val_env = None
-
-    # The optimisation state, as attributes of the run (the loop, the outputs and tests read them).
-    texture = property(lambda self: self.state.texture, lambda self, v: setattr(self.state, "texture", v))
-    iteration = property(lambda self: self.state.iteration, lambda self, v: setattr(self.state, "iteration", v))
-    history = property(lambda self: self.state.history, lambda self, v: setattr(self.state, "history", v))
-    rng = property(lambda self: self.state.rng)
-    torch_gen = property(lambda self: self.state.torch_gen)
-    best = property(lambda self: self.state.best, lambda self, v: setattr(self.state, "best", v))
-    best_texture = property(
-        lambda self: self.state.best_texture, lambda self, v: setattr(self.state, "best_texture", v)
-    )
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> dict:
@@ -283,7 +280,7 @@ class AttackRun:
             n = max(d for d in range(1, min(8, len(configs)) + 1) if len(configs) % d == 0)
             self._val_env = ReachEnv(spec, num_envs=n, seed=self.cfg.seed, policy_image_size=self.image_size)
         env = self._val_env
-        env.renderer.set_object_texture(self.adv, texture_to_uint8(self.texture))
+        env.renderer.set_object_texture(self.adv, texture_to_uint8(self.state.texture))
         targeted = np.zeros(len(configs), bool)
         dist = np.zeros(len(configs))
 
@@ -309,7 +306,7 @@ class AttackRun:
         from attack.render import render_adversarial_batch
 
         cfg = self.cfg
-        if cfg.loss != "targeted" or not cfg.use_pose or not self.val_pool:
+        if not any(t.name == "pose" for t in self.objective.terms) or not self.val_pool:
             return float("nan")
         env, total, n = self.env, 0.0, 0
         with torch.no_grad():
@@ -317,7 +314,7 @@ class AttackRun:
                 chunk = self.val_pool[start : start + cfg.num_envs]
                 env.reset_envs(range(len(chunk)), configs=chunk)
                 caps = [self.hybrid.capture(env.worlds[i]) for i in range(len(chunk))]
-                imgs = render_adversarial_batch(caps, self.texture, cfg.sampler)
+                imgs = render_adversarial_batch(caps, self.state.texture, cfg.sampler)
                 T = torch.from_numpy(env.T_world_tcp[: len(chunk)]).to(self.device, torch.float32)
                 a = self.next_delta(self.call_policy(imgs, self.policy_state(T)), T)
                 p_adv = torch.from_numpy(env.object_centers[: len(chunk), self.adv]).to(self.device, torch.float32)
@@ -332,21 +329,21 @@ class AttackRun:
         """Validate, log it in the history and, if the score improved, write ``best/``; returns
         whether it improved."""
         res = self.validate()
-        h = self.history
+        h = self.state.history
         h.val_probe_pose.append(self.probe_pose_loss())
-        h.val_iteration.append(self.iteration)
+        h.val_iteration.append(self.state.iteration)
         h.val_t_asr.append(res["t_asr"])
         h.val_dist_m.append(res["dist_m"])
         h.val_seconds.append(res["seconds"])
-        if not better_score(res, self.best):
+        if not better_score(res, self.state.best):
             return False
-        self.best = {
-            "iteration": self.iteration,
+        self.state.best = {
+            "iteration": self.state.iteration,
             "t_asr": res["t_asr"],
             "dist_m": res["dist_m"],
             "episodes": res["episodes"],
         }
-        self.best_texture = self.texture.detach().clone()
+        self.state.best_texture = self.state.texture.detach().clone()
         if self.out_dir is not None:
             self._write_best()
         return True
@@ -354,9 +351,11 @@ class AttackRun:
     def _write_best(self) -> Path:
         tmp = self.out_dir / "best.tmp"
         tmp.mkdir(parents=True, exist_ok=True)
-        self._write_attack_source(tmp, self.best_texture, {"best_of": "held-out validation T-ASR", **self.best})
+        self._write_attack_source(
+            tmp, self.state.best_texture, {"best_of": "held-out validation T-ASR", **self.state.best}
+        )
         (tmp / "best.json").write_text(
-            json.dumps({**self.best, "score": "t_asr (higher), then dist_m (lower)"}, indent=2)
+            json.dumps({**self.state.best, "score": "t_asr (higher), then dist_m (lower)"}, indent=2)
         )
         return swap_in(tmp, self.out_dir / "best")
 
@@ -388,104 +387,69 @@ class AttackRun:
         return to_delta(T_world_tcp, first_action(out), self.contract.action.kind, ep.max_step_m, ep.max_step_rad)
 
     # ------------------------------------------------------------------ one iteration
-    def _color_transform(self):
+    def _color_transform(self, state: AttackState):
         if not self.cfg.print_aware:
             return None
-        g = 1.0 + (torch.rand(3, generator=self.torch_gen) - 0.5) * 0.3  # gain in [0.85, 1.15]
-        b = (torch.rand(3, generator=self.torch_gen) - 0.5) * 0.1  # bias in [-0.05, 0.05]
+        g = 1.0 + (torch.rand(3, generator=state.torch_gen) - 0.5) * 0.3  # gain in [0.85, 1.15]
+        b = (torch.rand(3, generator=state.torch_gen) - 0.5) * 0.1  # bias in [-0.05, 0.05]
         return g.to(self.device), b.to(self.device)
 
-    def _losses(self, imgs, caps, T_world_tcp, p_adv, imgs_clean):
-        """Pose-like and saliency-like scalar terms (sums over the batch) for one rollout step."""
-        from attack.losses import grad_cam, pose_loss, saliency_loss, untargeted_loss
+    def frame_gradients(self, state: AttackState, frames) -> dict:
+        """Each objective term's texture gradient over one batch of frames (:class:`attack.sources.Frames`).
 
-        cfg = self.cfg
-        state = self.policy_state(T_world_tcp)
-        A = self.policy.features(imgs)
-        out = self.policy.head(A, state) if state is not None else self.policy.head(A)
-        a = self.next_delta(out, T_world_tcp)  # the action executed next, as a delta_tcp motion
-        zero = imgs.sum() * 0.0
-        need_cam = cfg.use_saliency and cfg.lambda_sal > 0
-        # Grad-CAM of the motion executed next (the pose loss's action), whatever the action kind
-        S = grad_cam(A, a) if need_cam else None
-        adv_m = torch.from_numpy(np.stack([c.adv_mask for c in caps])).to(self.device)
-        goal_m = torch.from_numpy(np.stack([c.goal_mask for c in caps])).to(self.device)
-        parts = {}
-        if cfg.loss == "targeted":
-            if cfg.use_pose:
-                lp, parts = pose_loss(
-                    T_world_tcp, a, p_adv, self.spec.episode.max_step_m, self.spec.episode.max_step_rad, cfg.lambda_dist
-                )
-                l1 = lp.sum()
-            else:
-                l1 = zero
-            l2 = cfg.lambda_sal * saliency_loss(S, adv_m, goal_m).sum() if need_cam else zero
-        else:
-            with torch.no_grad():
-                a_clean = self.next_delta(self.call_policy(imgs_clean, state), T_world_tcp)
-            dev, sal = untargeted_loss(
-                a,
-                a_clean,
-                S if S is not None else torch.zeros_like(A[:, 0]),
-                goal_m,
-                cfg.lambda_sal if need_cam else 0.0,
-            )
-            l1, l2 = dev.sum(), sal.sum()
-        return l1, l2, a.detach(), parts
-
-    def pair_gradients(self, caps, T_world_tcp: torch.Tensor, p_adv: torch.Tensor) -> dict:
-        """Texture gradients of the two objectives over one batch of image-action pairs.
-
-        caps: B :class:`attack.render.Capture`; T_world_tcp: (B, 4, 4); p_adv: (B, 3) m.
-        Returns ``g_pose``, ``g_sal`` (each (3, S, S), sums over the batch; zeros where a term
-        has no path to the texture, e.g. the object is not visible in any image), the scalar
-        terms ``pose`` and ``sal``, the loss ``parts``, ``actions (B, 6)`` (detached) and the
-        rendered ``images (B, 3, H, W)`` (detached).
+        Returns ``grads`` (term name -> ``(3, S, S)``, the sum over the batch; zeros where a term
+        has no path to the texture, e.g. the object is not visible in any image), ``values`` (term
+        name -> its scalar, and ``<term>.<part>`` -> the sum of each logged part), ``actions
+        (B, 6)`` (detached) and the rendered ``images (B, 3, H, W)`` (detached). Draws the print
+        colour transform from ``state``'s torch RNG.
         """
+        from attack.objective import FrameBatch
         from attack.render import render_adversarial_batch
 
         cfg = self.cfg
-        tex = self.texture.detach().clone().requires_grad_(True)
-        ct = self._color_transform()
-        imgs = render_adversarial_batch(caps, tex, cfg.sampler, ct)
-        imgs_clean = None
-        if cfg.loss == "untargeted":
-            imgs_clean = (
-                torch.stack([torch.from_numpy(c.i_sim).permute(2, 0, 1) for c in caps]).to(self.device, torch.float32)
-                / 255.0
-            )
+        tex = state.texture.detach().clone().requires_grad_(True)
+        ct = self._color_transform(state)
+        imgs = render_adversarial_batch(frames.captures, tex, cfg.sampler, ct)
         # No image shows an optimisable pixel of the object (out of view, occluded, too far):
         # nothing reaches the texture. The losses are still logged, and Grad-CAM needs a graph
         # from the images to the feature map (the frozen weights give it none), hence a leaf.
         reaches = imgs.requires_grad
         x = imgs if reaches else imgs.detach().requires_grad_(True)
-        l1, l2, a, parts = self._losses(x, caps, T_world_tcp, p_adv, imgs_clean)
-        g_pose = torch.zeros_like(self.texture)
-        g_sal = torch.zeros_like(self.texture)
-        if reaches and l1.requires_grad:
-            g_pose = torch.autograd.grad(l1, tex, retain_graph=l2.requires_grad)[0]
-        if reaches and l2.requires_grad:
-            g_sal = torch.autograd.grad(l2, tex)[0]
-        return {
-            "g_pose": g_pose,
-            "g_sal": g_sal,
-            "pose": float(l1.detach()),
-            "sal": float(l2.detach()),
-            "parts": parts,
-            "actions": a,
-            "images": imgs.detach(),
-        }
+        batch = FrameBatch(
+            images=x,
+            T_world_tcp=frames.T_world_tcp,
+            p_adv=frames.p_adv,
+            adv_mask=np.stack([c.adv_mask for c in frames.captures]),
+            goal_mask=np.stack([c.goal_mask for c in frames.captures]),
+            policy=self,
+            clean_images=lambda: frames.clean_images(self.device),
+        )
+        losses = self.objective.losses(batch, state.iteration, cfg.iterations)
+        grads, values = {}, {}
+        for k, (name, loss, parts) in enumerate(losses):
+            g = torch.zeros_like(state.texture)
+            if reaches and loss.requires_grad:
+                later = any(lo.requires_grad for _, lo, _ in losses[k + 1 :])
+                g = torch.autograd.grad(loss, tex, retain_graph=later)[0]
+            grads[name] = g
+            values[name] = float(loss.detach())
+            for part, v in parts.items():
+                values[f"{name}.{part}"] = float(v.sum())
+        return {"grads": grads, "values": values, "actions": batch.actions.detach(), "images": imgs.detach()}
 
-    def apply_update(self, g_pose: torch.Tensor, g_sal: torch.Tensor) -> tuple[torch.Tensor, bool]:
-        """Combine the two gradients (PCGrad or sum) and take the normalised step.
+    def apply_update(self, state: AttackState, grads: list[torch.Tensor]) -> tuple[torch.Tensor, bool]:
+        """Combine the term gradients (PCGrad over all N, or their sum) and step ``state.texture``.
 
-        Returns ``(g, updated)``; a zero or non-finite combined gradient leaves the texture
-        unchanged and ``updated`` False.
+        Returns ``(g, updated)``; a zero or non-finite combined gradient (or no term at all) leaves
+        the texture unchanged and ``updated`` False.
         """
-        from attack.pcgrad import normalized_step, pcgrad
+        from attack.pcgrad import normalized_step, pcgrad_many, sum_gradients
 
-        g = pcgrad(g_pose, g_sal) if self.cfg.pcgrad else g_pose + g_sal
-        self.texture, updated = normalized_step(self.texture, g, self.cfg.lr)
+        if not grads:
+            g = torch.zeros_like(state.texture)
+        else:
+            g = pcgrad_many(grads) if self.cfg.pcgrad else sum_gradients(grads)
+        state.texture, updated = normalized_step(state.texture, g, self.cfg.lr)
         return g, updated
 
     def step(self) -> dict:
@@ -502,7 +466,7 @@ class AttackRun:
         self.state.write(tmp, self.cfg.model_dump())
         # The evaluation-ready texture of this checkpoint (a user can stop here and use it):
         # checkpoint/ is itself a valid ``advobj eval --attack`` source.
-        self._write_attack_source(tmp, self.texture, {"checkpoint_iteration": self.iteration})
+        self._write_attack_source(tmp, self.state.texture, {"checkpoint_iteration": self.state.iteration})
         return swap_in(tmp, self.out_dir / "checkpoint")
 
     def load_checkpoint(self, ckpt: str | Path) -> None:
@@ -525,8 +489,8 @@ class AttackRun:
         # best/ may be newer than the checkpoint (a crash between the two writes); it is the
         # larger score, and replaying the iterations in between reproduces it exactly.
         disk = read_best(ckpt.parent / "best")
-        if disk is not None and better_score(disk[0], self.best):
-            self.best, self.best_texture = disk[0], disk[1].to(self.device)
+        if disk is not None and better_score(disk[0], self.state.best):
+            self.state.best, self.state.best_texture = disk[0], disk[1].to(self.device)
 
     def close(self) -> None:
         self.env.close()
@@ -536,60 +500,47 @@ class AttackRun:
 
 
 def attack_step(run: AttackRun, state: AttackState) -> dict:
-    """One iteration of the attack: EOT rollouts from ``run``'s env under ``state``'s texture, the
-    combined gradient, the normalised step. Advances ``state`` (texture, iteration, history, RNGs)
-    and nothing else of the run's but its env's scratch episodes; returns the logged figures."""
-    if state is not run.state:
-        raise AttackError("attack_step: the state must be the run's own (its helpers read run.state)")
-    from attack.schedule import sample_configs, stage_index, stage_params
-    from sim.variations import Randomization, sample_appearance
+    """One iteration of the attack: frames from ``run.source`` under ``state``'s texture, each
+    objective term's gradient summed over them, the combined gradient, the normalised step.
+    Advances ``state`` (texture, iteration, history, RNGs) and the source's scratch episodes;
+    returns the logged figures (``terms``: each term's mean per image-action pair)."""
+    from attack.schedule import stage_index
 
-    cfg, env = run.cfg, run.env
-    params = stage_params(cfg.schedule, state.iteration, cfg.iterations)
-    idx = sample_configs(run.pool_r, params, run.spec.init.r_range_m, cfg.num_envs, state.rng)
-    env.reset_envs(range(cfg.num_envs), configs=[run.pool[i] for i in idx])
-    if cfg.light_randomization:
-        for w in env.worlds:
-            w.appearance = sample_appearance(run.spec, Randomization(light="random"), state.rng)
-    g_pose = torch.zeros_like(state.texture)
-    g_sal = torch.zeros_like(state.texture)
-    sums = {"pose": 0.0, "sal": 0.0, "ori": 0.0, "dist": 0.0}
+    cfg = run.cfg
+    names = [t.name for t in run.objective.terms]
+    grads = {n: torch.zeros_like(state.texture) for n in names}
+    sums = {n: 0.0 for n in names}
+    sums.update({f"{t.name}.{p}": 0.0 for t in run.objective.terms for p in getattr(t, "parts", ())})
     pairs = 0
-    for _ in range(cfg.rollout_steps):
-        active = np.flatnonzero(~env.done)
-        if active.size == 0:
-            break
-        caps = [run.hybrid.capture(env.worlds[i]) for i in active]
-        T = torch.from_numpy(env.T_world_tcp[active]).to(run.device, torch.float32)
-        p_adv = torch.from_numpy(env.object_centers[active, run.adv]).to(run.device, torch.float32)
-        out = run.pair_gradients(caps, T, p_adv)
-        g_pose += out["g_pose"]
-        g_sal += out["g_sal"]
-        sums["pose"] += out["pose"]
-        sums["sal"] += out["sal"]
-        for k in ("ori", "dist"):
-            if k in out["parts"]:
-                sums[k] += float(out["parts"][k].sum())
-        pairs += len(active)
-        actions = np.zeros((cfg.num_envs, 6))
-        actions[active] = out["actions"].cpu().numpy()
-        env.step(actions)
+    run.source.start(state.iteration, state.rng)
+    while (frames := run.source.next()) is not None:
+        out = run.frame_gradients(state, frames)
+        for n in names:
+            grads[n] += out["grads"][n]
+        for k, v in out["values"].items():
+            sums[k] = sums.get(k, 0.0) + v
+        pairs += len(frames)
+        run.source.advance(out["actions"].cpu().numpy())
     # Mean over image-action pairs (the normalised step makes the scale moot, but the
     # logged gradient norm is comparable across runs).
-    g_pose /= max(pairs, 1)
-    g_sal /= max(pairs, 1)
-    g, updated = run.apply_update(g_pose, g_sal)  # steps state.texture
+    for n in names:
+        grads[n] /= max(pairs, 1)
+    g, updated = run.apply_update(state, [grads[n] for n in names])
     h = state.history
     h.iteration.append(state.iteration)
-    h.loss_pose.append(sums["pose"] / max(pairs, 1))
-    h.loss_saliency.append(sums["sal"] / max(pairs, 1))
-    h.loss_ori.append(sums["ori"] / max(pairs, 1))
-    h.loss_dist.append(sums["dist"] / max(pairs, 1))
+    h.log_terms({k: v / max(pairs, 1) for k, v in sums.items()})
     h.grad_norm.append(float(torch.linalg.vector_norm(g)))
     h.stage.append(stage_index(state.iteration, cfg.iterations) if cfg.schedule in ("c2f", "f2c") else -1)
     h.skipped += 0 if updated else 1
     state.iteration += 1
-    return {"pose": h.loss_pose[-1], "sal": h.loss_saliency[-1], "pairs": pairs, "updated": updated}
+    terms = {n: h.terms[n][-1] for n in names}
+    return {
+        "terms": terms,
+        "pose": terms.get("pose", 0.0),
+        "sal": terms.get("saliency", 0.0),
+        "pairs": pairs,
+        "updated": updated,
+    }
 
 
 def run_attack(
@@ -604,25 +555,25 @@ def run_attack(
     from tqdm import tqdm
 
     cfg = run.cfg
-    bar = tqdm(total=cfg.iterations, initial=run.iteration, desc=desc, disable=not progress, dynamic_ncols=True)
+    bar = tqdm(total=cfg.iterations, initial=run.state.iteration, desc=desc, disable=not progress, dynamic_ncols=True)
     t0 = time.perf_counter()
-    start_seconds = run.history.seconds
+    start_seconds = run.state.history.seconds
     validating = cfg.validation_every > 0
     try:
-        if validating and not run.history.val_iteration:
+        if validating and not run.state.history.val_iteration:
             run.validate_and_keep_best()  # the starting texture is the first "best so far"
-        while run.iteration < cfg.iterations:
+        while run.state.iteration < cfg.iterations:
             info = run.step()
-            last = run.iteration == cfg.iterations
-            if validating and (run.iteration % cfg.validation_every == 0 or last):
+            last = run.state.iteration == cfg.iterations
+            if validating and (run.state.iteration % cfg.validation_every == 0 or last):
                 run.validate_and_keep_best()
-            run.history.seconds = start_seconds + time.perf_counter() - t0
-            post = {"pose": f"{info['pose']:.3f}", "sal": f"{info['sal']:.4f}"}
-            if run.history.val_t_asr:
-                post["val_t_asr"] = f"{run.history.val_t_asr[-1]:.2f}"
+            run.state.history.seconds = start_seconds + time.perf_counter() - t0
+            post = {name: f"{v:.4g}" for name, v in info["terms"].items()}
+            if run.state.history.val_t_asr:
+                post["val_t_asr"] = f"{run.state.history.val_t_asr[-1]:.2f}"
             bar.set_postfix(post, refresh=False)
             bar.update(1)
-            if run.out_dir is not None and (run.iteration % cfg.checkpoint_every == 0 or last):
+            if run.out_dir is not None and (run.state.iteration % cfg.checkpoint_every == 0 or last):
                 run.save_checkpoint()
             if on_iteration is not None:
                 on_iteration(run, info)

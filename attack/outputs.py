@@ -83,12 +83,15 @@ def plot_losses(path: str | Path, history) -> Path:
         probe = getattr(h, "val_probe_pose", None)
         if probe and np.isfinite(probe).any():
             axes[0].plot(h.val_iteration[: len(probe)], probe, marker="o", color="k", label="pose, fixed probe set")
-    axes[0].plot(h.iteration, h.loss_pose, label="pose")
-    axes[0].plot(h.iteration, h.loss_ori, label="ori", alpha=0.7)
-    axes[0].set_title("pose loss (mean per pair; see note)")
-    axes[0].legend()
+    # Every objective term and logged part by its name (attack.objective); saliency on its own axis.
+    for name, values in h.terms.items():
+        if name != "saliency" and len(values) == len(h.iteration):
+            axes[0].plot(h.iteration, values, label=name, alpha=1.0 if "." not in name else 0.7)
+    axes[0].set_title("objective terms (mean per pair; see note)")
+    if h.terms:
+        axes[0].legend()
     axes[1].plot(h.iteration, h.loss_saliency)
-    axes[1].set_title("lambda_sal * saliency loss")
+    axes[1].set_title("lambda_sal * saliency term")
     axes[2].semilogy(h.iteration, np.maximum(np.asarray(h.grad_norm), 1e-12))
     axes[2].set_title("|g| (after PCGrad)")
     for ax in axes:
@@ -124,10 +127,14 @@ def summary_lines(metrics: dict) -> list[str]:
             "held-out validation: off (validation_every: 0); evaluate the texture with 'advobj eval' to know "
             "what it does"
         )
-    lines.append(
-        f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f} (first / last tenth of "
-        "the run): " + POSE_LOSS_NOTE
-    )
+    if metrics.get("final_loss_pose") is not None:
+        lines.append(
+            f"pose loss {metrics['initial_loss_pose']:.3f} -> {metrics['final_loss_pose']:.3f} (first / last tenth "
+            "of the run): " + POSE_LOSS_NOTE
+        )
+    for name, t in (metrics.get("loss_terms") or {}).items():
+        if name != "pose" and "." not in name:
+            lines.append(f"{name} term {t['initial']:.4g} -> {t['final']:.4g} (first / last tenth of the run)")
     probe = [x for x in ((v or {}).get("probe_pose_loss") or []) if x == x]
     if probe:
         lines.append(
@@ -166,18 +173,18 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    tex = run.texture.detach().cpu()
+    tex = run.state.texture.detach().cpu()
     AttackArtifact.from_tensor(tex).save(out, run="none")  # run.json: the job's, with provenance
     mesh = run.env.renderer.object_mesh(run.adv)
     paths = export_meshes(out, mesh, texture_to_uint8(tex))
-    plot_losses(out / "loss_curves.png", run.history)
+    plot_losses(out / "loss_curves.png", run.state.history)
 
     # Grad-CAM before/after and a rollout strip from the same configuration (the pool's first).
     env = run.env
     env.reset_envs([0], configs=[run.pool[0]])
     cap = run.hybrid.capture(env.worlds[0])
     before = render_adversarial(cap, texture_before.to(run.device), run.cfg.sampler)
-    after = render_adversarial(cap, run.texture, run.cfg.sampler)
+    after = render_adversarial(cap, run.state.texture, run.cfg.sampler)
     seed = run.pool[0].seed
     T0 = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32)
     st = run.policy_state(T0)
@@ -201,7 +208,7 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         if env.done[0]:
             break
         cap = run.hybrid.capture(env.worlds[0])
-        img = render_adversarial(cap, run.texture, run.cfg.sampler)
+        img = render_adversarial(cap, run.state.texture, run.cfg.sampler)
         frames.append(labelled(texture_to_uint8(img), f"attack, step {len(frames)}", min_side=128))
         with torch.no_grad():
             T = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32)
@@ -210,18 +217,25 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         actions[0] = a[0]
         env.step(actions)
     iio.imwrite(out / "rollout_strip.png", upscale(hstack(frames)))
-    h = run.history
-    tail = max(1, len(h.loss_pose) // 10)
+    h = run.state.history
+    tail = max(1, len(h.iteration) // 10)
+    pose = h.terms.get("pose")
     metrics = {
-        "iterations": run.iteration,
+        "iterations": run.state.iteration,
         "seconds": h.seconds,
         "seconds_per_iteration": h.seconds / max(1, len(h.iteration)),
         # The same without the held-out validation rollouts (comparable with validation off).
         "seconds_per_iteration_training": (h.seconds - float(np.sum(getattr(h, "val_seconds", []) or [0.0])))
         / max(1, len(h.iteration)),
-        "final_loss_pose": float(np.mean(h.loss_pose[-tail:])) if h.loss_pose else None,
-        "initial_loss_pose": float(np.mean(h.loss_pose[:tail])) if h.loss_pose else None,
+        "final_loss_pose": float(np.mean(pose[-tail:])) if pose else None,
+        "initial_loss_pose": float(np.mean(pose[:tail])) if pose else None,
         "final_loss_saliency": float(np.mean(h.loss_saliency[-tail:])) if h.loss_saliency else None,
+        # every term of the objective by name (attack.objective), first and last tenth of the run
+        "loss_terms": {
+            k: {"initial": float(np.mean(v[:tail])), "final": float(np.mean(v[-tail:]))}
+            for k, v in h.terms.items()
+            if v
+        },
         "skipped_updates": h.skipped,
         "validation": None
         if not getattr(h, "val_iteration", None)
@@ -231,7 +245,7 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
             "dist_m": h.val_dist_m,
             "seconds_per_call": float(np.median(h.val_seconds)),
             "seconds_total": float(np.sum(h.val_seconds)),
-            "best": run.best,
+            "best": run.state.best,
             "probe_pose_loss": h.val_probe_pose,
         },
         "texture_change_l2": float(torch.linalg.vector_norm(tex - texture_before.cpu())),

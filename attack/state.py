@@ -26,13 +26,19 @@ import torch
 __all__ = ["History", "AttackState", "better_score", "swap_in", "read_best", "find_checkpoint"]
 
 
+# The keys of a history written before the objective had named terms, and their names now.
+_LEGACY_TERM_KEYS = {"loss_pose": "pose", "loss_saliency": "saliency", "loss_ori": "pose.ori", "loss_dist": "pose.dist"}
+
+
 @dataclass
 class History:
+    """What the loop logs per iteration. ``terms`` holds each objective term's mean value per
+    image-action pair (by the term's name, e.g. ``pose``, ``saliency``) and its logged parts (as
+    ``<term>.<part>``, e.g. ``pose.ori``): a new term adds a key, never a field, so the checkpoint
+    format does not change. A term absent from the objective has no key (read as 0)."""
+
     iteration: list[int] = field(default_factory=list)
-    loss_pose: list[float] = field(default_factory=list)
-    loss_saliency: list[float] = field(default_factory=list)
-    loss_ori: list[float] = field(default_factory=list)
-    loss_dist: list[float] = field(default_factory=list)
+    terms: dict[str, list[float]] = field(default_factory=dict)
     grad_norm: list[float] = field(default_factory=list)
     stage: list[int] = field(default_factory=list)
     skipped: int = 0
@@ -43,9 +49,39 @@ class History:
     val_dist_m: list[float] = field(default_factory=list)
     val_seconds: list[float] = field(default_factory=list)
     # Pose loss on the validation configurations' first frames: a fixed probe set, so unlike
-    # loss_pose (measured on rollouts that move as the attack succeeds) it is comparable across
+    # the pose term (measured on rollouts that move as the attack succeeds) it is comparable across
     # iterations. NaN where the pose term is off.
     val_probe_pose: list[float] = field(default_factory=list)
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> History:
+        """A history from ``state.json``, including one written before terms had names."""
+        doc = dict(doc)
+        terms = {k: list(v) for k, v in doc.pop("terms", {}).items()}
+        for old, name in _LEGACY_TERM_KEYS.items():
+            if old in doc:
+                values = doc.pop(old)
+                if any(v != 0.0 for v in values):  # the old format logged 0 for a term that was off
+                    terms.setdefault(name, list(values))
+        return cls(terms=terms, **doc)
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+    def log_terms(self, values: dict[str, float]) -> None:
+        """Append one iteration's term values (and parts) by name."""
+        for k, v in values.items():
+            self.terms.setdefault(k, []).append(float(v))
+
+    def term(self, name: str) -> list[float]:
+        """One term's values per iteration; zeros when the objective had no such term."""
+        return self.terms.get(name, [0.0] * len(self.iteration))
+
+    # The paper's terms by their old names (plots, metrics and the tradeoff's rows read these).
+    loss_pose = property(lambda self: self.term("pose"))
+    loss_saliency = property(lambda self: self.term("saliency"))
+    loss_ori = property(lambda self: self.term("pose.ori"))
+    loss_dist = property(lambda self: self.term("pose.dist"))
 
 
 @dataclass
@@ -76,7 +112,7 @@ class AttackState:
             "iteration": self.iteration,
             "config": config,
             "numpy_rng": self.rng.bit_generator.state,
-            "history": self.history.__dict__,
+            "history": self.history.to_dict(),
             "best": self.best,
         }
         (folder / "state.json").write_text(json.dumps(doc))
@@ -103,7 +139,7 @@ class AttackState:
             rng,
             gen,
             int(doc["iteration"]),
-            History(**doc["history"]),
+            History.from_dict(doc["history"]),
             best,
             best_texture,
         )

@@ -131,7 +131,7 @@ def main():
     # Policy-only floor on frames captured from the current state.
     run.env.reset_envs(range(cfg.num_envs), configs=run.pool[: cfg.num_envs])
     caps = [run.hybrid.capture(w) for w in run.env.worlds]
-    imgs = torch.stack([render_adversarial(c, run.texture) for c in caps]).detach()
+    imgs = torch.stack([render_adversarial(c, run.state.texture) for c in caps]).detach()
     T = torch.from_numpy(run.env.T_world_tcp).float()
     p_adv = torch.from_numpy(run.env.object_centers[:, run.adv]).float()
     floor = statistics.median(policy_only_iteration(run, imgs, caps, T, p_adv) for _ in range(n))

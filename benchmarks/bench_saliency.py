@@ -4,7 +4,7 @@
 
 For each of the first ``--configs`` attack-part configurations of the policy's pool, renders the
 first frame under the benign texture (hybrid render) and takes both objectives' texture gradients
-(:meth:`attack.optimize.AttackRun.pair_gradients` at lambda_sal = 1). The ratio
+(:meth:`attack.optimize.AttackRun.frame_gradients` at lambda_sal = 1). The ratio
 ``||g_sal|| / ||g_pose||`` then scales linearly with lambda_sal; the script prints its median and
 quartiles, and the cosine between the two gradients (PCGrad only acts when it is negative).
 """
@@ -25,6 +25,7 @@ def main() -> None:
     import torch
 
     from attack.optimize import AttackRun, resolve_config
+    from attack.sources import Frames
     from sim.configs import in_part, load_pool
     from sim.policies.checkpoint import load_policy
     from sim.policies.pool import feasible_pool_path
@@ -48,11 +49,11 @@ def main() -> None:
             cap = run.hybrid.capture(run.env.worlds[0])
             T = torch.from_numpy(run.env.T_world_tcp[:1]).float()
             p = torch.from_numpy(run.env.object_centers[:1, run.adv]).float()
-            g = run.pair_gradients([cap], T, p)
-            n_pose, n_sal = float(g["g_pose"].norm()), float(g["g_sal"].norm())
+            g = run.frame_gradients(run.state, Frames([cap], T, p))["grads"]
+            n_pose, n_sal = float(g["pose"].norm()), float(g["saliency"].norm())
             if n_pose > 0 and n_sal > 0:
                 ratios.append(n_sal / n_pose)
-                cosines.append(float((g["g_pose"] * g["g_sal"]).sum()) / (n_pose * n_sal))
+                cosines.append(float((g["pose"] * g["saliency"]).sum()) / (n_pose * n_sal))
     finally:
         run.close()
     q = np.quantile(ratios, [0.25, 0.5, 0.75]) if ratios else [float("nan")] * 3

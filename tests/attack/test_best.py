@@ -44,7 +44,7 @@ def _scripted(run, scores):
 
     def validate():
         t_asr, dist = scores[len(seen)]
-        seen.append(run.texture.detach().clone())
+        seen.append(run.state.texture.detach().clone())
         return {"t_asr": t_asr, "dist_m": dist, "episodes": 2, "seconds": 0.0}
 
     run.validate = validate
@@ -84,7 +84,7 @@ def test_run_trains_only_on_configurations_outside_the_validation_pool(spec_pool
     spec, pool = spec_pool
     run = AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=pool)
     try:
-        assert len(run.val_pool) == 2 and len(run.pool) == 6 and len(run.pool_r) == 6
+        assert len(run.val_pool) == 2 and len(run.pool) == 6 and len(run.source.pool_r) == 6
         assert not {c.seed for c in run.pool} & {c.seed for c in run.val_pool}
     finally:
         run.close()
@@ -110,7 +110,7 @@ def test_best_is_replaced_only_when_the_validation_score_improves(tmp_path, spec
     best = np.load(tmp_path / "best" / "texture.npy")
     assert np.array_equal(best, seen[4].permute(1, 2, 0).numpy())
     assert not np.array_equal(best, seen[5].permute(1, 2, 0).numpy())  # the final texture moved on
-    assert run.history.val_iteration == list(range(6)) and run.history.val_t_asr == [s[0] for s in scores]
+    assert run.state.history.val_iteration == list(range(6)) and run.state.history.val_t_asr == [s[0] for s in scores]
     assert not (tmp_path / "best.tmp").exists() and not (tmp_path / "best.old").exists()
 
 
@@ -124,7 +124,7 @@ def test_best_and_checkpoint_are_evaluation_sources(tmp_path, spec_pool):
         src = load_attack_source(tmp_path / d)
         assert src.mesh is None and src.texture.shape == (16, 16, 3) and src.texture.dtype == np.uint8
     ck = np.load(tmp_path / "checkpoint" / "texture.npy")
-    assert ck.dtype == np.float32 and np.array_equal(ck, run.texture.permute(1, 2, 0).numpy())
+    assert ck.dtype == np.float32 and np.array_equal(ck, run.state.texture.permute(1, 2, 0).numpy())
 
 
 def test_resume_keeps_best(tmp_path, spec_pool):
@@ -135,7 +135,7 @@ def test_resume_keeps_best(tmp_path, spec_pool):
     real_step = part.step
 
     def step_or_crash():
-        if part.iteration == 4:  # best/ was written at iteration 4, the checkpoint at 3: crash
+        if part.state.iteration == 4:  # best/ was written at iteration 4, the checkpoint at 3: crash
             raise RuntimeError("power cut")
         return real_step()
 
@@ -148,16 +148,16 @@ def test_resume_keeps_best(tmp_path, spec_pool):
 
     resumed = AttackRun(_policy(), spec, cfg, pool=pool, out_dir=tmp_path)
     resumed.load_checkpoint(find_checkpoint(tmp_path))
-    assert resumed.iteration == 3 and resumed.best["iteration"] == 4 and resumed.best["t_asr"] == 1.0
+    assert resumed.state.iteration == 3 and resumed.state.best["iteration"] == 4 and resumed.state.best["t_asr"] == 1.0
     on_disk = torch.from_numpy(np.load(tmp_path / "best" / "texture.npy")).permute(2, 0, 1)
-    assert torch.equal(resumed.best_texture, on_disk)
+    assert torch.equal(resumed.state.best_texture, on_disk)
     # Replay: iteration 4 scores the same again (not better), 5 is worse.
     _scripted(resumed, [(1.0, 0.1), (0.5, 0.0)])
     run_attack(resumed, progress=False)
     resumed.close()
     assert json.loads((tmp_path / "best" / "best.json").read_text())["iteration"] == 4
     assert torch.equal(torch.from_numpy(np.load(tmp_path / "best" / "texture.npy")).permute(2, 0, 1), on_disk)
-    assert resumed.history.val_iteration == [0, 1, 2, 3, 4, 5]
+    assert resumed.state.history.val_iteration == [0, 1, 2, 3, 4, 5]
 
     # best/ deleted by hand: the checkpoint still carries the best texture it knew of.
     import shutil
@@ -165,7 +165,7 @@ def test_resume_keeps_best(tmp_path, spec_pool):
     shutil.rmtree(tmp_path / "best")
     again = AttackRun(_policy(), spec, cfg, pool=pool, out_dir=tmp_path)
     again.load_checkpoint(find_checkpoint(tmp_path))
-    assert again.best["iteration"] == 4 and torch.equal(again.best_texture, on_disk)
+    assert again.state.best["iteration"] == 4 and torch.equal(again.state.best_texture, on_disk)
     again.close()
 
 
@@ -173,9 +173,9 @@ def test_real_validation_is_deterministic_and_leaves_the_training_rng_alone(spec
     spec, pool = spec_pool
     run = AttackRun(_policy(), spec, resolve_config("quick", CFG), pool=pool)
     try:
-        state = run.rng.bit_generator.state
+        state = run.state.rng.bit_generator.state
         a, b = run.validate(), run.validate()
-        assert run.rng.bit_generator.state == state
+        assert run.state.rng.bit_generator.state == state
         assert a["episodes"] == 2 and 0.0 <= a["t_asr"] <= 1.0 and np.isfinite(a["dist_m"]) and a["dist_m"] >= 0
         assert (a["t_asr"], a["dist_m"]) == (b["t_asr"], b["dist_m"])
     finally:
@@ -194,7 +194,7 @@ def test_validation_off_keeps_the_whole_pool_and_writes_no_best(tmp_path, spec_p
     assert resolve_config("quick").validation_every > 0 and resolve_config("paper").validation_every > 0
     run_attack(run, progress=False)
     run.close()
-    assert len(run.pool) == 6 and not run.history.val_iteration and not (tmp_path / "best").exists()
+    assert len(run.pool) == 6 and not run.state.history.val_iteration and not (tmp_path / "best").exists()
     assert (tmp_path / "checkpoint" / "texture.npy").is_file()
 
 
@@ -218,8 +218,8 @@ def test_the_probe_pose_loss_is_logged_at_each_validation_and_repeats_for_the_sa
         a, b = run.probe_pose_loss(), run.probe_pose_loss()
         assert np.isfinite(a) and a == b
         run_attack(run, progress=False)
-        assert len(run.history.val_probe_pose) == len(run.history.val_iteration) == 3
-        assert run.history.val_probe_pose[0] == a
+        assert len(run.state.history.val_probe_pose) == len(run.state.history.val_iteration) == 3
+        assert run.state.history.val_probe_pose[0] == a
     finally:
         run.close()
     off = AttackRun(_policy(), spec, resolve_config("quick", {**CFG, "use_pose": False}), pool=pool)

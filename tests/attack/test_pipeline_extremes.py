@@ -16,8 +16,10 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from attack.objective import build_objective
 from attack.optimize import AttackRun, resolve_config
 from attack.render import Capture
+from attack.sources import Frames
 from sim.configs import InitialConfig, sample_config
 from sim.geometry import look_at
 from sim.policies.policy import VisuomotorPolicy
@@ -38,6 +40,12 @@ def run():
     )  # an attack-part seed (sim.configs.config_part)
     yield r
     r.close()
+
+
+def _configure(run, update: dict) -> None:
+    """Change the run's config and rebuild the objective it implies (as a new run would)."""
+    run.cfg = run.cfg.model_copy(update=update)
+    run.objective = build_objective(run.cfg, run.spec.episode)
 
 
 def _adv_center(run) -> np.ndarray:
@@ -61,7 +69,7 @@ def _config_for_camera(run, T_world_cam: np.ndarray) -> InitialConfig:
 
 
 def _forward(run, T_world_cam, texture, keep_pixels=None):
-    """One image-action pair through the pipeline; returns the capture and pair_gradients' output."""
+    """One image-action pair through the pipeline; returns the capture and frame_gradients' output."""
     run.env.reset_envs([0], configs=[_config_for_camera(run, T_world_cam)])
     world = run.env.worlds[0]
     cap = run.hybrid.capture(world)
@@ -79,29 +87,31 @@ def _forward(run, T_world_cam, texture, keep_pixels=None):
             specular=f.specular[sl],
         )
         cap = Capture(cap.i_sim, frags, frags.mask(), cap.goal_mask)
-    run.texture = texture.clone()
+    run.state.texture = texture.clone()
     T = torch.from_numpy(world.T_world_tcp[None]).float()
     p_adv = torch.from_numpy(world.object_center_array[None, run.adv]).float()
-    return cap, run.pair_gradients([cap], T, p_adv)
+    return cap, run.frame_gradients(run.state, Frames([cap], T, p_adv))
 
 
 def _check(run, cap, out, texture):
     """Everything finite; the update happens iff there is a gradient, and is skipped otherwise."""
-    for name in ("g_pose", "g_sal", "images", "actions"):
+    assert set(out["grads"]) == {t.name for t in run.objective.terms}
+    for name, g in out["grads"].items():
+        assert torch.isfinite(g).all(), name
+    for name in ("images", "actions"):
         assert torch.isfinite(out[name]).all(), name
-    assert math.isfinite(out["pose"]) and math.isfinite(out["sal"])
-    for k, v in out["parts"].items():
-        assert torch.isfinite(v).all(), k
+    for k, v in out["values"].items():
+        assert math.isfinite(v), k
     f = cap.fragments
     for arr in (f.bary, f.uv, f.duv, f.diffuse, f.specular):
         assert np.isfinite(arr).all()
-    g, updated = run.apply_update(out["g_pose"], out["g_sal"])
-    assert torch.isfinite(g).all() and torch.isfinite(run.texture).all()
-    assert run.texture.min() >= 0 and run.texture.max() <= 1
+    g, updated = run.apply_update(run.state, list(out["grads"].values()))
+    assert torch.isfinite(g).all() and torch.isfinite(run.state.texture).all()
+    assert run.state.texture.min() >= 0 and run.state.texture.max() <= 1
     has_grad = bool(torch.linalg.vector_norm(g) > 0)
     assert updated == has_grad
     if not updated:
-        assert torch.equal(run.texture, texture)
+        assert torch.equal(run.state.texture, texture)
     if f.num_pixels == 0:  # the texture cannot influence anything: no gradient, no update
         assert not has_grad and not updated
     return updated
@@ -129,7 +139,7 @@ RADII_M = (0.05, 0.15, 2.0)  # inside the object's bounding sphere, close with t
 )
 def test_viewpoint_and_texture_extremes(run, phi, r, texture, theta, sampler, loss):
     """Every (phi, r, texture) corner of the grid; hypothesis draws the azimuth, sampler and loss."""
-    run.cfg = run.cfg.model_copy(update={"sampler": sampler, "loss": loss})
+    _configure(run, {"sampler": sampler, "loss": loss})
     tex = TEXTURES[texture]()
     cap, out = _forward(run, _camera(run, r, theta, phi), tex)
     _check(run, cap, out, tex)
@@ -139,7 +149,7 @@ def test_viewpoint_and_texture_extremes(run, phi, r, texture, theta, sampler, lo
 def test_extreme_polar_angles_close_up_see_the_object_and_update(run, phi):
     """The grid above is not vacuous at its angular extremes: straight down (phi 0) and grazing
     (phi 89.9) views from 0.15 m show the object and move the texture, for every texture."""
-    run.cfg = run.cfg.model_copy(update={"sampler": "trilinear", "loss": "targeted"})
+    _configure(run, {"sampler": "trilinear", "loss": "targeted"})
     for name in sorted(TEXTURES):
         best = None
         for theta in (0.0, 90.0, 180.0, 270.0):  # a grazing view may be hidden behind the goal can
@@ -154,7 +164,7 @@ def test_extreme_polar_angles_close_up_see_the_object_and_update(run, phi):
 
 def test_near_views_do_update_and_far_views_see_almost_nothing(run):
     """Close up the object fills pixels and the texture moves; at 2 m it covers about a pixel."""
-    run.cfg = run.cfg.model_copy(update={"sampler": "trilinear", "loss": "targeted"})
+    _configure(run, {"sampler": "trilinear", "loss": "targeted"})
     tex = TEXTURES["random"]()
     cap, out = _forward(run, _camera(run, 0.25, 30.0, 45.0), tex)
     assert cap.fragments.num_pixels > 20 and _check(run, cap, out, tex)
@@ -185,7 +195,7 @@ def _inside_bbox(run):
 @pytest.mark.parametrize("case", ["occluded", "out_of_view", "inside_bbox"])
 @pytest.mark.parametrize("texture", ["zeros", "ones"])
 def test_scene_extremes(run, case, texture):
-    run.cfg = run.cfg.model_copy(update={"sampler": "trilinear", "loss": "targeted"})
+    _configure(run, {"sampler": "trilinear", "loss": "targeted"})
     T = {"occluded": _occluded_by_table, "out_of_view": _out_of_view, "inside_bbox": _inside_bbox}[case](run)
     tex = TEXTURES[texture]()
     cap, out = _forward(run, T, tex)
@@ -196,7 +206,7 @@ def test_scene_extremes(run, case, texture):
 
 @pytest.mark.parametrize("texture", ["zeros", "ones", "random"])
 def test_single_pixel_mask(run, texture):
-    run.cfg = run.cfg.model_copy(update={"sampler": "trilinear", "loss": "targeted"})
+    _configure(run, {"sampler": "trilinear", "loss": "targeted"})
     tex = TEXTURES[texture]()
     cap, out = _forward(run, _camera(run, 0.3, 10.0, 50.0), tex, keep_pixels=1)
     assert cap.fragments.num_pixels == 1 and cap.adv_mask.sum() == 1
@@ -205,15 +215,15 @@ def test_single_pixel_mask(run, texture):
 
 def test_zero_and_nonfinite_gradients_skip_the_update(run):
     tex = TEXTURES["random"]()
-    run.texture = tex.clone()
+    run.state.texture = tex.clone()
     zero = torch.zeros_like(tex)
     for g_pose, g_sal in (
         (zero, zero),
         (torch.full_like(tex, float("nan")), zero),
         (zero, torch.full_like(tex, float("inf"))),
     ):
-        _, updated = run.apply_update(g_pose, g_sal)
-        assert not updated and torch.equal(run.texture, tex)
+        _, updated = run.apply_update(run.state, [g_pose, g_sal])
+        assert not updated and torch.equal(run.state.texture, tex)
 
 
 @pytest.mark.parametrize("case", ["occluded", "out_of_view"])
@@ -221,18 +231,19 @@ def test_a_whole_iteration_without_gradient_is_reported_skipped(run, case):
     """run.step() end to end (env reset, capture, losses, PCGrad, update, env step) from a start
     where the object cannot be seen: the step says so and the texture is unchanged."""
     T = {"occluded": _occluded_by_table, "out_of_view": _out_of_view}[case](run)
-    run.cfg = run.cfg.model_copy(update={"sampler": "trilinear", "loss": "targeted"})
-    pool, pool_r = run.pool, run.pool_r
-    run.pool = [_config_for_camera(run, T)]
-    run.pool_r = np.array([0.5])
-    run.texture = TEXTURES["random"]()
-    before, skipped = run.texture.clone(), run.history.skipped
+    _configure(run, {"sampler": "trilinear", "loss": "targeted"})
+    pool, pool_r = run.source.pool, run.source.pool_r
+    run.source.pool = [_config_for_camera(run, T)]
+    run.source.pool_r = np.array([0.5])
+    run.state.texture = TEXTURES["random"]()
+    before, skipped = run.state.texture.clone(), run.state.history.skipped
     try:
         info = run.step()
     finally:
-        run.pool, run.pool_r = pool, pool_r
-    assert info["updated"] is False and run.history.skipped == skipped + 1
-    assert torch.equal(run.texture, before)
+        run.source.pool, run.source.pool_r = pool, pool_r
+    assert info["updated"] is False and run.state.history.skipped == skipped + 1
+    assert torch.equal(run.state.texture, before)
     assert all(
-        math.isfinite(v) for v in (run.history.loss_pose[-1], run.history.loss_saliency[-1], run.history.grad_norm[-1])
+        math.isfinite(v)
+        for v in (run.state.history.loss_pose[-1], run.state.history.loss_saliency[-1], run.state.history.grad_norm[-1])
     )

@@ -64,15 +64,15 @@ def test_the_attack_optimises_every_white_box_contract(state, action):
     )
     run = AttackRun(tiny_policy(c), spec, cfg, pool=pool)
     try:
-        before = run.texture.clone()
+        before = run.state.texture.clone()
         infos = [run.step() for _ in range(2)]
         val = run.validate()
         probe = run.probe_pose_loss()
     finally:
         run.close()
     assert all(np.isfinite(i["pose"]) and np.isfinite(i["sal"]) for i in infos)
-    assert np.isfinite(run.history.loss_dist).all() and max(run.history.grad_norm) > 0
-    assert not np.array_equal(before.numpy(), run.texture.numpy())
+    assert np.isfinite(run.state.history.loss_dist).all() and max(run.state.history.grad_norm) > 0
+    assert not np.array_equal(before.numpy(), run.state.texture.numpy())
     assert val["episodes"] == 2 and 0.0 <= val["t_asr"] <= 1.0 and np.isfinite(val["dist_m"]) and np.isfinite(probe)
 
 

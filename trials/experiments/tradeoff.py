@@ -658,15 +658,15 @@ def _attack(cfg: TradeoffConfig, row: Row, out: Path, spec, attack_cfgs: list) -
     run = AttackRun(policy, spec, acfg, pool=attack_cfgs, out_dir=None)
 
     def snapshot(run, info) -> None:
-        if run.iteration in snaps:
+        if run.state.iteration in snaps:
             w, c = clock.read()  # writing the snapshot is not charged
             _write_texture_dir(
-                d / f"iter{run.iteration:05d}",
-                run.texture,
+                d / f"iter{run.state.iteration:05d}",
+                run.state.texture,
                 acfg,
-                {"iteration": run.iteration, "policy": _policy_dir(cfg, row.policy)},
+                {"iteration": run.state.iteration, "policy": _policy_dir(cfg, row.policy)},
             )
-            snap_times[run.iteration] = {"wall_s": w, "cpu_s": c}
+            snap_times[run.state.iteration] = {"wall_s": w, "cpu_s": c}
             clock.w0 += clock.read()[0] - w
             clock.c0 += clock.read()[1] - c
 
@@ -674,9 +674,11 @@ def _attack(cfg: TradeoffConfig, row: Row, out: Path, spec, attack_cfgs: list) -
         setup_wall, setup_cpu = clock.read()
         run_attack(run, on_iteration=snapshot, desc=f"attack {row.key}")
         wall, cpu = clock.read()
-        _write_texture_dir(d, run.texture, acfg, {"iteration": run.iteration, "policy": _policy_dir(cfg, row.policy)})
+        _write_texture_dir(
+            d, run.state.texture, acfg, {"iteration": run.state.iteration, "policy": _policy_dir(cfg, row.policy)}
+        )
         write_config_record(d, run.pool, run.val_pool)  # snapshots in d/iterNNNNN/ use it too
-        h = run.history
+        h = run.state.history
     finally:
         run.close()
     (d / "snapshots.json").write_text(json.dumps({str(k): v for k, v in snap_times.items()}))

@@ -123,7 +123,7 @@ def attack_job(
         pool = top_up_attack_pool(policy, spec, pool, cfg, out, progress)
     run = AttackRun(policy, spec, cfg, pool=pool, out_dir=out)
     try:
-        before = run.texture.clone()
+        before = run.state.texture.clone()
         if resume:
             ckpt = find_checkpoint(out)
             if ckpt is None:
