@@ -46,6 +46,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import importlib
+import importlib.util
 import io
 import json
 import os
@@ -72,6 +73,7 @@ __all__ = [
     "SerialExecutor",
     "RayExecutor",
     "make_executor",
+    "usable_cpus",
     "input_digest",
     "is_finished",
     "execute",
@@ -459,10 +461,34 @@ class SerialExecutor:
         return results
 
 
+def _check_links(root: Path) -> None:
+    """Every symbolic link under folder ``root`` points inside it, at no folder holding the link,
+    else one line naming the link: staging ships what a link points to, so a link out of the
+    folder would ship a file of the driver's machine the job was never given, and a link to its
+    own folder would never end."""
+    top = root.resolve()
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            link = Path(dirpath) / name
+            if not link.is_symlink():
+                continue
+            target = link.resolve()
+            if target != top and top not in target.parents:
+                raise GridError(
+                    f"{link}: a link to {target}, outside the job's folder {root}; staging ships only what the "
+                    "folder holds (copy the file in)"
+                )
+            if target.is_dir() and (target == link.parent.resolve() or target in link.parent.resolve().parents):
+                raise GridError(f"{link}: a link to {target}, a folder that holds the link (a loop)")
+
+
 def _pack(path: str | Path, private: bool = False) -> bytes:
-    """A file or folder as gzipped tar bytes; links are stored as what they point to. Private
-    resumable state is left out unless ``private`` (a job's own partial output, to resume from)."""
+    """A file or folder as gzipped tar bytes; links are stored as what they point to, and must
+    point inside the folder (:func:`_check_links`). Private resumable state is left out unless
+    ``private`` (a job's own partial output, to resume from)."""
     p = Path(path)
+    if p.is_dir():
+        _check_links(p)
     buf = io.BytesIO()
     skip = () if private else _PRIVATE_DIRS
     with tarfile.open(fileobj=buf, mode="w:gz", dereference=True) as tar:
@@ -519,6 +545,32 @@ def _node_id() -> str:
         return "local"
 
 
+def usable_cpus() -> int:
+    """The CPUs this process may run on: its affinity mask where the OS keeps one, else the count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+_RAY_EXTRA = "pip install 'advobj[ray]'"
+
+
+def _ray_installed() -> bool:
+    if "ray" in sys.modules:
+        return sys.modules["ray"] is not None  # None: its import was refused (or failed) before
+    return importlib.util.find_spec("ray") is not None
+
+
+def _import_ray(flag: str):
+    """``ray``, or one line naming ``flag`` and how to install it (a broken install included)."""
+    try:
+        import ray
+    except ImportError as err:
+        raise GridError(f"{flag}: Ray cannot be imported ({_one_line(err)}); install it with {_RAY_EXTRA}") from None
+    return ray
+
+
 def _check_placeable(jobs: list, ray) -> None:
     """A job that asks for more CPUs or GPUs than any node has would wait forever: one line now."""
     nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
@@ -533,17 +585,69 @@ def _check_placeable(jobs: list, ray) -> None:
             )
 
 
+# The client connection preface of HTTP/2 (RFC 9113, section 3.4) and an empty SETTINGS frame.
+_H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+_H2_SETTINGS = 0x04
+
+
 def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
-    """``HOST:PORT`` accepts a TCP connection, else one line (``ray.init`` would retry for minutes)."""
+    """``HOST:PORT`` is a Ray cluster's GCS, checked within ``timeout_s``, else one line.
+
+    ``ray.init`` given a port where something else listens (a web server, a database) waits there
+    for minutes, and a reachable port says nothing about what answers on it. A Ray head's GCS is a
+    gRPC server, and gRPC speaks HTTP/2: a server answers the client's connection preface with a
+    SETTINGS frame (9-byte header: 3 bytes of length, then type 0x04). So the check opens one TCP
+    connection, sends the preface and reads 9 bytes, the whole under one deadline: a SETTINGS frame
+    is Ray, anything else (an HTTP/1 server's ``HTTP/1.1 400``, a close) is not, and silence past
+    the deadline is refused too. This costs one round trip, starts nothing and leaves no state, where
+    running ``ray.init`` itself under a watchdog would leave a half-connected Ray in the process.
+    A cluster with TLS on (``RAY_USE_TLS``) expects a TLS handshake first: only the connection is
+    checked then."""
     import socket
 
     host, sep, port = address.rpartition(":")
     if not sep or not host or not port.isdigit():
         raise GridError(f"--address: expected 'auto' or HOST:PORT, got {address!r}")
+    deadline = time.monotonic() + timeout_s
+    head = b""
     try:
-        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+        with socket.create_connection((host, int(port)), timeout=timeout_s) as conn:
+            if os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true"):
+                return
+            conn.sendall(_H2_PREFACE)
+            while len(head) < 9:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError
+                conn.settimeout(left)
+                got = conn.recv(9 - len(head))
+                if not got:
+                    break
+                head += got
+    except TimeoutError:
+        raise GridError(
+            f"--address {address}: no answer as a Ray cluster within {timeout_s:g} s "
+            "(give the head node's GCS port, 6379 by default)"
+        ) from None
     except OSError as err:
-        raise GridError(f"--address {address}: no Ray cluster answers there ({err.strerror or err})") from None
+        if not head:
+            raise GridError(f"--address {address}: no Ray cluster answers there ({err.strerror or err})") from None
+    if len(head) < 9 or head[3] != _H2_SETTINGS:
+        raise GridError(
+            f"--address {address}: the service there is not a Ray cluster (it does not answer in gRPC); give the "
+            "head node's GCS port, 6379 by default"
+        )
+
+
+def _own_token() -> None:
+    """A Ray started for the run authenticates its processes with a token (on by default in Ray
+    2.60) and, when none is given, writes a new one to ``~/.ray/auth_token``: outside ``--out``,
+    and left there. A token of this process's own in its environment (``RAY_AUTH_TOKEN``, inherited
+    by every process Ray starts from it) writes none. Kept for the process's life, as Ray keeps the
+    token it loaded: a later Ray of this process gets the same one. A token, token file or mode the
+    user set is left alone."""
+    if not any(k in os.environ for k in ("RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH", "RAY_AUTH_MODE")):
+        os.environ["RAY_AUTH_TOKEN"] = uuid.uuid4().hex + uuid.uuid4().hex
 
 
 def _sees(path: str, token: str) -> bool:
@@ -565,13 +669,24 @@ class RayExecutor:
         shared_fs: bool | None = None,
         echo: Callable[[str], None] | None = print,
         poll_s: float = 2.0,
+        connect_timeout_s: float = 5.0,
     ):
         if (workers is None) == (address is None):
             raise GridError("--workers/--address: give exactly one (a local Ray with N workers, or a cluster to join)")
         if workers is not None and workers < 1:
             raise GridError(f"--workers: must be at least 1, got {workers}")
+        if workers is not None and workers > usable_cpus():
+            # Ray starts a worker process per CPU it is told of: more than the machine has only
+            # fills its memory (and the jobs would share the same cores anyway).
+            raise GridError(
+                f"--workers: at most {usable_cpus()} on this machine (the CPUs this process may use), got {workers}"
+            )
+        self.flag = "--workers" if workers is not None else "--address"
+        if not _ray_installed():
+            raise GridError(f"{self.flag}: runs the jobs on Ray, which is not installed; install it with {_RAY_EXTRA}")
         self.workers, self.address, self.max_retries = workers, address, int(max_retries)
         self.shared_fs, self.echo, self.poll_s = shared_fs, echo, float(poll_s)
+        self.connect_timeout_s = float(connect_timeout_s)
         self.slots = workers or 1
         self.placements: dict[str, str] = {}  # job name -> node id (tests and the benchmark read it)
         self.timings: dict[str, dict] = {}
@@ -587,17 +702,17 @@ class RayExecutor:
         root = str(Path(__file__).resolve().parents[2])
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         kw = dict(include_dashboard=False, logging_level="ERROR", log_to_driver=False, runtime_env={"env_vars": env})
-        if self.address not in (None, "auto"):
-            _check_reachable(self.address)
         try:
             if self.address is not None:
                 ray.init(address=self.address, **kw)
             else:  # "local": a new Ray for this run, never a cluster that happens to be running
+                _own_token()
                 ray.init(address="local", num_cpus=self.workers, **kw)
         except (ConnectionError, RuntimeError, ValueError) as err:
-            raise GridError(
-                f"--address {self.address}: cannot join the Ray cluster ({' '.join(str(err).split())[:200]})"
-            ) from None
+            what = "--workers: the local Ray did not start"
+            if self.address is not None:
+                what = f"--address {self.address}: cannot join the Ray cluster"
+            raise GridError(f"{what} ({' '.join(str(err).split())[:200]})") from None
         self.slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
         return True
 
@@ -633,12 +748,18 @@ class RayExecutor:
         if not grid.pending():
             _report_reused(grid, [], self.echo)
             return {}
+        if self.address not in (None, "auto"):
+            _check_reachable(self.address, self.connect_timeout_s)  # before ray.init, which would wait there
         if self.address is None and "ray" not in sys.modules:
             # A Ray started for this run is single-machine: keep it on the loopback interface (Ray
             # otherwise advertises the machine's outward address). Read when ray is imported.
             os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-        import ray
-
+        ray = _import_ray(self.flag)
+        # A local Ray started here shares the driver's fate: ray.init installs a SIGTERM handler that
+        # exits through its atexit ray.shutdown, Ctrl-C reaches the ``finally`` below, and on Linux
+        # its GCS and raylet are asked to die with the driver (PR_SET_PDEATHSIG), the workers with
+        # their raylet; Ray's two agents exit within about a minute (they first try to report to the
+        # dead GCS). tests/hostile/test_jobs_hostile_ray.py SIGKILLs a driver and checks all that.
         started = self._init()
         try:
             return self._run(grid, ray)
