@@ -9,6 +9,7 @@ a corrupt policy before any row and fails a run whose every row failed.
 
 import http.server
 import importlib.util
+import json
 import socket
 import sys
 import threading
@@ -112,3 +113,46 @@ def test_staging_ships_links_inside_the_folder_and_refuses_links_out_and_loops(t
     (d / "sub" / "up").symlink_to(d)
     with pytest.raises(GridError, match="a folder that holds the link"):
         _pack(d)
+
+
+def test_a_short_pool_is_topped_up_the_same_serially_and_through_the_job_layer(tmp_path, tiny_policy_dir, monkeypatch):
+    """One evaluation-part configuration for 3 episodes: ``run_eval`` and the job layer (a pool
+    job, then 2 shards) both top it up to 3 with the same configurations. Which configurations are
+    task-feasible is stubbed (an untrained policy reaches no goal): the rule is what is checked."""
+    from sim.configs import sample_pool, save_pool
+    from sim.spec import default_scene
+    from trials.eval import evaluate
+    from trials.eval.evaluate import load_eval_config, run_eval
+    from trials.experiments.recipes import run_eval_grid
+    from trials.jobs.dag import SerialExecutor
+
+    spec = default_scene()
+    spec = spec.with_updates(episode={**spec.episode.model_dump(), "max_steps": MAX_STEPS})
+    short = tmp_path / "short.json"
+    save_pool(short, spec, sample_pool(spec, 1, seed=0, part="evaluation"))
+
+    def feasible(policy, spec, part, n, start_seed=0, num_envs=8, exclude=(), **kw):
+        got = [c for c in sample_pool(spec, n + len(exclude), seed=start_seed, part=part) if c.seed not in exclude]
+        return got[:n], n
+
+    monkeypatch.setattr(evaluate, "build_feasible", feasible)
+    cfg = load_eval_config(
+        policy=str(tiny_policy_dir),
+        pool=str(short),
+        conditions=("clean",),
+        episodes=3,
+        max_steps=MAX_STEPS,
+        num_envs=2,
+        gifs=0,
+        seed=5,
+    )
+    serial = run_eval(cfg, tmp_path / "serial", progress=False)
+    grid = run_eval_grid(cfg, tmp_path / "grid", SerialExecutor(None), shards=2)
+    assert serial["conditions"]["clean"]["n"] == grid["conditions"]["clean"]["n"] == 3
+
+    def seeds(d):
+        return sorted(json.loads((d / "run.json").read_text())["config"]["seeds"])
+
+    assert seeds(tmp_path / "serial") == sorted(
+        s for k in range(2) for s in seeds(tmp_path / "grid" / "shards" / f"{k}-of-2")
+    )

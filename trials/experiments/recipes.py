@@ -464,7 +464,10 @@ def job_pool(out: Path, inputs: dict, fields: dict) -> None:
     from trials.jobs.scene import load_spec
 
     ecfg = load_eval_config(
-        policy=str(inputs["policy"]), scene=None if "scene" not in inputs else str(inputs["scene"]), **fields
+        policy=str(inputs["policy"]),
+        scene=None if "scene" not in inputs else str(inputs["scene"]),
+        pool=None if "pool" not in inputs else str(inputs["pool"]),
+        **fields,
     )
     base = load_spec(ecfg.scene)
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": ecfg.max_steps})
@@ -529,8 +532,10 @@ def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, m
 
 
 def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dict:
-    """``advobj eval`` through the job layer: a ``pool`` job (unless ``cfg.pool`` is given), then
-    the evaluation into ``out`` (the folder ``run_eval`` writes), in ``shards`` jobs merged there."""
+    """``advobj eval`` through the job layer: a ``pool`` job, then the evaluation into ``out`` (the
+    folder ``run_eval`` writes), in ``shards`` jobs merged there. The pool job resolves the pool as
+    ``run_eval`` does (``cfg.pool`` or the policy's own, topped up when short of ``cfg.episodes``),
+    so the episodes do not depend on the executor; the shards take its pool as it is."""
     from trials.jobs.dag import Grid
 
     out = Path(out)
@@ -542,19 +547,17 @@ def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dic
         if k not in ("policy", "pool", "scene", "attack", "patch", "shapes")
     }
     scene = {} if cfg.scene is None else {"scene": cfg.scene}
-    pool = cfg.pool
-    if pool is None:
-        pf = {k: fields[k] for k in ("episodes", "max_steps", "num_envs", "seed", "pool_factor", "device")}
-        grid.add(
-            "pool",
-            "pool",
-            "trials.experiments.recipes:job_pool",
-            out / "pool",
-            {"fields": pf},
-            {"policy": cfg.policy, **scene},
-            **res,
-        )
-        pool = str(out / "pool" / "feasible_pool.json")
+    pf = {k: fields[k] for k in ("episodes", "max_steps", "num_envs", "seed", "pool_factor", "device")}
+    grid.add(
+        "pool",
+        "pool",
+        "trials.experiments.recipes:job_pool",
+        out / "pool",
+        {"fields": pf},
+        {"policy": cfg.policy, "pool": cfg.pool, **scene},
+        **res,
+    )
+    pool = str(out / "pool" / "feasible_pool.json")
     inputs = {
         "policy": cfg.policy,
         "pool": pool,
