@@ -23,10 +23,10 @@ from pathlib import Path
 from typing import Annotated, Literal, Sequence
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from calibration.errors import CalibrationError, CalibrationFileError
-from calibration.io import Strict, load_model, read_yaml, write_yaml
+from calibration.io import Strict, load_model, nesting_depth, read_bytes, read_yaml, write_yaml
 
 __all__ = [
     "BoardSpec",
@@ -47,7 +47,20 @@ __all__ = [
     "save_camera_yaml",
     "load_board_yaml",
     "save_board_yaml",
+    "MAX_IMAGE_PX",
+    "FOCAL_RANGE",
+    "MAX_DISTORTION",
+    "CAMERA_FILE_MAX_BYTES",
+    "CAMERA_FILE_MAX_DEPTH",
 ]
+
+# Bounds of a camera file (every format): a real camera's image, focal length and distortion.
+MAX_IMAGE_PX = 16384  # per side
+FOCAL_RANGE = (0.05, 100.0)  # fx, fy as multiples of the image width: ~175 deg to ~0.6 deg field of view
+MAX_DISTORTION = 1e3  # |coefficient|; calibrated lenses stay well below (a strong fisheye: k ~ 10)
+CAMERA_FILE_MAX_BYTES = 2**20  # a camera file is a few kB; OpenCV's with per-view data, tens of kB
+CAMERA_FILE_MAX_DEPTH = 32  # levels of nesting (a camera file needs 4); parsers recurse per level
+CAMERA_FILE_MAX_BRACKETS = 4096  # [ and { in all: bounds flow nesting however brackets hide in strings
 
 ARUCO_DICTS = {
     "4X4_50": "DICT_4X4_50",
@@ -184,7 +197,9 @@ class CameraIntrinsics:
         Pixel centres sit at integers, so a pixel edge maps as ``x' = (x + 0.5) s - 0.5``.
         Distortion coefficients act on normalised coordinates and are unchanged.
         """
-        if width <= 0 or height <= 0 or width * self.height != height * self.width:
+        if not (0 < width <= MAX_IMAGE_PX and 0 < height <= MAX_IMAGE_PX):
+            raise ValueError(f"scaled: {width}x{height}: each side must be 1..{MAX_IMAGE_PX} pixels")
+        if width * self.height != height * self.width:
             raise ValueError(f"scaled: {width}x{height} does not have the aspect ratio of {self.width}x{self.height}")
         s = width / self.width
         K = self.K.copy()
@@ -627,11 +642,15 @@ def _coverage(corner_sets: Sequence[np.ndarray], size: tuple[int, int], cells: t
 # ---- files ---------------------------------------------------------------------------------
 
 
+_ImagePx = Annotated[int, Field(ge=1, le=MAX_IMAGE_PX)]
+_Coefficient = Annotated[float, Field(ge=-MAX_DISTORTION, le=MAX_DISTORTION)]
+
+
 class _CameraFile(Strict):
-    width: Annotated[int, Field(gt=0)]
-    height: Annotated[int, Field(gt=0)]
+    width: _ImagePx
+    height: _ImagePx
     K: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
-    dist: tuple[float, ...] = ()
+    dist: tuple[_Coefficient, ...] = ()
     rms_px: Annotated[float, Field(ge=0.0)] | None = None
     model: Literal["opencv_pinhole"] = "opencv_pinhole"
     image_reprojection_rms_px: dict[str, float] | None = None
@@ -641,7 +660,7 @@ class _CameraFile(Strict):
 
     @field_validator("K")
     @classmethod
-    def _k(cls, K):
+    def _k(cls, K, info: ValidationInfo):
         k = np.asarray(K, dtype=np.float64)
         if not np.all(np.isfinite(k)):
             raise ValueError("must be finite")
@@ -649,6 +668,15 @@ class _CameraFile(Strict):
             raise ValueError("fx (K[0][0]) and fy (K[1][1]) must be positive")
         if k[0, 1] != 0 or k[1, 0] != 0 or tuple(k[2]) != (0.0, 0.0, 1.0):
             raise ValueError("must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+        width = info.data.get("width")  # absent when the width itself was refused
+        if width is not None:
+            lo, hi = FOCAL_RANGE[0] * width, FOCAL_RANGE[1] * width
+            for name, f in (("fx (K[0][0])", k[0, 0]), ("fy (K[1][1])", k[1, 1])):
+                if not lo <= f <= hi:
+                    raise ValueError(
+                        f"{name} = {f:g} px is no lens's focal length for a {width} px wide image "
+                        f"(expected {FOCAL_RANGE[0]:g}..{FOCAL_RANGE[1]:g} x the width: {lo:g}..{hi:g} px)"
+                    )
         return K
 
     @field_validator("dist")
@@ -683,8 +711,8 @@ class _RosMatrix(Strict):
 class _RosCameraInfo(Strict):
     """ROS ``camera_info`` YAML (``camera_calibration_parsers``; what ROS 1 and 2 calibrators write)."""
 
-    image_width: Annotated[int, Field(gt=0)]
-    image_height: Annotated[int, Field(gt=0)]
+    image_width: _ImagePx
+    image_height: _ImagePx
     camera_name: str | None = None
     camera_matrix: _RosMatrix
     distortion_model: Literal["plumb_bob", "rational_polynomial", "equidistant", "fisheye"] = "plumb_bob"
@@ -751,16 +779,32 @@ def save_camera_yaml(
     return write_yaml(path, data, header="Camera intrinsics (OpenCV pinhole; K in px, dist = k1 k2 p1 p2 k3)")
 
 
-def camera_file_format(path) -> str:
-    """``"opencv"`` (FileStorage YAML/JSON), ``"ros"`` (camera_info) or ``"advobj"``, from the file's content."""
-    p = Path(path)
-    try:
-        head = p.read_text(errors="replace")[:4096]
-    except OSError as err:
-        raise CalibrationFileError(p, "<file>", f"cannot read ({err.strerror or err})") from None
+def _camera_text(path) -> str:
+    """The text of camera file ``path`` once it has passed the checks no parser is trusted with: a
+    regular file (not a device or FIFO, which would block), at most :data:`CAMERA_FILE_MAX_BYTES`,
+    nested at most :data:`CAMERA_FILE_MAX_DEPTH` levels (OpenCV's parser recurses per level and
+    crashes the process on a deep enough file; Python's parsers raise RecursionError)."""
+    text = read_bytes(path, "<file>", CAMERA_FILE_MAX_BYTES).decode("utf-8", errors="replace")
+    brackets = text.count("[") + text.count("{")
+    if brackets > CAMERA_FILE_MAX_BRACKETS:
+        raise CalibrationFileError(
+            path, "<file>", f"{brackets} brackets, over the {CAMERA_FILE_MAX_BRACKETS} a camera file can hold"
+        )
+    depth = nesting_depth(text)
+    if depth > CAMERA_FILE_MAX_DEPTH:
+        raise CalibrationFileError(
+            path,
+            "<file>",
+            f"nested {depth} levels deep, over the limit of {CAMERA_FILE_MAX_DEPTH} (a camera file needs 4)",
+        )
+    return text
+
+
+def _format_of(path, text: str) -> str:
+    head = text[:4096]
     if head.lstrip().startswith("%YAML") or "opencv-matrix" in head:
         return "opencv"
-    if p.suffix.lower() == ".json" and any(
+    if Path(path).suffix.lower() == ".json" and any(
         f'"{k}"' in head for k in ("camera_matrix", "cameraMatrix", "intrinsic", "mtx")
     ):
         return "opencv"  # FileStorage JSON with plain lists
@@ -769,19 +813,22 @@ def camera_file_format(path) -> str:
     return "advobj"
 
 
-def _cam(path, field: str, K, dist, width, height, rms=None) -> CameraIntrinsics:
-    """Validate through our own schema, so every format gets the same checks and messages."""
-    data = {
-        "width": width,
-        "height": height,
-        "K": np.asarray(K, dtype=np.float64).reshape(3, 3).tolist(),
-        "dist": [float(x) for x in np.asarray(dist, dtype=np.float64).reshape(-1)],
-        "rms_px": rms,
-    }
+def camera_file_format(path) -> str:
+    """``"opencv"`` (FileStorage YAML/JSON), ``"ros"`` (camera_info) or ``"advobj"``, from the file's content."""
+    return _format_of(path, _camera_text(path))
+
+
+def _cam(path, names: dict, K, dist, width, height, rms=None) -> CameraIntrinsics:
+    """Validate through our own schema, so every format gets the same checks and messages; an
+    error names the field as the file's format calls it (``names``: our field -> theirs)."""
+    data = {"width": width, "height": height, "K": K, "dist": dist, "rms_px": rms}
     try:
         m = load_model(path, _CameraFile, data)
     except CalibrationFileError as err:
-        raise CalibrationFileError(path, field, str(err).split(": ", 2)[-1]) from None
+        ours, _, rest = err.field.partition(".")
+        message = str(err)[len(f"{err.path}: {err.field}: ") :]
+        field = names.get(ours, ours) + (f".{rest}" if rest and ours == "dist" else "")
+        raise CalibrationFileError(path, field, message) from None
     return CameraIntrinsics(np.asarray(m.K), np.asarray(m.dist), m.width, m.height, m.rms_px)
 
 
@@ -792,25 +839,43 @@ _CV_W = ("image_width", "width", "imageWidth")
 _CV_H = ("image_height", "height", "imageHeight")
 
 
-def _node_array(node, path, name: str) -> np.ndarray:
-    """A FileStorage node as a float array: an ``!!opencv-matrix`` or a plain (nested) sequence."""
-    import cv2
+def _node_number(node, path, name: str) -> float:
+    if not (node.isInt() or node.isReal()):
+        raise CalibrationFileError(path, name, "expected a number")
+    return float(node.real())
 
-    try:
-        if node.isSeq():
-            vals = []
-            for i in range(node.size()):
-                item = node.at(i)
-                vals.append(_node_array(item, path, name) if item.isSeq() else np.array([item.real()]))
-            return np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in vals]) if vals else np.zeros(0)
-        m = node.mat()
-    except (cv2.error, SystemError) as err:
-        raise CalibrationFileError(
-            path, name, f"not a matrix or a list of numbers ({str(err).splitlines()[-1][:80]})"
-        ) from None
-    if m is None:
+
+def _node_matrix(node, path, name: str) -> tuple[np.ndarray, bool]:
+    """A FileStorage node as a 2D float array, and whether the file gave its shape: an
+    ``!!opencv-matrix`` (``rows`` x ``cols``, whose ``data`` must hold exactly rows * cols numbers)
+    or a plain list of numbers (one row) or of equally long lists of numbers. Nothing deeper."""
+
+    def numbers(seq, where: str) -> list[float]:
+        if not seq.isSeq():
+            raise CalibrationFileError(path, where, "not a matrix or a list of numbers")
+        return [_node_number(seq.at(i), path, where) for i in range(seq.size())]
+
+    if node.isMap():
+        rows, cols, data = node.getNode("rows"), node.getNode("cols"), node.getNode("data")
+        if rows.empty() or cols.empty() or data.empty():
+            raise CalibrationFileError(path, name, "not a matrix (an opencv-matrix needs rows, cols and data)")
+        r, c = _node_number(rows, path, f"{name}.rows"), _node_number(cols, path, f"{name}.cols")
+        if not (r.is_integer() and c.is_integer() and r >= 1 and c >= 1):
+            raise CalibrationFileError(path, name, f"rows and cols must be whole numbers >= 1, got {r:g} x {c:g}")
+        n = data.size() if data.isSeq() else 1
+        if n != r * c:
+            raise CalibrationFileError(path, f"{name}.data", f"{n} values for a {r:g}x{c:g} matrix")
+        return np.asarray(numbers(data, f"{name}.data"), dtype=np.float64).reshape(int(r), int(c)), True
+    if not node.isSeq():
         raise CalibrationFileError(path, name, "not a matrix or a list of numbers")
-    return np.asarray(m, dtype=np.float64).reshape(-1)
+    if node.size() and node.at(0).isSeq():
+        rows = [numbers(node.at(i), name) for i in range(node.size())]
+        if len({len(r) for r in rows}) != 1:
+            raise CalibrationFileError(
+                path, name, f"rows of different lengths ({', '.join(str(len(r)) for r in rows)})"
+            )
+        return np.asarray(rows, dtype=np.float64), True
+    return np.asarray(numbers(node, name), dtype=np.float64).reshape(1, -1), False
 
 
 def _load_opencv(path) -> CameraIntrinsics:
@@ -834,49 +899,81 @@ def _load_opencv(path) -> CameraIntrinsics:
             return None, None
 
         kname, knode = first(_CV_K)
-        K = None if knode is None else _node_array(knode, path, kname)
-        if K is None or K.size != 9:
-            raise CalibrationFileError(
-                path, kname or "camera_matrix", f"no 3x3 camera matrix under any of {', '.join(_CV_K)}"
-            )
+        if knode is None:
+            raise CalibrationFileError(path, "camera_matrix", f"no 3x3 camera matrix under any of {', '.join(_CV_K)}")
+        K, shaped = _node_matrix(knode, path, kname)
+        if K.shape != (3, 3) and not (not shaped and K.size == 9):  # a flat list of 9 is row-major 3x3
+            raise CalibrationFileError(path, kname, f"expected a 3x3 camera matrix, got {K.shape[0]}x{K.shape[1]}")
         dname, dnode = first(_CV_D)
-        dist = np.zeros(0) if dnode is None else _node_array(dnode, path, dname)
+        dist = np.zeros((1, 0)) if dnode is None else _node_matrix(dnode, path, dname)[0]
+        if min(dist.shape) > 1:
+            raise CalibrationFileError(path, dname, f"expected one row or column, got {dist.shape[0]}x{dist.shape[1]}")
         wname, w = first(_CV_W)
         hname, h = first(_CV_H)
         if w is None or h is None:
+            wname = hname = "image_size"
             size = fs.getNode("image_size")
             if size.empty() or not size.isSeq() or size.size() != 2:
                 raise CalibrationFileError(
                     path, "image_width", "no image size (image_width/image_height, width/height or image_size)"
                 )
-            width, height = size.at(0).real(), size.at(1).real()
+            width, height = (_node_number(size.at(i), path, "image_size") for i in (0, 1))
         else:
-            width, height = w.real(), h.real()
-        if not (float(width).is_integer() and float(height).is_integer()):
-            raise CalibrationFileError(path, "image_width", f"image size must be whole pixels, got {width} x {height}")
+            width, height = _node_number(w, path, wname), _node_number(h, path, hname)
+        for name, v in ((wname, width), (hname, height)):
+            if not (v.is_integer() and 1 <= v <= MAX_IMAGE_PX):
+                raise CalibrationFileError(path, name, f"expected whole pixels 1..{MAX_IMAGE_PX}, got {v:g}")
         rnode = fs.getNode("avg_reprojection_error")
-        rms = None if rnode.empty() else float(rnode.real())
-        return _cam(path, kname, K, dist, int(width), int(height), rms)
+        rms = None if rnode.empty() else _node_number(rnode, path, "avg_reprojection_error")
+        names = {
+            "width": wname,
+            "height": hname,
+            "K": kname,
+            "dist": dname or _CV_D[0],
+            "rms_px": "avg_reprojection_error",
+        }
+        return _cam(path, names, K.reshape(3, 3).tolist(), dist.reshape(-1).tolist(), int(width), int(height), rms)
     finally:
         fs.release()
+
+
+def _ros_shape(path, name: str, m: _RosMatrix, shapes) -> None:
+    if (m.rows, m.cols) not in shapes:
+        want = " or ".join(f"{r}x{c}" for r, c in shapes)
+        raise CalibrationFileError(path, name, f"expected {want}, got {m.rows}x{m.cols}")
 
 
 def load_camera_yaml(path) -> CameraIntrinsics:
     """The :class:`CameraIntrinsics` in ``path``: our camera YAML, a ROS ``camera_info`` YAML, or
     an OpenCV ``FileStorage`` YAML/JSON (told apart by content). A :class:`CalibrationFileError`
-    names the file and field."""
-    fmt = camera_file_format(path)
+    names the file and field.
+
+    Before any parser sees it, the file must be a regular file of at most
+    :data:`CAMERA_FILE_MAX_BYTES`, nested at most :data:`CAMERA_FILE_MAX_DEPTH` levels. Every
+    format is held to the same bounds: 1..:data:`MAX_IMAGE_PX` pixels a side, fx and fy within
+    :data:`FOCAL_RANGE` x the width, the principal point inside the image, distortion coefficients
+    finite and at most :data:`MAX_DISTORTION` in size.
+    """
+    fmt = _format_of(path, _camera_text(path))
     if fmt == "opencv" or (str(path).lower().endswith(".json") and fmt != "advobj"):
         return _load_opencv(path)
     if fmt == "ros":
         m = load_model(path, _RosCameraInfo)
-        if (m.camera_matrix.rows, m.camera_matrix.cols) != (3, 3):
-            raise CalibrationFileError(
-                path, "camera_matrix", f"expected 3x3, got {m.camera_matrix.rows}x{m.camera_matrix.cols}"
-            )
-        return _cam(
-            path, "camera_matrix", m.camera_matrix.data, m.distortion_coefficients.data, m.image_width, m.image_height
-        )
+        _ros_shape(path, "camera_matrix", m.camera_matrix, [(3, 3)])
+        n = len(m.distortion_coefficients.data)
+        _ros_shape(path, "distortion_coefficients", m.distortion_coefficients, [(1, n), (n, 1)])
+        if m.rectification_matrix is not None:
+            _ros_shape(path, "rectification_matrix", m.rectification_matrix, [(3, 3)])
+        if m.projection_matrix is not None:
+            _ros_shape(path, "projection_matrix", m.projection_matrix, [(3, 4)])
+        names = {
+            "width": "image_width",
+            "height": "image_height",
+            "K": "camera_matrix",
+            "dist": "distortion_coefficients.data",
+        }
+        K = np.asarray(m.camera_matrix.data, dtype=np.float64).reshape(3, 3).tolist()
+        return _cam(path, names, K, list(m.distortion_coefficients.data), m.image_width, m.image_height)
     m = load_model(path, _CameraFile)
     return CameraIntrinsics(np.asarray(m.K), np.asarray(m.dist), m.width, m.height, m.rms_px)
 

@@ -7,6 +7,9 @@ project's rotation exchange format); :func:`pose_to_T` / :func:`T_to_pose` conve
 from __future__ import annotations
 
 import math
+import os
+import re
+import stat
 from pathlib import Path
 from typing import Annotated, TypeVar
 
@@ -30,6 +33,12 @@ __all__ = [
     "write_yaml",
     "check_T",
     "read_image",
+    "not_a_regular_file",
+    "check_file",
+    "read_bytes",
+    "nesting_depth",
+    "MAX_YAML_BYTES",
+    "MAX_IMAGE_BYTES",
 ]
 
 M = TypeVar("M", bound=BaseModel)
@@ -109,8 +118,120 @@ def check_T(T, name: str, tol: float = 1e-6) -> np.ndarray:
     return T
 
 
+MAX_YAML_BYTES = 64 * 2**20  # a calibration YAML (samples, registry, board) is kilobytes
+MAX_IMAGE_BYTES = 1024 * 2**20  # an uncompressed 16384 x 16384 RGB(A) photo fits
+
+
+def not_a_regular_file(path) -> str | None:
+    """Why ``path`` is no file to read (a device such as ``/dev/zero``, a FIFO, a socket), or None.
+
+    Asked before anything opens the path: reading a FIFO blocks and ``/dev/zero`` never ends. A
+    missing path or a directory gives None (the reader reports those in its own words).
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return None
+    kind = (
+        "a FIFO (named pipe)"
+        if stat.S_ISFIFO(mode)
+        else "a character device"
+        if stat.S_ISCHR(mode)
+        else "a block device"
+        if stat.S_ISBLK(mode)
+        else "a socket"
+        if stat.S_ISSOCK(mode)
+        else "not a regular file"
+    )
+    return f"is {kind}, not a regular file"
+
+
+def check_file(path, field: str, max_bytes: int) -> None:
+    """:class:`CalibrationFileError` naming ``path`` and ``field`` for a device, FIFO or socket, or a
+    file over ``max_bytes``; asked before anything opens or reads it."""
+    problem = not_a_regular_file(path)
+    if problem is not None:
+        raise CalibrationFileError(path, field, problem)
+    try:
+        size = os.stat(path).st_size
+    except (OSError, ValueError):
+        return
+    if size > max_bytes:
+        raise CalibrationFileError(path, field, f"{size} bytes, over the limit of {max_bytes} bytes")
+
+
+def read_bytes(path, field: str, max_bytes: int) -> bytes:
+    """The bytes of the regular file ``path``, at most ``max_bytes``: a device, FIFO, socket,
+    directory, missing or larger file raises :class:`CalibrationFileError` naming the file, without
+    blocking (the file is opened non-blocking and checked on the open descriptor)."""
+    check_file(path, field, max_bytes)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as err:
+        raise CalibrationFileError(path, field, f"cannot read ({err.strerror or err})") from None
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(f.fileno())
+        if stat.S_ISDIR(st.st_mode):
+            raise CalibrationFileError(path, field, "is a directory, expected a file")
+        if not stat.S_ISREG(st.st_mode):
+            raise CalibrationFileError(path, field, "is not a regular file")
+        try:
+            data = f.read(max_bytes + 1)
+        except OSError as err:
+            raise CalibrationFileError(path, field, f"cannot read ({err.strerror or err})") from None
+    if len(data) > max_bytes:
+        raise CalibrationFileError(path, field, f"over the limit of {max_bytes} bytes")
+    return data
+
+
+_COMPACT = re.compile(r"(?:[-?](?:[ \t]+|$))*")  # leading "- - " / "? " indicators: one block level each
+# What a line's flow nesting is read from: a quoted scalar where one can start (skipped whole), a
+# comment (the rest of the line), or a bracket.
+_TOKEN = re.compile(
+    r"""(?<![^\s\[{,:])(?:"(?:[^"\\]|\\.)*"|'(?:[^']|'')*')"""
+    r"|(?<!\S)#.*"
+    r"|[\[\]{}]"
+)
+
+
+def nesting_depth(text: str) -> int:
+    """An estimate of how deeply the YAML or JSON ``text`` nests, without parsing it (linear time).
+
+    A line's block depth is the number of indentation levels open at it plus its leading ``- `` /
+    ``? `` indicators; flow depth counts the ``[`` / ``{`` open, skipping quoted strings and
+    comments. Exact for JSON; for YAML at least half the real depth, except that a string the scan
+    cannot see as one (spanning lines, or quoted mid-word) could hide closing brackets from it:
+    callers also bound the count of brackets, which bounds flow nesting whatever the strings hold.
+    """
+    depth = flow = 0
+    indents = [0]
+    for line in text.split("\n"):
+        stripped = line.lstrip(" ")
+        if stripped and not stripped.startswith("#"):
+            col = len(line) - len(stripped)
+            while indents[-1] > col:
+                indents.pop()
+            if indents[-1] < col:
+                indents.append(col)
+            lead = _COMPACT.match(stripped).group()
+            block = len(indents) - 1 + lead.count("-") + lead.count("?")
+            depth = max(depth, block + flow)
+            for m in _TOKEN.finditer(stripped):
+                c = m.group()[0]
+                if c in "[{":
+                    flow += 1
+                    depth = max(depth, block + flow)
+                elif c in "]}":
+                    flow = max(0, flow - 1)
+    return depth
+
+
 def read_yaml(path) -> object:
-    """Parsed YAML of ``path``; missing or malformed files raise :class:`CalibrationFileError`."""
+    """Parsed YAML of ``path``; missing or malformed files, devices, FIFOs and files over
+    :data:`MAX_YAML_BYTES` raise :class:`CalibrationFileError`."""
+    check_file(path, "<file>", MAX_YAML_BYTES)
 
     def error(p, problem: str) -> CalibrationFileError:
         unreadable = problem.startswith(("cannot read", "is a directory"))
@@ -166,6 +287,7 @@ def read_image(path) -> np.ndarray:
     :class:`CalibrationFileError`."""
     import cv2
 
+    check_file(path, "<image>", MAX_IMAGE_BYTES)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise CalibrationFileError(path, "<image>", "cannot read as an image")
