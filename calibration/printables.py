@@ -30,6 +30,7 @@ __all__ = [
     "board_pdf",
     "parse_id_ranges",
     "parse_page",
+    "TAG36H11_IDS",
 ]
 
 A4_MM = (210.0, 297.0)
@@ -44,26 +45,36 @@ MM_PER_INCH = 25.4
 SCALE_BAR_MM = 50.0
 
 
-def parse_id_ranges(text: str) -> list[int]:
-    """``"0-7,12,20-21"`` -> [0..7, 12, 20, 21]; ValueError naming the bad part."""
-    ids: list[int] = []
+TAG36H11_IDS = 587  # ids 0..586
+
+
+def parse_id_ranges(text: str, n_ids: int = TAG36H11_IDS) -> list[int]:
+    """``"0-7,12,20-21"`` -> [0..7, 12, 20, 21]; ValueError naming the bad part.
+
+    Every id must lie in ``0..n_ids - 1`` (the dictionary's ids) and the list may hold at most
+    ``n_ids`` entries; both are checked on the ranges' ends, before any range is expanded.
+    """
+    bounds: list[tuple[int, int]] = []
+    total = 0
     for part in text.split(","):
         part = part.strip()
         if not part:
             continue
         try:
-            if "-" in part:
-                a, b = (int(x) for x in part.split("-", 1))
-                if b < a:
-                    raise ValueError
-                ids.extend(range(a, b + 1))
-            else:
-                ids.append(int(part))
+            a, b = (int(x) for x in part.split("-", 1)) if "-" in part else (int(part),) * 2
+            if b < a:
+                raise ValueError
         except ValueError:
             raise ValueError(f"ids: cannot parse {part!r}; use e.g. 0-7,12") from None
-    if not ids:
+        if a < 0 or b >= n_ids:
+            raise ValueError(f"ids: {part} lies outside the dictionary's ids 0..{n_ids - 1}")
+        total += b - a + 1
+        if total > n_ids:
+            raise ValueError(f"ids: more than {n_ids} tags asked for (the dictionary has {n_ids} ids)")
+        bounds.append((a, b))
+    if not bounds:
         raise ValueError("ids: empty")
-    return ids
+    return [i for a, b in bounds for i in range(a, b + 1)]
 
 
 def parse_page(page: str) -> tuple[float, float]:
@@ -149,9 +160,9 @@ def tag_sheet_pdf(
 
     if not tag_size_mm > 0:
         raise CalibrationError("size_mm: must be positive")
-    bad = [i for i in tag_ids if not 0 <= i < 587]
+    bad = [i for i in tag_ids if not 0 <= i < TAG36H11_IDS]
     if bad:
-        raise CalibrationError(f"ids: tag36h11 has ids 0..586; got {bad}")
+        raise CalibrationError(f"ids: tag36h11 has ids 0..{TAG36H11_IDS - 1}; got {bad[:5]}")
     d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
     cells = d.markerSize + 2
     cell_mm = tag_size_mm / cells

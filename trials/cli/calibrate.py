@@ -92,7 +92,7 @@ def tags(
     try:
         id_list = parse_id_ranges(ids)
     except ValueError as err:
-        raise typer.BadParameter(str(err)) from None
+        raise typer.BadParameter(str(err).removeprefix("ids: "), param_hint="--ids") from None
     tag_sheet_pdf(out, id_list, size_mm)
     typer.echo(f"wrote {out}: {len(id_list)} tag(s) of {size_mm:g} mm; print at 100 % and check the 50 mm scale bar")
 
@@ -218,10 +218,12 @@ def convert(
 def _rescaled(cam, size: str, flag: str):
     try:
         w, h = (int(x) for x in size.lower().split("x"))
-        return cam.scaled(w, h)
+    except ValueError:
+        raise typer.BadParameter(f"expected WIDTHxHEIGHT, got {size!r}", param_hint=flag) from None
+    try:
+        return cam.scaled(w, h)  # refuses another aspect ratio and sides over MAX_IMAGE_PX
     except ValueError as err:
-        msg = str(err) if "aspect" in str(err) else f"expected WIDTHxHEIGHT, got {size!r}"
-        raise typer.BadParameter(msg, param_hint=flag) from None
+        raise typer.BadParameter(str(err).removeprefix("scaled: "), param_hint=flag) from None
 
 
 @app.command()
