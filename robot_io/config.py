@@ -17,6 +17,7 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
+from calibration.io import PoseModel, Vec3, not_a_regular_file
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
 from sim.configio import StrictModel, file_error, merged, read_yaml
@@ -150,6 +151,14 @@ class HardwareConfig(_Strict):
 
 
 # ---------------------------------------------------------------------- loading
+def _regular(path: Path | None, what: str) -> None:
+    """Refuse a device, FIFO or socket where a file belongs, before anything opens it (it would block
+    or never end)."""
+    problem = None if path is None else not_a_regular_file(path)
+    if problem is not None:
+        raise HardwareConfigError(f"{path}: {what}: {problem}")
+
+
 def _resolve(cfg: HardwareConfig, base: Path | None) -> HardwareConfig:
     if base is None:
         return cfg
@@ -182,26 +191,31 @@ def hardware_config_from_dict(data, source: str = "<dict>", base: Path | None = 
 def load_hardware_config(path: str | Path) -> HardwareConfig:
     """Load and validate a hardware YAML; errors name the file and the field."""
     path = Path(path)
+    _regular(path, "hardware config")
     data = read_yaml(path, "hardware config", error=file_error(HardwareConfigError))
     return hardware_config_from_dict(data, source=str(path), base=path.resolve().parent)
 
 
-class _TcpCamFile(_Strict):
-    translation_m: tuple[float, float, float]
-    rotvec_rad: tuple[float, float, float]
+class _TcpCamFile(PoseModel):
+    """The hand-eye result file: :class:`~calibration.io.PoseModel` (its bounds), both fields required."""
+
+    translation_m: Vec3
+    rotvec_rad: Vec3
 
 
 def load_T_tcp_cam(path: str | Path) -> np.ndarray:
-    """``T_tcp_cam`` (4, 4) from ``{translation_m: [..], rotvec_rad: [..]}``, top level or under ``T_tcp_cam:``."""
+    """``T_tcp_cam`` (4, 4) from ``{translation_m: [..], rotvec_rad: [..]}``, top level or under ``T_tcp_cam:``.
+
+    Both fields are required and held to :class:`calibration.io.PoseModel`'s bounds (finite, each
+    translation component within +-1 km, rotation vector norm at most 100 rad); an error names the
+    file and the field.
+    """
     from calibration.io import load_model, read_yaml
 
     data = read_yaml(path)
     if isinstance(data, dict) and set(data) == {"T_tcp_cam"}:
         data = data["T_tcp_cam"]
-    m = load_model(path, _TcpCamFile, data=data)
-    from sim.geometry import make_T, so3_exp
-
-    return make_T(so3_exp(np.asarray(m.rotvec_rad)), np.asarray(m.translation_m))
+    return load_model(path, _TcpCamFile, data=data).T
 
 
 def _intrinsics(path: Path | None):
@@ -218,6 +232,7 @@ def build_world(cfg: HardwareConfig):
     from sim.spec import default_scene, load_scene
     from sim.world import SimWorld
 
+    _regular(cfg.sim.scene, "sim.scene")
     spec = load_scene(cfg.sim.scene) if cfg.sim.scene is not None else default_scene()
     return SimWorld(spec, image_size=cfg.sim.image_size, seed=cfg.sim.seed)
 

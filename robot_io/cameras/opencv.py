@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import os
+import stat
+import sys
 import threading
 import time
 
@@ -22,6 +24,8 @@ __all__ = ["OpenCVCamera", "resolve_device"]
 
 log = logging.getLogger(__name__)
 
+V4L2_MAJOR = 81  # the Linux device number of video4linux nodes (/dev/videoN)
+
 
 def resolve_device(device: str | int) -> str | int:
     """An index (int or digit string) stays an index; a path (e.g. ``/dev/v4l/by-id/...``) must exist.
@@ -33,7 +37,17 @@ def resolve_device(device: str | int) -> str | int:
         return int(device)
     if not os.path.exists(device):
         raise CameraLostError(f"camera device {device} does not exist (is the camera plugged in?)")
-    return os.path.realpath(device)
+    node = os.path.realpath(device)
+    st = os.stat(node)
+    mode = st.st_mode
+    # Only a video4linux node is a camera: /dev/zero, /dev/null, a FIFO or a socket would be read as
+    # one (or block). A regular file is left to OpenCV's V4L2 backend, which refuses it in one line.
+    if stat.S_ISCHR(mode) and sys.platform.startswith("linux") and os.major(st.st_rdev) != V4L2_MAJOR:
+        raise CameraLostError(f"camera device {device}: {node} is a character device but no video4linux camera")
+    if not (stat.S_ISCHR(mode) or stat.S_ISREG(mode)):
+        kind = "a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "no device node"
+        raise CameraLostError(f"camera device {device}: {node} is {kind}, not a video4linux camera")
+    return node
 
 
 def _fourcc_str(code: float) -> str:

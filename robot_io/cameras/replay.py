@@ -48,7 +48,7 @@ class ReplayCamera(Camera):
 
     def _open(self) -> None:
         if self.path.is_dir():
-            self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
             if not self._files:
                 raise RobotIOError(f"replay folder {self.path} holds no images ({', '.join(IMAGE_SUFFIXES)})")
         elif self.path.is_file():
@@ -57,6 +57,8 @@ class ReplayCamera(Camera):
             self._cap = cv2.VideoCapture(str(self.path))
             if not self._cap.isOpened():
                 raise RobotIOError(f"replay file {self.path} is not a readable video")
+        elif self.path.exists():  # a FIFO or a device would block or never end
+            raise RobotIOError(f"replay path {self.path} is neither a folder of images nor a regular (video) file")
         else:
             raise RobotIOError(f"replay path {self.path} does not exist")
         self._index = 0
