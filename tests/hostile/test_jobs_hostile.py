@@ -10,10 +10,12 @@ a corrupt policy before any row and fails a run whose every row failed.
 import http.server
 import importlib.util
 import json
+import shutil
 import socket
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -156,3 +158,50 @@ def test_a_short_pool_is_topped_up_the_same_serially_and_through_the_job_layer(t
     assert seeds(tmp_path / "serial") == sorted(
         s for k in range(2) for s in seeds(tmp_path / "grid" / "shards" / f"{k}-of-2")
     )
+
+
+def test_bench_tradeoff_with_corrupt_policy_weights_fails_before_any_row(
+    tmp_path, tiny_policy_dir, monkeypatch, capsys
+):
+    from sim.policies.checkpoint import WEIGHTS_NAME
+
+    policy = tmp_path / "policy"
+    shutil.copytree(tiny_policy_dir, policy)
+    (policy / WEIGHTS_NAME).write_bytes(b"\0" * 64)
+    t0 = time.perf_counter()
+    code, err = _cli(
+        ["bench", "tradeoff", "--policy", str(policy), "--out", str(tmp_path / "o"), "--quick-check"],
+        monkeypatch,
+        capsys,
+    )
+    assert time.perf_counter() - t0 < 30
+    assert code == 2 and len(err) == 1, err
+    assert "--policy" in err[0] and WEIGHTS_NAME in err[0]
+    assert not (tmp_path / "o").exists()  # no row ran, nothing written
+
+
+@pytest.mark.parametrize(
+    "rows, code",
+    [
+        ([("a", "error", True), ("b", "error", True)], 2),  # every row failed on the user's input
+        ([("a", "error", True), ("b", "error", False)], 1),  # one of them on something else
+        ([("a", "error", True), ("b", "ok", False)], 0),  # one row measured: the run did its work
+    ],
+)
+def test_a_tradeoff_run_whose_every_row_failed_exits_non_zero_in_one_line(
+    tmp_path, tiny_policy_dir, monkeypatch, capsys, rows, code
+):
+    from trials.experiments import tradeoff
+
+    def fake_sweep(cfg, out, wanted, **kw):  # the rows' records as the sweep appends them
+        Path(out).mkdir(parents=True, exist_ok=True)
+        for key, status, input_error in rows:
+            tradeoff._append(Path(out), {"key": key, "status": status, "error": "X: bad", "input_error": input_error})
+
+    monkeypatch.setattr(tradeoff, "run_sweep", fake_sweep)
+    monkeypatch.setattr(tradeoff, "write_tradeoff_report", lambda out, plot=None: Path(out) / "rows.jsonl")
+    argv = ["bench", "tradeoff", "--policy", str(tiny_policy_dir), "--out", str(tmp_path / "o"), "--quick-check"]
+    got, err = _cli(argv, monkeypatch, capsys)
+    assert got == code, err
+    if code:
+        assert len(err) == 1 and "all 2 rows this run measured failed (the first, a: X: bad)" in err[0], err

@@ -323,13 +323,11 @@ def machine_info(threads: int | None = None) -> dict:
         for line in meminfo.read_text().splitlines():
             if line.startswith("MemTotal:"):
                 mem_gb = round(int(line.split()[1]) / 2**20, 1)
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except AttributeError:
-        usable = os.cpu_count()
+    from trials.jobs.dag import usable_cpus
+
     return {
         "cpu_count": os.cpu_count(),
-        "cpus_usable": usable,
+        "cpus_usable": usable_cpus(),
         "cpu_model": model or platform.processor() or "unknown",
         "mem_total_gb": mem_gb,
         "python": platform.python_version(),
@@ -809,6 +807,7 @@ def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
         rec.update(
             status="error",
             error=f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}",
+            input_error=isinstance(err, AdvobjError),  # the user's to fix (exit 2 when every row fails so)
             traceback=traceback.format_exc(),
         )
     rec["row_wall_s"], rec["row_cpu_s"] = clock.read()
@@ -1021,15 +1020,17 @@ class TradeoffJob(StrictModel):
             self.redo,
         )
         scene, plot = cfg.scene, self.plot
+        ran_from = len(_result_lines(out))
         if not self.report_only:
-            # every policy's card before any row runs: a bad --policy fails now, not as 17 failed rows
-            from sim.policies.card import load_card
+            # every policy loaded before any row runs (card, weights and their hash, the arch they fit):
+            # a bad --policy fails now, not as 17 failed rows
+            from sim.policies.checkpoint import load_checkpoint
 
             for flag, d in [("--policy", cfg.policy)] + [
                 (f"--res-policy {s}", v) for s, v in sorted(cfg.resolution_policies.items())
             ]:
                 try:
-                    load_card(d)
+                    load_checkpoint(d)
                 except AdvobjError as err:
                     raise TradeoffError(f"{flag}: {err}") from None
             wanted = [r for item in rows for r in item.split(",") if r] or None
@@ -1065,7 +1066,33 @@ class TradeoffJob(StrictModel):
         report = write_tradeoff_report(out, plot=Path(plot) if plot else None)
         log(report.read_text())
         log(f"report: {report}")
+        _fail_if_every_row_failed(out, _result_lines(out)[ran_from:])
         return report
+
+
+def _result_lines(out: Path) -> list[str]:
+    path = Path(out) / "rows.jsonl"
+    return path.read_text().splitlines() if path.is_file() else []
+
+
+def _fail_if_every_row_failed(out: Path, lines: list[str]) -> None:
+    """A run whose every row failed is a failed run (one line): exit 2 when each row failed on the
+    user's input (:class:`~sim.errors.AdvobjError`), else 1. A run with one row measured is not."""
+    records = []
+    for line in lines:
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a torn line (as read_results)
+    if not records or any(r.get("status") == "ok" for r in records):
+        return
+    first = records[0]
+    err = TradeoffError(
+        f"all {len(records)} rows this run measured failed (the first, {first.get('key')}: "
+        f"{first.get('error', '?')}); see {Path(out) / 'rows.jsonl'}"
+    )
+    err.exit_code = 2 if all(r.get("input_error") for r in records) else 1
+    raise err
 
 
 def write_tradeoff_report(out: str | Path, plot: str | Path | None = None) -> Path:
