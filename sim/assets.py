@@ -25,8 +25,10 @@ square of that side for true size), and the wrap layouts and the patch
 
 from __future__ import annotations
 
+import io
 import math
 import os
+import re
 import stat
 import warnings
 from functools import lru_cache
@@ -810,33 +812,218 @@ def ensure_uv(mesh: trimesh.Trimesh, name: str) -> trimesh.Trimesh:
     return _make_trimesh(name, new_v, new_f, new_uv, img, opt, {"uv_source": "atlas"})
 
 
-def _check_obj_references(path: Path) -> None:
-    """Refuse an OBJ whose ``mtllib`` (or whose material's ``map_*`` images) lie outside the OBJ's
-    folder: the loader would read whatever file they name."""
-    base = path.resolve().parent
+# Mesh input is bounded before any parser sees it: the file's size, then its face count (read from
+# the OBJ's statements or a binary header), against these caps.
+MAX_MESH_FACES = 2_000_000
+MAX_MESH_FILE_BYTES = 256 << 20
+_MAX_MTL_BYTES = 16 << 20
+_MAX_REFERENCE_TOKENS = 64  # words after an mtllib / map statement; real ones have a handful
+# MTL statements naming an image: every map_* plus these (the OBJ/MTL spec and its PBR extension).
+_MTL_IMAGE_KEYS = {"bump", "disp", "decal", "refl", "norm"}
 
-    def inside(name: str, what: str) -> Path:
-        target = (base / name).resolve()
-        if base not in target.parents:
-            raise AssetError(
-                f"{path}: {what} {name!r} lies outside the mesh's folder {base}; keep materials and images "
-                "beside the mesh"
-            )
-        return target
 
+def _text_variants(text: str) -> list[str]:
+    """``text`` as each reader may see it: with CRLF kept or made LF, and with backslash line
+    continuations kept, joined (as trimesh does) or turned into a space (as the OBJ spec reads)."""
+    out = [text]
+    if "\r" in text:
+        out.append(text.replace("\r\n", "\n"))
+    for t in list(out):
+        if "\\" in t:
+            out += [t.replace("\\\n", ""), t.replace("\\\n", " ")]
+    return out
+
+
+def _names_after(rest: str, label: str) -> list[str]:
+    """Every name a reader may take from the words after a statement's keyword: each word, the
+    whole rest (trimesh reads names with spaces so) and every tail of it starting at a word (a
+    name with spaces after options such as ``-s 1 1 1``)."""
+    words = rest.split()
+    if len(words) > _MAX_REFERENCE_TOKENS:
+        raise AssetError(f"{label}: a statement has {len(words)} words, more than the {_MAX_REFERENCE_TOKENS} read")
+    names, pos = set(words), 0
+    for w in words:
+        pos = rest.index(w, pos)
+        names.add(rest[pos:].strip())
+        pos += len(w)
+    return sorted(n for n in names if n)
+
+
+def _beside(base: Path, name: str, label: str, what: str) -> Path:
+    """``base / name`` resolved (symlinks followed); refused unless it stays inside ``base``."""
     try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError as err:
-        raise AssetError(f"{path}: cannot read mesh ({err.strerror})") from None
-    for line in lines:
-        if line.startswith("mtllib"):
-            for name in line.split(None, 1)[1:]:
-                mtl = inside(name.strip(), "mtllib")
-                if mtl.is_file():
-                    for m in mtl.read_text(encoding="utf-8", errors="replace").splitlines():
-                        key, _, rest = m.strip().partition(" ")
-                        if key.lower().startswith("map_") and rest.strip():
-                            inside(rest.split()[-1], f"{mtl.name}: {key}")
+        target = (base / name).resolve()
+        inside = base in target.parents
+    except (OSError, ValueError):
+        inside = False
+    if not inside:
+        raise AssetError(
+            f"{label}: {what} {name!r} lies outside the mesh's folder {base}; keep materials and images beside the mesh"
+        )
+    return target
+
+
+def _lstat_regular(target: Path, name: str, label: str, what: str) -> bool:
+    """True for an existing regular file, False when nothing is there; refused otherwise."""
+    try:
+        mode = os.lstat(target).st_mode
+    except OSError:
+        return False
+    if not stat.S_ISREG(mode):
+        raise AssetError(f"{label}: {what} {name!r} is not a regular file")
+    return True
+
+
+def _decode(data: bytes) -> str:
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")  # every byte one character: "/", "." and spaces read as they are
+
+
+def _check_obj_references(path: Path, text: str) -> dict[Path, bytes]:
+    """Refuse an OBJ whose material libraries or their images lie outside the OBJ's folder (the
+    loader would read whatever file they name), or are not regular files (a FIFO would block).
+
+    The statements are read as every reader may: ``mtllib`` anywhere in the text (trimesh takes the
+    first occurrence, even in a comment), any whitespace, leading whitespace, several names, line
+    continuations; every ``map_*``, ``bump``, ``disp``, ``decal``, ``refl`` and ``norm`` with its
+    options. Returns the material libraries read, resolved path -> UTF-8 bytes, for the loader to
+    use as checked.
+    """
+    base = path.resolve().parent
+    label = str(path)
+    libraries: dict[Path, bytes] = {}
+    names: set[str] = set()
+    for variant in _text_variants(text):
+        for m in re.finditer("mtllib", variant, re.I):
+            end = variant.find("\n", m.end())
+            line = variant[m.end() : end if end >= 0 else len(variant)]
+            for rest in {line, *line.splitlines()[:1]}:
+                names.update(_names_after(rest, label))
+    for name in sorted(names):
+        target = _beside(base, name, label, "mtllib")
+        if target in libraries or not _lstat_regular(target, name, label, "mtllib"):
+            continue
+        mtl = _decode(_read_regular(target, _MAX_MTL_BYTES, f"{label}: mtllib {name!r}", follow=False))
+        libraries[target] = mtl.encode("utf-8")
+        for variant in _text_variants(mtl):
+            for line in {*variant.split("\n"), *variant.splitlines()}:
+                words = line.split(None, 1)
+                key = words[0].lower() if words else ""
+                if len(words) < 2 or not (key.startswith("map_") or key in _MTL_IMAGE_KEYS):
+                    continue
+                what = f"{target.name}: {words[0]}"
+                rest = line[line.lower().index(key) + len(key) :]
+                for image in _names_after(rest, label):
+                    _beside(base, image, label, what)
+                for image in {rest.strip(), *rest.split()[-1:]}:  # what trimesh and the spec open
+                    _lstat_regular(_beside(base, image, label, what), image, label, what)
+    return libraries
+
+
+class _FolderResolver(trimesh.resolvers.FilePathResolver):
+    """What a mesh file's loader may read besides the file: regular files inside its folder, the
+    checked material libraries as checked. A refusal is recorded (the loader swallows errors) and
+    the load then fails in one line."""
+
+    def __init__(self, path: Path, served: dict[Path, bytes] | None = None):
+        super().__init__(str(path))
+        self.base, self.label = Path(self.parent).resolve(), str(path)
+        self.served = served or {}
+        self.refused: list[str] = []
+
+    def get(self, name):
+        name = str(name).strip()
+        try:
+            target = _beside(self.base, name, self.label, "reference")
+            if target in self.served:
+                return self.served[target]
+            if not _lstat_regular(target, name, self.label, "reference"):
+                raise FileNotFoundError(name)
+            return _read_regular(target, MAX_MESH_FILE_BYTES, f"{self.label}: reference {name!r}", follow=False)
+        except AssetError as err:
+            self.refused.append(str(err))
+            raise FileNotFoundError(name) from None
+
+    def namespaced(self, namespace: str):
+        raise FileNotFoundError(namespace)
+
+    def write(self, name, data):
+        raise PermissionError(name)
+
+
+def _too_many_faces(label: str, n: int, at_least: bool = False) -> AssetError:
+    return AssetError(
+        f"{label}: {'at least ' if at_least else ''}{n:,} faces, more than the {MAX_MESH_FACES:,} advobj loads; "
+        "decimate the mesh first (Blender: Decimate modifier)"
+    )
+
+
+def _check_obj_statements(label: str, text: str) -> None:
+    """Before trimesh parses the OBJ: every ``v`` statement has x y z, and the faces (triangles
+    after fanning polygons) stay within :data:`MAX_MESH_FACES` (counting stops past the cap)."""
+    faces = 0
+    if "\\" in text or "\r" in text:
+        text = text.replace("\r\n", "\n").replace("\\\n", "")  # as trimesh reads the file
+    for m in re.finditer(r"^[ \t]*([vf])[ \t]+([^\n]*)", text, re.M):
+        n = len(m.group(2).split())
+        if m.group(1) == "f":
+            faces += max(n - 2, 1)
+            if faces > MAX_MESH_FACES:  # stop here: the scan of a huge file costs no more than the cap
+                raise _too_many_faces(label, faces, at_least=True)
+        elif n < 3:
+            line = text.count("\n", 0, m.start()) + 1
+            raise AssetError(f"{label}: line {line}: a vertex needs x y z, got {m.group(0).strip()[:80]!r}")
+
+
+def _first_nonfinite_vertex_line(text: str) -> int | None:
+    for m in re.finditer(r"^[ \t]*v[ \t]+([^\n]*)", text, re.M):
+        try:
+            if not all(math.isfinite(float(w)) for w in m.group(1).split()[:3]):
+                return text.count("\n", 0, m.start()) + 1
+        except ValueError:
+            return text.count("\n", 0, m.start()) + 1
+    return None
+
+
+def _header_face_count(ext: str, data: bytes) -> int | None:
+    """The face count a binary or headed format declares (STL, PLY, OFF, GLB/glTF), None when the
+    header does not say; read from the header only."""
+    import json
+    import struct
+
+    if ext == ".stl" and len(data) >= 84 and not data[:5].lower() == b"solid":
+        return struct.unpack("<I", data[80:84])[0]
+    if ext == ".stl" and len(data) >= 84 and len(data) == 84 + 50 * struct.unpack("<I", data[80:84])[0]:
+        return struct.unpack("<I", data[80:84])[0]  # binary STL whose header text starts with "solid"
+    if ext == ".ply":
+        head = data[: 1 << 16]
+        m = re.search(rb"^element[ \t]+face[ \t]+(\d+)", head, re.M)
+        return int(m.group(1)) if m else None
+    if ext == ".off":
+        words = re.sub(rb"#[^\n]*", b"", data[: 1 << 12]).split()
+        if words and words[0].endswith(b"OFF") and len(words) >= 3 and words[2].isdigit():
+            return int(words[2])
+        return None
+    if ext in (".glb", ".gltf"):
+        try:
+            if ext == ".glb":
+                length, kind = struct.unpack("<II", data[12:20])
+                doc = json.loads(data[20 : 20 + length]) if kind == 0x4E4F534A else None
+            else:
+                doc = json.loads(data)
+            accessors = doc.get("accessors", [])
+            total = 0
+            for mesh in doc.get("meshes", []):
+                for prim in mesh.get("primitives", []):
+                    acc = prim.get("indices", prim.get("attributes", {}).get("POSITION"))
+                    count = int(accessors[acc]["count"]) if isinstance(acc, int) else 0
+                    total += count // 3 if prim.get("mode", 4) == 4 else max(count - 2, 0)
+            return total
+        except Exception:  # noqa: BLE001 - not the JSON the format promises: trimesh says so below
+            return None
+    return None
 
 
 def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None) -> trimesh.Trimesh:
@@ -852,31 +1039,49 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None
     """
     path = Path(path)
     label = str(path)
-    if not path.is_file():
+    ext = path.suffix.lower()
+    if not os.path.lexists(path):
         raise AssetError(f"{label}: mesh file not found")
-    if path.suffix.lower() not in _MESH_EXTS:
+    if ext not in _MESH_EXTS:
         hint = (
             (
                 " (MuJoCo's binary mesh: use the STL/OBJ the MJCF was made from, or write the loaded model's "
                 "mesh_vert/mesh_face "
                 "out with trimesh)"
             )
-            if path.suffix.lower() == ".msh"
+            if ext == ".msh"
             else ""
         )
         raise AssetError(
             f"{label}: {path.suffix or 'no extension'} is not a mesh format advobj reads{hint}; give "
             f"{', '.join(sorted(e.lstrip('.').upper() for e in _MESH_EXTS))}"
         )
-    if path.suffix.lower() == ".obj":
-        _check_obj_references(path)
+    if not path.exists():
+        raise AssetError(f"{label}: mesh file not found")
+    data = _read_regular(path, MAX_MESH_FILE_BYTES, label)  # a FIFO or device is refused, never waited on
+    served, text = {}, None
+    if ext == ".obj":
+        text = _decode(data)
+        served = _check_obj_references(path, text)
+        _check_obj_statements(label, text)
+        data = text.encode("utf-8")  # trimesh parses exactly the text checked here
+    else:
+        declared = _header_face_count(ext, data)
+        if declared is not None and declared > MAX_MESH_FACES:
+            raise _too_many_faces(label, declared)
+    resolver = _FolderResolver(path, served)
+    loaded = failure = None
     try:
-        loaded = trimesh.load(str(path), process=False)
+        loaded = trimesh.load(io.BytesIO(data), file_type=ext.lstrip("."), resolver=resolver, process=False)
     except ImportError:
         # trimesh only reaches for its optional charset detector when the bytes are not text.
-        raise AssetError(f"{label}: cannot read mesh (not valid {path.suffix.lstrip('.').upper()} data)") from None
+        failure = f"{label}: cannot read mesh (not valid {ext.lstrip('.').upper()} data)"
     except Exception as err:
-        raise AssetError(f"{label}: cannot read mesh ({type(err).__name__}: {err})") from None
+        failure = f"{label}: cannot read mesh ({type(err).__name__}: {err})"
+    if resolver.refused:
+        raise AssetError(resolver.refused[0])
+    if failure is not None:
+        raise AssetError(" ".join(failure.split()))
     if isinstance(loaded, trimesh.Scene):
         geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
         if not geoms:
@@ -891,8 +1096,16 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None
     faces = np.asarray(mesh.faces, np.int64)
     if len(faces) == 0 or len(vertices) == 0:
         raise AssetError(f"{label}: mesh is empty (no faces)")
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise AssetError(f"{label}: vertices need x y z (got {vertices.shape[-1]} coordinates)")
+    if len(faces) > MAX_MESH_FACES:
+        raise _too_many_faces(label, len(faces))
     if not np.all(np.isfinite(vertices)):
-        raise AssetError(f"{label}: {int((~np.isfinite(vertices)).any(-1).sum())} vertices are not finite (NaN/inf)")
+        line = _first_nonfinite_vertex_line(text) if text is not None else None
+        raise AssetError(
+            f"{label}: {int((~np.isfinite(vertices)).any(-1).sum())} vertices are not finite (NaN/inf)"
+            + (f", the first on line {line}" if line else "")
+        )
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise AssetError(f"{label}: face indices out of range")
     used = vertices[np.unique(faces)]
