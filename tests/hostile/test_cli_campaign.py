@@ -18,8 +18,10 @@ import hashlib
 import json
 import os
 import re
+import resource
 import signal
 import sys
+import time
 import typing
 from pathlib import Path
 
@@ -37,9 +39,21 @@ BLOBS = {
     "corrupt_onnx": b"\x08\x07\x12\x04junk" + bytes(200),
     "corrupt_sqlite": b"SQLite format 3\x00" + bytes(range(256)) * 32,
     "corrupt_image": b"\x89PNG\r\n\x1a\n" + bytes(100),
+    # 100,000 nested arrays: a RecursionError in json, a segfault in OpenCV's FileStorage
+    "deep_json": b"[" * 100_000 + b"]" * 100_000,
 }
-SUFFIX = {"corrupt_mesh": ".obj", "corrupt_onnx": ".onnx", "corrupt_sqlite": ".sqlite", "corrupt_image": ".png"}
-PATH_KINDS = tuple(BLOBS) + ("missing", "directory", "traversal")
+SUFFIX = {
+    "corrupt_mesh": ".obj",
+    "corrupt_onnx": ".onnx",
+    "corrupt_sqlite": ".sqlite",
+    "corrupt_image": ".png",
+    "deep_json": ".json",
+}
+# Not files at all: a FIFO with no writer and a device that never ends (each would block a reader).
+SPECIAL_KINDS = ("fifo", "dev_zero")
+PATH_KINDS = tuple(BLOBS) + ("missing", "directory", "traversal") + SPECIAL_KINDS
+# Peak resident memory of the whole campaign process (every case runs in it): a bound on each case's.
+RSS_CAP_MB = 4096
 OUTPUT_NAMES = {"out", "db", "plot", "sheet"}  # parameters naming where a command writes
 
 
@@ -123,6 +137,13 @@ def _value(kind: str, inputs: Path, name: str) -> str:
         return str(d)
     if kind == "traversal":
         return "../../escape"
+    if kind == "dev_zero":
+        return "/dev/zero"
+    if kind == "fifo":
+        p = inputs / f"fifo_{name}.yaml"
+        if not p.exists():
+            os.mkfifo(p)
+        return str(p)
     p = inputs / f"{kind}_{name}{SUFFIX.get(kind, '.yaml')}"
     p.write_bytes(BLOBS[kind])
     return str(p)
@@ -156,6 +177,36 @@ def _names_an_input(line: str, target: str, argv: list[str]) -> bool:
     names |= {Path(a).name for a in argv if "/" in a} | {a for a in argv if a.startswith("--")}
     # or another flag the command needs first (eval refuses a missing --attack before it reads --policy)
     return any(n and n in line for n in names) or re.search(r"(^|\s)--[a-z][a-z-]+", line) is not None
+
+
+CASE_COLUMNS = ("command", "param", "kind", "exit", "stderr_lines", "first_line", "problems", "touched_outside")
+CASE_COLUMNS += ("seconds", "peak_rss_mb")
+
+
+def _write_record(out: Path, results: list[dict], figures: dict) -> None:
+    """``cases.csv`` (one row per case) and ``figures.json`` into ``out``: the campaign's record."""
+    import csv
+
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "cases.csv", "w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(CASE_COLUMNS)
+        for r in results:
+            w.writerow(
+                [
+                    r["command"],
+                    r["param"],
+                    r["kind"],
+                    r["exit"],
+                    r["stderr_count"],
+                    r["stderr"][0] if r["stderr"] else "",
+                    "; ".join(r["problems"]),
+                    len(r["touched"]),
+                    r["seconds"],
+                    r["peak_rss_mb"],
+                ]
+            )
+    (out / "figures.json").write_text(json.dumps(figures, indent=1) + "\n")
 
 
 class _Timeout(BaseException):
@@ -222,7 +273,10 @@ def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
         (case_dir / "outs").mkdir()
         before = _snapshot(work, case_dir / "outs")
         monkeypatch.chdir(case_dir)
+        t_case = time.perf_counter()
         argv, code, crash, lines = _run_case(path, target, kind, case_dir, monkeypatch, capsys)
+        seconds = time.perf_counter() - t_case
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
         monkeypatch.chdir(work)
         after = _snapshot(work, case_dir / "outs")
         touched = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k) and "/inputs/" not in k)
@@ -239,6 +293,8 @@ def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
             problems.append("the line names no flag, field or file")
         if touched:
             problems.append(f"touched outside: {touched[:3]}")
+        if peak_mb > RSS_CAP_MB:
+            problems.append(f"peak RSS {peak_mb:.0f} MB over the {RSS_CAP_MB} MB cap")
         key = (" ".join(path), target, kind)
         results.append(
             {
@@ -247,8 +303,11 @@ def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
                 "kind": kind,
                 "exit": code,
                 "stderr": lines[:2],
+                "stderr_count": len(lines),
                 "problems": problems,
                 "touched": touched,
+                "seconds": round(seconds, 3),
+                "peak_rss_mb": round(peak_mb, 1),
             }
         )
         if problems and key not in KNOWN:
@@ -265,7 +324,14 @@ def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
         "files_touched_outside": sum(len(r["touched"]) for r in results),
         "lines_naming_nothing": sum(any(p.startswith("the line names no") for p in r["problems"]) for r in results),
         "known_open_not_run": len(KNOWN),
+        "case_timeout_s": CASE_TIMEOUT_S,
+        "slowest_case_s": max((r["seconds"] for r in results), default=0.0),
+        "peak_rss_mb": max((r["peak_rss_mb"] for r in results), default=0.0),
+        "rss_cap_mb": RSS_CAP_MB,
     }
     (work / "campaign.json").write_text(json.dumps({"figures": figures, "results": results}, indent=1))
+    keep = os.environ.get("ADVOBJ_CAMPAIGN_OUT")  # benchmarks/hostile_campaign.py: the committed record
+    if keep:
+        _write_record(Path(keep), results, figures)
     print(f"\nhostile CLI campaign: {json.dumps(figures)} (details: {work / 'campaign.json'})")
     assert not failures, f"{len(failures)} of {len(results)} cases failed:\n" + "\n".join(failures)

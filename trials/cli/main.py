@@ -88,6 +88,38 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+def special_file_argument(argv: list[str]) -> str | None:
+    """The first command-line value naming a FIFO, a device or a socket, as an error line, or None.
+
+    advobj reads files, never a stream: opening a FIFO with no writer, ``/dev/zero`` or
+    ``/dev/stdin`` would block or never end. ``os.stat`` answers without opening, so this costs
+    nothing and runs before any command. (A camera device is named in a hardware YAML, never as
+    a command-line value.)
+    """
+    import os
+    import stat
+
+    flag = None
+    for tok in argv:
+        if tok.startswith("--") and "=" in tok:
+            flag, value = tok.split("=", 1)
+        elif tok.startswith("-") and len(tok) > 1:
+            flag = tok
+            continue
+        else:
+            value = tok
+        try:
+            mode = os.stat(value).st_mode
+        except (OSError, ValueError):
+            mode = None
+        if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+            where = f"{flag}: " if flag else ""
+            return f"{where}{value} is {kind}, not a file; give a regular file"
+        flag = None
+    return None
+
+
 def main() -> None:
     """Run the CLI; every input error ends as one line on stderr (``error: ...``) and exit code 2.
 
@@ -107,6 +139,9 @@ def main() -> None:
         typer.secho(f"error: {_one_line(message)}", err=True, fg=typer.colors.RED)
         sys.exit(code)
 
+    special = special_file_argument(sys.argv[1:])
+    if special is not None:
+        fail(special)
     try:
         rc = app(standalone_mode=False)
     except AdvobjError as err:
