@@ -1030,8 +1030,10 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None
     """Load a mesh file (OBJ / GLB / GLTF / PLY / STL / OFF via trimesh) and validate it.
 
     A multi-part file (``trimesh.Scene``) is concatenated in world placement. Raises
-    :class:`AssetError` naming the file for: a missing file, an unreadable or unsupported
-    format, no faces, non-finite vertices, or zero total area. Individually degenerate faces
+    :class:`AssetError` naming the file for: a missing or non-regular file, an unreadable or
+    unsupported format, more than :data:`MAX_MESH_FILE_BYTES` or :data:`MAX_MESH_FACES` (both checked
+    before parsing), an OBJ reference leaving the file's folder (:func:`_check_obj_references`), a
+    vertex without x y z, no faces, non-finite vertices, or zero total area. Individually degenerate faces
     (area below 1e-12 x bbox diagonal^2) are removed with a warning. The origin is kept unless
     ``recenter`` (then: base centre of the bounding box). ``prepare(vertices) -> vertices`` runs on
     the loaded geometry before the UV atlas (units, axes, placement; it may refuse the mesh, and
