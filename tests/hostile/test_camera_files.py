@@ -493,3 +493,13 @@ def test_an_opencv_camera_device_that_is_no_video4linux_node_is_refused(work, fi
     with pytest.raises(CameraLostError, match="not a video4linux camera|no video4linux camera") as e:
         resolve_device(path)
     assert path in str(e.value) and "\n" not in str(e.value)
+
+
+@pytest.mark.skipif(not Path("/dev/zero").exists(), reason="needs /dev/zero")
+def test_hw_check_with_dev_zero_as_the_opencv_camera_fails_in_one_line(work, monkeypatch, capsys):
+    hw = work / "hw.yaml"
+    hw.write_text(
+        "camera: {type: opencv, device: /dev/zero}\narm: {type: serial, port: /dev/null}\n"
+        "safety: {workspace_min_m: [-0.9, -0.9, 0.01], workspace_max_m: [0.9, 0.9, 0.9]}\n"
+    )
+    _refused(monkeypatch, capsys, "hw", "check", "--config", str(hw), names=("/dev/zero", "video4linux"))
