@@ -452,7 +452,46 @@ def test_a_device_or_fifo_given_for_a_file_is_refused_without_blocking(
     cv2.imwrite(str(work / "ok.png"), np.zeros((480, 640, 3), np.uint8))
     args = [a.format(x=x, ok_image=work / "ok.png", ok_camera=work / "ok.yaml") for a in argv]
     line = _refused(monkeypatch, capsys, *args, names=(x,))
-    assert "not a regular file" in line
+    assert "regular file" in line
+
+
+@pytest.mark.skipif(not Path("/dev/zero").exists(), reason="needs /dev/zero")
+@pytest.mark.parametrize("kind", ["fifo", "devzero"])
+def test_every_reader_refuses_a_device_or_fifo_itself_naming_the_file(work, fifo, kind):
+    """The loaders check on their own: a file named inside another file never passes the command line."""
+    from calibration.handeye import load_samples_yaml
+    from calibration.intrinsics import camera_file_format, load_board_yaml
+    from calibration.io import read_image, read_yaml
+    from calibration.registry import load_registry
+    from robot_io.config import load_hardware_config, load_T_tcp_cam
+    from sim.errors import AdvobjError
+
+    x = _special(kind, fifo)
+    readers = (
+        load_camera_yaml,
+        camera_file_format,
+        load_board_yaml,
+        read_image,
+        read_yaml,
+        load_registry,
+        load_samples_yaml,
+        load_hardware_config,
+        load_T_tcp_cam,
+    )
+    old = signal.signal(signal.SIGALRM, _on_alarm)
+    try:
+        for reader in readers:
+            signal.alarm(CASE_TIMEOUT_S)
+            try:
+                with pytest.raises(AdvobjError, match="regular file") as e:
+                    reader(x)
+            except _Timeout:
+                pytest.fail(f"{reader.__name__}({x}) blocked")
+            finally:
+                signal.alarm(0)
+            assert x in str(e.value) and "\n" not in str(e.value), (reader.__name__, str(e.value))
+    finally:
+        signal.signal(signal.SIGALRM, old)
 
 
 @pytest.mark.parametrize("field", ["T_tcp_cam", "sim.scene", "camera.path", "camera.intrinsics"])
