@@ -171,12 +171,13 @@ def read_bytes(path, field: str, max_bytes: int) -> bytes:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except OSError as err:
         raise CalibrationFileError(path, field, f"cannot read ({err.strerror or err})") from None
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise CalibrationFileError(
+            path, field, "is a directory, expected a file" if stat.S_ISDIR(mode) else "is not a regular file"
+        )
     with os.fdopen(fd, "rb") as f:
-        st = os.fstat(f.fileno())
-        if stat.S_ISDIR(st.st_mode):
-            raise CalibrationFileError(path, field, "is a directory, expected a file")
-        if not stat.S_ISREG(st.st_mode):
-            raise CalibrationFileError(path, field, "is not a regular file")
         try:
             data = f.read(max_bytes + 1)
         except OSError as err:

@@ -542,3 +542,9 @@ def test_hw_check_with_dev_zero_as_the_opencv_camera_fails_in_one_line(work, mon
         "safety: {workspace_min_m: [-0.9, -0.9, 0.01], workspace_max_m: [0.9, 0.9, 0.9]}\n"
     )
     _refused(monkeypatch, capsys, "hw", "check", "--config", str(hw), names=("/dev/zero", "video4linux"))
+
+
+def test_a_directory_given_as_a_camera_file_is_one_error_naming_it(tmp_path):
+    with pytest.raises(CalibrationFileError, match="is a directory") as e:
+        load_camera_yaml(tmp_path)
+    assert str(tmp_path) in str(e.value) and "\n" not in str(e.value)
