@@ -124,8 +124,8 @@ def run_command(
     plan: Path = typer.Option(..., help="trial plan YAML from 'advobj trial plan'"),
     session: str = typer.Option(
         ...,
-        help="session name (1-64 letters, digits, '.', '_' or '-', not starting with '.'; its frames go "
-        "to frames/<session>/ beside the database); the same name resumes an interrupted session",
+        help="session name (1-64 letters, digits, '.', '_' or '-', starting with a letter or digit; its frames "
+        "go to frames/<session>/ beside the database); the same name resumes an interrupted session",
     ),
     db: Path = typer.Option(Path("trials.sqlite"), help="trial database (frames go to frames/ beside it)"),
     auto_confirm: bool = typer.Option(
@@ -147,6 +147,12 @@ def run_command(
         help="hold the plan's control rate (default: on, off for non-realtime sim arms)",
     ),
     threads: int = typer.Option(1, min=1, help="onnxruntime threads (1: leaves a core to the camera and renderer)"),
+    take_over_stale_lock: bool = typer.Option(
+        False,
+        "--take-over-stale-lock",
+        help="take the session over from a runner the database names but that holds no lock (one on another "
+        "host, or a live process that is not that run); a dead runner on this host is taken over without it",
+    ),
 ) -> None:
     """Run (or resume) the plan's trials: placement check, policy loop, outcome, operator confirmation, commit."""
     from trials.real.session import run_session
@@ -165,6 +171,7 @@ def run_command(
         rate_limit=rate_limit,
         threads=threads,
         log=typer.echo,
+        take_over_stale_lock=take_over_stale_lock,
     )
     t = summary.timings
     if t:
@@ -278,9 +285,9 @@ def report_command(
     }
     md, js = write_trial_report(out, summary, table, sources=sources)
     write_run_info(out, {"job": "trial-report", **sources}, None)
-    from trials.real.report import table_iv_md
+    from trials.real.report import plain_text, table_iv_md
 
-    typer.echo("\n".join(table_iv_md(table)))
+    typer.echo("\n".join(table_iv_md(table)))  # names and notes escaped: no terminal escape reaches the screen
     for line in summary["audit"]["incomplete"]:
-        typer.echo(f"INCOMPLETE: {line}")
+        typer.echo(f"INCOMPLETE: {plain_text(line)}")
     typer.echo(f"{summary['n_trials']} trials; report in {md} and {js}")

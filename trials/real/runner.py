@@ -60,6 +60,7 @@ from trials.real.store import (
     ObjectPoseRecord,
     SessionInfo,
     StepRecord,
+    StoreError,
     TrialRecord,
     clear_frames,
     frames_dir,
@@ -206,15 +207,22 @@ class TrialRunner:
         self.stop_on_reach = stop_on_reach
         self.clock = clock
         self.sleep = sleep
+        self._sid: int | None = None  # the session's row id, once run() opened it
 
     # ------------------------------------------------------------------ session
     def run(self, max_trials: int | None = None) -> RunSummary:
+        """Run the remaining trials, holding the session's lock (taken here unless the caller holds it)."""
         ordered = sorted(self.plan.trials, key=lambda t: t.order)
         self._check_initial_poses(ordered)  # before the session is opened: a refused plan records nothing
         session_frames_dir(
             self.store.path, self.session.name
         )  # a name that is no safe directory: refused, nothing recorded
-        sid = self.store.open_session(self.session)
+        # Only the session's one runner reads which trials are done and clears frames (issue 25).
+        with self.store.session_locked(self.session.name):
+            return self._run(ordered, max_trials)
+
+    def _run(self, ordered, max_trials: int | None) -> RunSummary:
+        sid = self._sid = self.store.open_session(self.session)
         done = self.store.committed_trial_ids(sid)
         todo = [t for t in ordered if t.trial_id not in done]
         summary = RunSummary(self.session.name, len(ordered), len(ordered) - len(todo))
@@ -261,8 +269,24 @@ class TrialRunner:
             )
             self._stop_quietly(f"session aborted ({summary.abort_reason})")
             if current is not None and current.trial_id not in self.store.committed_trial_ids(sid):
-                clear_frames(frames_dir(self.store.path, self.session.name, current.trial_id))
+                self._clear_uncommitted(current.trial_id)
         return summary
+
+    def _clear_uncommitted(self, trial_id: str) -> Path:
+        """Clear the frame directory of ``trial_id``, a leftover of an interrupted attempt, and return it.
+
+        Only by the session's lock holder, and only for a trial the store has not committed: a
+        committed trial's frames are its record and are never removed (issue 25).
+        """
+        self.store.check_session_owner(self.session.name)
+        if trial_id in self.store.committed_trial_ids(self._sid):
+            raise StoreError(
+                f"session {self.session.name}: trial {trial_id} is already committed; its frames are kept "
+                "(is another runner working on this session?)"
+            )
+        fdir = frames_dir(self.store.path, self.session.name, trial_id)
+        clear_frames(fdir)
+        return fdir
 
     def _check_initial_poses(self, trials) -> None:
         """Refuse the plan if an initial TCP pose lies outside the workspace box.
@@ -315,8 +339,7 @@ class TrialRunner:
         t_wall = time.time()
         t0 = self.clock()
         events: list[EventRecord] = []
-        fdir = frames_dir(self.store.path, self.session.name, trial.trial_id)
-        clear_frames(fdir)  # a leftover of an interrupted attempt at this trial
+        fdir = self._clear_uncommitted(trial.trial_id)  # a leftover of an interrupted attempt at this trial
         fdir.mkdir(parents=True)
         rel_dir = frames_ref(self.session.name, trial.trial_id)
 

@@ -175,6 +175,20 @@ def prepare_session(
             operator = TerminalOperator()
     if hasattr(operator, "check_plan"):
         operator.check_plan(plan)
+    if table_frame is not None:
+        # Loaded and checked whatever the devices (a NaN, inf or absurd value: one line naming the
+        # file and the field), never silently ignored.
+        from calibration.errors import CalibrationFileError
+
+        try:
+            T_file = load_T_base_table(table_frame)
+        except CalibrationFileError as err:
+            raise SessionSetupError(f"--table-frame: {err}") from None
+        if sim and not np.allclose(T_file, np.eye(4), rtol=0.0, atol=1e-9):
+            raise SessionSetupError(
+                f"--table-frame: {table_frame}: sim devices work in the sim world's frame, which is the table frame; "
+                "a T_base_table other than the identity cannot apply to them: drop --table-frame"
+            )
     if not sim and registry is None:
         raise SessionSetupError(
             "--registry: a real camera needs the tag registry (objects.yaml) for the placement check and the outcome"
@@ -250,29 +264,44 @@ def run_prepared(
     on_trial_end: Callable | None = None,
     on_ready: Callable | None = None,
     log=print,
+    take_over_stale_lock: bool = False,
 ):
     """Connect the devices of a :func:`prepare_session` result and run (or resume) its trials;
-    returns the :class:`RunSummary`. A refused resume is found before any device connects."""
+    returns the :class:`RunSummary`. A refused resume is found before any device connects.
+
+    The session's lock and the arm's lock (:mod:`trials.real.locks`) are taken first and held
+    until the devices are closed; ``take_over_stale_lock``: take the session over from a holder
+    the store names but that holds no OS lock, on another host too (``--take-over-stale-lock``).
+    """
     import contextlib
 
     from robot_io.config import build_arm, build_camera, build_world
     from sim.runinfo import write_run_info
+    from trials.real.locks import arm_lock
     from trials.real.runner import TrialRunner
     from trials.real.store import TrialStore
 
     log = log or (lambda _text: None)
     hw, plan, sim, info = prep.hw, prep.plan, prep.sim, prep.info
-    with contextlib.ExitStack() as stack:  # closed in reverse: devices, store, stage, world
+    with contextlib.ExitStack() as stack:  # closed in reverse: devices, world, stage, the locks, store
+        store = TrialStore(prep.db)
+        stack.callback(store.close)
+        # First of all: this process becomes the session's only runner and the arm's only driver
+        # (issue 25). A second runner is refused here, in one line naming the holder, before any
+        # device exists and before anything of the session is read, written or deleted.
+        store.lock_session(info.name, take_over_stale_lock, log)
+        stack.callback(store.release_session, info.name)
+        arm_held = arm_lock(hw.arm, session=info.name, db=str(Path(prep.db).resolve()))
+        if arm_held is not None:
+            stack.callback(arm_held.release)
         world = build_world(hw) if hw.camera.type == "sim" or hw.arm.type == "sim" else None
         if world is not None:
             stack.callback(world.close)
-        stages: list = []  # closed after the devices and the store, before the world
+        stages: list = []  # closed after the devices, before the world
         stack.callback(lambda: [st.close() for st in stages])
         if world is not None and plan.scene is not None:
             world.set_scene(prep.spec)
         camera, arm = build_camera(hw, world), build_arm(hw, world)
-        store = TrialStore(prep.db)
-        stack.callback(store.close)
         for warning in store.check_resume(info):  # a refused resume raises here, before any device connects
             log(warning)
         stored_T_base_table = store.stored_T_base_table(info.name)
@@ -339,6 +368,7 @@ def run_session(
     on_trial_end: Callable | None = None,
     on_ready: Callable | None = None,
     log=print,
+    take_over_stale_lock: bool = False,
 ):
     """Run (or resume) ``session`` of ``plan_path`` into ``db``: :func:`prepare_session`, then
     :func:`run_prepared`; returns the :class:`RunSummary`.
@@ -363,7 +393,7 @@ def run_session(
         threads,
         log,
     )
-    return run_prepared(prep, max_trials, on_trial_end, on_ready, log)
+    return run_prepared(prep, max_trials, on_trial_end, on_ready, log, take_over_stale_lock)
 
 
 def camera_view_warnings(camera, policy, spec, hw) -> list[str]:

@@ -39,9 +39,11 @@ lossless at float64.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
+import re
 import shutil
 import sqlite3
 import time
@@ -52,7 +54,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from sim.errors import AdvobjError
-from sim.paths import check_name, safe_join
+from sim.paths import UnsafePathError, check_name, safe_join
+from trials.real.locks import FileLock, LockBusy, describe_holder, holder_identity, pid_running
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -71,10 +74,12 @@ __all__ = [
     "frames_ref",
     "clear_frames",
     "check_database",
+    "check_session_name",
+    "SESSION_NAME_RULE",
     "EXPORT_TABLES",
 ]
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 #: A trial's outcome. ``policy_error``: the policy gave a non-finite action; the trial stopped there
 #: (the runner sets it, never the operator; reports count it apart from the rated trials).
 OUTCOMES = ("goal", "adversarial", "none", "unknown", "policy_error")
@@ -223,6 +228,17 @@ CREATE INDEX amendments_trial ON amendments (trial_row);
 ALTER TABLE trials ADD COLUMN light_level REAL;
 ALTER TABLE object_poses ADD COLUMN visible_fraction REAL;
 """,
+    # Version 6: who runs a session now (issue 25): one row per locked session, beside the OS lock
+    # (trials.real.locks), so a refused runner names the holder and a stale lock is recognised.
+    6: """
+CREATE TABLE session_locks (
+    session TEXT PRIMARY KEY,
+    host TEXT NOT NULL,
+    pid INTEGER NOT NULL,
+    proc_start TEXT,
+    since TEXT NOT NULL
+);
+""",
 }
 _OLD_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown')"
 _NEW_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown', 'policy_error')"
@@ -348,6 +364,23 @@ def _sha(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+_SESSION_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+SESSION_NAME_RULE = "1-64 letters, digits, '.', '_' or '-', starting with a letter or digit"
+
+
+def check_session_name(value, what: str = "session") -> str:
+    """``value`` if it is a session name, else :class:`UnsafePathError` naming ``what`` (``--session``).
+
+    Stricter than :func:`sim.paths.check_name`: a session name becomes ``frames/<session>``, a lock
+    file's name and a command-line value, so it starts with a letter or digit (never ``--``, ``-x``
+    or ``_``), and holds no separator, space or control character.
+    """
+    if not isinstance(value, str) or _SESSION_NAME.fullmatch(value) is None:
+        shown = repr(value) if isinstance(value, str) else f"a {type(value).__name__}"
+        raise UnsafePathError(f"{what}: {shown[:80]} is not a safe name for a session: use {SESSION_NAME_RULE}")
+    return value
+
+
 def frames_root(db_path: str | Path) -> Path:
     """``<db dir>/frames``: every session's images live below it."""
     return Path(db_path).resolve().parent / "frames"
@@ -358,7 +391,7 @@ def session_frames_dir(db_path: str | Path, session: str, what: str = "session")
 
     ``what`` names the input the session name came from in the error (``--session`` on the CLI).
     """
-    check_name(session, what)
+    check_session_name(session, what)
     return safe_join(frames_root(db_path), session, what=what)
 
 
@@ -368,14 +401,14 @@ def frames_dir(db_path: str | Path, session: str, trial_id: str) -> Path:
     Both names must be safe (:func:`sim.paths.check_name`) and the resolved directory must lie
     inside ``frames/`` (no symlink out of it): the runner clears and rewrites this directory.
     """
-    check_name(session, "session")
+    check_session_name(session, "session")
     check_name(trial_id, "trial_id")
     return safe_join(frames_root(db_path), session, trial_id, what=f"frames of trial {trial_id!r}")
 
 
 def frames_ref(session: str, trial_id: str) -> str:
     """The trial's frame directory relative to the database's directory, as stored (``frames/<session>/<trial_id>``)."""
-    return f"frames/{check_name(session, 'session')}/{check_name(trial_id, 'trial_id')}"
+    return f"frames/{check_session_name(session, 'session')}/{check_name(trial_id, 'trial_id')}"
 
 
 def _now_iso() -> str:
@@ -430,6 +463,7 @@ class TrialStore:
 
     def __init__(self, path: str | Path, create: bool = True):
         self.path = Path(path)
+        self._session_locks: dict[str, tuple[FileLock, dict]] = {}  # session -> (its OS lock, the holder row)
         if not create and not self.path.is_file():
             raise StoreError(f"{self.path}: no trial database here (run 'advobj trial run' first)")
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -507,6 +541,8 @@ class TrialStore:
             self.con.execute("PRAGMA foreign_keys=ON")
 
     def close(self) -> None:
+        for name in list(self._session_locks):
+            self.release_session(name)
         self.con.close()
 
     def __enter__(self):
@@ -674,6 +710,132 @@ class TrialStore:
             return None
         return np.asarray(json.loads(row["T_base_table_json"]), dtype=np.float64).reshape(4, 4)
 
+    # ------------------------------------------------------------------ session locks
+    def session_lock_path(self, name: str) -> Path:
+        """``<db>-session-<name>.lock`` beside the database: the session's OS lock file."""
+        check_session_name(name, "--session")
+        return self.path.resolve().parent / f"{self.path.name}-session-{name}.lock"
+
+    def lock_session(self, name: str, take_over_stale: bool = False, log=None) -> None:
+        """Make this process the only runner of session ``name`` until :meth:`release_session` (or
+        :meth:`close`): an OS lock on :meth:`session_lock_path` plus a ``session_locks`` row naming
+        this process (host, pid, process start, since when).
+
+        Another runner holding it: :class:`LockBusy` in one line naming it (host, pid), nothing
+        written. The OS lock free but a row naming another holder (a run that was killed, or one on
+        another host sharing this folder): taken over when that holder was on this host and its
+        process is gone (logged), else refused unless ``take_over_stale`` (``--take-over-stale-lock``).
+        """
+        if name in self._session_locks:
+            return
+        lock = FileLock(self.session_lock_path(name))
+        me = holder_identity(session=name, db=str(self.path))
+        other = lock.acquire(me)
+        if other is not None:
+            if not other:
+                row = self._lock_row(name)
+                other = {} if row is None else row
+            raise LockBusy(
+                f"--session {name}: in use by {describe_holder(other)}; one session takes one runner: wait for that "
+                "run to end or stop it (refused before any device connected and before anything was changed)"
+            )
+        try:
+            self._claim_lock_row(name, me, take_over_stale, lock.path, log or (lambda _text: None))
+        except BaseException:
+            lock.release()
+            raise
+        self._session_locks[name] = (lock, me)
+
+    def _lock_row(self, name: str) -> dict | None:
+        row = self.con.execute("SELECT host, pid, proc_start, since FROM session_locks WHERE session = ?", (name,))
+        row = row.fetchone()
+        return None if row is None else {**dict(row), "session": name}
+
+    def _claim_lock_row(self, name: str, me: dict, take_over: bool, path: Path, log) -> None:
+        self.con.execute("BEGIN IMMEDIATE")
+        try:
+            old = self._lock_row(name)
+            if old is not None:
+                here = old["host"] == me["host"]
+                gone = here and not pid_running(old["pid"], old["proc_start"])
+                if not gone and not take_over:
+                    where = (
+                        f"still runs on this host but holds no lock on {path.name}"
+                        if here
+                        else "ran on another host, where this one cannot tell whether it still runs"
+                    )
+                    raise LockBusy(
+                        f"--session {name}: the store names {describe_holder(old)} as its runner and that process "
+                        f"{where}; if it no longer runs this session, pass --take-over-stale-lock"
+                    )
+                log(
+                    f"session {name}: taking over the lock of {describe_holder(old)}: "
+                    + ("that process is no longer running" if gone else "--take-over-stale-lock given")
+                )
+            self.con.execute(
+                "INSERT OR REPLACE INTO session_locks (session, host, pid, proc_start, since) VALUES (?,?,?,?,?)",
+                (name, me["host"], me["pid"], me["proc_start"], me["since"]),
+            )
+            self.con.execute("COMMIT")
+        except BaseException:
+            self.con.execute("ROLLBACK")
+            raise
+
+    def holds_session_lock(self, name: str) -> bool:
+        """Whether this store holds session ``name``'s lock (its OS lock, and the row still names it)."""
+        held = self._session_locks.get(name)
+        if held is None or not held[0].held:
+            return False
+        row = self._lock_row(name)
+        me = held[1]
+        return row is not None and (row["host"], row["pid"], row["since"]) == (me["host"], me["pid"], me["since"])
+
+    def check_session_owner(self, name: str) -> None:
+        """:class:`LockBusy` unless this store holds session ``name`` (call before deleting or
+        committing anything of it)."""
+        if self.holds_session_lock(name):
+            return
+        row = self._lock_row(name)
+        raise LockBusy(
+            f"session {name}: this run does not hold its lock"
+            + (f" (the store names {describe_holder(row)} as its runner)" if row else "")
+            + "; nothing of the session is changed by it"
+        )
+
+    def release_session(self, name: str) -> None:
+        """Drop session ``name``'s lock row (if it still names this process) and its OS lock."""
+        held = self._session_locks.pop(name, None)
+        if held is None:
+            return
+        lock, me = held
+        try:
+            self.con.execute("BEGIN IMMEDIATE")
+            try:
+                self.con.execute(
+                    "DELETE FROM session_locks WHERE session = ? AND host = ? AND pid = ? AND since = ?",
+                    (name, me["host"], me["pid"], me["since"]),
+                )
+                self.con.execute("COMMIT")
+            except BaseException:
+                self.con.execute("ROLLBACK")
+                raise
+        except sqlite3.Error:
+            pass  # the row stays: a later runner on this host sees its pid gone and takes over
+        finally:
+            lock.release()
+
+    @contextlib.contextmanager
+    def session_locked(self, name: str, take_over_stale: bool = False, log=None):
+        """``with store.session_locked(name):`` the session's lock for the block (kept if already held)."""
+        if name in self._session_locks:
+            yield
+            return
+        self.lock_session(name, take_over_stale, log)
+        try:
+            yield
+        finally:
+            self.release_session(name)
+
     def session_names(self) -> list[str]:
         return [r[0] for r in self.con.execute("SELECT name FROM sessions ORDER BY id")]
 
@@ -689,6 +851,9 @@ class TrialStore:
         c = self.con
         c.execute("BEGIN IMMEDIATE")
         try:
+            owner = c.execute("SELECT name FROM sessions WHERE id = ?", (session_id,)).fetchone()
+            if owner is not None and owner[0] in self._session_locks:
+                self.check_session_owner(owner[0])  # taken over meanwhile (--take-over-stale-lock): commit nothing
             cur = c.execute(
                 "INSERT INTO trials (session_id, trial_id, plan_order, env, shape, condition, tcp_pose, object_layout, "
                 "tags_json, "
