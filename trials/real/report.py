@@ -30,8 +30,10 @@ the Wilson interval actually shown (15 of 30: +/- 16.8 %).
 
 from __future__ import annotations
 
+import html
 import json
 import math
+import re
 from collections import defaultdict
 from pathlib import Path
 from statistics import NormalDist
@@ -61,6 +63,27 @@ UNTAGGED = "(untagged)"
 
 class ReportError(AdvobjError, ValueError):
     """Trial rows or a sim evaluation directory cannot be reported; the message says which."""
+
+
+# An escape sequence a terminal acts on: CSI (colours, cursor moves; ESC [ or the C1 byte), OSC
+# (window titles, hyperlinks) up to its terminator, or a two-character escape.
+_ANSI = re.compile(r"\x9b[0-?]*[ -/]*[@-~]|\x1b(?:\[[0-?]*[ -/]*[@-~]|\][^\x07\x1b]*(?:\x07|\x1b\\)?|[@-Z\\-_])")
+_MD_SPECIAL = re.compile(r"([\\`|\[\]])")
+
+
+def plain_text(value) -> str:
+    """``value`` as one line of plain text: terminal escape sequences removed, every other control
+    or invisible formatting character (newlines, tabs, C1 codes, bidi overrides) turned into a
+    space, runs of spaces collapsed. What a note or name may show on a terminal."""
+    text = _ANSI.sub("", str(value))
+    return " ".join("".join(c if c.isprintable() else " " for c in text).split())
+
+
+def md_text(value) -> str:
+    """``value`` safe inside a line or table cell of Markdown: :func:`plain_text`, then HTML's
+    ``& < >`` as entities (no tag, comment or autolink) and ``\\ ` | [ ]`` backslash-escaped (no code
+    span, no table cell break, no link). Notes, reasons and names from the database go through it."""
+    return _MD_SPECIAL.sub(r"\\\1", html.escape(plain_text(value), quote=False))
 
 
 def _final(row: dict) -> str:
@@ -177,13 +200,16 @@ def audit(rows, planned: dict, amendments) -> dict:
 
 
 def audit_md(a: dict) -> list[str]:
+    """The audit as Markdown; every value from the database (names, notes, reasons) through :func:`md_text`."""
+    m = md_text
     lines = ["## Completeness, overrides, amendments and notes", ""]
-    lines += [f"- **Incomplete:** {t}." for t in a["incomplete"]] or [
+    lines += [f"- **Incomplete:** {m(t)}." for t in a["incomplete"]] or [
         "- Every session committed all its planned trials."
     ]
     lines += ["", f"Operator overrides ({len(a['overrides'])}):", ""]
     lines += [
-        f"- {o['session']}/{o['trial_id']}: {o['auto']} -> {o['operator']}" + (f" ({o['note']})" if o["note"] else "")
+        f"- {m(o['session'])}/{m(o['trial_id'])}: {m(o['auto'])} -> {m(o['operator'])}"
+        + (f" ({m(o['note'])})" if o["note"] else "")
         for o in a["overrides"]
     ] or ["- none"]
     lines += [
@@ -192,13 +218,13 @@ def audit_md(a: dict) -> list[str]:
         "",
     ]
     lines += [
-        f"- {x['session']}/{x['trial_id']} at {x['at']}: {x['old']} -> {x['new']}"
-        + (f", note {x['old_note']!r} -> {x['new_note']!r}" if x["old_note"] != x["new_note"] else "")
-        + (f"; reason: {x['reason']}" if x["reason"] else "")
+        f"- {m(x['session'])}/{m(x['trial_id'])} at {m(x['at'])}: {m(x['old'])} -> {m(x['new'])}"
+        + (f', note "{m(x["old_note"])}" -> "{m(x["new_note"])}"' if x["old_note"] != x["new_note"] else "")
+        + (f"; reason: {m(x['reason'])}" if x["reason"] else "")
         for x in a["amendments"]
     ] or ["- none"]
     lines += ["", f"Notes ({len(a['notes'])}):", ""]
-    lines += [f"- {n['session']}/{n['trial_id']}: {n['note']}" for n in a["notes"]] or ["- none"]
+    lines += [f"- {m(n['session'])}/{m(n['trial_id'])}: {m(n['note'])}" for n in a["notes"]] or ["- none"]
     return lines + [""]
 
 
@@ -379,7 +405,7 @@ def _cells_md(title: str, cells: dict, key: str) -> list[str]:
         "|---|---:|---|---|---:|",
     ]
     for k, c in cells.items():
-        lines.append(f"| {k} | {c['n']} | {_pct(c['tasr'])} | {_pct(c['asr'])} | {c['unknown']} |")
+        lines.append(f"| {md_text(k)} | {c['n']} | {_pct(c['tasr'])} | {_pct(c['asr'])} | {c['unknown']} |")
     return lines + [""]
 
 
@@ -404,8 +430,9 @@ def table_iv_md(table: list[dict]) -> list[str]:
     ]
     for r in table:
         lines.append(
-            f"| {r['env']} | {r['shape']} | {_pct(r['sim']['tasr'], False)} | {_pct(r['sim']['asr'], False)} | "
-            f"{_pct(r['real']['tasr'])} | {_pct(r['real']['asr'])} | {r['n']} | {r['note']} |"
+            f"| {md_text(r['env'])} | {md_text(r['shape'])} | {_pct(r['sim']['tasr'], False)} | "
+            f"{_pct(r['sim']['asr'], False)} | "
+            f"{_pct(r['real']['tasr'])} | {_pct(r['real']['asr'])} | {r['n']} | {md_text(r['note'])} |"
         )
     if not table:
         lines.append("| – | – | – | – | – | – | 0 | no untagged adv3d trials |")
@@ -442,15 +469,17 @@ def write_trial_report(
     table = table or []
     prec = table_precision(table, summary, half_width)
     prec_text = (
-        f"Precision ({prec['row']}, the Table IV row with the fewest trials): " if prec["row"] else "Precision: "
+        f"Precision ({md_text(prec['row'])}, the Table IV row with the fewest trials): "
+        if prec["row"]
+        else "Precision: "
     ) + precision_line(prec)
     a = summary.get("audit")
     md = [
         "# Real-robot trial report",
         "",
         f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): "
-        f"{', '.join(summary['sessions']) or '–'}."
-        + ("".join(f" **Incomplete: {t}.**" for t in a["incomplete"]) if a else ""),
+        f"{', '.join(md_text(x) for x in summary['sessions']) or '–'}."
+        + ("".join(f" **Incomplete: {md_text(t)}.**" for t in a["incomplete"]) if a else ""),
         "T-ASR = ended at the adversarial object; ASR = did not end at the goal; trials with an unknown outcome are "
         "excluded from the rates (n = rated trials). Intervals: 95 % Wilson.",
         "",
@@ -467,7 +496,7 @@ def write_trial_report(
         *_breakdown_md(summary["all"]),
     ]
     for s, b in summary["by_session"].items():
-        md += [f"## Session {s}", "", *_breakdown_md(b)]
+        md += [f"## Session {md_text(s)}", "", *_breakdown_md(b)]
     if a:
         md += audit_md(a)
     md_path, json_path = out / "report.md", out / "report.json"
