@@ -25,8 +25,10 @@ import sys
 import time
 from pathlib import Path
 
+from trials.experiments.recipes import RECIPES as REGISTRY
+
 ROOT = Path(__file__).resolve().parent.parent
-RECIPES = ("table1", "table2", "table3", "transfer", "lighting")
+RECIPES = tuple(REGISTRY)  # the one list (trials.experiments.recipes.RECIPES)
 
 
 def _machine() -> dict:

@@ -8,6 +8,7 @@ from typing import List, Optional
 import typer
 
 from trials.cli.grid import ADDRESS, SHARDS, WORKERS
+from trials.experiments.recipes import RECIPES
 
 app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
 
@@ -69,159 +70,60 @@ _ITERATIONS = typer.Option(None, min=1, help="attack iterations of every attack 
 _DEVICE = typer.Option("cpu", help="torch device of every job; 'cuda' jobs ask Ray for a GPU each")
 
 
-@app.command()
-def table1(
-    preset: str = _PRESET,
-    out: Optional[Path] = _OUT,
-    policy: Optional[Path] = _POLICY,
-    episodes: Optional[int] = _EPISODES,
-    scene: Optional[Path] = _SCENE,
-    pool: Optional[Path] = _POOL,
-    iterations: Optional[int] = _ITERATIONS,
-    workers: Optional[int] = WORKERS,
-    address: Optional[str] = ADDRESS,
-    shards: Optional[int] = SHARDS,
-    device: str = _DEVICE,
-) -> None:
-    """3D adversarial object vs 2D patch, by viewing angle (Table I)."""
-    _run(
-        "table1",
-        preset,
-        out,
-        policy,
-        [],
-        episodes,
-        scene,
-        pool,
-        iterations=iterations,
-        grid=(workers, address, shards, device),
-    )
+_TARGET = typer.Option(
+    [],
+    help="ARCH=PATH target policy (resnet34, vgg16, inception_v3; checkpoint or .onnx); missing targets are "
+    "trained (transfer only)",
+)
+_ARCHS = typer.Option(
+    None,
+    "--archs",
+    help="comma-separated target architectures to run (default: resnet34,vgg16,inception_v3; transfer only)",
+)
 
 
-@app.command()
-def table2(
-    preset: str = _PRESET,
-    out: Optional[Path] = _OUT,
-    policy: Optional[Path] = _POLICY,
-    episodes: Optional[int] = _EPISODES,
-    scene: Optional[Path] = _SCENE,
-    pool: Optional[Path] = _POOL,
-    iterations: Optional[int] = typer.Option(
-        None,
-        min=1,
-        help="attack iterations (default: the attack preset's); a smaller "
-        "budget shows the strategies before they saturate",
-    ),
-    workers: Optional[int] = WORKERS,
-    address: Optional[str] = ADDRESS,
-    shards: Optional[int] = SHARDS,
-    device: str = _DEVICE,
-) -> None:
-    """C2F vs F2C vs NS and the targeted / pose / saliency ablations, by distance (Table II)."""
-    _run(
-        "table2",
-        preset,
-        out,
-        policy,
-        [],
-        episodes,
-        scene,
-        pool,
-        iterations=iterations,
-        grid=(workers, address, shards, device),
-    )
+def _command(name: str, recipe):
+    """The ``advobj experiment NAME`` command of one registry entry (the options every recipe shares)."""
+
+    def command(
+        preset: str = _PRESET,
+        out: Optional[Path] = _OUT,
+        policy: Optional[Path] = _POLICY,
+        target: List[str] = _TARGET,
+        episodes: Optional[int] = _EPISODES,
+        scene: Optional[Path] = _SCENE,
+        pool: Optional[Path] = _POOL,
+        archs: Optional[str] = _ARCHS,
+        iterations: Optional[int] = _ITERATIONS,
+        workers: Optional[int] = WORKERS,
+        address: Optional[str] = ADDRESS,
+        shards: Optional[int] = SHARDS,
+        device: str = _DEVICE,
+    ) -> None:
+        if not recipe.transfer:
+            for flag, given in (("--target", target), ("--archs", archs)):
+                if given:
+                    raise typer.BadParameter("only the transfer recipe attacks other policies", param_hint=flag)
+        elif pool is not None:
+            raise typer.BadParameter("the transfer recipe evaluates each target on its own pool", param_hint="--pool")
+        _run(
+            name,
+            preset,
+            out,
+            policy,
+            target,
+            episodes,
+            scene,
+            pool,
+            archs,
+            iterations=iterations,
+            grid=(workers, address, shards, device),
+        )
+
+    command.__doc__ = recipe.help
+    command.__name__ = name
+    return command
 
 
-@app.command()
-def table3(
-    preset: str = _PRESET,
-    out: Optional[Path] = _OUT,
-    policy: Optional[Path] = _POLICY,
-    episodes: Optional[int] = _EPISODES,
-    scene: Optional[Path] = _SCENE,
-    pool: Optional[Path] = _POOL,
-    iterations: Optional[int] = _ITERATIONS,
-    workers: Optional[int] = WORKERS,
-    address: Optional[str] = ADDRESS,
-    shards: Optional[int] = SHARDS,
-    device: str = _DEVICE,
-) -> None:
-    """Shapes, stereo camera, lighting, noise and background (Table III)."""
-    _run(
-        "table3",
-        preset,
-        out,
-        policy,
-        [],
-        episodes,
-        scene,
-        pool,
-        iterations=iterations,
-        grid=(workers, address, shards, device),
-    )
-
-
-@app.command()
-def lighting(
-    preset: str = _PRESET,
-    out: Optional[Path] = _OUT,
-    policy: Optional[Path] = _POLICY,
-    episodes: Optional[int] = _EPISODES,
-    scene: Optional[Path] = _SCENE,
-    pool: Optional[Path] = _POOL,
-    iterations: Optional[int] = _ITERATIONS,
-    workers: Optional[int] = WORKERS,
-    address: Optional[str] = ADDRESS,
-    shards: Optional[int] = SHARDS,
-    device: str = _DEVICE,
-) -> None:
-    """Lighting randomisation in the attack: its cost and what it buys under bright, dim and held-out lights."""
-    _run(
-        "lighting",
-        preset,
-        out,
-        policy,
-        [],
-        episodes,
-        scene,
-        pool,
-        iterations=iterations,
-        grid=(workers, address, shards, device),
-    )
-
-
-@app.command()
-def transfer(
-    preset: str = _PRESET,
-    out: Optional[Path] = _OUT,
-    policy: Optional[Path] = _POLICY,
-    target: List[str] = typer.Option(
-        [],
-        help="ARCH=PATH target policy (resnet34, vgg16, inception_v3; checkpoint or .onnx); "
-        "missing targets are trained",
-    ),
-    episodes: Optional[int] = _EPISODES,
-    scene: Optional[Path] = _SCENE,
-    archs: Optional[str] = typer.Option(
-        None, "--archs", help="comma-separated target architectures to run (default: resnet34,vgg16,inception_v3)"
-    ),
-    iterations: Optional[int] = _ITERATIONS,
-    workers: Optional[int] = WORKERS,
-    address: Optional[str] = ADDRESS,
-    shards: Optional[int] = SHARDS,
-    device: str = _DEVICE,
-) -> None:
-    """Black-box transfer: source attack against ResNet34, VGG16 and Inception-v3 (Table V)."""
-    _run(
-        "transfer",
-        preset,
-        out,
-        policy,
-        target,
-        episodes,
-        scene,
-        None,
-        archs,
-        iterations=iterations,
-        grid=(workers, address, shards, device),
-    )
+for _name, _recipe in RECIPES.items():
+    app.command(_name)(_command(_name, _recipe))

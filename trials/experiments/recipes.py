@@ -847,12 +847,33 @@ def _arch(pdir: Path) -> str:
         return "onnx" if str(pdir).endswith(".onnx") else "?"
 
 
-RECIPES: dict[str, Callable[[Context], str]] = {
-    "table1": table1,
-    "table2": table2,
-    "table3": table3,
-    "transfer": transfer,
-    "lighting": lighting,
+@dataclass(frozen=True)
+class Recipe:
+    """One experiment: the function that runs it, its one-line help, and whether it attacks other
+    policies (``--target``/``--archs``; such a recipe evaluates each target on its own pool)."""
+
+    run: Callable[[Context], str]
+    help: str
+    transfer: bool = False
+
+
+# The one list of recipes: the CLI (one generated ``advobj experiment NAME`` each) and
+# tools/evidence.py read it.
+RECIPES: dict[str, Recipe] = {
+    "table1": Recipe(table1, "3D adversarial object vs 2D patch, by viewing angle (Table I)."),
+    "table2": Recipe(
+        table2,
+        "C2F vs F2C vs NS and the targeted / pose / saliency ablations, by distance (Table II); a smaller "
+        "--iterations budget shows the strategies before they saturate.",
+    ),
+    "table3": Recipe(table3, "Shapes, stereo camera, lighting, noise and background (Table III)."),
+    "transfer": Recipe(
+        transfer, "Black-box transfer: source attack against ResNet34, VGG16 and Inception-v3 (Table V).", True
+    ),
+    "lighting": Recipe(
+        lighting,
+        "Lighting randomisation in the attack: its cost and what it buys under bright, dim and held-out lights.",
+    ),
 }
 
 
@@ -922,7 +943,7 @@ def run_experiment(
         },
         cfg.seed,
     )
-    table = RECIPES[name](ctx)
+    table = RECIPES[name].run(ctx)
     path = out / "table.md"
     path.write_text(table)
     return path
