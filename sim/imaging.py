@@ -7,9 +7,11 @@ until its short side is at least ``min_side`` and writes a caption bar above it.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-__all__ = ["MIN_SIDE", "upscale", "labelled", "hstack"]
+__all__ = ["MIN_SIDE", "upscale", "labelled", "hstack", "contact_sheet", "write_gif"]
 
 # Short side of every diagnostic image (px), caption bar excluded.
 MIN_SIDE = 256
@@ -43,3 +45,25 @@ def hstack(images: list[np.ndarray], gap_px: int = 4) -> np.ndarray:
         if k < len(images) - 1:
             cols.append(np.full((h, gap_px, 3), 255, np.uint8))
     return np.concatenate(cols, 1)
+
+
+def contact_sheet(frames: list[np.ndarray], cols: int = 8, max_frames: int = 32) -> np.ndarray:
+    """Tile evenly spaced frames into one image (rows x cols), padding with black."""
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round().astype(int))
+    picked = [frames[i] for i in idx]
+    h, w, _ = picked[0].shape
+    rows = -(-len(picked) // cols)
+    sheet = np.zeros((rows * h, cols * w, 3), np.uint8)
+    for k, f in enumerate(picked):
+        r, c = divmod(k, cols)
+        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = f
+    return sheet
+
+
+def write_gif(path: str | Path, frames: list[np.ndarray], fps: int = 10) -> Path:
+    import imageio.v3 as iio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, np.stack(frames), duration=int(1000 / fps), loop=0)
+    return path

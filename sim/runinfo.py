@@ -9,7 +9,15 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["git_commit", "write_run_info"]
+from sim.errors import AdvobjError
+
+__all__ = ["RUN_INFO_NAME", "RunInfoError", "git_commit", "write_run_info", "read_run_info"]
+
+RUN_INFO_NAME = "run.json"
+
+
+class RunInfoError(AdvobjError, ValueError):
+    """A run's ``run.json`` is missing or is not run info; the message names the file."""
 
 
 def git_commit() -> str:
@@ -31,7 +39,24 @@ def git_commit() -> str:
         return "unknown"
 
 
-def write_run_info(out_dir: str | Path, config: dict, seed: int | None, name: str = "run.json") -> Path:
+def read_run_info(run_dir: str | Path, name: str = RUN_INFO_NAME) -> dict:
+    """A run's provenance (``run.json``: a mapping with ``config``); one :class:`RunInfoError`
+    naming the file when it is missing, unreadable or not run info."""
+    path = Path(run_dir) / name
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise RunInfoError(f"{path}: missing") from None
+    except OSError as err:
+        raise RunInfoError(f"{path}: unreadable ({err.strerror or err})") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise RunInfoError(f"{path}: not run info ({type(err).__name__})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("config"), dict):
+        raise RunInfoError(f"{path}: not run info (no 'config' mapping)")
+    return doc
+
+
+def write_run_info(out_dir: str | Path, config: dict, seed: int | None, name: str = RUN_INFO_NAME) -> Path:
     """Write ``out_dir/run.json`` with the resolved ``config`` (JSON-able), seed and provenance."""
     import importlib.metadata
 

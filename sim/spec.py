@@ -20,6 +20,7 @@ from sim.errors import AdvobjError, format_validation_error
 from sim.geometry import make_T, so3_exp
 
 __all__ = [
+    "load_spec",
     "SpecError",
     "TableSpec",
     "LightSpec",
@@ -343,6 +344,11 @@ def load_scene(path: str | Path) -> SceneSpec:
     """Load and validate a scene YAML file."""
     path = Path(path)
     return scene_from_dict(read_yaml(path, "scene file", error=file_error(SpecError)), source=str(path))
+
+
+def load_spec(path: str | Path | None) -> SceneSpec:
+    """The scene of ``path`` (a scene YAML), or the built-in scene when ``path`` is None."""
+    return default_scene() if path is None else load_scene(path)
 
 
 def default_scene() -> SceneSpec:

@@ -25,6 +25,7 @@ import sys
 import time
 from pathlib import Path
 
+from trials.eval.episodes import read_summary
 from trials.experiments.recipes import RECIPES as REGISTRY
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -117,7 +118,7 @@ def collect(name: str, work: Path, results: Path) -> Path:
             reader = csv.DictReader(f)
             header = header or ["eval"] + list(reader.fieldnames)
             rows += [{"eval": ev.name, **r} for r in reader]
-        summaries[ev.name] = json.loads((ev / "summary.json").read_text())
+        summaries[ev.name] = read_summary(ev)
         summaries[ev.name]["overlap"] = json.loads((ev / "manifest.json").read_text())["config"].get("overlap")
     with open(dst / "episodes.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=header)

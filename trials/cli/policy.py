@@ -58,7 +58,7 @@ def train(
     """Train a policy (DAgger from the privileged expert, or PPO) and evaluate it."""
     from sim.policies.presets import resolve_preset
     from sim.policies.train import train_policy
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     extra = {} if episodes is None else {"final_eval_episodes": episodes}
     if stem is not None:
@@ -101,7 +101,7 @@ def evaluate(
     from sim.policies.pool import write_feasible_pool
     from sim.policies.rollout import EnvConfig, evaluate_policy
     from sim.runinfo import write_run_info
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     _set_threads(threads)
     pol = load_policy(policy, device=device)

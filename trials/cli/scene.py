@@ -33,7 +33,8 @@ def render(
     """Render the wrist-camera view of one initial configuration."""
     import imageio.v3 as iio
 
-    from trials.jobs.scene import load_spec, render_still
+    from sim.spec import load_spec
+    from trials.jobs.scene import render_still
 
     _out_file(out, (".png",))
 
@@ -55,7 +56,9 @@ def rollout(
     if not expert:
         raise typer.BadParameter("only --expert rollouts exist here; policies roll out with 'advobj policy eval'")
     _out_file(out, (".gif",))
-    from trials.jobs.scene import expert_rollout, load_spec, write_gif
+    from sim.imaging import write_gif
+    from sim.spec import load_spec
+    from trials.jobs.scene import expert_rollout
 
     spec = load_spec(scene)
     frames, info = expert_rollout(spec, seed, size)
@@ -74,7 +77,7 @@ def pool(
 ) -> None:
     """Write a pool of initial configurations (reproducible from their seeds)."""
     from sim.configs import sample_pool, save_pool
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     _out_file(out, (".json",))
 

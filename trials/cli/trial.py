@@ -65,7 +65,7 @@ def plan_command(
         raise PlanError(f"--sheet: {sheet} is a directory; give the PDF's file name")
     from sim.configs import load_pool
     from sim.runinfo import write_run_info
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
     from trials.real.plan import design_summary, make_plan, plan_sha256, save_plan, texture_ref
 
     spec = load_spec(scene)

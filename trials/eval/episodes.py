@@ -21,7 +21,18 @@ from pathlib import Path
 
 from sim.errors import AdvobjError
 
-__all__ = ["StorageError", "EpisodeStore", "BASE_COLUMNS", "config_hash", "read_rows"]
+__all__ = [
+    "StorageError",
+    "EpisodeStore",
+    "BASE_COLUMNS",
+    "SUMMARY_NAME",
+    "config_hash",
+    "read_rows",
+    "write_summary",
+    "read_summary",
+]
+
+SUMMARY_NAME = "summary.json"
 
 
 class StorageError(AdvobjError, ValueError):
@@ -47,6 +58,36 @@ BASE_COLUMNS = (
 _INT = {"seed", "reached", "steps"}
 _BOOL = {"success", "targeted"}
 _STR = {"condition", "outcome", "eval"}  # "eval": the evaluation a row came from, in results/<recipe>/episodes.csv
+
+
+def write_summary(out: str | Path, summary: dict, default=None) -> Path:
+    """Write an evaluation's ``summary.json`` into ``out`` atomically (a temporary, then a rename)."""
+    out = Path(out)
+    tmp = out / f".{SUMMARY_NAME}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(summary, indent=2, default=default))
+    tmp.replace(out / SUMMARY_NAME)
+    return out / SUMMARY_NAME
+
+
+def read_summary(eval_dir: str | Path) -> dict:
+    """An evaluation's summary (``summary.json``, a mapping with ``conditions``); one
+    :class:`StorageError` naming the file when it is missing or is not an eval summary."""
+    path = Path(eval_dir) / SUMMARY_NAME
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise StorageError(f"{path}: missing; is {path.parent} an 'advobj eval' directory?") from None
+    except OSError as err:
+        raise StorageError(f"{path}: unreadable ({err.strerror or err})") from None
+    except UnicodeDecodeError:
+        raise StorageError(f"{path}: not an eval summary (a binary file, not UTF-8 JSON)") from None
+    except (json.JSONDecodeError, RecursionError) as err:
+        raise StorageError(
+            f"{path}: not an eval summary ({type(err).__name__}: {' '.join(str(err).split())})"
+        ) from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("conditions"), dict):
+        raise StorageError(f"{path}: not an eval summary (no 'conditions' mapping)")
+    return doc
 
 
 def config_hash(config: dict) -> str:

@@ -14,7 +14,6 @@ resumes without redoing anything (:mod:`trials.eval.episodes`).
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 from typing import Callable
@@ -25,6 +24,7 @@ from pydantic import Field, ValidationError
 from sim.action import POLICY_ERROR
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
+from trials.eval.episodes import write_summary
 
 __all__ = [
     "EvalError",
@@ -390,8 +390,8 @@ def _row(cond_name: str, config, res: dict, spec) -> dict:
 def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: bool):
     """The conditions, scene, configurations, pool source, overlap and resolved config of an
     evaluation (refusing an in-sample one): what every shard and the merge share."""
+    from sim.spec import load_spec
     from trials.eval.conditions import Sources, build_conditions
-    from trials.jobs.scene import load_spec
 
     conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes)))
     base = load_spec(cfg.scene)
@@ -449,9 +449,7 @@ def _finish(cfg: EvalConfig, out: Path, rows: list, spec, conds, configs, pool_s
             "overlap": overlap,
         },
     )
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2, default=_json_default))
-    tmp.replace(out / "summary.json")
+    write_summary(out, summary, default=_json_default)
     if report:
         write_report(out, summary, conds)
     return summary
@@ -557,6 +555,6 @@ def _json_default(o):
 
 
 def _write_gif(path: Path, frames: list) -> None:
-    from trials.jobs.scene import write_gif
+    from sim.imaging import write_gif
 
     write_gif(path, frames)

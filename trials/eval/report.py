@@ -175,7 +175,7 @@ def _compare_gifs(out: Path, names: list[str]) -> list[Path]:
     """Side-by-side clean | condition GIFs for every recorded seed."""
     import imageio.v3 as iio
 
-    from trials.jobs.scene import write_gif
+    from sim.imaging import write_gif
 
     made = []
     gdir = out / "gifs"

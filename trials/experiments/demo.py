@@ -25,8 +25,10 @@ def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
     """Run the demo into ``out``; returns the evaluation summary plus the expert's outcome."""
     import imageio.v3 as iio
 
+    from sim.imaging import contact_sheet, write_gif
     from sim.runinfo import write_run_info
     from sim.runtime import set_torch_threads
+    from sim.spec import load_spec
     from trials.experiments.recipes import (
         Context,
         ensure_attack,
@@ -36,7 +38,7 @@ def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
         resolve_experiment,
         table1_markdown,
     )
-    from trials.jobs.scene import contact_sheet, expert_rollout, load_spec, write_gif
+    from trials.jobs.scene import expert_rollout
 
     set_torch_threads()
     out = Path(out)

@@ -22,6 +22,7 @@ from pydantic import Field, ValidationError
 
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
+from trials.eval.episodes import read_summary
 
 __all__ = [
     "ExperimentError",
@@ -227,7 +228,7 @@ class Context:
         self.executor = self.executor or SerialExecutor(self.log, tee=self.progress)
 
     def spec(self):
-        from trials.jobs.scene import load_spec
+        from sim.spec import load_spec
 
         return load_spec(self.scene)
 
@@ -300,7 +301,7 @@ class EvalResult(dict):
     def _load(self):
         if not dict.__len__(self):  # dict's own length: not the override below
             self._ctx.run_jobs()
-            self.update(json.loads((self._path / "summary.json").read_text()))
+            self.update(read_summary(self._path))
 
 
 def _loading(name: str):
@@ -354,7 +355,7 @@ def job_train_policy(out: Path, inputs: dict, preset: str, arch: str | None, see
     """The ``train-policy`` job: train (or resume, or reuse a finished) policy into ``out``."""
     from sim.policies.presets import resolve_preset
     from sim.policies.train import train_policy
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     if (out / "policy.json").is_file():
         print(f"policy: reusing {out}")
@@ -459,9 +460,9 @@ def job_pool(out: Path, inputs: dict, fields: dict) -> None:
     ``out/feasible_pool.json`` (from the policy's own pool, topped up as ``advobj eval`` does)."""
     from sim.configs import save_pool
     from sim.policies.checkpoint import load_policy
+    from sim.spec import load_spec
     from trials.eval.evaluate import load_eval_config, resolve_pool
     from trials.jobs.dag import show_progress
-    from trials.jobs.scene import load_spec
 
     ecfg = load_eval_config(
         policy=str(inputs["policy"]),
@@ -568,7 +569,7 @@ def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dic
     }
     add_eval_jobs(grid, "eval", out, fields, inputs, shards, res)
     executor.run(grid)
-    return json.loads((out / "summary.json").read_text())
+    return read_summary(out)
 
 
 # ----------------------------------------------------------------------------- tables

@@ -42,6 +42,7 @@ from pydantic import Field, ValidationError
 
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
+from sim.runinfo import read_run_info
 from trials.experiments.tradeoff_report import write_report
 
 __all__ = [
@@ -570,7 +571,7 @@ def _peak_rss_mb() -> float:
 
 
 def _eval_spec(cfg: TradeoffConfig):
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     base = load_spec(cfg.scene)
     return base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
@@ -738,7 +739,7 @@ def _subset_summary(eval_dir: str, n: int, spec) -> dict:
     from trials.eval.report import summarize_rows
 
     d = Path(eval_dir)
-    seeds = json.loads((d / "run.json").read_text())["config"]["seeds"][:n]
+    seeds = read_run_info(d)["config"]["seeds"][:n]
     keep = set(seeds)
     rows = [r for r in read_rows(d / "episodes.csv") if r["condition"] == "attack" and int(r["seed"]) in keep]
     s = summarize_rows(rows, spec.object_index("goal"), spec.object_index("adversarial"))
@@ -958,7 +959,7 @@ def train_resolution_policy(
     """
     from sim.policies.presets import resolve_preset
     from sim.policies.train import train_policy
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     d = Path(out_dir)
     if (d / "policy.json").is_file():

@@ -85,7 +85,7 @@ def attack_job(
     from sim.policies.checkpoint import load_policy
     from sim.policies.pool import feasible_pool_path
     from sim.runinfo import write_run_info
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     overrides = {}
     if config_path is not None:

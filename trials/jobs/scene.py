@@ -1,18 +1,12 @@
-"""Scene-level jobs behind ``advobj scene ...`` and the first stage of ``advobj demo``."""
+"""Scene helpers behind ``advobj scene ...`` and the first stage of ``advobj demo``: a still and an
+expert rollout (the scene loader is :func:`sim.spec.load_spec`; GIFs and contact sheets are
+:mod:`sim.imaging`'s)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-__all__ = ["load_spec", "render_still", "expert_rollout", "contact_sheet", "write_gif"]
-
-
-def load_spec(path: str | Path | None):
-    from sim.spec import default_scene, load_scene
-
-    return default_scene() if path is None else load_scene(path)
+__all__ = ["render_still", "expert_rollout"]
 
 
 def render_still(spec, seed: int, size: int | None = None) -> np.ndarray:
@@ -39,25 +33,3 @@ def expert_rollout(spec, seed: int, size: int | None = None, progress: bool = Tr
             bar.update(1)
         bar.close()
     return frames, info
-
-
-def contact_sheet(frames: list[np.ndarray], cols: int = 8, max_frames: int = 32) -> np.ndarray:
-    """Tile evenly spaced frames into one image (rows x cols), padding with black."""
-    idx = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round().astype(int))
-    picked = [frames[i] for i in idx]
-    h, w, _ = picked[0].shape
-    rows = -(-len(picked) // cols)
-    sheet = np.zeros((rows * h, cols * w, 3), np.uint8)
-    for k, f in enumerate(picked):
-        r, c = divmod(k, cols)
-        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = f
-    return sheet
-
-
-def write_gif(path: str | Path, frames: list[np.ndarray], fps: int = 10) -> Path:
-    import imageio.v3 as iio
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, np.stack(frames), duration=int(1000 / fps), loop=0)
-    return path

@@ -39,7 +39,9 @@ from pathlib import Path
 from statistics import NormalDist
 
 from sim.errors import AdvobjError
+from sim.runinfo import RunInfoError, read_run_info
 from sim.stats import proportion, wilson_interval
+from trials.eval.episodes import StorageError, read_summary
 
 __all__ = [
     "ReportError",
@@ -292,26 +294,19 @@ def load_sim_eval(eval_dir) -> dict:
     of an eval dir."""
     d = Path(eval_dir)
     try:
-        summary = json.loads((d / "summary.json").read_text())
-        conditions = summary["conditions"]
-    except OSError:
-        raise ReportError(f"{d / 'summary.json'}: missing; is {d} an 'advobj eval' directory?") from None
-    except UnicodeDecodeError:
-        raise ReportError(f"{d / 'summary.json'}: not an eval summary (a binary file, not UTF-8 JSON)") from None
-    except (json.JSONDecodeError, KeyError, TypeError, RecursionError) as err:
-        raise ReportError(
-            f"{d / 'summary.json'}: not an eval summary ({type(err).__name__}: {' '.join(str(err).split())})"
-        ) from None
+        conditions = read_summary(d)["conditions"]
+    except StorageError as err:
+        raise ReportError(str(err)) from None
     sources, adv_mesh = {}, None
     try:
-        cfg = json.loads((d / "run.json").read_text())["config"]
+        cfg = read_run_info(d)["config"]
         for c in cfg.get("conditions", []):
             src = c.get("source") or {}
             sources[c["name"]] = {"sha256": src.get("sha256"), "mesh": src.get("mesh")}
         adv_mesh = next(
             (o["mesh"] for o in (cfg.get("scene") or {}).get("objects", []) if o.get("role") == "adversarial"), None
         )
-    except (OSError, json.JSONDecodeError, KeyError, TypeError):
+    except (RunInfoError, KeyError, TypeError, AttributeError):
         pass  # without run.json the texture identity is unknown: rule 3 of the module docstring
     return {"path": str(d), "conditions": conditions, "sources": sources, "adversarial_mesh": adv_mesh}
 

@@ -96,7 +96,7 @@ def load_T_base_table(path: str | Path) -> np.ndarray:
 
 
 def _scene_spec(plan, hw):
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     if plan.scene is not None:
         return load_spec(Path(plan.scene))

@@ -189,7 +189,7 @@ def placement_sheet_pdf(plan, path, spec=None) -> int:
     matplotlib.use("Agg", force=False)
     from matplotlib.backends.backend_pdf import PdfPages
 
-    from trials.jobs.scene import load_spec
+    from sim.spec import load_spec
 
     spec = load_spec(plan.scene) if spec is None else spec
     adv_meshes = list(plan.shapes) + (["patch"] if "patch" in plan.conditions else [])
