@@ -59,6 +59,7 @@ from trials.real.locks import FileLock, LockBusy, describe_holder, holder_identi
 
 __all__ = [
     "SCHEMA_VERSION",
+    "DEFAULT_DB",
     "StoreError",
     "SessionMismatch",
     "SessionInfo",
@@ -80,6 +81,8 @@ __all__ = [
 ]
 
 SCHEMA_VERSION = 6
+#: The trial database's file name when the operator names none (the ``--db`` default).
+DEFAULT_DB = "trials.sqlite"
 #: A trial's outcome. ``policy_error``: the policy gave a non-finite action; the trial stopped there
 #: (the runner sets it, never the operator; reports count it apart from the rated trials).
 OUTCOMES = ("goal", "adversarial", "none", "unknown", "policy_error")
