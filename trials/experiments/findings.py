@@ -1,7 +1,10 @@
-"""The paper's five findings, tested on the committed per-episode data under ``results/``.
+"""The paper's findings, tested on the committed per-episode data under ``results/``.
 
 Every figure here is recomputed from ``results/<recipe>/episodes.csv`` (written by
-``tools/evidence.py``); nothing is typed in by hand. Comparisons between two attacks are paired:
+``tools/evidence.py``); nothing is typed in by hand. Each finding is a :class:`Finding` declared in
+the one registry :data:`FINDINGS` (its claim, the recipe and arms it compares, the event, the claim
+kind, the subgroup and bins); :func:`evaluate` computes any declaration from the rows and
+:func:`render` / :func:`render_details` print any of them. Comparisons between two attacks are paired:
 the arms ran on the same held-out configurations (same seeds), and McNemar's exact test on the
 discordant pairs decides, at alpha = 0.05 (two-sided):
 
@@ -22,8 +25,10 @@ paired: it holds when the 95% interval of T-ASR(target) / T-ASR(white-box) lies 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,12 +38,27 @@ from trials.eval.metrics import DISTANCE_BINS_CM, PHI_BINS_DEG, bin_index, bin_l
 __all__ = [
     "ALPHA",
     "OBLIQUE_PHI_DEG",
+    "Arm",
+    "Part",
+    "Subgroup",
+    "Finding",
+    "FINDINGS",
+    "FollowUp",
+    "NOTES",
     "Paired",
+    "Ratio",
+    "Outcome",
+    "Binned",
+    "Evaluated",
     "paired",
+    "paired_markdown",
     "verdict",
     "load_rows",
+    "evaluate",
     "findings",
+    "notes",
     "render",
+    "render_details",
     "write_all",
     "main",
 ]
@@ -52,6 +72,13 @@ START, END = (
     "<!-- findings:end -->",
 )
 TARGETS = {"README.md": (ROOT / "README.md", ""), "docs/evaluation.md": (ROOT / "docs" / "evaluation.md", "../")}
+BIN_EDGES = {"phi": PHI_BINS_DEG, "r": DISTANCE_BINS_CM}
+UNITS = {"phi": "deg", "r": "cm"}
+BIN_TITLES = {"phi": "viewing angle phi (deg)", "r": "initial distance r (cm)"}
+CLAIMS = (">", ">=", "ratio")
+RATE_NAMES = {"targeted": "T-ASR"}  # how an event's rate is printed; other events print their column name
+
+Rows = Callable[[str], "list[dict] | None"]  # recipe -> its rows (None when not run)
 
 
 def load_rows(results: Path, recipe: str) -> list[dict] | None:
@@ -60,16 +87,254 @@ def load_rows(results: Path, recipe: str) -> list[dict] | None:
     return read_rows(path) if path.is_file() else None
 
 
+def _loader(results: Path) -> Rows:
+    """:func:`load_rows` on ``results``, reading each recipe once."""
+    cache: dict[str, list[dict] | None] = {}
+
+    def rows_of(recipe: str) -> list[dict] | None:
+        if recipe not in cache:
+            cache[recipe] = load_rows(results, recipe)
+        return cache[recipe]
+
+    return rows_of
+
+
+def value_of(row: dict, key: str) -> float:
+    """The row's initial viewing angle phi in degrees (``key="phi"``) or initial distance r in cm (``"r"``)."""
+    return math.degrees(row["phi_rad"]) if key == "phi" else 100.0 * row["r_m"]
+
+
 def bin_of(row: dict, key: str) -> int:
     """The row's bin index in the paper's phi (``key="phi"``) or distance (``"r"``) bins, -1 outside."""
-    if key == "phi":
-        return int(bin_index([math.degrees(row["phi_rad"])], PHI_BINS_DEG)[0])
-    return int(bin_index([100.0 * row["r_m"]], DISTANCE_BINS_CM)[0])
+    return int(bin_index([value_of(row, key)], BIN_EDGES[key])[0])
 
 
 def arm(rows: list[dict] | None, eval_name: str, condition: str = "attack") -> dict[int, dict]:
     """``seed -> row`` of one arm (an evaluation's condition)."""
     return {r["seed"]: r for r in rows or [] if r["eval"] == eval_name and r["condition"] == condition}
+
+
+# --- declarations -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One arm of a recipe's results: the rows of evaluation ``eval`` under ``condition``."""
+
+    eval: str
+    condition: str = "attack"
+
+
+@dataclass(frozen=True)
+class Part:
+    """One claim "a <claim> b" between two arms of a finding's recipe.
+
+    ``claim``: ``">"`` (superiority) or ``">="`` (non-inferiority), both tested paired (McNemar), or
+    ``"ratio"``: unpaired, rate(a) / rate(b) with a 95% interval against the finding's ``floor``.
+    ``names`` print the two arms; ``short`` (when given) replaces them in the by-bin and follow-up
+    sections."""
+
+    a: Arm
+    b: Arm
+    names: tuple[str, str]
+    claim: str = ">"
+    short: tuple[str, str] | None = None
+
+    def __post_init__(self):
+        if self.claim not in CLAIMS:
+            raise ValueError(f"claim {self.claim!r} is not one of {CLAIMS}")
+
+    @property
+    def label(self) -> str:
+        """``"C2F >= NS"``: the claim in words."""
+        return f"{self.names[0]} {self.claim} {self.names[1]}"
+
+    @property
+    def brief(self) -> tuple[str, str]:
+        return self.short or self.names
+
+
+@dataclass(frozen=True)
+class Subgroup:
+    """The configurations a finding's test is restricted to: ``key`` ("phi", degrees, or "r", cm) at
+    least ``at_least``."""
+
+    key: str
+    at_least: float
+
+    def __call__(self, row: dict) -> bool:
+        return value_of(row, self.key) >= self.at_least
+
+    def outside(self, row: dict) -> bool:
+        return not self(row)
+
+    @property
+    def bound(self) -> str:
+        """``"50 deg"``"""
+        return f"{self.at_least:.0f} {UNITS[self.key]}"
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One of the paper's findings, as data: what it claims, on which arms, and what to print.
+
+    - ``id``, ``claim``, ``paper``: the table's first two columns (``{budget}`` in the claim is replaced
+      by the recipe's attack budget, from its attacks.json);
+    - ``recipe``: the folder under results/ whose rows it tests; ``parts``: its claims, all paired
+      (``">"``/``">="``; the verdict combines them: any "does not hold" wins, then all "holds") or all
+      ``"ratio"`` (unpaired, against ``floor``; each target also tested paired against the
+      ``control`` condition of its own evaluation);
+    - ``event``: the row column counted (``"targeted"``: T-ASR);
+    - ``subgroup``: the test's configurations (one part only); ``complement`` also prints the test
+      outside them;
+    - ``bins``: ``"phi"`` or ``"r"``: results/findings.md shows ``binned`` (default: the parts) by bin;
+      consecutive findings binned alike on one recipe share a section, unless ``title`` names one;
+    - ``extras``: more comparisons, printed under the parts without a verdict;
+    - ``partial``: the verdict is the measured parts' and the claim names the parts not measured;
+      ``optional``: left out until its recipe has rows;
+    - ``parts_title``, ``shortfall``: the heading of the per-part section (findings with more than
+      one part) and what it says when a part does not hold.
+    """
+
+    id: str
+    claim: str
+    paper: str
+    recipe: str
+    parts: tuple[Part, ...]
+    event: str = "targeted"
+    subgroup: Subgroup | None = None
+    complement: bool = False
+    bins: str | None = None
+    binned: tuple[Part, ...] | None = None
+    title: str | None = None
+    extras: tuple[Part, ...] = ()
+    floor: float = 0.5
+    control: str | None = None
+    partial: bool = False
+    optional: bool = False
+    parts_title: str = "parts"
+    shortfall: str = ""
+
+    def __post_init__(self):
+        kinds = {p.claim == "ratio" for p in self.parts}
+        if len(kinds) != 1:
+            raise ValueError(f"{self.id}: parts must be all paired or all ratio, and at least one")
+        if self.bins not in (None, *BIN_EDGES):
+            raise ValueError(f"{self.id}: bins {self.bins!r} is not one of {(None, *BIN_EDGES)}")
+        if self.subgroup is not None and len(self.parts) != 1:
+            raise ValueError(f"{self.id}: a subgroup test has one part")
+        if self.test == "ratio CI" and (self.subgroup or self.bins or len({p.b for p in self.parts}) != 1):
+            raise ValueError(f"{self.id}: ratio parts share one reference arm and have no subgroup or bins")
+
+    @property
+    def test(self) -> str:
+        """``"paired McNemar"`` or ``"ratio CI"``, from the parts' claims."""
+        return "ratio CI" if self.parts[0].claim == "ratio" else "paired McNemar"
+
+    @property
+    def arms(self) -> set[Arm]:
+        """Every arm the finding reads."""
+        parts = (*self.parts, *(self.binned or ()), *self.extras)
+        out = {x for p in parts for x in (p.a, p.b)}
+        if self.control:
+            out |= {Arm(p.a.eval, self.control) for p in self.parts}
+        return out
+
+
+# --- the registry -------------------------------------------------------------------------------
+
+_TABLE_I = "T-ASR 57.9% vs 39.9% overall; at phi 70-90 deg 34.2% vs 10.6% (Table I)"
+_OBLIQUE = Subgroup("phi", OBLIQUE_PHI_DEG)
+_3D_PATCH = Part(Arm("table1"), Arm("table1", "patch"), ("3D", "patch"))
+
+
+def _t2(a: str, b: str, names: tuple[str, str], claim: str = ">", short: tuple[str, str] | None = None) -> Part:
+    """A table2 comparison: arm ``table2_<a>`` vs ``table2_<b>``."""
+    return Part(Arm(f"table2_{a}"), Arm(f"table2_{b}"), names, claim, short)
+
+
+C2F_NS = _t2("c2f", "ns", ("C2F", "NS"), ">=")
+NS_F2C = _t2("ns", "f2c", ("NS", "F2C"))
+C2F_F2C = _t2("c2f", "f2c", ("C2F", "F2C"))
+TARGETED = _t2("c2f", "c2f_untargeted", ("targeted", "untargeted"))
+SALIENCY = _t2("c2f", "c2f_no_saliency", ("with saliency", "without"), short=("saliency on", "off"))
+
+FINDINGS: tuple[Finding, ...] = (
+    Finding(
+        "F1",
+        f"3D object > 2D patch in T-ASR at oblique views (phi >= {OBLIQUE_PHI_DEG:.0f} deg)",
+        _TABLE_I,
+        "table1",
+        (_3D_PATCH,),
+        subgroup=_OBLIQUE,
+        complement=True,
+        bins="phi",
+    ),
+    # The same test against the paper's policy (ResNet-18 at 128 px), at the budget that fitted a session.
+    Finding(
+        "F1-paper",
+        "as F1, against the ResNet-18 policy at 128 px ({budget})",
+        _TABLE_I,
+        "table1-paper",
+        (_3D_PATCH,),
+        subgroup=_OBLIQUE,
+        bins="phi",
+        title="F1 against the ResNet-18 policy at 128 px (results/table1-paper/)",
+        optional=True,
+    ),
+    Finding(
+        "F2",
+        "C2F >= NS > F2C in T-ASR",
+        "T-ASR C2F 80.4%, NS 73.7%, F2C 67.0% (Table II)",
+        "table2",
+        (C2F_NS, NS_F2C),
+        bins="r",
+        binned=(C2F_NS, NS_F2C, C2F_F2C),
+        extras=(_t2("c2f", "coarse", ("C2F", "coarse-only")), _t2("c2f", "fine", ("C2F", "fine-only"))),
+    ),
+    Finding(
+        "F3",
+        "targeted > untargeted in T-ASR (the paper: far greater)",
+        "T-ASR 80.4% vs 0.04% (Table II, rows f and c)",
+        "table2",
+        (TARGETED,),
+        bins="r",
+    ),
+    Finding(
+        "F4",
+        "the saliency term adds T-ASR to the pose term",
+        "T-ASR 80.4% with vs 78.1% without (Table II, rows f and e)",
+        "table2",
+        (SALIENCY,),
+        bins="r",
+    ),
+    Finding(
+        "F5",
+        "black-box transfer keeps more than half of the white-box T-ASR",
+        "T-ASR 79.1% white-box; 71.2% / 59.7% / 56.7% black-box (ResNet-34 / VGG-16 / Inception-v3, Table V)",
+        "transfer",
+        tuple(
+            Part(Arm(f"transfer_{t}"), Arm("transfer_source"), (t, "white-box"), "ratio")
+            for t in ("resnet34", "vgg16", "inception_v3")
+        ),
+        floor=0.5,
+        control="clean",
+        partial=True,
+        parts_title="per target",
+        shortfall=(
+            "the texture still works on it far beyond chance (the p-value "
+            "against its own clean arm above), but keeps less than half of the white-box rate. What differs from the "
+            "paper, none of it tested one by one yet: our targets see 64 px images, so Inception-v3 runs with the "
+            "small-image stem (padded stem convolutions, a 3 x 3 final map) far from its native input; the source is a "
+            "small CNN, architecturally the farthest from Inception's multi-branch blocks; and the texture comes from "
+            "the quick attack budget against that source alone (no ensemble of surrogates). The next runs to tell "
+            "them apart: the same transfer from the ResNet-18 paper policy at 128 px, and with a larger attack budget."
+        ),
+    ),
+)
+
+
+# --- tests --------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -119,31 +384,8 @@ def paired_by_bin(
     a: dict[int, dict], b: dict[int, dict], key: str, event: str = "targeted"
 ) -> list[tuple[str, Paired]]:
     """:func:`paired` within each of the paper's phi (``"phi"``) or distance (``"r"``) bins."""
-    labels = bin_labels(PHI_BINS_DEG if key == "phi" else DISTANCE_BINS_CM)
+    labels = bin_labels(BIN_EDGES[key])
     return [(lab, paired(a, b, event, where=lambda r, k=k: bin_of(r, key) == k)) for k, lab in enumerate(labels)]
-
-
-def paired_markdown(
-    name_a: str, name_b: str, a: dict[int, dict], b: dict[int, dict], key: str, claim: str = ">"
-) -> list[str]:
-    """Markdown lines: the overall paired T-ASR test of A vs B with its verdict, then one row per bin
-    (discordant counts and p; an empty bin says so instead of showing 0%)."""
-    pr = paired(a, b)
-    lines = [
-        f"**{name_a} vs {name_b}** (claim: {name_a} {claim} {name_b} in T-ASR): {_pair_text(name_a, name_b, pr)}, "
-        f"p = {_p(pr.p)}: **{verdict(pr, claim)}** at alpha = {ALPHA}.",
-        "",
-        f"| {'phi (deg)' if key == 'phi' else 'r (cm)'} | n | {name_a} T-ASR % | {name_b} T-ASR % | only {name_a} "
-        f"/ only {name_b} | p | verdict |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for lab, q in paired_by_bin(a, b, key):
-        lines.append(
-            f"| {lab} | {q.n} | {_pct(q.rate_a)} | {_pct(q.rate_b)} | {q.b} / {q.c} | {_p(q.p)} | {verdict(q, claim)} |"
-            if q.n
-            else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - | - |"
-        )
-    return lines
 
 
 def verdict(pr: Paired, claim: str = ">") -> str:
@@ -158,12 +400,157 @@ def verdict(pr: Paired, claim: str = ">") -> str:
     return "holds" if pr.diff >= 0 else "inconclusive"
 
 
+def _combine(verdicts: list[str]) -> str:
+    if any(v == "not measured" for v in verdicts):
+        return "not measured"
+    if any(v == "does not hold" for v in verdicts):
+        return "does not hold"
+    return "holds" if all(v == "holds" for v in verdicts) else "inconclusive"
+
+
+def _ratio_ci(k1: int, n1: int, k2: int, n2: int, z: float = 1.959964) -> tuple[float, float, float]:
+    """Ratio of two independent proportions with the Katz log interval (0.5 added to empty cells)."""
+    if k1 == 0 or k2 == 0 or k1 == n1 or k2 == n2:
+        k1, n1, k2, n2 = k1 + 0.5, n1 + 1, k2 + 0.5, n2 + 1
+    r = (k1 / n1) / (k2 / n2)
+    se = math.sqrt(1 / k1 - 1 / n1 + 1 / k2 - 1 / n2)
+    return r, r * math.exp(-z * se), r * math.exp(z * se)
+
+
+# --- evaluation ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Ratio:
+    """An unpaired ratio part: the event in ``k`` of ``n`` episodes of arm a and ``k_ref`` of ``n_ref``
+    of the reference arm b; ``ratio`` [``lo``, ``hi``] (NaN when either arm is empty); ``vs_control``:
+    arm a paired against its evaluation's control condition (None without one)."""
+
+    k: int
+    n: int
+    k_ref: int
+    n_ref: int
+    ratio: float
+    lo: float
+    hi: float
+    vs_control: Paired | None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One part's test: ``pair`` (paired claims; in the subgroup, if any) or ``ratio``, and its verdict."""
+
+    part: Part
+    verdict: str
+    pair: Paired | None = None
+    ratio: Ratio | None = None
+
+
+@dataclass(frozen=True)
+class Binned:
+    """A paired part on all configurations (``overall``) and within each bin (``(label, Paired)``)."""
+
+    part: Part
+    overall: Paired
+    by_bin: tuple[tuple[str, Paired], ...]
+
+
+@dataclass(frozen=True)
+class Evaluated:
+    """A finding computed from the rows: its claim as printed, the parts' outcomes and the verdict;
+    ``binned``: the by-bin detail (findings with bins or a subgroup); ``complement``: the test
+    outside the subgroup; ``extras``: the extra comparisons."""
+
+    finding: Finding
+    claim: str
+    verdict: str
+    parts: tuple[Outcome, ...]
+    binned: tuple[Binned, ...] = ()
+    complement: Paired | None = None
+    extras: tuple[tuple[Part, Paired], ...] = ()
+
+
+def _ratio_outcome(f: Finding, part: Part, rows: list[dict] | None) -> Outcome:
+    tgt, ref = arm(rows, part.a.eval, part.a.condition), arm(rows, part.b.eval, part.b.condition)
+    k, n = sum(r[f.event] for r in tgt.values()), len(tgt)
+    k_ref, n_ref = sum(r[f.event] for r in ref.values()), len(ref)
+    if not n or not n_ref:
+        return Outcome(part, "not measured", ratio=Ratio(k, n, k_ref, n_ref, math.nan, math.nan, math.nan, None))
+    ratio, lo, hi = _ratio_ci(k, n, k_ref, n_ref)
+    control = paired(tgt, arm(rows, part.a.eval, f.control), f.event) if f.control else None
+    v = "holds" if lo > f.floor else ("does not hold" if hi < f.floor else "inconclusive")
+    return Outcome(part, v, ratio=Ratio(k, n, k_ref, n_ref, ratio, lo, hi, control))
+
+
+def evaluate(f: Finding, rows_of: Rows, results: Path) -> Evaluated | None:
+    """Compute finding ``f`` from its recipe's rows (``rows_of(recipe)``); None for an optional
+    finding whose recipe has no rows. ``results`` is read for the attack budget a claim names."""
+    rows = rows_of(f.recipe)
+    if f.optional and not rows:
+        return None
+
+    def sides(p: Part) -> tuple[dict[int, dict], dict[int, dict]]:
+        return arm(rows, p.a.eval, p.a.condition), arm(rows, p.b.eval, p.b.condition)
+
+    if f.test == "ratio CI":
+        parts = tuple(_ratio_outcome(f, p, rows) for p in f.parts)
+    else:
+        pairs = [(p, paired(*sides(p), f.event, where=f.subgroup)) for p in f.parts]
+        parts = tuple(Outcome(p, verdict(pr, p.claim), pair=pr) for p, pr in pairs)
+    measured = [o for o in parts if o.verdict != "not measured"]
+    if f.partial:
+        v = _combine([o.verdict for o in measured]) if measured else "not measured"
+    else:
+        v = _combine([o.verdict for o in parts])
+    claim = f.claim.replace("{budget}", _budget(results, f.recipe)) if "{budget}" in f.claim else f.claim
+    missing = [o.part.names[0] for o in parts if o.verdict == "not measured"]
+    if f.partial and measured and missing:
+        claim += f" ({', '.join(o.part.names[0] for o in measured)}; not measured: {', '.join(missing)})"
+    binned = ()
+    if f.bins or f.subgroup:
+        binned = tuple(
+            Binned(p, paired(*sides(p), f.event), tuple(paired_by_bin(*sides(p), f.bins, f.event)) if f.bins else ())
+            for p in f.binned or f.parts
+        )
+    complement = None
+    if f.subgroup and f.complement:
+        complement = paired(*sides(f.parts[0]), f.event, where=f.subgroup.outside)
+    extras = tuple((p, paired(*sides(p), f.event)) for p in f.extras)
+    return Evaluated(f, claim, v, parts, binned, complement, extras)
+
+
+def findings(results: Path, registry: tuple[Finding, ...] = FINDINGS) -> dict[str, Evaluated]:
+    """``id -> Evaluated`` for every finding of ``registry`` (in its order), from the committed CSVs."""
+    results = Path(results)
+    rows_of = _loader(results)
+    out = {}
+    for f in registry:
+        e = evaluate(f, rows_of, results)
+        if e is not None:
+            out[f.id] = e
+    return out
+
+
+def _budget(results: Path, name: str) -> str:
+    """The attack budget of a committed recipe run, from its attacks.json."""
+    attacks = json.loads((results / name / "attacks.json").read_text())
+    its = sorted({a["iterations"] for a in attacks.values()})
+    return f"{'/'.join(str(i) for i in its)}-iteration attacks"
+
+
+# --- rendering ----------------------------------------------------------------------------------
+
+
 def _pct(x: float) -> str:
     return "n/a" if x != x else f"{100 * x:.1f}"
 
 
 def _p(p: float) -> str:
     return f"{p:.2g}" if p >= 1e-4 else f"{p:.1e}"
+
+
+def _rate(event: str) -> str:
+    return RATE_NAMES.get(event, event)
 
 
 def _pair_text(name_a: str, name_b: str, pr: Paired) -> str:
@@ -174,172 +561,245 @@ def _pair_text(name_a: str, name_b: str, pr: Paired) -> str:
     )
 
 
-def _combine(verdicts: list[str]) -> str:
-    if any(v == "not measured" for v in verdicts):
-        return "not measured"
-    if any(v == "does not hold" for v in verdicts):
-        return "does not hold"
-    return "holds" if all(v == "holds" for v in verdicts) else "inconclusive"
-
-
-def findings(results: Path) -> dict:
-    """Every finding's figures, p-values and verdicts, from the committed CSVs."""
-    results = Path(results)
-    out = {}
-    t1 = load_rows(results, "table1")
-    a3d, a2d = arm(t1, "table1", "attack"), arm(t1, "table1", "patch")
-    f1_all = paired(a3d, a2d)
-    f1_obl = paired(a3d, a2d, where=lambda r: math.degrees(r["phi_rad"]) >= OBLIQUE_PHI_DEG)
-    by_bin = paired_by_bin(a3d, a2d, "phi")
-    f1_top = paired(a3d, a2d, where=lambda r: math.degrees(r["phi_rad"]) < OBLIQUE_PHI_DEG)
-    out["F1"] = {
-        "claim": f"3D object > 2D patch in T-ASR at oblique views (phi >= {OBLIQUE_PHI_DEG:.0f} deg)",
-        "top": f1_top,
-        "paper": "T-ASR 57.9% vs 39.9% overall; at phi 70-90 deg 34.2% vs 10.6% (Table I)",
-        "test": f1_obl,
-        "overall": f1_all,
-        "by_bin": by_bin,
-        "verdict": verdict(f1_obl),
-        "data": "results/table1/",
-        "ours": _pair_text("3D", "patch", f1_obl),
-        "ours_overall": _pair_text("3D", "patch", f1_all),
-    }
-
-    # The same test against the paper's policy (ResNet-18 at 128 px), at the budget that fitted a session.
-    t1p = load_rows(results, "table1-paper")
-    if t1p:
-        b3d, b2d = arm(t1p, "table1", "attack"), arm(t1p, "table1", "patch")
-        obl = paired(b3d, b2d, where=lambda r: math.degrees(r["phi_rad"]) >= OBLIQUE_PHI_DEG)
-        out["F1-paper"] = {
-            "claim": f"as F1, against the ResNet-18 policy at 128 px ({_budget(results, 'table1-paper')})",
-            "paper": out["F1"]["paper"],
-            "test": obl,
-            "overall": paired(b3d, b2d),
-            "by_bin": paired_by_bin(b3d, b2d, "phi"),
-            "verdict": verdict(obl),
-            "data": "results/table1-paper/",
-            "ours": _pair_text("3D", "patch", obl),
-            "ours_overall": _pair_text("3D", "patch", paired(b3d, b2d)),
-        }
-
-    t2 = load_rows(results, "table2")
-    c2f, ns, f2c = arm(t2, "table2_c2f"), arm(t2, "table2_ns"), arm(t2, "table2_f2c")
-    p_cn, p_nf = paired(c2f, ns), paired(ns, f2c)
-    v2 = _combine([verdict(p_cn, ">="), verdict(p_nf, ">")])
-    extra = {k: paired(c2f, arm(t2, f"table2_{k}")) for k in ("coarse", "fine")}
-    out["F2"] = {
-        "claim": "C2F >= NS > F2C in T-ASR",
-        "paper": "T-ASR C2F 80.4%, NS 73.7%, F2C 67.0% (Table II)",
-        "parts": [("C2F >= NS", p_cn, verdict(p_cn, ">=")), ("NS > F2C", p_nf, verdict(p_nf, ">"))],
-        "verdict": v2,
-        "data": "results/table2/",
-        "ours": "; ".join([_pair_text("C2F", "NS", p_cn), _pair_text("NS", "F2C", p_nf)]),
-        "extra": [(f"C2F vs {k}-only", pr) for k, pr in extra.items() if pr.n],
-    }
-    unt = arm(t2, "table2_c2f_untargeted")
-    p3 = paired(c2f, unt)
-    diverted = [r for r in unt.values() if not r["success"]]
-    out["_untargeted"] = {"n": len(unt), "diverted": len(diverted), "to_adv": sum(r["targeted"] for r in diverted)}
-    out["F3"] = {
-        "claim": "targeted > untargeted in T-ASR (the paper: far greater)",
-        "paper": "T-ASR 80.4% vs 0.04% (Table II, rows f and c)",
-        "test": p3,
-        "verdict": verdict(p3),
-        "data": "results/table2/",
-        "ours": _pair_text("targeted", "untargeted", p3),
-    }
-    nosal = arm(t2, "table2_c2f_no_saliency")
-    p4 = paired(c2f, nosal)
-    out["_table2"] = {
-        k: arm(t2, f"table2_{k}") for k in ("c2f", "ns", "f2c", "c2f_untargeted", "c2f_no_saliency", "coarse", "fine")
-    }
-    out["F4"] = {
-        "claim": "the saliency term adds T-ASR to the pose term",
-        "paper": "T-ASR 80.4% with vs 78.1% without (Table II, rows f and e)",
-        "test": p4,
-        "verdict": verdict(p4),
-        "data": "results/table2/",
-        "ours": _pair_text("with saliency", "without", p4),
-    }
-
-    # Why strategy ablations can look alike: the share of configurations that some attack reaches
-    # (a ceiling no texture passes on this policy) and controls that are not optimised at all.
-    out["_saturation"] = {name: _saturation(load_rows(results, name), name) for name in ("table2", "table2-40")}
-    t240 = load_rows(results, "table2-40")
-    out["_table2_40"] = {
-        k: arm(t240, f"table2_{k}")
-        for k in (
-            "c2f",
-            "ns",
-            "f2c",
-            "c2f_untargeted",
-            "c2f_no_saliency",
-            "c2f_no_pose",
-            "coarse",
-            "fine",
-            "random_texture",
-            "gray_texture",
+def _bin_table(
+    name_a: str, name_b: str, by_bin, label: str, claim: str | None = None, event: str = "targeted"
+) -> list[str]:
+    """Markdown table of a paired comparison per bin (``(label, Paired)`` pairs); a verdict column when
+    ``claim`` is given; an empty bin says so instead of showing 0%."""
+    rate, cols = _rate(event), 7 if claim else 6
+    lines = [
+        f"| {label} | n | {name_a} {rate} % | {name_b} {rate} % | only {name_a} / only {name_b} | p |"
+        + (" verdict |" if claim else ""),
+        "|---" * cols + "|",
+    ]
+    for lab, q in by_bin:
+        lines.append(
+            f"| {lab} | {q.n} | {_pct(q.rate_a)} | {_pct(q.rate_b)} | {q.b} / {q.c} | {_p(q.p)} |"
+            + (f" {verdict(q, claim)} |" if claim else "")
+            if q.n
+            else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - |" + (" - |" if claim else "")
         )
-    }
+    return lines
 
-    lt = load_rows(results, "lighting")
-    out["_lighting"] = None
-    if lt:
-        import json
 
-        attacks = json.loads((results / "lighting" / "attacks.json").read_text())
-        out["_lighting"] = {
-            "cost": {
-                k: attacks[k]["seconds"] / max(1, attacks[k]["iterations"])
-                for k in ("c2f", "c2f_light")
-                if k in attacks
-            },
-            "by_condition": {
-                c: paired(arm(lt, "lighting_c2f_light", c), arm(lt, "lighting_c2f", c))
-                for c in ("attack", "light_bright", "light_dim", "light_random")
-            },
-        }
+def _paired_block(
+    name_a: str, name_b: str, pr: Paired, by_bin, key: str, claim: str = ">", event: str = "targeted"
+) -> list[str]:
+    return [
+        f"**{name_a} vs {name_b}** (claim: {name_a} {claim} {name_b} in {_rate(event)}): "
+        f"{_pair_text(name_a, name_b, pr)}, p = {_p(pr.p)}: **{verdict(pr, claim)}** at alpha = {ALPHA}.",
+        "",
+        *_bin_table(name_a, name_b, by_bin, f"{key} ({UNITS[key]})", claim, event),
+    ]
 
-    tr = load_rows(results, "transfer")
-    src = arm(tr, "transfer_source")
-    parts, texts = [], []
-    k_s, n_s = sum(r["targeted"] for r in src.values()), len(src)
-    for target in ("resnet34", "vgg16", "inception_v3"):
-        tgt = arm(tr, f"transfer_{target}")
-        if not tgt or not n_s:
-            parts.append((target, None, "not measured"))
+
+def paired_markdown(
+    name_a: str, name_b: str, a: dict[int, dict], b: dict[int, dict], key: str, claim: str = ">"
+) -> list[str]:
+    """Markdown lines: the overall paired T-ASR test of A vs B with its verdict, then one row per bin
+    (discordant counts and p; an empty bin says so instead of showing 0%)."""
+    return _paired_block(name_a, name_b, paired(a, b), paired_by_bin(a, b, key), key, claim)
+
+
+def _ours(e: Evaluated) -> str:
+    """The table's "ours" cell: each paired part's rates and difference, or the ratios to the reference."""
+    if e.finding.test == "paired McNemar":
+        return "; ".join(_pair_text(*o.part.names, o.pair) for o in e.parts)
+    ref, ref_name = e.parts[0].ratio, e.parts[0].part.names[1]
+    if not ref.n_ref:
+        return "not run"
+    texts = [
+        f"{o.part.names[0]} {_pct(o.ratio.k / o.ratio.n)}% (n = {o.ratio.n}) = {o.ratio.ratio:.2f} x {ref_name} "
+        f"[{o.ratio.lo:.2f}, {o.ratio.hi:.2f}]"
+        for o in e.parts
+        if o.verdict != "not measured"
+    ]
+    return f"{ref_name} {_pct(ref.k_ref / ref.n_ref)}% (n = {ref.n_ref}); " + "; ".join(texts)
+
+
+def _p_cell(e: Evaluated) -> str:
+    if e.finding.test == "ratio CI":
+        return "- (unpaired; ratio CI)"
+    if len(e.parts) == 1:
+        return _p(e.parts[0].pair.p) if e.parts[0].pair.n else "-"
+    return ", ".join(f"{o.part.label}: {_p(o.pair.p)}" for o in e.parts if o.pair.n) or "-"
+
+
+def render(f: dict[str, Evaluated], prefix: str = "") -> str:
+    """The findings table (README, docs) in Markdown, one row per evaluated finding; ``prefix`` makes
+    the data links relative to the file the table goes into (``"../"`` from docs/ or results/)."""
+    lines = [
+        "| finding | paper | ours (held-out, paired) | p (McNemar) | verdict | raw data |",
+        "|---|---|---|---|---|---|",
+    ]
+    for e in f.values():
+        measured = e.verdict != "not measured"
+        ours = _ours(e) if measured else "not run yet"
+        data = f"results/{e.finding.recipe}/"
+        link = f"[{data}]({prefix}{data})" if measured else "-"
+        lines.append(
+            f"| **{e.finding.id}** {e.claim} | {e.finding.paper} | {ours} | {_p_cell(e)} | **{e.verdict}** | {link} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _subgroup_lines(e: Evaluated) -> list[str]:
+    """A subgroup finding's detail: the test overall, in (and, with ``complement``, outside) the
+    subgroup, then its bins."""
+    f, b, test = e.finding, e.binned[0], e.parts[0].pair
+    na, nb = b.part.names
+    overall = f"Overall: {_pair_text(na, nb, b.overall)}, p = {_p(b.overall.p)}"
+    inside = f"{_pair_text(na, nb, test)}, p = {_p(test.p)}."
+    if e.complement is not None:
+        lines = [
+            overall + ".",
+            "",
+            f"Below {f.subgroup.key} = {f.subgroup.bound}: {_pair_text(na, nb, e.complement)}, "
+            f"p = {_p(e.complement.p)}; "
+            f"at and above it: {inside}",
+        ]
+    else:
+        lines = [f"{overall}; at {f.subgroup.key} >= {f.subgroup.bound}: {inside}"]
+    if f.bins:
+        lines += ["", *_bin_table(na, nb, b.by_bin, f"{f.bins} bin", event=f.event)]
+    return lines
+
+
+def _bins_sections(f: dict[str, Evaluated]) -> list[list[str]]:
+    """The by-bin sections: one per subgroup or titled finding; consecutive others binned alike on one
+    recipe share one, each part's paired test with a verdict per bin."""
+    groups: list[tuple[tuple[str, str] | None, list[Evaluated]]] = []
+    for e in f.values():
+        if not e.binned:
             continue
-        k_t, n_t = sum(r["targeted"] for r in tgt.values()), len(tgt)
-        ratio, lo, hi = _ratio_ci(k_t, n_t, k_s, n_s)
-        vs_clean = paired(tgt, arm(tr, f"transfer_{target}", "clean"))
-        v = "holds" if lo > 0.5 else ("does not hold" if hi < 0.5 else "inconclusive")
-        parts.append((target, {"k": k_t, "n": n_t, "ratio": ratio, "lo": lo, "hi": hi, "vs_clean": vs_clean}, v))
-        texts.append(f"{target} {_pct(k_t / n_t)}% (n = {n_t}) = {ratio:.2f} x white-box [{lo:.2f}, {hi:.2f}]")
-    measured = [(t, v) for t, d, v in parts if d is not None]
-    missing = [t for t, d, _ in parts if d is None]
-    out["F5"] = {
-        "claim": "black-box transfer keeps more than half of the white-box T-ASR"
-        + (
-            f" ({', '.join(t for t, _ in measured)}; not measured: {', '.join(missing)})"
-            if measured and missing
-            else ""
-        ),
-        "paper": "T-ASR 79.1% white-box; 71.2% / 59.7% / 56.7% black-box (ResNet-34 / VGG-16 / Inception-v3, Table V)",
-        "parts": parts,
-        "verdict": _combine([v for _, v in measured]) if measured else "not measured",
-        "data": "results/transfer/",
-        "ours": (f"white-box {_pct(k_s / n_s)}% (n = {n_s}); " + "; ".join(texts)) if n_s else "not run",
-    }
+        d = e.finding
+        key = (d.recipe, d.bins) if d.subgroup is None and d.title is None else None  # None: a section of its own
+        if key is not None and groups and groups[-1][0] == key:
+            groups[-1][1].append(e)
+        else:
+            groups.append((key, [e]))
+    out = []
+    for _, es in groups:
+        d = es[0].finding
+        title = d.title or f"{', '.join(e.finding.id for e in es)} by {BIN_TITLES[d.bins]}"
+        if d.subgroup is not None:
+            out.append([f"## {title}", "", *_subgroup_lines(es[0])])
+            continue
+        lines = [f"## {title}"]
+        for e in es:
+            for b in e.binned:
+                if b.overall.n:
+                    lines += ["", *_paired_block(*b.part.brief, b.overall, b.by_bin, d.bins, b.part.claim, d.event)]
+        out.append(lines)
     return out
 
 
-def _budget(results: Path, name: str) -> str:
-    """The attack budget of a committed recipe run, from its attacks.json."""
-    import json
+def _parts_section(e: Evaluated) -> list[str]:
+    """A finding's parts one by one (with their verdicts), its extras, and where it falls short."""
+    f, rate = e.finding, _rate(e.finding.event)
+    lines = [f"## {f.id} {f.parts_title}", ""]
+    for o in e.parts:
+        if o.verdict == "not measured":
+            lines.append(f"- {o.part.names[0] if o.ratio else o.part.label}: not run")
+        elif o.pair is not None:
+            lines.append(f"- {o.part.label}: {_pair_text(*o.part.names, o.pair)}, p = {_p(o.pair.p)}: **{o.verdict}**")
+        else:
+            r = o.ratio
+            control = f"; vs its {f.control} arm p = {_p(r.vs_control.p)}" if r.vs_control else ""
+            lines.append(
+                f"- {o.part.names[0]}: {rate} {r.k}/{r.n}; ratio to {o.part.names[1]} {r.ratio:.2f} "
+                f"[{r.lo:.2f}, {r.hi:.2f}]: **{o.verdict}**{control}"
+            )
+    for p, pr in e.extras:
+        if pr.n:
+            lines.append(f"- {p.names[0]} vs {p.names[1]}: {_pair_text(*p.names, pr)}, p = {_p(pr.p)}")
+    short = [o.part.names[0] for o in e.parts if o.verdict == "does not hold"]
+    if short and f.shortfall:
+        lines += ["", f"Where {f.id} falls short ({', '.join(short)}): {f.shortfall}"]
+    return lines
 
-    attacks = json.loads((results / name / "attacks.json").read_text())
-    its = sorted({a["iterations"] for a in attacks.values()})
-    return f"{'/'.join(str(i) for i in its)}-iteration attacks"
+
+def render_details(f: dict[str, Evaluated], extra: Sequence[list[str]] = ()) -> str:
+    """results/findings.md: the table, each finding by bin, the ``extra`` sections (:func:`notes`),
+    then the parts of each finding that has several."""
+    sections = [
+        [
+            "# The paper's findings on our simulator",
+            "",
+            "Generated by `python -m trials.experiments.findings` from the CSVs in this folder; "
+            "definitions in `trials/experiments/findings.py`. alpha = 0.05, two-sided.",
+        ],
+        [render(f, "../").removesuffix("\n")],
+        *_bins_sections(f),
+        *extra,
+        *(_parts_section(e) for e in f.values() if len(e.parts) > 1),
+    ]
+    return "\n\n".join("\n".join(s) for s in sections) + "\n"
+
+
+# --- notes: sections of results/findings.md that are analyses, not findings --------------------
+
+
+@dataclass(frozen=True)
+class FollowUp:
+    """Paired comparisons re-run on another recipe (e.g. another attack budget), listed with their
+    verdicts under ``title``; a comparison whose arms did not both run is left out, and the section when
+    none did."""
+
+    title: str
+    recipe: str
+    parts: tuple[Part, ...]
+    event: str = "targeted"
+
+    def __call__(self, rows_of: Rows, results: Path) -> list[str]:
+        rows, lines = rows_of(self.recipe), []
+        for p in self.parts:
+            a, b = arm(rows, p.a.eval, p.a.condition), arm(rows, p.b.eval, p.b.condition)
+            if a and b:
+                pr = paired(a, b, self.event)
+                lines.append(
+                    f"- {p.brief[0]} vs {p.brief[1]}: {_pair_text(*p.brief, pr)}, p = {_p(pr.p)}: "
+                    f"**{verdict(pr, p.claim)}**"
+                )
+        return [f"## {self.title}", "", *lines] if lines else []
+
+
+@dataclass(frozen=True)
+class Saturation:
+    """Why strategy ablations can look alike: the share of configurations that some attack reaches
+    (a ceiling no texture passes on this policy) and controls that are not optimised at all."""
+
+    recipe: str
+
+    def __call__(self, rows_of: Rows, results: Path) -> list[str]:
+        sat = _saturation(rows_of(self.recipe), self.recipe)
+        if not sat:
+            return []
+        best = max(sat["rates"][k] for k in sat["attacks"])
+        share = sat["union"] / max(1, sat["n"])
+        rates = ", ".join(f"{k} {100 * v:.1f}%" for k, v in sat["rates"].items())
+        head = (
+            f"T-ASR of every arm on the same {sat['n']} configurations: {rates}. Some optimised attack "
+            f"({', '.join(sat['attacks'])}) reaches the adversarial object in {sat['union']} of them "
+            f"({100 * share:.1f}%); "
+            f"the best single attack reaches {100 * best:.1f}%. "
+        )
+        if share - best <= 0.05:
+            body = (
+                "Each strong attack reaches about what all of them reach together: they saturate a ceiling set by the "
+                f"configurations. Of the {sat['missed']} configurations no attack reaches, {sat['missed_top']} "
+                f"({100 * sat['missed_top'] / max(1, sat['missed']):.0f}%) start at phi < 20 deg, where "
+                f"{100 * sat['top_share']:.0f}% "
+                "of all configurations start. At this budget the schedules and the saliency term can only differ "
+                "on the few "
+                "configurations below the ceiling."
+            )
+        else:
+            body = (
+                "The union is well above the best single attack: at this budget the attacks have not saturated, "
+                "so they can differ."
+            )
+        return [f"## Saturation of the table2 attacks ({self.recipe})", "", head + body]
 
 
 def _saturation(rows: list[dict] | None, recipe: str) -> dict | None:
@@ -368,213 +828,84 @@ def _saturation(rows: list[dict] | None, recipe: str) -> dict | None:
     }
 
 
-def _ratio_ci(k1: int, n1: int, k2: int, n2: int, z: float = 1.959964) -> tuple[float, float, float]:
-    """Ratio of two independent proportions with the Katz log interval (0.5 added to empty cells)."""
-    if k1 == 0 or k2 == 0 or k1 == n1 or k2 == n2:
-        k1, n1, k2, n2 = k1 + 0.5, n1 + 1, k2 + 0.5, n2 + 1
-    r = (k1 / n1) / (k2 / n2)
-    se = math.sqrt(1 / k1 - 1 / n1 + 1 / k2 - 1 / n2)
-    return r, r * math.exp(-z * se), r * math.exp(z * se)
-
-
-def render(f: dict, prefix: str = "") -> str:
-    """The findings table (README, docs) in Markdown; ``prefix`` makes the data links relative to
-    the file the table goes into (``"../"`` from docs/ or results/)."""
+def lighting_note(rows_of: Rows, results: Path) -> list[str]:
+    """Lighting randomisation in the attack: its cost per iteration and the T-ASR of the randomised vs
+    the fixed-light texture under each evaluation light."""
+    lt = rows_of("lighting")
+    if not lt:
+        return []
+    attacks = json.loads((Path(results) / "lighting" / "attacks.json").read_text())
+    c = {k: attacks[k]["seconds"] / max(1, attacks[k]["iterations"]) for k in ("c2f", "c2f_light") if k in attacks}
     lines = [
-        "| finding | paper | ours (held-out, paired) | p (McNemar) | verdict | raw data |",
-        "|---|---|---|---|---|---|",
+        "## Lighting randomisation in the attack (results/lighting/)",
+        "",
+        f"Attack cost: {c.get('c2f_light', float('nan')):.3f} s / iteration with lighting randomisation vs "
+        f"{c.get('c2f', float('nan')):.3f} s without (one run each, wall time). T-ASR of the two textures on "
+        "the same held-out "
+        "configurations, per evaluation light (claim: randomised > fixed):",
+        "",
+        "| evaluation light | n | randomised % | fixed % | only randomised / only fixed | p | verdict |",
+        "|---|---|---|---|---|---|---|",
     ]
-    for key, d in f.items():
-        if key.startswith("_"):
-            continue
-        if key in ("F1", "F1-paper", "F3", "F4"):
-            p = _p(d["test"].p) if d["test"].n else "-"
-        elif key == "F2":
-            p = ", ".join(f"{name}: {_p(pr.p)}" for name, pr, _ in d["parts"] if pr.n) or "-"
-        else:
-            p = "- (unpaired; ratio CI)"
-        measured = d["verdict"] != "not measured"
-        ours = d["ours"] if measured else "not run yet"
-        data = f"[{d['data']}]({prefix}{d['data']})" if measured else "-"
-        lines.append(f"| **{key}** {d['claim']} | {d['paper']} | {ours} | {p} | **{d['verdict']}** | {data} |")
-    return "\n".join(lines) + "\n"
+    for cond in ("attack", "light_bright", "light_dim", "light_random"):
+        pr = paired(arm(lt, "lighting_c2f_light", cond), arm(lt, "lighting_c2f", cond))
+        lines.append(
+            f"| {cond} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p)} | "
+            f"{verdict(pr)} |"
+        )
+    return lines
 
 
-def render_details(f: dict) -> str:
-    """results/findings.md: the table plus per-bin and per-part detail."""
-    lines = [
-        "# The paper's findings on our simulator",
+def untargeted_note(rows_of: Rows, results: Path) -> list[str]:
+    """Why the untargeted attack scores a high T-ASR here: where its diverted episodes end."""
+    unt = arm(rows_of("table2"), "table2_c2f_untargeted")
+    if not unt:
+        return []
+    diverted = [r for r in unt.values() if not r["success"]]
+    to_adv = sum(r["targeted"] for r in diverted)
+    return [
+        "## Why the untargeted attack scores a high T-ASR here",
         "",
-        "Generated by `python -m trials.experiments.findings` from the CSVs in this folder; "
-        "definitions in `trials/experiments/findings.py`. alpha = 0.05, two-sided.",
-        "",
-        render(f, "../"),
-        "## F1 by viewing angle phi (deg)",
-        "",
-        f"Overall: {f['F1']['ours_overall']}, p = {_p(f['F1']['overall'].p)}.",
-        "",
-        f"Below phi = {OBLIQUE_PHI_DEG:.0f} deg: {_pair_text('3D', 'patch', f['F1']['top'])}, p = "
-        f"{_p(f['F1']['top'].p)}; "
-        f"at and above it: {f['F1']['ours']}, p = {_p(f['F1']['test'].p)}.",
-        "",
-        "| phi bin | n | 3D T-ASR % | patch T-ASR % | only 3D / only patch | p |",
-        "|---|---|---|---|---|---|",
+        f"The untargeted attack diverts {len(diverted)} of {len(unt)} episodes from the goal, and "
+        f"{to_adv} of those "
+        f"({100 * to_adv / max(1, len(diverted)):.0f}%) end at the adversarial object: the built-in "
+        "scene has only "
+        "two objects, so a policy pushed off the goal mostly reaches the other one. The paper's near-zero "
+        "untargeted "
+        "T-ASR needs a scene where leaving the goal does not mean reaching the adversarial object.",
     ]
-    for lab, pr in f["F1"]["by_bin"]:
-        lines.append(
-            f"| {lab} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | "
-            f"{_p(pr.p) if pr.n else '-'} |"
-            if pr.n
-            else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - |"
-        )
-    if "F1-paper" in f:
-        fp = f["F1-paper"]
-        lines += [
-            "",
-            "## F1 against the ResNet-18 policy at 128 px (results/table1-paper/)",
-            "",
-            f"Overall: {fp['ours_overall']}, p = {_p(fp['overall'].p)}; at phi >= {OBLIQUE_PHI_DEG:.0f} deg: "
-            f"{fp['ours']}, "
-            f"p = {_p(fp['test'].p)}.",
-            "",
-            "| phi bin | n | 3D T-ASR % | patch T-ASR % | only 3D / only patch | p |",
-            "|---|---|---|---|---|---|",
-        ]
-        for lab, pr in fp["by_bin"]:
-            lines.append(
-                f"| {lab} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p)} |"
-                if pr.n
-                else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - |"
-            )
-    lines += ["", "## F2, F3, F4 by initial distance r (cm)", ""]
-    for title, ka, kb, claim in (
-        ("C2F vs NS", "c2f", "ns", ">="),
-        ("NS vs F2C", "ns", "f2c", ">"),
-        ("C2F vs F2C", "c2f", "f2c", ">"),
-        ("targeted vs untargeted", "c2f", "c2f_untargeted", ">"),
-        ("saliency on vs off", "c2f", "c2f_no_saliency", ">"),
-    ):
-        a, b = f["_table2"].get(ka), f["_table2"].get(kb)
-        if a and b:
-            na, nb = title.split(" vs ")
-            lines += paired_markdown(na, nb, a, b, "r", claim) + [""]
-    for name, sat in f["_saturation"].items():
-        if not sat:
-            continue
-        best = max(sat["rates"][k] for k in sat["attacks"])
-        share = sat["union"] / max(1, sat["n"])
-        rates = ", ".join(f"{k} {100 * v:.1f}%" for k, v in sat["rates"].items())
-        head = (
-            f"T-ASR of every arm on the same {sat['n']} configurations: {rates}. Some optimised attack "
-            f"({', '.join(sat['attacks'])}) reaches the adversarial object in {sat['union']} of them "
-            f"({100 * share:.1f}%); "
-            f"the best single attack reaches {100 * best:.1f}%. "
-        )
-        if share - best <= 0.05:
-            body = (
-                "Each strong attack reaches about what all of them reach together: they saturate a ceiling set by the "
-                f"configurations. Of the {sat['missed']} configurations no attack reaches, {sat['missed_top']} "
-                f"({100 * sat['missed_top'] / max(1, sat['missed']):.0f}%) start at phi < 20 deg, where "
-                f"{100 * sat['top_share']:.0f}% "
-                "of all configurations start. At this budget the schedules and the saliency term can only differ "
-                "on the few "
-                "configurations below the ceiling."
-            )
-        else:
-            body = (
-                "The union is well above the best single attack: at this budget the attacks have not saturated, "
-                "so they can differ."
-            )
-        lines += [f"## Saturation of the table2 attacks ({name})", "", head + body, ""]
-    t40 = f["_table2_40"]
-    if t40.get("c2f"):
-        lines += [
-            "## F2 and F4 at a 40-iteration budget (before saturation; a follow-up, not the preset's verdict)",
-            "",
-        ]
-        for title, ka, kb, claim in (
-            ("C2F vs NS", "c2f", "ns", ">="),
-            ("NS vs F2C", "ns", "f2c", ">"),
-            ("C2F vs F2C", "c2f", "f2c", ">"),
-            ("saliency on vs off", "c2f", "c2f_no_saliency", ">"),
-            ("targeted vs untargeted", "c2f", "c2f_untargeted", ">"),
-            ("C2F vs random texture", "c2f", "random_texture", ">"),
-            ("C2F vs grey texture", "c2f", "gray_texture", ">"),
-        ):
-            a, b = t40.get(ka), t40.get(kb)
-            if a and b:
-                pr = paired(a, b)
-                lines.append(
-                    f"- {title}: {_pair_text(*title.split(' vs '), pr)}, p = {_p(pr.p)}: **{verdict(pr, claim)}**"
-                )
-        lines.append("")
-    lt = f.get("_lighting")
-    if lt:
-        c = lt["cost"]
-        lines += [
-            "## Lighting randomisation in the attack (results/lighting/)",
-            "",
-            f"Attack cost: {c.get('c2f_light', float('nan')):.3f} s / iteration with lighting randomisation vs "
-            f"{c.get('c2f', float('nan')):.3f} s without (one run each, wall time). T-ASR of the two textures on "
-            "the same held-out "
-            "configurations, per evaluation light (claim: randomised > fixed):",
-            "",
-            "| evaluation light | n | randomised % | fixed % | only randomised / only fixed | p | verdict |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for cond, pr in lt["by_condition"].items():
-            lines.append(
-                f"| {cond} | {pr.n} | {_pct(pr.rate_a)} | {_pct(pr.rate_b)} | {pr.b} / {pr.c} | {_p(pr.p)} | "
-                f"{verdict(pr)} |"
-            )
-        lines.append("")
-    u = f.get("_untargeted") or {}
-    if u.get("n"):
-        lines += [
-            "## Why the untargeted attack scores a high T-ASR here",
-            "",
-            f"The untargeted attack diverts {u['diverted']} of {u['n']} episodes from the goal, and "
-            f"{u['to_adv']} of those "
-            f"({100 * u['to_adv'] / max(1, u['diverted']):.0f}%) end at the adversarial object: the built-in "
-            "scene has only "
-            "two objects, so a policy pushed off the goal mostly reaches the other one. The paper's near-zero "
-            "untargeted "
-            "T-ASR needs a scene where leaving the goal does not mean reaching the adversarial object.",
-            "",
-        ]
-    lines += ["## F2 parts", ""]
-    for name, pr, v in f["F2"]["parts"]:
-        lines.append(
-            f"- {name}: {_pair_text(*name.replace('>=', '>').split(' > '), pr)}, p = {_p(pr.p)}: **{v}**"
-            if pr.n
-            else f"- {name}: not run"
-        )
-    for name, pr in f["F2"]["extra"]:
-        lines.append(f"- {name}: {_pair_text('C2F', name.split(' vs ')[1], pr)}, p = {_p(pr.p)}")
-    lines += ["", "## F5 per target", ""]
-    for target, d, v in f["F5"]["parts"]:
-        if d is None:
-            lines.append(f"- {target}: not run")
-        else:
-            vc = d["vs_clean"]
-            lines.append(
-                f"- {target}: T-ASR {d['k']}/{d['n']}; ratio to white-box {d['ratio']:.2f} [{d['lo']:.2f}, "
-                f"{d['hi']:.2f}]: **{v}**; "
-                f"vs its clean arm p = {_p(vc.p)}"
-            )
-    short = [t for t, d, v in f["F5"]["parts"] if d is not None and v == "does not hold"]
-    if short:
-        lines += [
-            "",
-            f"Where F5 falls short ({', '.join(short)}): the texture still works on it far beyond chance (the p-value "
-            "against its own clean arm above), but keeps less than half of the white-box rate. What differs from the "
-            "paper, none of it tested one by one yet: our targets see 64 px images, so Inception-v3 runs with the "
-            "small-image stem (padded stem convolutions, a 3 x 3 final map) far from its native input; the source is a "
-            "small CNN, architecturally the farthest from Inception's multi-branch blocks; and the texture comes from "
-            "the quick attack budget against that source alone (no ensemble of surrogates). The next runs to tell "
-            "them apart: the same transfer from the ResNet-18 paper policy at 128 px, and with a larger attack budget.",
-        ]
-    return "\n".join(lines) + "\n"
+
+
+# Each note is ``(rows_of, results) -> lines`` of one section ([] when its data is missing): analyses
+# that explain a verdict or follow one up, too different from one another to be declared as findings.
+NOTES: tuple[Callable[[Rows, Path], list[str]], ...] = (
+    Saturation("table2"),
+    Saturation("table2-40"),
+    FollowUp(
+        "F2 and F4 at a 40-iteration budget (before saturation; a follow-up, not the preset's verdict)",
+        "table2-40",
+        (
+            C2F_NS,
+            NS_F2C,
+            C2F_F2C,
+            SALIENCY,
+            TARGETED,
+            _t2("c2f", "random_texture", ("C2F", "random texture")),
+            _t2("c2f", "gray_texture", ("C2F", "grey texture")),
+        ),
+    ),
+    lighting_note,
+    untargeted_note,
+)
+
+
+def notes(results: Path, hooks=NOTES) -> list[list[str]]:
+    """The sections the ``hooks`` write from ``results`` (empty ones left out)."""
+    rows_of = _loader(Path(results))
+    return [lines for hook in hooks if (lines := hook(rows_of, Path(results)))]
+
+
+# --- files --------------------------------------------------------------------------------------
 
 
 def _splice(text: str, block: str) -> str:
@@ -588,7 +919,7 @@ def _splice(text: str, block: str) -> str:
 def expected(results: Path = ROOT / "results") -> dict[Path, str]:
     """What results/findings.md and the README/docs blocks must say, given the CSVs."""
     f = findings(results)
-    out = {Path(results) / "findings.md": render_details(f)}
+    out = {Path(results) / "findings.md": render_details(f, notes(results))}
     for path, prefix in TARGETS.values():
         out[path] = _splice(path.read_text(), render(f, prefix))
     return out
