@@ -91,3 +91,99 @@ def test_the_readme_policy_figure_is_the_committed_card():
         r"<!-- policy:start[^>]*-->\n(.*?)\n<!-- policy:end -->", (ROOT / "README.md").read_text(), re.S
     ).group(1)
     assert block == want
+
+
+def test_registry_ids_are_unique_and_every_declared_arm_is_in_the_committed_results():
+    ids = [f.id for f in fd.FINDINGS]
+    assert len(ids) == len(set(ids)) and {"F1", "F2", "F3", "F4", "F5"} <= set(ids)
+    declared = [(f.id, f.recipe, f.arms) for f in fd.FINDINGS] + [
+        (n.title, n.recipe, {x for p in n.parts for x in (p.a, p.b)}) for n in fd.NOTES if isinstance(n, fd.FollowUp)
+    ]
+    for name, recipe, arms in declared:
+        rows = fd.load_rows(RESULTS, recipe)
+        assert rows, f"{name}: results/{recipe}/ has no rows"
+        present = {(r["eval"], r["condition"]) for r in rows}
+        assert not {(a.eval, a.condition) for a in arms} - present, name
+
+
+def _direct_pair(rows, a, b, event, keep=lambda r: True):
+    """A paired count written out independently of the module: (n, only a, only b)."""
+    xa = {r["seed"]: r for r in rows if (r["eval"], r["condition"]) == a}
+    xb = {r["seed"]: r for r in rows if (r["eval"], r["condition"]) == b}
+    seeds = [s for s in set(xa) & set(xb) if keep(xa[s])]
+    return (
+        len(seeds),
+        sum(bool(xa[s][event]) and not xb[s][event] for s in seeds),
+        sum(bool(xb[s][event]) and not xa[s][event] for s in seeds),
+    )
+
+
+def test_a_new_paired_finding_declared_as_data_is_computed_and_rendered_with_its_subgroup_and_bins():
+    made_up = fd.Finding(
+        "X1",
+        "coarse-only > fine-only in T-ASR from r = 50 cm on",
+        "(not in the paper)",
+        "table2",
+        (fd.Part(fd.Arm("table2_coarse"), fd.Arm("table2_fine"), ("coarse", "fine")),),
+        subgroup=fd.Subgroup("r", 50.0),
+        complement=True,
+        bins="r",
+    )
+    f = fd.findings(RESULTS, registry=(made_up,))
+    e = f["X1"]
+    pr = e.parts[0].pair
+    rows = fd.load_rows(RESULTS, "table2")
+    arms = ("table2_coarse", "attack"), ("table2_fine", "attack")
+    far = _direct_pair(rows, *arms, "targeted", lambda r: r["r_m"] >= 0.5)
+    assert (pr.n, pr.b, pr.c) == far and 0 < pr.n < 500
+    assert e.verdict == fd.verdict(pr) != "not measured"
+    assert e.complement.n + pr.n == e.binned[0].overall.n == 500
+    row = fd.render(f).splitlines()[2]
+    assert row.startswith("| **X1** coarse-only > fine-only in T-ASR from r = 50 cm on | (not in the paper) | coarse ")
+    assert row.endswith(f"| **{e.verdict}** | [results/table2/](results/table2/) |")
+    details = fd.render_details(f)
+    assert "## X1 by initial distance r (cm)" in details and "\nBelow r = 50 cm: coarse " in details
+    assert "| r bin | n | coarse T-ASR % | fine T-ASR % | only coarse / only fine | p |" in details
+    assert "## X1 parts" not in details  # one part: no per-part section
+
+
+def test_a_new_ratio_finding_declared_as_data_counts_its_event_and_lists_its_parts():
+    made_up = fd.Finding(
+        "X2",
+        "the other targets keep half of ResNet-34's success under attack",
+        "(not in the paper)",
+        "transfer",
+        tuple(
+            fd.Part(fd.Arm(f"transfer_{t}"), fd.Arm("transfer_resnet34"), (t, "resnet34"), "ratio")
+            for t in ("vgg16", "inception_v3")
+        ),
+        event="success",
+        control="clean",
+        parts_title="per target",
+    )
+    f = fd.findings(RESULTS, registry=(made_up,))
+    e = f["X2"]
+    rows = fd.load_rows(RESULTS, "transfer")
+    for o, t in zip(e.parts, ("vgg16", "inception_v3")):
+        tgt = [r for r in rows if r["eval"] == f"transfer_{t}" and r["condition"] == "attack"]
+        ref = [r for r in rows if r["eval"] == "transfer_resnet34" and r["condition"] == "attack"]
+        assert (o.ratio.k, o.ratio.n) == (sum(r["success"] for r in tgt), len(tgt))
+        assert (o.ratio.k_ref, o.ratio.n_ref) == (sum(r["success"] for r in ref), len(ref))
+        assert o.ratio.lo < o.ratio.ratio < o.ratio.hi
+        assert o.verdict == ("holds" if o.ratio.lo > 0.5 else "does not hold" if o.ratio.hi < 0.5 else "inconclusive")
+        clean = _direct_pair(rows, (f"transfer_{t}", "attack"), (f"transfer_{t}", "clean"), "success")
+        assert (o.ratio.vs_control.n, o.ratio.vs_control.b, o.ratio.vs_control.c) == clean
+    assert "| - (unpaired; ratio CI) |" in fd.render(f)
+    details = fd.render_details(f)
+    assert "## X2 per target" in details and "- vgg16: success " in details and "vs its clean arm p = " in details
+
+
+def test_a_declaration_that_mixes_claim_kinds_or_binds_a_subgroup_to_several_parts_is_refused():
+    a, b = fd.Arm("table2_c2f"), fd.Arm("table2_ns")
+    paired, ratio = fd.Part(a, b, ("A", "B")), fd.Part(a, b, ("A", "B"), "ratio")
+    with pytest.raises(ValueError, match="all paired or all ratio"):
+        fd.Finding("X", "c", "p", "table2", (paired, ratio))
+    with pytest.raises(ValueError, match="one part"):
+        fd.Finding("X", "c", "p", "table2", (paired, paired), subgroup=fd.Subgroup("phi", 50.0))
+    with pytest.raises(ValueError, match="claim"):
+        fd.Part(a, b, ("A", "B"), "<")
