@@ -5,17 +5,21 @@ Pipeline, by composition (as in pytorch3d):
 1. the standard renderer gives ``I_sim`` plus an id pass (see :mod:`sim.render`);
 2. :func:`rasterize_fragments` turns the id pass into a frozen :class:`Fragments` record for the
    adversarial object's visible pixels: face ids, barycentrics (exact ray-triangle intersection),
-   UVs, UV screen derivatives (for mip-level selection) and the shading pyrender applied there
-   (recovered from a white-albedo and a black-albedo pass);
+   UVs, UV screen derivatives (for mip-level selection) and the shading pyrender applies there
+   (:func:`deferred_shading`: pyrender's BRDF evaluated in torch from the fragment's position and
+   interpolated normal, the scene's lights and the material; no extra render pass);
 3. a swappable texture sampler (:func:`sample_bilinear`, :func:`sample_trilinear`) reads the
    texture at those UVs with ``grid_sample`` (the only differentiable step);
 4. :func:`shade` applies pyrender's lighting model and color space, and :func:`composite` forms
    ``I_adv = (1 - M) * I_sim + M * I_diff``.
 
-pyrender's shader, which :func:`shade` mirrors: the texture is decoded with the exact sRGB curve,
-multiplied by the diffuse+ambient light ``D`` and added to the albedo-independent specular term
-``S``, clamped, then encoded with a 2.2 power. With a white albedo the pass shows
-``(D + S)^(1/2.2)``, with a black albedo ``S^(1/2.2)``; both are recovered per pixel.
+pyrender's shader (``mesh.frag``, metallic-roughness with metallic 0), which :func:`shade` mirrors:
+the texture is decoded with the exact sRGB curve, multiplied by the diffuse+ambient light ``D`` and
+added to the albedo-independent specular term ``S``, clamped, then encoded with a 2.2 power.
+:func:`deferred_shading` computes ``D`` and ``S`` per fragment. The older measurement (still
+available as ``HybridRenderer(shading="passes")``, and used automatically for a scene the deferred
+model does not describe) renders the object with a grey albedo ``a`` (``(a D + S)^(1/2.2)``) and a
+black one (``S^(1/2.2)``) and solves for both per pixel from the 8-bit frames.
 
 Texture convention: ``texture: (3, Ht, Wt)`` float sRGB in [0, 1], row 0 = top of the image;
 ``uv`` follows trimesh/OpenGL (v = 0 is the bottom row).
@@ -32,6 +36,7 @@ import torch.nn.functional as F
 __all__ = [
     "Fragments",
     "rasterize_fragments",
+    "deferred_shading",
     "srgb_to_linear",
     "sample_bilinear",
     "sample_trilinear",
@@ -126,19 +131,27 @@ def rasterize_fragments(
     vertices: np.ndarray,
     faces: np.ndarray,
     uv: np.ndarray,
-    white_rgb: np.ndarray,
-    black_rgb: np.ndarray,
+    white_rgb: np.ndarray | None = None,
+    black_rgb: np.ndarray | None = None,
     face_filter: np.ndarray | None = None,
+    *,
+    vertex_normals: np.ndarray | None = None,
+    lighting=None,
+    device: torch.device | str = "cpu",
 ) -> Fragments:
-    """Build :class:`Fragments` from an id pass and two shading passes.
+    """Build :class:`Fragments` from an id pass and either two shading passes or the lights.
 
     Args:
         face_ids: (H, W) int face index of the object per pixel, -1 elsewhere.
         K: (3, 3) intrinsics (OpenCV). T_cam_object: (4, 4) object pose in the camera frame.
         vertices: (V, 3) m object-frame vertices; faces: (F, 3); uv: (V, 2).
-        white_rgb, black_rgb: (H, W, 3) uint8 renders with the object's albedo white / black.
+        white_rgb, black_rgb: (H, W, 3) uint8 renders with the object's albedo
+            ``SHADING_ALBEDO`` grey / black (the measured shading).
         face_filter: optional (F,) bool; faces marked False are left to ``I_sim`` (e.g. the 2D
             patch's sides, which are not optimised).
+        vertex_normals: (V, 3) object-frame normals as the renderer draws them, and
+        lighting: a :class:`sim.render.SceneLighting` in the *camera* frame: without the two
+            passes, the shading is computed by :func:`deferred_shading` on ``device``.
     """
     H, W = face_ids.shape
     flat = face_ids.reshape(-1)
@@ -148,7 +161,8 @@ def rasterize_fragments(
         keep = face_filter[face]
         pix, face = pix[keep], face[keep]
     v_img, u_img = np.divmod(pix, W)
-    verts_cam = vertices @ T_cam_object[:3, :3].T + T_cam_object[:3, 3]
+    R, t = T_cam_object[:3, :3], T_cam_object[:3, 3]
+    verts_cam = vertices @ R.T + t
     tri = verts_cam[faces[face]]  # (P, 3, 3)
     tri_uv = uv[faces[face]]  # (P, 3, 2)
     u_img = u_img.astype(np.float64)
@@ -167,10 +181,98 @@ def rasterize_fragments(
     uv_pix = np.einsum("pk,pkc->pc", bary, tri_uv)
     duv = np.stack([uv_x - uv0_raw, uv_y - uv0_raw], -1)  # (P, 2 [u, v], 2 [x, y])
 
-    w = (white_rgb.reshape(-1, 3)[pix].astype(np.float64) / 255.0) ** _GAMMA
-    s = (black_rgb.reshape(-1, 3)[pix].astype(np.float64) / 255.0) ** _GAMMA
-    diffuse = np.clip(w - s, 0.0, None) / SHADING_ALBEDO
-    return Fragments(pix, face, bary, uv_pix, duv, diffuse, s, H, W)
+    if white_rgb is not None and black_rgb is not None:
+        w = (white_rgb.reshape(-1, 3)[pix].astype(np.float64) / 255.0) ** _GAMMA
+        s = (black_rgb.reshape(-1, 3)[pix].astype(np.float64) / 255.0) ** _GAMMA
+        diffuse = np.clip(w - s, 0.0, None) / SHADING_ALBEDO
+        return Fragments(pix, face, bary, uv_pix, duv, diffuse, s, H, W)
+    if vertex_normals is None or lighting is None:
+        raise ValueError("rasterize_fragments: give white_rgb and black_rgb, or vertex_normals and lighting")
+    # The fragment's varyings as the rasteriser interpolates them (perspective-correct, at the
+    # pixel centre): position on the face plane, vertex normals (object frame -> camera frame).
+    points = np.einsum("pk,pkc->pc", bary, tri)
+    normals = np.einsum("pk,pkc->pc", bary, (vertex_normals @ R.T)[faces[face]])
+    diffuse, specular = deferred_shading(points, normals, lighting, device=device)
+    return Fragments(pix, face, bary, uv_pix, duv, diffuse.cpu().numpy(), specular.cpu().numpy(), H, W)
+
+
+_MIN_ROUGHNESS = 0.04  # mesh.frag's min_roughness, also the dielectric F0
+
+
+def deferred_shading(
+    points, normals, lighting, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """pyrender's ``mesh.frag`` lighting for fragments of a metallic-0 material, in torch.
+
+    Args:
+        points: (P, 3) fragment positions; normals: (P, 3) interpolated vertex normals (any
+            length: normalised here, as the shader does); both in the frame of ``lighting`` (a
+            :class:`sim.render.SceneLighting`) with the camera at its origin.
+        device, dtype: where and in what precision to compute.
+
+    Returns ``(diffuse, specular)``, each ``(P, 3)`` linear, with the shader's output before its
+    clamp and 1/2.2 power equal to ``albedo_linear * diffuse + specular``: per light, the
+    Cook-Torrance terms of ``compute_brdf`` (Schlick Fresnel with F0 = 0.04, Smith-Schlick G with
+    k = (r + 1)^2 / 8, GGX D with a = r^2, the shader's clamps and its ``+ 0.001``), then ambient
+    (times the albedo) and the emissive term. Degenerate inputs stay finite where GLSL is
+    undefined: a zero normal or ``l = -v`` normalise to zero (the clamps then apply), a point light
+    at the fragment counts as 1e-12 m^2 away.
+    """
+    import math
+
+    def t(x):
+        return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
+
+    p, n = t(points).reshape(-1, 3), t(normals).reshape(-1, 3)
+    P = p.shape[0]
+    n = F.normalize(n, dim=-1, eps=1e-30)
+    v = F.normalize(-p, dim=-1, eps=1e-30)  # towards the camera at the origin
+    ls, rads = [], []
+    L = lighting
+    if len(L.dir_dir):
+        ls.append(F.normalize(-t(L.dir_dir), dim=-1, eps=1e-30)[None].expand(P, -1, -1))
+        rads.append(t(L.dir_rad)[None].expand(P, -1, -1))
+    for pos, rad, spot in (
+        (L.point_pos, L.point_rad, None),
+        (L.spot_pos, L.spot_rad, (L.spot_dir, L.spot_scale, L.spot_offset)),
+    ):
+        if not len(pos):
+            continue
+        d = t(pos)[None] - p[:, None]  # (P, N, 3) fragment -> light
+        dist2 = (d * d).sum(-1, keepdim=True).clamp_min(1e-12)
+        l = F.normalize(d, dim=-1, eps=1e-30)
+        att = 1.0 / dist2
+        if spot is not None:
+            sd, scale, offset = (t(x) for x in spot)
+            cd = (sd[None] * -l).sum(-1, keepdim=True).clamp(0.0, 1.0)
+            a = (cd * scale[None, :, None] + offset[None, :, None]).clamp(0.0, 1.0)
+            att = att * a * a
+        ls.append(l)
+        rads.append(att * t(rad)[None])
+    diffuse = t(L.ambient).expand(P, 3).clone()
+    specular = t(L.emissive).expand(P, 3).clone()
+    if not ls:
+        return diffuse, specular
+    l, rad = torch.cat(ls, 1), torch.cat(rads, 1)  # (P, N, 3)
+    vv = v[:, None]
+    h = F.normalize(l + vv, dim=-1, eps=1e-30)
+    nl = (n[:, None] * l).sum(-1).clamp(0.001, 1.0)
+    nv = (n * v).sum(-1).abs().clamp(0.001, 1.0)[:, None]
+    nh = (n[:, None] * h).sum(-1).clamp(0.0, 1.0)
+    vh = (vv * h).sum(-1).clamp(0.0, 1.0)
+    f0 = _MIN_ROUGHNESS
+    fres = f0 + (1.0 - f0) * (1.0 - vh).clamp(0.0, 1.0) ** 5
+    r = float(L.roughness)
+    k = (r + 1.0) ** 2 / 8.0
+    g = nv / (nv * (1.0 - k) + k) * (nl / (nl * (1.0 - k) + k))
+    a2 = (r * r) ** 2
+    denom = nh * nh * (a2 - 1.0) + 1.0
+    dist = a2 / (math.pi * denom * denom)
+    kd = nl * (1.0 - fres) * (1.0 - _MIN_ROUGHNESS) / math.pi  # c_diff = albedo * (1 - 0.04)
+    ks = nl * fres * g * dist / (4.0 * nl * nv + 0.001)
+    diffuse = diffuse + (kd[..., None] * rad).sum(1)
+    specular = specular + (ks[..., None] * rad).sum(1)
+    return diffuse, specular
 
 
 def srgb_to_linear(c: torch.Tensor) -> torch.Tensor:
@@ -279,21 +381,39 @@ class Capture:
 class HybridRenderer:
     """Wraps a :class:`sim.render.SceneRenderer` to capture :class:`Capture` records.
 
-    Registers white- and black-albedo looks of the adversarial object (for the shading passes)
-    and renders four passes per frame: color, ids, white, black. The white and black passes are
-    read only under the id pass's mask of the adversarial object, so with ``isolate_shading`` they
-    draw that object alone (the rest of the scene is the color pass's; pixel-exact, see
-    :meth:`sim.render.SceneRenderer.render`).
+    Each frame is two pyrender passes, both read by the frame's consumers: colour (``I_sim``) and
+    ids (masks, face ids). The adversarial object's shading is computed by
+    :func:`deferred_shading` from the scene's current lights (:meth:`sim.render.SceneRenderer.lighting`).
+
+    ``shading="passes"`` measures it instead, as before: white- (grey) and black-albedo looks of
+    the object are registered and rendered as two more passes per frame, read only under the id
+    pass's mask, so with ``isolate_shading`` they draw that object alone (pixel-exact, see
+    :meth:`sim.render.SceneRenderer.render`). The deferred path falls back to the passes for a
+    frame whose lighting or material it does not model (``lighting`` returns ``None``).
+    ``device``: where the deferred shading runs (the fragments are stored as numpy arrays).
     """
 
-    def __init__(self, renderer, face_filter: np.ndarray | None = None, isolate_shading: bool = True):
+    def __init__(
+        self,
+        renderer,
+        face_filter: np.ndarray | None = None,
+        isolate_shading: bool = True,
+        shading: str = "deferred",
+        device: torch.device | str = "cpu",
+    ):
+        if shading not in ("deferred", "passes"):
+            raise ValueError(f"HybridRenderer: shading must be 'deferred' or 'passes', not {shading!r}")
         self.renderer = renderer
         self.isolate_shading = bool(isolate_shading)
+        self.shading = shading
+        self.device = device
         self.adv = renderer.face_coded
         self.goal = renderer.spec.object_index("goal")
         mesh = renderer.object_mesh(self.adv)
         self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
         self.faces = np.asarray(mesh.faces, dtype=np.int64)
+        # The normals the colour mesh is drawn with (float32 vertex attributes).
+        self.vertex_normals = np.asarray(mesh.vertex_normals, dtype=np.float32).astype(np.float64)
         uv = getattr(mesh.visual, "uv", None)
         if uv is None:
             raise ValueError(f"adversarial mesh {mesh.metadata.get('name', '?')} has no UVs")
@@ -301,8 +421,15 @@ class HybridRenderer:
         if face_filter is None:
             face_filter = mesh.metadata.get("optimizable_faces")
         self.face_filter = None if face_filter is None else np.asarray(face_filter, bool)
-        renderer.add_variant(self.adv, "white", None, (SHADING_ALBEDO,) * 3)
-        renderer.add_variant(self.adv, "black", None, (0.0, 0.0, 0.0))
+        self._variants = False
+        if shading == "passes":
+            self._add_shading_variants()
+
+    def _add_shading_variants(self) -> None:
+        if not self._variants:
+            self.renderer.add_variant(self.adv, "white", None, (SHADING_ALBEDO,) * 3)
+            self.renderer.add_variant(self.adv, "black", None, (0.0, 0.0, 0.0))
+            self._variants = True
 
     def capture(self, world, T_world_cam: np.ndarray | None = None) -> Capture:
         """Render ``world`` (a :class:`sim.world.SimWorld` sharing this renderer)."""
@@ -313,16 +440,27 @@ class HybridRenderer:
         r = self.renderer
         out = r.render(T_world_cam, with_ids=True)
         adv_mask = out.object_mask(self.adv)
-        if adv_mask.any():
-            iso = self.adv if self.isolate_shading else None
-            white = r.render(T_world_cam, with_ids=False, variants={self.adv: "white"}, isolate=iso).rgb
-            black = r.render(T_world_cam, with_ids=False, variants={self.adv: "black"}, isolate=iso).rgb
-        else:  # nothing to shade: skip two passes
-            white = black = out.rgb
-        T_cam_obj = invert_T(T_world_cam) @ world.T_world_objects[self.adv]
-        frags = rasterize_fragments(
-            out.face_ids, r.K, T_cam_obj, self.vertices, self.faces, self.uv, white, black, self.face_filter
-        )
+        T_cam_world = invert_T(T_world_cam)
+        T_cam_obj = T_cam_world @ world.T_world_objects[self.adv]
+        geometry = (out.face_ids, r.K, T_cam_obj, self.vertices, self.faces, self.uv)
+        lighting = r.lighting(self.adv) if self.shading == "deferred" else None
+        if lighting is not None:
+            frags = rasterize_fragments(
+                *geometry,
+                face_filter=self.face_filter,
+                vertex_normals=self.vertex_normals,
+                lighting=lighting.in_frame(T_cam_world),
+                device=self.device,
+            )
+        else:
+            if adv_mask.any():
+                self._add_shading_variants()
+                iso = self.adv if self.isolate_shading else None
+                white = r.render(T_world_cam, with_ids=False, variants={self.adv: "white"}, isolate=iso).rgb
+                black = r.render(T_world_cam, with_ids=False, variants={self.adv: "black"}, isolate=iso).rgb
+            else:  # nothing to shade: skip two passes
+                white = black = out.rgb
+            frags = rasterize_fragments(*geometry, white, black, self.face_filter)
         return Capture(out.rgb, frags, adv_mask, out.object_mask(self.goal))
 
 

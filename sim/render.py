@@ -54,6 +54,7 @@ __all__ = [
     "gripper_meshes",
     "spheres_outside_frustum",
     "frustum_normals",
+    "SceneLighting",
 ]
 
 BACKGROUND_ID = 0
@@ -294,6 +295,49 @@ def _light_pose(direction) -> np.ndarray:
     return make_T(np.stack([x, y, z], -1), np.zeros(3))
 
 
+@dataclass(frozen=True)
+class SceneLighting:
+    """What pyrender's ``mesh.frag`` needs, besides the albedo, to shade one object's fragments.
+
+    Read from the live scene by :meth:`SceneRenderer.lighting` (the uniforms pyrender binds), so
+    randomised lights and appearances are the ones the colour pass used. Frame: whatever the
+    arrays are expressed in (world from the renderer; :meth:`in_frame` moves them).
+
+    ambient: (3,); directional: ``dir (Nd, 3)`` the direction light travels, ``rad (Nd, 3)``
+    intensity * color; point: ``pos (Np, 3)``, ``rad (Np, 3)``; spot: ``pos (Ns, 3)``,
+    ``dir (Ns, 3)``, ``rad (Ns, 3)``, ``scale (Ns,)``, ``offset (Ns,)`` (pyrender's
+    light_angle_scale/offset); roughness: the material's, clamped as the shader does;
+    emissive: (3,) the albedo-independent emissive term (pyrender adds emissive_factor squared).
+    """
+
+    ambient: np.ndarray
+    dir_dir: np.ndarray
+    dir_rad: np.ndarray
+    point_pos: np.ndarray
+    point_rad: np.ndarray
+    spot_pos: np.ndarray
+    spot_dir: np.ndarray
+    spot_rad: np.ndarray
+    spot_scale: np.ndarray
+    spot_offset: np.ndarray
+    roughness: float
+    emissive: np.ndarray
+
+    def in_frame(self, T_frame_world: np.ndarray) -> "SceneLighting":
+        """The same lights expressed in another frame (``T_frame_world: (4, 4)``, rigid)."""
+        from dataclasses import replace
+
+        T = np.asarray(T_frame_world, dtype=np.float64)
+        R, t = T[:3, :3], T[:3, 3]
+        return replace(
+            self,
+            dir_dir=self.dir_dir @ R.T,
+            point_pos=self.point_pos @ R.T + t,
+            spot_pos=self.spot_pos @ R.T + t,
+            spot_dir=self.spot_dir @ R.T,
+        )
+
+
 @dataclass
 class _ObjectNodes:
     color: object
@@ -496,9 +540,81 @@ class SceneRenderer:
         mesh = self._objects[k].mesh
         if image is not None:
             image = region_texture(mesh, np.ascontiguousarray(np.asarray(image, dtype=np.uint8)[..., :3]))
-        node = pyrender.Node(mesh=textured_pyrender_mesh(mesh, image, color), matrix=np.eye(4))
+        # Placed where the object is now (set_state moves it with the object from then on).
+        node = pyrender.Node(mesh=textured_pyrender_mesh(mesh, image, color), matrix=self._T_world_objects[k].copy())
         self.scene.add_node(node)
         self._objects[k].variants[variant] = node
+
+    def lighting(self, k: int) -> SceneLighting | None:
+        """The lights, ambient and material terms pyrender shades object ``k``'s colour mesh with,
+        in the world frame, or ``None`` when its shader output is not ``albedo * D + S`` with
+        ``D``, ``S`` independent of the albedo as :class:`SceneLighting` describes (a metallic
+        material, a normal/occlusion/emissive/metallic-roughness texture, or more lights of a type
+        than pyrender binds, when it picks the nearest per object). This renderer never builds
+        such materials; the check keeps a caller from silently shading another model.
+        """
+        import pyrender
+        from pyrender.constants import MAX_N_LIGHTS
+
+        scene = self.scene
+        if any(
+            len(nodes) > MAX_N_LIGHTS
+            for nodes in (scene.directional_light_nodes, scene.point_light_nodes, scene.spot_light_nodes)
+        ):
+            return None
+        emissive = np.zeros(3)
+        roughness = None
+        for prim in self._objects[k].color.mesh.primitives:
+            m = prim.material
+            if not isinstance(m, pyrender.MetallicRoughnessMaterial) or prim.color_0 is not None:
+                return None
+            if any(
+                t is not None
+                for t in (m.normalTexture, m.occlusionTexture, m.emissiveTexture, m.metallicRoughnessTexture)
+            ):
+                return None
+            metallic = 1.0 if m.metallicFactor is None else float(m.metallicFactor)
+            r = 1.0 if m.roughnessFactor is None else float(m.roughnessFactor)
+            r = min(max(r, 0.04), 1.0)  # mesh.frag's clamp(roughness, min_roughness, 1.0)
+            if min(max(metallic, 0.0), 1.0) != 0.0 or (roughness is not None and r != roughness):
+                return None
+            roughness = r
+            emissive = np.asarray(m.emissiveFactor, dtype=np.float64) ** 2
+        groups = {"d": ([], []), "p": ([], []), "s": ([], [], [], [], [])}
+        for node in scene.light_nodes:  # as Renderer._bind_lighting: direction = -z, position = t
+            light, pose = node.light, scene.get_pose(node)
+            rad = float(light.intensity) * np.asarray(light.color, dtype=np.float64)
+            if isinstance(light, pyrender.PointLight):
+                groups["p"][0].append(pose[:3, 3])
+                groups["p"][1].append(rad)
+            elif isinstance(light, pyrender.SpotLight):
+                scale = 1.0 / max(0.001, np.cos(light.innerConeAngle) - np.cos(light.outerConeAngle))
+                for lst, val in zip(
+                    groups["s"], (pose[:3, 3], -pose[:3, 2], rad, scale, -np.cos(light.outerConeAngle) * scale)
+                ):
+                    lst.append(val)
+            else:
+                groups["d"][0].append(-pose[:3, 2])
+                groups["d"][1].append(rad)
+
+        def arr(lst, shape=(0, 3)):
+            return np.asarray(lst, dtype=np.float64).reshape((-1, *shape[1:]))
+
+        sp = groups["s"]
+        return SceneLighting(
+            ambient=np.asarray(scene.ambient_light, dtype=np.float64).reshape(3),
+            dir_dir=arr(groups["d"][0]),
+            dir_rad=arr(groups["d"][1]),
+            point_pos=arr(groups["p"][0]),
+            point_rad=arr(groups["p"][1]),
+            spot_pos=arr(sp[0]),
+            spot_dir=arr(sp[1]),
+            spot_rad=arr(sp[2]),
+            spot_scale=arr(sp[3], (0,)),
+            spot_offset=arr(sp[4], (0,)),
+            roughness=1.0 if roughness is None else roughness,
+            emissive=emissive,
+        )
 
     # ------------------------------------------------------------------ state
     def set_state(self, T_world_objects: np.ndarray, T_world_tcp: np.ndarray | None) -> None:

@@ -34,13 +34,27 @@ TINY = {
     "validation_every": 0,
     "lambda_sal": 1.0,
 }
-# sha256 (first 16 hex) of the final texture's float32 bytes under the pre-terms loop (commit 3e31af9).
+# sha256 (first 16 hex) of the final texture's float32 bytes under the pre-terms loop (commit 3e31af9),
+# whose frames were shaded from the measured albedo passes: HybridRenderer(shading="passes")
+# reproduces them bit for bit (the committed results were made that way).
 PINNED = {
     "default": ({}, "56b4d13d766672ac"),
     "untargeted": ({"loss": "untargeted"}, "954e70d28dc1aa1b"),
     "nopose": ({"use_pose": False}, "0eecbe40a5ed71c2"),
     "nopcgrad": ({"pcgrad": False}, "edf6fdfd0cd6fbba"),
     "print": ({"print_aware": True, "light_randomization": True}, "1f4dea7b36b5cf54"),
+}
+# The same runs with the default deferred shading (issue 26 part 5: pyrender's BRDF in torch, no
+# albedo passes). The shading values differ from the 8-bit measurement by its quantisation
+# (|D| <= 0.02, |S| <= 0.002 linear), so the textures differ; the deferred shading is within 1/255
+# of pyrender per pixel over the consistency grid (tests/attack/test_render_shading.py), the
+# measured one within 1.2/255, and the composite stays within 2/255 (tests/attack/test_render.py).
+PINNED_DEFERRED = {
+    "default": "1acef1ff1842e7f7",
+    "untargeted": "06a6266a9b40ff80",
+    "nopose": "1eb1e4cbfca7d8bc",
+    "nopcgrad": "2c390434dc5496c7",
+    "print": "f770909283cab0a7",
 }
 
 
@@ -69,10 +83,13 @@ def _run(spec, pool, **over):
     )
 
 
+@pytest.mark.parametrize("shading", ["passes", "deferred"])
 @pytest.mark.parametrize("name", sorted(PINNED))
-def test_the_term_objective_reproduces_the_two_gradient_loop_bit_for_bit(spec_pool, name):
+def test_the_term_objective_reproduces_the_two_gradient_loop_bit_for_bit(spec_pool, name, shading):
     over, digest = PINNED[name]
+    digest = digest if shading == "passes" else PINNED_DEFERRED[name]
     run = _run(*spec_pool, **over)
+    run.hybrid.shading = shading  # the frame source shares this renderer
     try:
         run_attack(run, progress=False)
         got = hashlib.sha256(run.state.texture.numpy().tobytes()).hexdigest()[:16]

@@ -28,8 +28,9 @@ def _texture(seed=0):
     return (t * 255).round().byte().permute(1, 2, 0).numpy()
 
 
-def _errors(rig, dist, phi_deg, tex):
+def _errors(rig, dist, phi_deg, tex, shading="deferred"):
     spec, r, hr, w = rig
+    hr = hr if shading == "deferred" else HybridRenderer(r, shading=shading)
     adv = r.face_coded
     c = w.object_center_array[adv]
     phi = np.radians(phi_deg)
@@ -49,12 +50,16 @@ def _errors(rig, dist, phi_deg, tex):
     return out, m.sum()
 
 
+@pytest.mark.parametrize("shading", ["deferred", "passes"])
 @pytest.mark.parametrize("phi", [10, 20, 30, 45, 60, 80])
 @pytest.mark.parametrize("dist", [0.25, 0.5, 0.8])
-def test_composite_matches_pyrender_within_2_of_255_with_trilinear_over_a_phi_r_grid(rig, dist, phi):
-    # phi = 10 deg looks down on the bottle under the ceiling light: the shading pass must not
-    # saturate there (attack.render.SHADING_ALBEDO), or the error reaches 3/255.
-    errs, n = _errors(rig, dist, phi, _texture())
+def test_composite_matches_pyrender_within_2_of_255_with_trilinear_over_a_phi_r_grid(rig, dist, phi, shading):
+    # The consistency grid. Deferred shading (the default) is within 1/255 of pyrender per pixel
+    # (test_render_shading.py); what remains here is texture sampling (a bias of about -1/255 at
+    # 0.8 m; worst mean 1.33/255, measured). With the measured passes, phi = 10 deg looks down on
+    # the bottle under the ceiling light: the grey pass must not saturate there
+    # (attack.render.SHADING_ALBEDO), or the error reaches 3/255.
+    errs, n = _errors(rig, dist, phi, _texture(), shading)
     assert n > 50
     assert errs["trilinear"] <= 2.0, errs
     assert errs["trilinear"] <= errs["bilinear"] + 0.5
