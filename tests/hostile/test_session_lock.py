@@ -25,7 +25,7 @@ import yaml
 from tests.trials.real.trial_session_helpers import REPO, sim_hardware, small_plan, tiny_onnx
 from trials.real.locks import LockBusy, LockError, arm_lock, arm_lock_key
 from trials.real.operator import AutoOperator
-from trials.real.session import SessionSetupError, run_session
+from trials.real.session import SessionOptions, SessionSetupError, run_session
 from trials.real.store import TrialStore
 
 SESSION = "same"
@@ -112,7 +112,7 @@ _HOLDER = textwrap.dedent(
     import sys, time
     from pathlib import Path
     from trials.real.operator import AutoOperator
-    from trials.real.session import run_session
+    from trials.real.session import SessionOptions, run_session
 
     hw, policy, plan, db, flags = sys.argv[1:6]
     flags, seen = Path(flags), []
@@ -127,8 +127,8 @@ _HOLDER = textwrap.dedent(
                     sys.exit("never let go")
                 time.sleep(0.02)
 
-    s = run_session(hw, policy, plan, "same", db, operator=AutoOperator(log=None), rate_limit=False,
-                    max_trials=2, on_trial_end=hold, log=None)
+    opts = SessionOptions(hardware=hw, policy=policy, plan=plan, session="same", db=db, rate_limit=False, max_trials=2)
+    s = run_session(opts, operator=AutoOperator(log=None), on_trial_end=hold, log=None)
     print("committed", len(s.committed))
     """
 )
@@ -262,18 +262,18 @@ def _dead_pid() -> int:
     return p.pid
 
 
-def _run(files, db, **kw):
-    return run_session(
-        files["hw"],
-        files["policy"],
-        files["plan"],
-        SESSION,
-        db,
-        operator=AutoOperator(log=None),
+def _run(files, db, *, log=print, **options):
+    opts = SessionOptions(
+        hardware=files["hw"],
+        policy=files["policy"],
+        plan=files["plan"],
+        session=SESSION,
+        db=db,
         rate_limit=False,
         max_trials=1,
-        **kw,
+        **options,
     )
+    return run_session(opts, operator=AutoOperator(log=None), log=log)
 
 
 @pytest.mark.parametrize("how", ["dead pid", "pid reused by another process"])
@@ -371,17 +371,16 @@ def test_two_sessions_in_different_databases_cannot_drive_one_arm(files, tmp_pat
         assert holder.stdout.readline().strip() == "held"
         db = tmp_path / "two" / "trials.sqlite"
         # the same arm under another spelling of its address, another database and session
+        opts = SessionOptions(
+            hardware=_ur_hardware(tmp_path / "ur2.yaml", host=" 192.0.2.10 "),
+            policy=files["policy"],
+            plan=files["plan"],
+            session="day2",
+            db=db,
+            registry=tmp_path / "objects.yaml",
+        )
         with pytest.raises(LockBusy) as err:
-            run_session(
-                _ur_hardware(tmp_path / "ur2.yaml", host=" 192.0.2.10 "),
-                files["policy"],
-                files["plan"],
-                "day2",
-                db,
-                operator=AutoOperator(log=None),
-                registry=tmp_path / "objects.yaml",
-                log=None,
-            )
+            run_session(opts, operator=AutoOperator(log=None), log=None)
         msg = str(err.value)
         assert msg.startswith(f"arm ur_rtde:192.0.2.10: in use by host {socket.gethostname()} pid {holder.pid}")
         assert "session day1" in msg and str(tmp_path / "one" / "trials.sqlite") in msg

@@ -16,7 +16,7 @@ from tests.trials.real.trial_session_helpers import sim_hardware, small_plan
 from trials.eval.conditions import Condition
 from trials.eval.evaluate import rollout_condition
 from trials.real.operator import AutoOperator
-from trials.real.session import SessionSetupError, run_session
+from trials.real.session import SessionOptions, SessionSetupError, run_session
 from trials.real.store import TrialStore
 
 
@@ -105,7 +105,8 @@ def _session(tmp_path, c, max_frame_age_ms=500.0):
     plan = small_plan(tmp_path / "plan.yaml", tmp_path, n_tcp=1, max_steps=6, conditions=("clean",))
     policy = _onnx_with_card(c, tmp_path / "p.onnx")
     db = tmp_path / "t.sqlite"
-    run_session(hw, policy, plan, "s", db, rate_limit=False, operator=AutoOperator(log=None))
+    opts = SessionOptions(hardware=hw, policy=policy, plan=plan, session="s", db=db, rate_limit=False)
+    run_session(opts, operator=AutoOperator(log=None))
     return TrialStore(db)
 
 
@@ -146,8 +147,9 @@ def test_a_policy_whose_outputs_do_not_fit_its_card_is_refused_before_any_device
     attach_card(path, card)  # the card says chunks of 4, the graph outputs one action
     hw = sim_hardware(tmp_path / "hw.yaml")
     plan = small_plan(tmp_path / "plan.yaml", tmp_path, n_tcp=1, max_steps=3, conditions=("clean",))
+    opts = SessionOptions(hardware=hw, policy=path, plan=plan, session="s", db=tmp_path / "t.sqlite", rate_limit=False)
     with pytest.raises(
         SessionSetupError, match=r"p\.onnx: .*needs outputs of shape \(1, 4, 6\) or \(1, 24\), got \(1, 6\)"
     ):
-        run_session(hw, path, plan, "s", tmp_path / "t.sqlite", rate_limit=False, operator=AutoOperator(log=None))
+        run_session(opts, operator=AutoOperator(log=None))
     assert not (tmp_path / "t.sqlite").exists()

@@ -11,6 +11,7 @@ from typing import List, Optional
 import typer
 
 from trials.cli.options import key_values
+from trials.real.store import DEFAULT_DB
 
 app = typer.Typer(no_args_is_help=True, help="Real-robot trials: plan, run, export, report.")
 
@@ -127,7 +128,7 @@ def run_command(
         help="session name (1-64 letters, digits, '.', '_' or '-', starting with a letter or digit; its frames "
         "go to frames/<session>/ beside the database); the same name resumes an interrupted session",
     ),
-    db: Path = typer.Option(Path("trials.sqlite"), help="trial database (frames go to frames/ beside it)"),
+    db: Path = typer.Option(Path(DEFAULT_DB), help="trial database (frames go to frames/ beside it)"),
     auto_confirm: bool = typer.Option(
         False, "--auto-confirm", help="accept every automatic outcome (CI, scripted sessions)"
     ),
@@ -155,14 +156,14 @@ def run_command(
     ),
 ) -> None:
     """Run (or resume) the plan's trials: placement check, policy loop, outcome, operator confirmation, commit."""
-    from trials.real.session import run_session
+    from trials.real.session import SessionOptions, run_session
 
-    summary = run_session(
-        hardware,
-        policy,
-        plan,
-        session,
-        db,
+    opts = SessionOptions(
+        hardware=hardware,
+        policy=policy,
+        plan=plan,
+        session=session,
+        db=db,
         answers=answers,
         auto_confirm=auto_confirm,
         registry=registry,
@@ -170,9 +171,9 @@ def run_command(
         max_trials=max_trials,
         rate_limit=rate_limit,
         threads=threads,
-        log=typer.echo,
         take_over_stale_lock=take_over_stale_lock,
     )
+    summary = run_session(opts, log=typer.echo)
     t = summary.timings
     if t:
         import numpy as np
@@ -196,7 +197,7 @@ def run_command(
 
 @app.command("export")
 def export_command(
-    db: Path = typer.Option(Path("trials.sqlite"), help="trial database"),
+    db: Path = typer.Option(Path(DEFAULT_DB), help="trial database"),
     out: Path = typer.Option(..., help="output directory"),
     format: str = typer.Option("both", "--format", help="csv, parquet or both"),
 ) -> None:
@@ -217,7 +218,7 @@ def export_command(
 
 @app.command("amend")
 def amend_command(
-    db: Path = typer.Option(Path("trials.sqlite"), help="trial database"),
+    db: Path = typer.Option(Path(DEFAULT_DB), help="trial database"),
     session: str = typer.Option(..., help="session name"),
     trial: str = typer.Option(..., help="trial id, e.g. A-cube-adv3d-t0-o1"),
     outcome: Optional[str] = typer.Option(None, help="the corrected outcome: goal, adversarial, none or unknown"),
@@ -240,7 +241,7 @@ def amend_command(
 
 @app.command("report")
 def report_command(
-    db: Path = typer.Option(Path("trials.sqlite"), help="trial database"),
+    db: Path = typer.Option(Path(DEFAULT_DB), help="trial database"),
     session: List[str] = typer.Option([], "--session", help="session name (repeatable; default: all sessions)"),
     sim: List[str] = typer.Option(
         [],

@@ -1,9 +1,14 @@
 """Assembling a trial session from files: hardware YAML, plan, policy, registry -> a running :class:`TrialRunner`.
 
-:func:`run_session` is ``advobj trial run`` without the command line: it loads and checks every
-input before any device connects, records the session's provenance (plan text and sha256,
-hardware YAML, policy sha256, software version and git commit, device identities, sha256 of the
-calibration files), then runs inside ``with camera, arm:`` so any exception stops the arm.
+:class:`SessionOptions` holds every input of a session, one field per flag of ``advobj trial run``
+(``table_frame`` is ``--table-frame``); building it checks types, bounds, the session name and the
+operator's flags, and a bad value raises one :class:`AdvobjError` naming its flag.
+
+:func:`run_session` is ``advobj trial run`` without the command line: it takes the options, loads
+and checks every input before any device connects, records the session's provenance (plan text
+and sha256, hardware YAML, policy sha256, software version and git commit, device identities,
+sha256 of the calibration files), then runs inside ``with camera, arm:`` so any exception stops
+the arm. It is :func:`prepare_session` (no device, nothing written) then :func:`run_prepared`.
 
 With ``sim`` devices the table is staged by :class:`trials.real.stage.SimStage` and located by
 :class:`trials.real.locate.SimLocator` (ground truth); the sim camera renders at the policy's
@@ -25,25 +30,120 @@ import dataclasses
 import hashlib
 import math
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
+from pydantic import Field, ValidationError, field_validator, model_validator
 
-from sim.configio import merged
+from sim.configio import StrictModel, merged
 from sim.errors import AdvobjError
+from trials.real.store import (
+    DEFAULT_DB,
+    SESSION_NAME_RULE,
+    SessionInfo,
+    check_database,
+    check_session_name,
+    session_frames_dir,
+)
 
 __all__ = [
     "SessionSetupError",
+    "SessionOptions",
+    "PreparedSession",
     "file_sha256",
     "device_identity",
     "load_trial_policy",
     "load_T_base_table",
+    "prepare_session",
+    "run_prepared",
     "run_session",
 ]
 
 
 class SessionSetupError(AdvobjError, ValueError):
     """An input of ``advobj trial run`` is missing or inconsistent; the message names it."""
+
+
+def _flag(field: str) -> str:
+    """The command-line flag of a :class:`SessionOptions` field: ``table_frame`` -> ``--table-frame``."""
+    return "--" + field.replace("_", "-")
+
+
+class SessionOptions(StrictModel):
+    """Every input of one trial session: what ``advobj trial run``'s flags say, one field per flag.
+
+    Building it (``SessionOptions(hardware=..., ...)``) checks the values, not the files: types, bounds,
+    the session name and that the operator's answers come from one source. A bad value raises one
+    :class:`AdvobjError` naming the flag (``--threads: ...``, ``--session: ...``), never a field path.
+    The files are read and checked by :func:`prepare_session`. Who confirms outcomes (an explicit
+    operator), the log and the callbacks are arguments of the functions, not options.
+    """
+
+    hardware: Path = Field(description="hardware YAML (camera, arm, safety limits, calibration files)")
+    policy: Path = Field(description="policy: .onnx file (onnxruntime) or checkpoint directory")
+    plan: Path = Field(description="trial plan YAML from 'advobj trial plan'")
+    session: str = Field(
+        description=f"session name ({SESSION_NAME_RULE}); its frames go to frames/<session>/ beside the "
+        "database; the same name resumes an interrupted session"
+    )
+    db: Path = Field(Path(DEFAULT_DB), description="trial database (frames go to frames/ beside it)")
+    answers: Optional[Path] = Field(
+        None, description="operator answers YAML: {trial_id: {outcome: ..., note: ...}} or a list in run order"
+    )
+    auto_confirm: bool = Field(False, description="accept every automatic outcome (CI, scripted sessions)")
+    registry: Optional[Path] = Field(None, description="tag registry YAML (objects.yaml); needed with a real camera")
+    table_frame: Optional[Path] = Field(
+        None,
+        description="YAML with T_base_table; None: estimated from the registry's table tags at the session's "
+        "start, stored, reused on resume (sim devices: only the identity)",
+    )
+    max_trials: Optional[int] = Field(None, ge=0, description="run at most this many of the remaining trials")
+    rate_limit: Optional[bool] = Field(
+        None, description="hold the plan's control rate; None: on, off for sim arms without realtime: true"
+    )
+    threads: int = Field(1, ge=1, description="onnxruntime threads (1: leaves a core to the camera and renderer)")
+    take_over_stale_lock: bool = Field(
+        False,
+        description="take the session over from a runner the database names but that holds no lock (one on "
+        "another host, or a live process that is not that run); a dead runner on this host is taken over anyway",
+    )
+
+    def __init__(self, **values):
+        try:
+            super().__init__(**values)
+        except ValidationError as err:
+            raise _options_error(err) from None
+
+    @field_validator("session")
+    @classmethod
+    def _safe_session_name(cls, value: str) -> str:
+        return check_session_name(value, _flag("session"))
+
+    @model_validator(mode="after")
+    def _one_answer_source(self):
+        if self.answers is not None and self.auto_confirm:
+            raise SessionSetupError("--auto-confirm and --answers: give one of them")
+        return self
+
+
+def _options_error(err: ValidationError) -> AdvobjError:
+    """One error naming the flags of a :class:`SessionOptions` validation failure.
+
+    A validator's own :class:`AdvobjError` (the session name's, the answers') is returned as it is;
+    otherwise each problem reads ``--flag: problem`` (the first three, then how many more)."""
+    problems = []
+    for e in err.errors():
+        cause = (e.get("ctx") or {}).get("error")
+        if isinstance(cause, AdvobjError):
+            return cause
+        field = str(e["loc"][0]) if e["loc"] else ""
+        msg = " ".join(e["msg"].removeprefix("Value error, ").split())
+        if e["type"] == "extra_forbidden":
+            problems.append(f"{field}: not an option of a trial session")
+        else:
+            problems.append(f"{_flag(field) if field else 'session options'}: {msg}")
+    more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
+    return SessionSetupError("; ".join(problems[:3]) + more)
 
 
 def file_sha256(path: str | Path | None) -> str | None:
@@ -108,18 +208,14 @@ class PreparedSession:
     """A session with every input loaded and validated, before any device exists
     (:func:`prepare_session`); :func:`run_prepared` connects the devices and runs it."""
 
+    opts: SessionOptions  # what was asked for
     hw: object  # robot_io.config.HardwareConfig, the safety layer at the plan's rate
     plan: object  # trials.real.plan.TrialPlan
-    plan_path: Path
-    hardware_path: Path
     policy: object
     spec: object  # the scene the trials use
     session_dir: Path
-    db: Path
     operator: object
-    registry: str | Path | None
-    table_frame: str | Path | None
-    rate_limit: bool
+    rate_limit: bool  # opts.rate_limit, or its default for these devices
     info: object  # trials.real.store.SessionInfo (devices filled in when they connect)
     action_scale: tuple
 
@@ -128,48 +224,38 @@ class PreparedSession:
         return self.hw.camera.type == "sim"
 
 
-def prepare_session(
-    hardware: str | Path,
-    policy_path: str | Path,
-    plan_path: str | Path,
-    session: str,
-    db: str | Path,
-    operator=None,
-    answers: str | Path | None = None,
-    auto_confirm: bool = False,
-    registry: str | Path | None = None,
-    table_frame: str | Path | None = None,
-    rate_limit: bool | None = None,
-    threads: int = 1,
-    log=print,
-) -> PreparedSession:
-    """Load and check everything a session needs, touching no device: the session name, the
-    database's integrity, the hardware config, the plan, the operator's answers, the policy and its
-    contract against the safety limits, the scene, the calibration files' hashes."""
+def prepare_session(opts: SessionOptions, *, operator=None, log=print) -> PreparedSession:
+    """Load and check everything a session needs, touching no device: the session's frames folder,
+    the database's integrity, the hardware config, the plan, the operator's answers, the policy and
+    its contract against the safety limits, the scene, the calibration files' hashes.
+
+    ``operator``: an explicit :class:`Operator`; else ``opts.auto_confirm`` / ``opts.answers`` pick
+    the scripted ones and the default is the terminal UI. ``log``: where notes and warnings go (None: nowhere).
+    """
     import importlib.metadata
 
     from robot_io.config import load_hardware_config
     from sim.runinfo import git_commit
     from trials.real.operator import AutoOperator, ScriptedOperator, TerminalOperator
     from trials.real.plan import load_plan, plan_sha256
-    from trials.real.store import SessionInfo, check_database, session_frames_dir
 
     # First of all, before anything is read or written: the session name becomes the directory
     # frames/<session> beside the database, which must stay inside frames/ (no symlink out of it);
     # and an existing database must pass SQLite's quick_check (a damaged one is never written to).
+    # (SessionOptions already refused a bad name and --answers with --auto-confirm.)
+    db, session = opts.db, opts.session
     session_dir = session_frames_dir(db, session, "--session")
     check_database(db)
-    hardware, plan_path, policy_path = Path(hardware), Path(plan_path), Path(policy_path)
+    hardware, plan_path, policy_path = opts.hardware, opts.plan, opts.policy
+    answers, registry, table_frame, threads = opts.answers, opts.registry, opts.table_frame, opts.threads
     log = log or (lambda _text: None)
-    if answers is not None and auto_confirm:
-        raise SessionSetupError("--auto-confirm and --answers: give one of them")
     hw = load_hardware_config(hardware)
     plan = load_plan(plan_path)
     sim = hw.camera.type == "sim"
     if operator is None:
         if answers is not None:
             operator = ScriptedOperator.from_file(answers, log)
-        elif auto_confirm:
+        elif opts.auto_confirm:
             operator = AutoOperator(log)
         else:
             operator = TerminalOperator()
@@ -206,6 +292,7 @@ def prepare_session(
     hw = _safety_at_plan_rate(hw, plan, ep, log)
     inference_s = _check_policy_outputs(policy, spec, policy_path)
     _check_chunk_frame_age(policy, plan, hw, inference_s)
+    rate_limit = opts.rate_limit
     if rate_limit is None:
         rate_limit = not (hw.arm.type == "sim" and not hw.arm.realtime)
     calibration_files = {
@@ -240,38 +327,25 @@ def prepare_session(
             "calibration_files": {k: None if v is None else str(v) for k, v in calibration_files.items()},
         },
     )
-    return PreparedSession(
-        hw,
-        plan,
-        plan_path,
-        hardware,
-        policy,
-        spec,
-        session_dir,
-        Path(db),
-        operator,
-        registry,
-        table_frame,
-        rate_limit,
-        info,
-        action_scale,
-    )
+    return PreparedSession(opts, hw, plan, policy, spec, session_dir, operator, rate_limit, info, action_scale)
 
 
 def run_prepared(
     prep: PreparedSession,
-    max_trials: int | None = None,
+    *,
     on_trial_end: Callable | None = None,
     on_ready: Callable | None = None,
     log=print,
-    take_over_stale_lock: bool = False,
 ):
-    """Connect the devices of a :func:`prepare_session` result and run (or resume) its trials;
-    returns the :class:`RunSummary`. A refused resume is found before any device connects.
+    """Connect the devices of a :func:`prepare_session` result and run (or resume) at most
+    ``prep.opts.max_trials`` of its trials; returns the :class:`RunSummary`. A refused resume is
+    found before any device connects.
 
     The session's lock and the arm's lock (:mod:`trials.real.locks`) are taken first and held
-    until the devices are closed; ``take_over_stale_lock``: take the session over from a holder
+    until the devices are closed; ``opts.take_over_stale_lock``: take the session over from a holder
     the store names but that holds no OS lock, on another host too (``--take-over-stale-lock``).
+    ``on_trial_end(trial)`` is called after each committed trial, ``on_ready(runner, world)`` before
+    the first one (tests use it to reach the sim world and stage).
     """
     import contextlib
 
@@ -282,16 +356,16 @@ def run_prepared(
     from trials.real.store import TrialStore
 
     log = log or (lambda _text: None)
-    hw, plan, sim, info = prep.hw, prep.plan, prep.sim, prep.info
+    hw, plan, sim, info, opts = prep.hw, prep.plan, prep.sim, prep.info, prep.opts
     with contextlib.ExitStack() as stack:  # closed in reverse: devices, world, stage, the locks, store
-        store = TrialStore(prep.db)
+        store = TrialStore(opts.db)
         stack.callback(store.close)
         # First of all: this process becomes the session's only runner and the arm's only driver
         # (issue 25). A second runner is refused here, in one line naming the holder, before any
         # device exists and before anything of the session is read, written or deleted.
-        store.lock_session(info.name, take_over_stale_lock, log)
+        store.lock_session(info.name, opts.take_over_stale_lock, log)
         stack.callback(store.release_session, info.name)
-        arm_held = arm_lock(hw.arm, session=info.name, db=str(Path(prep.db).resolve()))
+        arm_held = arm_lock(hw.arm, session=info.name, db=str(opts.db.resolve()))
         if arm_held is not None:
             stack.callback(arm_held.release)
         world = build_world(hw) if hw.camera.type == "sim" or hw.arm.type == "sim" else None
@@ -321,13 +395,13 @@ def run_prepared(
             from trials.real.stage import SimStage
 
             locator = SimLocator(world)
-            stage = SimStage(world, plan, prep.plan_path.parent)
+            stage = SimStage(world, plan, opts.plan.parent)
             stages.append(stage)
             if hw.camera.tags:
-                locator = _sim_tag_locator(camera, world, prep.registry, prep.session_dir, log)
+                locator = _sim_tag_locator(camera, world, opts.registry, prep.session_dir, log)
         else:
             locator, T_base_table = _tag_locator(
-                hw, camera, arm, prep.registry, prep.table_frame, stored_T_base_table, log
+                hw, camera, arm, opts.registry, opts.table_frame, stored_T_base_table, log
             )
         info = dataclasses.replace(info, T_base_table=T_base_table)
         runner = TrialRunner(
@@ -348,52 +422,27 @@ def run_prepared(
         )
         if on_ready is not None:
             on_ready(runner, world)
-        return runner.run(max_trials)
+        return runner.run(opts.max_trials)
 
 
 def run_session(
-    hardware: str | Path,
-    policy_path: str | Path,
-    plan_path: str | Path,
-    session: str,
-    db: str | Path,
+    opts: SessionOptions,
+    *,
     operator=None,
-    answers: str | Path | None = None,
-    auto_confirm: bool = False,
-    registry: str | Path | None = None,
-    table_frame: str | Path | None = None,
-    max_trials: int | None = None,
-    rate_limit: bool | None = None,
-    threads: int = 1,
     on_trial_end: Callable | None = None,
     on_ready: Callable | None = None,
     log=print,
-    take_over_stale_lock: bool = False,
 ):
-    """Run (or resume) ``session`` of ``plan_path`` into ``db``: :func:`prepare_session`, then
+    """Run (or resume) the session ``opts`` describes: :func:`prepare_session`, then
     :func:`run_prepared`; returns the :class:`RunSummary`.
 
-    ``operator``: an explicit :class:`Operator`; else ``auto_confirm`` / ``answers`` pick the
-    scripted ones and the default is the terminal UI. ``rate_limit`` None: on for real arms and for
-    sim arms with ``realtime: true``, off for other sim arms. ``on_ready(runner, world)`` is called
-    before the first trial (tests use it to reach the sim world and stage).
+    ``operator``: an explicit :class:`Operator`; else ``opts.auto_confirm`` / ``opts.answers`` pick
+    the scripted ones and the default is the terminal UI. ``opts.rate_limit`` None: on for real arms
+    and for sim arms with ``realtime: true``, off for other sim arms. ``on_trial_end`` and
+    ``on_ready``: see :func:`run_prepared`.
     """
-    prep = prepare_session(
-        hardware,
-        policy_path,
-        plan_path,
-        session,
-        db,
-        operator,
-        answers,
-        auto_confirm,
-        registry,
-        table_frame,
-        rate_limit,
-        threads,
-        log,
-    )
-    return run_prepared(prep, max_trials, on_trial_end, on_ready, log, take_over_stale_lock)
+    prep = prepare_session(opts, operator=operator, log=log)
+    return run_prepared(prep, on_trial_end=on_trial_end, on_ready=on_ready, log=log)
 
 
 def camera_view_warnings(camera, policy, spec, hw) -> list[str]:

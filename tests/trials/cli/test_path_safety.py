@@ -186,7 +186,7 @@ def test_absolute_session_is_refused_and_the_folder_keeps_its_subfolders(files, 
 def test_session_frames_symlinked_out_of_frames_are_refused(files, tmp_path):
     """A safe name whose frames/<session> is a symlink to elsewhere: refused, the target untouched."""
     from trials.real.operator import AutoOperator
-    from trials.real.session import run_session
+    from trials.real.session import SessionOptions, run_session
 
     outside = _victim(tmp_path / "outside")
     _victim(outside / _first_trial_id(files["plan"]))
@@ -196,7 +196,10 @@ def test_session_frames_symlinked_out_of_frames_are_refused(files, tmp_path):
     before = _snapshot(outside)
     with pytest.raises(UnsafePathError, match=r"^--session: 's' leads to .*outside"):
         run_session(
-            files["hw"], files["policy"], files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False
+            SessionOptions(
+                hardware=files["hw"], policy=files["policy"], plan=files["plan"], session="s", db=db, rate_limit=False
+            ),
+            operator=AutoOperator(log=None),
         )
     assert _snapshot(outside) == before and not db.exists()
 

@@ -14,22 +14,21 @@ from tests.trials.real.trial_session_helpers import sim_hardware, small_plan, st
 @pytest.fixture(scope="module")
 def session_db(tmp_path_factory):
     from trials.real.operator import Decision, ScriptedOperator
-    from trials.real.session import run_session
+    from trials.real.session import SessionOptions, run_session
 
     d = tmp_path_factory.mktemp("amend")
     plan = small_plan(d / "plan.yaml", d / "tex", n_tcp=2, n_layouts=1, max_steps=4)  # 6 trials planned
     answers = [Decision("adversarial", "the arm brushed the can"), Decision(None, "")]
-    run_session(
-        sim_hardware(d / "hw.yaml"),
-        straight_ahead_onnx(d / "p.onnx"),
-        plan,
-        "s1",
-        d / "t.sqlite",
-        operator=ScriptedOperator(answers, log=None),
+    opts = SessionOptions(
+        hardware=sim_hardware(d / "hw.yaml"),
+        policy=straight_ahead_onnx(d / "p.onnx"),
+        plan=plan,
+        session="s1",
+        db=d / "t.sqlite",
         rate_limit=False,
         max_trials=2,
-        log=lambda _t: None,
     )
+    run_session(opts, operator=ScriptedOperator(answers, log=None), log=lambda _t: None)
     return d / "t.sqlite"
 
 

@@ -35,21 +35,19 @@ def cell(tmp_path_factory):
 
 def _run(cell, session, operator=None, on_ready=None, max_trials=1):
     from trials.real.operator import AutoOperator
-    from trials.real.session import run_session
+    from trials.real.session import SessionOptions, run_session
 
     db = cell["dir"] / f"{session}.sqlite"
-    run_session(
-        cell["hw"],
-        cell["policy"],
-        cell["plan"],
-        session,
-        db,
-        operator=operator or AutoOperator(None),
+    opts = SessionOptions(
+        hardware=cell["hw"],
+        policy=cell["policy"],
+        plan=cell["plan"],
+        session=session,
+        db=db,
         rate_limit=False,
-        on_ready=on_ready,
         max_trials=max_trials,
-        log=lambda _t: None,
     )
+    run_session(opts, operator=operator or AutoOperator(None), on_ready=on_ready, log=lambda _t: None)
     return db
 
 

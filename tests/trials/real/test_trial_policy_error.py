@@ -9,7 +9,7 @@ from tests.trials.real.trial_session_helpers import sim_hardware, small_plan, ti
 from trials.real.operator import AutoOperator
 from trials.real.plan import load_plan
 from trials.real.report import rate_cell
-from trials.real.session import run_session
+from trials.real.session import SessionOptions, run_session
 from trials.real.store import TrialStore
 
 
@@ -36,23 +36,21 @@ class _NaNOnCalls:
         return np.full_like(out, np.nan) if self.calls - 1 in self.bad else out
 
 
-def _run(files, db, bad, **kw):
+def _run(files, db, bad, **options):
     def swap(runner, world):
         runner.policy = _NaNOnCalls(runner.policy, bad)
         runner.stop_on_reach = False  # every good trial runs max_steps: the call index of each trial is known
 
-    return run_session(
-        files["hw"],
-        files["policy"],
-        files["plan"],
-        "s",
-        db,
-        operator=AutoOperator(log=None),
+    opts = SessionOptions(
+        hardware=files["hw"],
+        policy=files["policy"],
+        plan=files["plan"],
+        session="s",
+        db=db,
         rate_limit=False,
-        on_ready=swap,
-        log=lambda *_: None,
-        **kw,
+        **options,
     )
+    return run_session(opts, operator=AutoOperator(log=None), on_ready=swap, log=lambda *_: None)
 
 
 def test_nan_action_stops_the_trial_as_policy_error_and_the_session_goes_on(files, tmp_path):

@@ -11,7 +11,7 @@ from tests.trials.real.trial_session_helpers import sim_hardware, small_plan, st
 from trials.real.locate import LocatedObject, TagLocator, placement_issues
 from trials.real.operator import AnswersError, AutoOperator, ScriptedOperator, TerminalOperator, load_answers
 from trials.real.plan import ObjectPlacement, load_plan
-from trials.real.session import file_sha256, run_session
+from trials.real.session import SessionOptions, file_sha256, run_session
 from trials.real.store import SessionMismatch, TrialStore
 
 
@@ -25,9 +25,22 @@ def files(tmp_path_factory):
     }
 
 
-def _run(files, db, session="s", **kw):
-    kw.setdefault("operator", AutoOperator(log=None))
-    return run_session(files["hw"], files["policy"], files["plan"], session, db, rate_limit=False, **kw)
+def _opts(files, db, session="s", **options) -> SessionOptions:
+    """The options of a session of the module's sim cell, without rate limiting."""
+    return SessionOptions(
+        hardware=files["hw"],
+        policy=files["policy"],
+        plan=files["plan"],
+        session=session,
+        db=db,
+        rate_limit=False,
+        **options,
+    )
+
+
+def _run(files, db, session="s", *, operator=None, on_ready=None, log=print, **options):
+    operator = AutoOperator(log=None) if operator is None else operator
+    return run_session(_opts(files, db, session, **options), operator=operator, on_ready=on_ready, log=log)
 
 
 def test_placement_check_catches_a_misplaced_object_and_passes_after_correction(files, tmp_path):
@@ -130,7 +143,12 @@ def test_a_changed_plan_is_refused_on_resume(files, tmp_path):
     changed = tmp_path / "plan.yaml"
     changed.write_text(files["plan"].read_text() + "\n# edited\n")
     with pytest.raises(SessionMismatch, match="original plan"):
-        run_session(files["hw"], files["policy"], changed, "s", db, operator=AutoOperator(log=None), rate_limit=False)
+        run_session(
+            SessionOptions(
+                hardware=files["hw"], policy=files["policy"], plan=changed, session="s", db=db, rate_limit=False
+            ),
+            operator=AutoOperator(log=None),
+        )
 
 
 def test_resume_with_another_policy_is_refused_naming_both_files(files, tmp_path):
@@ -138,7 +156,12 @@ def test_resume_with_another_policy_is_refused_naming_both_files(files, tmp_path
     _run(files, db, max_trials=1)
     other = straight_ahead_onnx(tmp_path / "other.onnx")
     with pytest.raises(SessionMismatch) as err:
-        run_session(files["hw"], other, files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False)
+        run_session(
+            SessionOptions(
+                hardware=files["hw"], policy=other, plan=files["plan"], session="s", db=db, rate_limit=False
+            ),
+            operator=AutoOperator(log=None),
+        )
     msg = str(err.value)
     assert f"policy: sha256 {file_sha256(files['policy'])[:12]}... ({files['policy']}) at the session's start" in msg
     assert f"now sha256 {file_sha256(other)[:12]}... ({other})" in msg
@@ -152,14 +175,10 @@ def test_resume_with_an_edited_hardware_yaml_warns_and_records_the_run(files, tm
     hw.write_text(files["hw"].read_text() + "# moved the camera cable\n")
     logged = []
     run_session(
-        hw,
-        files["policy"],
-        files["plan"],
-        "s",
-        db,
+        SessionOptions(
+            hardware=hw, policy=files["policy"], plan=files["plan"], session="s", db=db, rate_limit=False, max_trials=1
+        ),
         operator=AutoOperator(log=None),
-        rate_limit=False,
-        max_trials=1,
         log=logged.append,
     )
     assert any("hardware YAML" in line and "since the last run" in line for line in logged), logged
@@ -227,23 +246,13 @@ def test_answers_list_is_keyed_by_run_order_across_a_resume(files, tmp_path):
     answers = tmp_path / "answers.yaml"
     answers.write_text("- {note: first}\n- {outcome: unknown, note: second}\n- {note: third}\n")
     for _ in range(3):  # one trial per sitting: every resume must read the next entry, not entry 0 again
-        run_session(
-            files["hw"],
-            files["policy"],
-            files["plan"],
-            "s",
-            db,
-            answers=answers,
-            rate_limit=False,
-            max_trials=1,
-            log=None,
-        )
+        run_session(_opts(files, db, answers=answers, max_trials=1), log=None)
     rows = {r["trial_id"]: r for r in TrialStore(db).trial_rows()}
     assert [rows[t]["note"] for t in ordered[:3]] == ["first", "second", "third"]
     assert rows[ordered[1]]["final_outcome"] == "unknown" and rows[ordered[0]]["operator_outcome"] is None
     answers.write_text("".join(f"- {{note: n{i}}}\n" for i in range(len(ordered) + 1)))
     with pytest.raises(AnswersError, match=f"{len(ordered) + 1} answers for a plan of {len(ordered)} trials"):
-        run_session(files["hw"], files["policy"], files["plan"], "s", db, answers=answers, rate_limit=False, log=None)
+        run_session(_opts(files, db, answers=answers), log=None)
 
 
 def test_closed_operator_input_aborts_like_q(files, tmp_path):
@@ -375,13 +384,15 @@ def test_safety_caps_use_the_plans_loop_period_and_warn_when_they_clip_the_polic
     assert yaml.safe_load(hw.read_text())["safety"]["control_period_s"] == pytest.approx(1 / 30, rel=0.01)
     seen, logged = {}, []
     run_session(
-        hw,
-        straight_ahead_onnx(tmp_path / "ahead.onnx"),
-        plan,
-        "s",
-        tmp_path / "t.sqlite",
+        SessionOptions(
+            hardware=hw,
+            policy=straight_ahead_onnx(tmp_path / "ahead.onnx"),
+            plan=plan,
+            session="s",
+            db=tmp_path / "t.sqlite",
+            rate_limit=False,
+        ),
         operator=AutoOperator(log=None),
-        rate_limit=False,
         log=logged.append,
         on_ready=lambda runner, world: seen.update(period=runner.arm.limits.control_period_s),
     )
@@ -407,7 +418,12 @@ def test_a_plan_pose_outside_the_workspace_is_refused_before_anything_moves(file
     hw.write_text(yaml.safe_dump(doc))
     db = tmp_path / "t.sqlite"
     with pytest.raises(PlanOutsideWorkspace, match="TCP pose .* outside|outside the safety workspace") as info:
-        run_session(hw, files["policy"], files["plan"], "s", db, operator=AutoOperator(log=None), rate_limit=False)
+        run_session(
+            SessionOptions(
+                hardware=hw, policy=files["policy"], plan=files["plan"], session="s", db=db, rate_limit=False
+            ),
+            operator=AutoOperator(log=None),
+        )
     assert "workspace_max_m" in str(info.value) and "TCP pose" in str(info.value)
     with TrialStore(db) as store:
         assert store.session("s") is None  # nothing recorded: the plan was refused before the session opened
