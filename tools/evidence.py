@@ -14,7 +14,6 @@ commit, machine, wall and CPU time of every attempt, n). Checkpoints and policie
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import platform
@@ -25,11 +24,16 @@ import sys
 import time
 from pathlib import Path
 
-from trials.eval.episodes import read_summary
+from attack.artifact import TEXTURE_PNG, AttackArtifact
+from sim.policies.card import CARD_NAME, load_card
+from trials.eval.episodes import collect_evals
 from trials.experiments.recipes import RECIPES as REGISTRY
+from trials.jobs.dag import read_markers
 
 ROOT = Path(__file__).resolve().parent.parent
 RECIPES = tuple(REGISTRY)  # the one list (trials.experiments.recipes.RECIPES)
+#: The evidence record in ``results/<name>/`` (attempts, rows, CPU time): this tool's own format.
+RECORD_NAME = "run.json"
 
 
 def _machine() -> dict:
@@ -78,7 +82,7 @@ def run(
     if policy:
         cmd += ["--policy", policy]
     cmd += extra
-    record_path = results / name / "run.json"
+    record_path = results / name / RECORD_NAME
     record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
     attempt = {
         "command": " ".join(["advobj"] + cmd[1:]),
@@ -110,28 +114,14 @@ def collect(name: str, work: Path, results: Path) -> Path:
     src, dst = work / name, results / name
     dst.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src / "table.md", dst / "table.md")
-    rows, header, summaries = [], None, {}
-    for ev in sorted((src / "evals").iterdir()):
-        if not (ev / "episodes.csv").is_file():
-            continue
-        with open(ev / "episodes.csv", newline="") as f:
-            reader = csv.DictReader(f)
-            header = header or ["eval"] + list(reader.fieldnames)
-            rows += [{"eval": ev.name, **r} for r in reader]
-        summaries[ev.name] = read_summary(ev)
-        summaries[ev.name]["overlap"] = json.loads((ev / "manifest.json").read_text())["config"].get("overlap")
-    with open(dst / "episodes.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=header)
-        w.writeheader()
-        w.writerows(rows)
-    (dst / "summary.json").write_text(json.dumps(summaries, indent=1))
+    n_rows = collect_evals(dst, sorted((src / "evals").iterdir()))
     attacks = {}
     (dst / "textures").mkdir(exist_ok=True)
     for at in sorted((src / "attacks").iterdir()):
         if not (at / "metrics.json").is_file():
             continue
         m = json.loads((at / "metrics.json").read_text())
-        cfg = json.loads((at / "run.json").read_text())["config"]["attack"]
+        cfg = AttackArtifact.load(at).attack_config
         attacks[at.name] = {
             "config": cfg,
             "iterations": m["iterations"],
@@ -140,16 +130,17 @@ def collect(name: str, work: Path, results: Path) -> Path:
             "initial_loss_pose": m.get("initial_loss_pose"),
             "final_loss_pose": m.get("final_loss_pose"),
         }
-        shutil.copyfile(at / "texture.png", dst / "textures" / f"{at.name}.png")
+        shutil.copyfile(at / TEXTURE_PNG, dst / "textures" / f"{at.name}.png")
     (dst / "attacks.json").write_text(json.dumps(attacks, indent=1))
     policies = {}
-    for card in sorted(src.glob("policies/*/policy.json")):
-        policies[card.parent.name] = json.loads(card.read_text()).get("clean_success")
-    record_path = dst / "run.json"
+    for card_path in sorted(src.glob(f"policies/*/{CARD_NAME}")):
+        clean = load_card(card_path).clean_success
+        policies[card_path.parent.name] = None if clean is None else clean.model_dump(mode="json")
+    record_path = dst / RECORD_NAME
     record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
-    record["episodes_rows"] = len(rows)
-    # Jobs that ran on Ray workers are not this process's children: their CPU time is in their job.json.
-    record["jobs_cpu_s"] = round(sum(json.loads(p.read_text()).get("cpu_s", 0.0) for p in src.rglob("job.json")), 1)
+    record["episodes_rows"] = n_rows
+    # Jobs that ran on Ray workers are not this process's children: their CPU time is in their finished markers.
+    record["jobs_cpu_s"] = round(sum(m.get("cpu_s", 0.0) for m in read_markers(src)), 1)
     record["trained_policies_clean_success"] = policies
     record_path.write_text(json.dumps(record, indent=2))
     return dst
@@ -158,7 +149,7 @@ def collect(name: str, work: Path, results: Path) -> Path:
 def card(policy_dir: Path, results: Path, command: str) -> Path:
     """Copy a trained policy's card (``policy.json``: config, training time, clean success with
     its interval; no weights) to ``results/policies/<name>.json`` with the command that trained it."""
-    doc = json.loads((Path(policy_dir) / "policy.json").read_text())
+    doc = load_card(policy_dir).model_dump(mode="json")
     doc["command"] = command
     doc["machine"] = _machine()
     dst = results / "policies" / f"{Path(policy_dir).name}.json"

@@ -22,7 +22,6 @@ __all__ = ["CARD_NAME", "CARD_FORMAT", "ActionScaling", "CleanSuccess", "PolicyC
 
 CARD_NAME = "policy.json"
 CARD_FORMAT = "advobj-policy/1"
-_WEIGHTS_NAME = "weights.safetensors"  # named in load_card's error only; the checkpoint owns the weights
 
 
 class _Strict(StrictModel):
@@ -93,7 +92,7 @@ def load_card(path: str | Path) -> PolicyCard:
     if not card_path.is_file():
         if p.is_file():
             raise PolicyError(
-                f"{p}: not a policy checkpoint; expected a directory with {CARD_NAME} and {_WEIGHTS_NAME}, or an "
+                f"{p}: not a policy checkpoint; expected a directory with {CARD_NAME} and weights.safetensors, or an "
                 ".onnx file"
             )
         raise PolicyError(f"{p}: no such policy checkpoint (expected a directory with {CARD_NAME})")

@@ -13,14 +13,28 @@ from pathlib import Path
 from sim.configs import load_pool, save_pool
 from sim.policies.rollout import EpisodeResults
 
-__all__ = ["feasible_pool_path", "feasible_configs", "write_feasible_pool", "load_feasible_pool"]
+__all__ = [
+    "FEASIBLE_POOL_NAME",
+    "built_pool_path",
+    "feasible_pool_path",
+    "feasible_configs",
+    "write_feasible_pool",
+    "load_feasible_pool",
+]
+
+FEASIBLE_POOL_NAME = "feasible_pool.json"
+
+
+def built_pool_path(out_dir: str | Path) -> Path:
+    """Where a command or job keeps the task-feasible pool it builds: ``<out_dir>/feasible_pool.json``."""
+    return Path(out_dir) / FEASIBLE_POOL_NAME
 
 
 def feasible_pool_path(policy_dir: Path) -> Path:
     """The task-feasible pool of a policy: ``<dir>/feasible_pool.json`` (written by ``advobj policy
     train``), else ``<dir>/eval/feasible_pool.json`` (written by ``advobj policy eval``)."""
-    own = Path(policy_dir) / "feasible_pool.json"
-    evaluated = Path(policy_dir) / "eval" / "feasible_pool.json"
+    own = built_pool_path(policy_dir)
+    evaluated = built_pool_path(Path(policy_dir) / "eval")
     return evaluated if not own.is_file() and evaluated.is_file() else own
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from sim.configs import spec_fingerprint
 from sim.policies.card import ActionScaling, CleanSuccess, PolicyCard
 from sim.policies.checkpoint import save_checkpoint
-from sim.policies.pool import write_feasible_pool
+from sim.policies.pool import built_pool_path, write_feasible_pool
 from sim.policies.presets import TrainConfig
 from sim.policies.rollout import EVAL_SEED_BASE, evaluate_policy, make_env
 from sim.runinfo import git_commit, write_run_info
@@ -70,7 +70,7 @@ def train_policy(
                 image_size=cfg.env.image_size,
             )
             write_feasible_pool(
-                out_dir / "feasible_pool.json", spec, res, meta={"policy": str(out_dir), "seed": EVAL_SEED_BASE}
+                built_pool_path(out_dir), spec, res, meta={"policy": str(out_dir), "seed": EVAL_SEED_BASE}
             )
             log(f"clean success: {p}")
     finally:

@@ -98,7 +98,7 @@ def evaluate(
     """Clean success rate with a 95% Wilson interval; writes the task-feasible pool."""
     from sim.configs import spec_fingerprint
     from sim.policies.checkpoint import load_policy
-    from sim.policies.pool import write_feasible_pool
+    from sim.policies.pool import built_pool_path, write_feasible_pool
     from sim.policies.rollout import EnvConfig, evaluate_policy
     from sim.runinfo import write_run_info
     from sim.spec import load_spec
@@ -136,7 +136,7 @@ def evaluate(
         )
     )
     pool = write_feasible_pool(
-        out / "feasible_pool.json", spec, res, meta={"policy": str(policy), "seed": seed, "env": env_cfg.model_dump()}
+        built_pool_path(out), spec, res, meta={"policy": str(policy), "seed": seed, "env": env_cfg.model_dump()}
     )
     typer.echo(f"clean success: {res.success_rate}")
     if res.policy_error.any():

@@ -8,6 +8,8 @@ Layout of an evaluation directory::
 
 A crash leaves at worst one truncated last line, which is dropped on reopen; finished episodes are
 never redone. Reopening a directory whose manifest holds a different config is refused.
+:func:`collect_evals` puts several evaluations' rows (with an ``eval`` column) and summaries into
+one folder, the form the committed evidence under ``results/`` has.
 """
 
 from __future__ import annotations
@@ -26,12 +28,20 @@ __all__ = [
     "EpisodeStore",
     "BASE_COLUMNS",
     "SUMMARY_NAME",
+    "EPISODES_NAME",
+    "MANIFEST_NAME",
     "config_hash",
     "read_rows",
+    "has_rows",
+    "read_manifest",
+    "has_manifest",
     "write_summary",
     "read_summary",
+    "collect_evals",
 ]
 
+EPISODES_NAME = "episodes.csv"
+MANIFEST_NAME = "manifest.json"
 SUMMARY_NAME = "summary.json"
 
 
@@ -90,6 +100,59 @@ def read_summary(eval_dir: str | Path) -> dict:
     return doc
 
 
+def has_rows(eval_dir: str | Path) -> bool:
+    """Whether ``eval_dir`` holds an ``episodes.csv`` (an evaluation that has run, or a collection
+    of :func:`collect_evals`)."""
+    return (Path(eval_dir) / EPISODES_NAME).is_file()
+
+
+def has_manifest(eval_dir: str | Path) -> bool:
+    """Whether an evaluation was started in ``eval_dir`` (its ``manifest.json`` is written first)."""
+    return (Path(eval_dir) / MANIFEST_NAME).is_file()
+
+
+def read_manifest(eval_dir: str | Path) -> dict:
+    """An evaluation's manifest (``manifest.json``: ``config`` and ``config_hash``); one
+    :class:`StorageError` naming the file when it is missing or is not a manifest."""
+    path = Path(eval_dir) / MANIFEST_NAME
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise StorageError(f"{path}: missing; is {path.parent} an 'advobj eval' directory?") from None
+    except OSError as err:
+        raise StorageError(f"{path}: unreadable ({err.strerror or err})") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise StorageError(f"{path}: not an eval manifest ({type(err).__name__})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("config"), dict):
+        raise StorageError(f"{path}: not an eval manifest (no 'config' mapping)")
+    return doc
+
+
+def collect_evals(dst: str | Path, eval_dirs) -> int:
+    """Several evaluations in one folder (the committed evidence's form): ``dst/episodes.csv`` with
+    every row of ``eval_dirs`` (those with rows, in order) as stored, after a first column ``eval``
+    naming the directory (:func:`read_rows` reads it), and ``dst/summary.json`` mapping each
+    directory's name to its summary plus its manifest's ``overlap``. Returns the number of rows."""
+    dst = Path(dst)
+    dst.mkdir(parents=True, exist_ok=True)
+    rows, header, summaries = [], None, {}
+    for ev in map(Path, eval_dirs):
+        if not has_rows(ev):
+            continue
+        with open(ev / EPISODES_NAME, newline="") as f:
+            reader = csv.DictReader(f)
+            header = header or ["eval"] + list(reader.fieldnames)
+            rows += [{"eval": ev.name, **r} for r in reader]
+        summaries[ev.name] = read_summary(ev)
+        summaries[ev.name]["overlap"] = read_manifest(ev)["config"].get("overlap")
+    with open(dst / EPISODES_NAME, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=header)
+        w.writeheader()
+        w.writerows(rows)
+    (dst / SUMMARY_NAME).write_text(json.dumps(summaries, indent=1))
+    return len(rows)
+
+
 def config_hash(config: dict) -> str:
     """SHA-256 (first 16 hex digits) of a JSON-able config, key order independent."""
     return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -110,8 +173,11 @@ def _parse(row: dict) -> dict:
 
 
 def read_rows(path: str | Path) -> list[dict]:
-    """Parsed rows of an ``episodes.csv``; a truncated last line (crash mid-write) is ignored."""
+    """Parsed rows of an evaluation directory's ``episodes.csv`` (``path``: the directory, or the
+    file itself); none when it has no rows yet. A truncated last line (crash mid-write) is ignored."""
     path = Path(path)
+    if path.is_dir():
+        path = path / EPISODES_NAME
     if not path.is_file():
         return []
     text = path.read_text()
@@ -146,8 +212,8 @@ class EpisodeStore:
         self.dir = Path(out_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.columns = list(BASE_COLUMNS) + [f"min_dist_{n}" for n in object_names]
-        self.path = self.dir / "episodes.csv"
-        self.manifest_path = self.dir / "manifest.json"
+        self.path = self.dir / EPISODES_NAME
+        self.manifest_path = self.dir / MANIFEST_NAME
         h = config_hash(config)
         if self.manifest_path.is_file():
             try:

@@ -291,9 +291,9 @@ def resolve_pool(
     short (a grid's pool job already built it; its shards must not build more each).
     """
     from sim.configs import PoolError, in_part, load_pool, save_pool
-    from sim.policies.pool import feasible_pool_path
+    from sim.policies.pool import built_pool_path, feasible_pool_path
 
-    path = out / "feasible_pool.json"
+    path = built_pool_path(out)
     if path.is_file():  # built by an earlier (interrupted) run of this evaluation: keep using it
         return in_part(load_pool(path, spec), "evaluation"), str(path)
     base, src = [], None
@@ -530,7 +530,7 @@ def merge_eval(cfg: EvalConfig, out: str | Path, shard_dirs) -> dict:
     rows = []
     for d in shard_dirs:
         d = Path(d)
-        rows += [r for r in read_rows(d / "episodes.csv") if not store.is_done(r["condition"], r["seed"])]
+        rows += [r for r in read_rows(d) if not store.is_done(r["condition"], r["seed"])]
         for gif in sorted((d / "gifs").glob("*.gif")) if (d / "gifs").is_dir() else []:
             (out / "gifs").mkdir(parents=True, exist_ok=True)
             shutil.copyfile(gif, out / "gifs" / gif.name)

@@ -353,11 +353,12 @@ def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None
 
 def job_train_policy(out: Path, inputs: dict, preset: str, arch: str | None, seed: int, device: str = "cpu") -> None:
     """The ``train-policy`` job: train (or resume, or reuse a finished) policy into ``out``."""
+    from sim.policies.checkpoint import is_checkpoint
     from sim.policies.presets import resolve_preset
     from sim.policies.train import train_policy
     from sim.spec import load_spec
 
-    if (out / "policy.json").is_file():
+    if is_checkpoint(out):
         print(f"policy: reusing {out}")
         return
     from trials.jobs.dag import show_progress
@@ -434,6 +435,8 @@ def ensure_pool(ctx: Context, policy_dir: Path) -> str:
     """The evaluation pool of a policy: a ``pool`` job (``<out>/pools/<policy>-<hash>/``) built once
     per recipe run and shared by all its evaluations, so every arm of every table is paired on the
     same configurations and the clean rollouts that find them are not repeated per evaluation."""
+    from sim.policies.pool import built_pool_path
+
     c = ctx.cfg
     if c.pool is not None:
         return c.pool
@@ -451,7 +454,7 @@ def ensure_pool(ctx: Context, policy_dir: Path) -> str:
             {"policy": policy_dir, **_scene_input(ctx)},
             **ctx.resources(),
         )
-        ctx.pools[key] = str(d / "feasible_pool.json")
+        ctx.pools[key] = str(built_pool_path(d))
     return ctx.pools[key]
 
 
@@ -460,6 +463,7 @@ def job_pool(out: Path, inputs: dict, fields: dict) -> None:
     ``out/feasible_pool.json`` (from the policy's own pool, topped up as ``advobj eval`` does)."""
     from sim.configs import save_pool
     from sim.policies.checkpoint import load_policy
+    from sim.policies.pool import built_pool_path
     from sim.spec import load_spec
     from trials.eval.evaluate import load_eval_config, resolve_pool
     from trials.jobs.dag import show_progress
@@ -474,9 +478,9 @@ def job_pool(out: Path, inputs: dict, fields: dict) -> None:
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": ecfg.max_steps})
     out.mkdir(parents=True, exist_ok=True)
     configs, src = resolve_pool(ecfg, load_policy(ecfg.policy, ecfg.device), spec, out, progress=show_progress())
-    if Path(src) != out / "feasible_pool.json":  # the policy's own pool sufficed: keep a copy as this job's output
+    if Path(src) != built_pool_path(out):  # the policy's own pool sufficed: keep a copy as this job's output
         save_pool(
-            out / "feasible_pool.json",
+            built_pool_path(out),
             spec,
             configs,
             meta={
@@ -506,6 +510,7 @@ def ensure_eval(
 def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, merge: int = 0) -> None:
     """The ``eval-shard`` job (the whole evaluation, or configurations ``k::K`` with ``shard``) and
     their merge (``merge=K``: the K shards under ``out/shards`` into ``out``)."""
+    from trials.eval.episodes import has_manifest
     from trials.eval.evaluate import load_eval_config, merge_eval, run_eval
     from trials.jobs.dag import show_progress
 
@@ -525,7 +530,7 @@ def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, m
         run_eval(
             cfg,
             out,
-            resume=(out / "manifest.json").is_file(),
+            resume=has_manifest(out),
             progress=show_progress(),
             shard=None if shard is None else tuple(shard),
             final_pool=True,
@@ -537,6 +542,7 @@ def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dic
     folder ``run_eval`` writes), in ``shards`` jobs merged there. The pool job resolves the pool as
     ``run_eval`` does (``cfg.pool`` or the policy's own, topped up when short of ``cfg.episodes``),
     so the episodes do not depend on the executor; the shards take its pool as it is."""
+    from sim.policies.pool import built_pool_path
     from trials.jobs.dag import Grid
 
     out = Path(out)
@@ -558,7 +564,7 @@ def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dic
         {"policy": cfg.policy, "pool": cfg.pool, **scene},
         **res,
     )
-    pool = str(out / "pool" / "feasible_pool.json")
+    pool = str(built_pool_path(out / "pool"))
     inputs = {
         "policy": cfg.policy,
         "pool": pool,
@@ -612,7 +618,7 @@ def eval_rows(ctx: Context, name: str, condition: str | None = None) -> list[dic
     from trials.eval.episodes import read_rows
 
     ctx.run_jobs()
-    rows = read_rows(ctx.out / "evals" / name / "episodes.csv")
+    rows = read_rows(ctx.out / "evals" / name)
     return rows if condition is None else {r["seed"]: r for r in rows if r["condition"] == condition}
 
 

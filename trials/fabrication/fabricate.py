@@ -1015,6 +1015,13 @@ def draw_pages(
 
 
 # ============================================================================ orchestration
+def _run_json(run_dir) -> Path:
+    """The texture folder's ``run.json`` (named in errors about what it records)."""
+    from attack.artifact import RUN_JSON
+
+    return Path(run_dir) / RUN_JSON
+
+
 def _attack_field(run_dir, name: str):
     """A field of the attack config in ``run_dir/run.json`` (None when absent or unreadable)."""
     from attack.artifact import AttackArtifact
@@ -1076,9 +1083,7 @@ def fabricate(
     try:
         mesh = build_mesh(src.mesh, src.scale, **src.mesh_kwargs)
     except AssetError as err:
-        raise FabricationError(
-            f"{Path(run_dir) / 'run.json'}: mesh {src.mesh!r} of the run cannot be built ({err})"
-        ) from None
+        raise FabricationError(f"{_run_json(run_dir)}: mesh {src.mesh!r} of the run cannot be built ({err})") from None
     sheet_shape = shape if shape is not None else (src.mesh if src.mesh in SHEET_SHAPES else None)
     if shape is not None and shape not in SHEET_SHAPES:
         raise FabricationError(
@@ -1142,7 +1147,7 @@ def fabricate(
         return summary
     if np.any(np.asarray(src.scale, float) != 1.0):
         raise FabricationError(
-            f"{Path(run_dir) / 'run.json'}: the adversarial object is scaled by {src.scale}; "
+            f"{_run_json(run_dir)}: the adversarial object is scaled by {src.scale}; "
             "print sheets need the built-in size (scale 1)"
         )
 

@@ -19,9 +19,10 @@ def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool 
     and "validation" when validation is on) that hold too few (saved as ``out/feasible_pool.json``
     and reused on resume). The evaluation part is never touched."""
     from sim.configs import in_part, load_pool, save_pool
+    from sim.policies.pool import built_pool_path
     from trials.eval.evaluate import build_feasible
 
-    path = out / "feasible_pool.json"
+    path = built_pool_path(out)
     if path.is_file():
         return load_pool(path, spec)
     want = {"attack": MIN_ATTACK_CONFIGS, "validation": cfg.validation_episodes if cfg.validation_every > 0 else 0}
@@ -83,7 +84,7 @@ def attack_job(
     from sim.configio import file_error, read_yaml
     from sim.configs import PoolError, load_pool
     from sim.policies.checkpoint import load_policy
-    from sim.policies.pool import feasible_pool_path
+    from sim.policies.pool import built_pool_path, feasible_pool_path
     from sim.runinfo import write_run_info
     from sim.spec import load_spec
 
@@ -108,9 +109,9 @@ def attack_job(
             # task-feasible configurations (attack and validation parts only), built and kept here.
             log(
                 f"attack: {pool_file} is for another scene; building a task-feasible pool for "
-                f"{scene_path or 'the built-in scene'} into {out / 'feasible_pool.json'}"
+                f"{scene_path or 'the built-in scene'} into {built_pool_path(out)}"
             )
-            pool_file = out / "feasible_pool.json"
+            pool_file = built_pool_path(out)
             pool = []
         else:
             try:

@@ -75,9 +75,15 @@ __all__ = [
     "make_executor",
     "usable_cpus",
     "input_digest",
+    "MARKER_NAME",
     "is_finished",
+    "clear_finished",
+    "read_markers",
     "execute",
 ]
+
+#: A finished job's marker in its output folder (key, timings); the job layer alone reads and writes it.
+MARKER_NAME = "job.json"
 
 # Part of every job key. Bump it when a job function's output changes for the same inputs, so
 # finished outputs of the older code are not reused.
@@ -129,9 +135,9 @@ def input_digest(path: str | Path) -> str:
     if not p.is_dir():
         raise GridError(f"{p}: no such file or folder (a job input)")
 
-    # Not the job layer's own bookkeeping (job.json holds timings, .job.lock is the run lock).
+    # Not the job layer's own bookkeeping (the marker holds timings, .job.lock is the run lock).
     def mine(f):
-        return f.is_file() and f.name != "job.json" and not f.name.startswith(".")
+        return f.is_file() and f.name != MARKER_NAME and not f.name.startswith(".")
 
     files = [f for f in sorted(p.iterdir()) if mine(f)]
     files += [f for d in _HASHED_DIRS if (p / d).is_dir() for f in sorted((p / d).iterdir()) if mine(f)]
@@ -147,7 +153,7 @@ def job_key(kind: str, fn: str, params: dict, input_keys: dict) -> str:
 
 
 def _marker(out: str | Path) -> Path:
-    return Path(out) / "job.json"
+    return Path(out) / MARKER_NAME
 
 
 def is_finished(job: Job) -> bool:
@@ -167,10 +173,30 @@ def is_finished(job: Job) -> bool:
     return True
 
 
+def clear_finished(out: str | Path) -> None:
+    """Forget that the job writing into ``out`` finished (its marker removed), so the next run does
+    it again; its output stays, for the job function to resume from or overwrite."""
+    _marker(out).unlink(missing_ok=True)
+
+
+def read_markers(root: str | Path) -> list[dict]:
+    """The markers of every finished job under ``root`` (``name``, ``kind``, ``key``, ``seconds``,
+    ``cpu_s``, ...), in path order; unreadable ones are skipped."""
+    docs = []
+    for m in sorted(Path(root).rglob(MARKER_NAME)):
+        try:
+            doc = json.loads(m.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            continue
+        if isinstance(doc, dict):
+            docs.append(doc)
+    return docs
+
+
 def _write_marker(job: Job, seconds: float, cpu_s: float) -> None:
     m = _marker(job.out)
     m.parent.mkdir(parents=True, exist_ok=True)
-    tmp = m.with_name(f".job.json.{uuid.uuid4().hex}.tmp")
+    tmp = m.with_name(f".{MARKER_NAME}.{uuid.uuid4().hex}.tmp")
     tmp.write_text(
         json.dumps(
             {
@@ -872,7 +898,7 @@ class RayExecutor:
         incoming = out.with_name(f".{out.name}.incoming-{uuid.uuid4().hex[:8]}")
         _unpack(res["out_blob"], incoming)
         try:
-            landed = json.loads((incoming / "job.json").read_text()).get("key")
+            landed = json.loads(_marker(incoming).read_text()).get("key")
         except (OSError, json.JSONDecodeError):
             landed = None
         if landed != job.key:

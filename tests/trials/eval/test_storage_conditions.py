@@ -1,5 +1,7 @@
 """Episode store (append, truncated-line recovery, config guard) and condition building."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -12,7 +14,16 @@ from trials.eval.conditions import (
     condition_spec,
     load_attack_source,
 )
-from trials.eval.episodes import EpisodeStore, StorageError, read_rows
+from trials.eval.episodes import (
+    EpisodeStore,
+    StorageError,
+    collect_evals,
+    has_manifest,
+    has_rows,
+    read_manifest,
+    read_rows,
+    write_summary,
+)
 
 
 def _row(cond, seed):
@@ -58,6 +69,41 @@ def test_store_drops_a_truncated_last_line_left_by_a_crash(tmp_path):
     assert [r["seed"] for r in again.rows] == [1, 2]
     again.append([_row("clean", 3)])
     assert [r["seed"] for r in read_rows(tmp_path / "episodes.csv")] == [1, 2, 3]
+
+
+def test_rows_read_from_the_eval_folder_or_its_csv_alike_and_its_manifest_through_the_store(tmp_path):
+    assert read_rows(tmp_path) == [] and not has_rows(tmp_path) and not has_manifest(tmp_path)
+    with pytest.raises(StorageError, match="manifest.json: missing"):
+        read_manifest(tmp_path)
+    EpisodeStore(tmp_path, {"x": 1}, ["a", "b"]).append([_row("clean", 1)])
+    assert has_rows(tmp_path) and has_manifest(tmp_path) and read_manifest(tmp_path)["config"] == {"x": 1}
+    assert read_rows(tmp_path)[0]["seed"] == 1 and str(read_rows(tmp_path)) == str(read_rows(tmp_path / "episodes.csv"))
+    (tmp_path / "manifest.json").write_text("[1]")
+    with pytest.raises(StorageError, match="manifest.json: not an eval manifest"):
+        read_manifest(tmp_path)
+
+
+def test_collected_evals_keep_each_rows_bytes_with_the_evals_name_first(tmp_path):
+    dirs = []
+    for name, seeds in (("b-eval", (1, 2)), ("a-eval", (3,)), ("not-run", ())):
+        d = tmp_path / "evals" / name
+        dirs.append(d)
+        if not seeds:
+            d.mkdir(parents=True)
+            continue
+        EpisodeStore(d, {"overlap": {"attack": 0}, "name": name}, ["a", "b"]).append([_row("clean", s) for s in seeds])
+        write_summary(d, {"conditions": {"clean": {"n": len(seeds)}}})
+    assert collect_evals(tmp_path / "out", dirs) == 3
+    stored = {d.name: (d / "episodes.csv").read_text().splitlines() for d in dirs[:2]}
+    lines = (tmp_path / "out" / "episodes.csv").read_text().splitlines()
+    assert lines[0] == "eval," + stored["b-eval"][0]
+    assert lines[1:] == [f"{n},{line}" for n in ("b-eval", "a-eval") for line in stored[n][1:]]
+    rows = read_rows(tmp_path / "out")
+    assert [(r["eval"], r["seed"]) for r in rows] == [("b-eval", 1), ("b-eval", 2), ("a-eval", 3)]
+    summaries = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summaries == {
+        n: {"conditions": {"clean": {"n": k}}, "overlap": {"attack": 0}} for n, k in (("b-eval", 2), ("a-eval", 1))
+    }
 
 
 def test_store_refuses_a_different_config_and_an_unrequested_resume(tmp_path):

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from trials.jobs.dag import Grid, GridError, SerialExecutor, input_digest, is_finished
+from trials.jobs.dag import Grid, GridError, SerialExecutor, clear_finished, input_digest, is_finished, read_markers
 
 H = "tests.trials.jobs.jobs_helpers"
 
@@ -45,6 +45,23 @@ def test_a_finished_job_is_reused_and_a_dependency_gets_its_output(tmp_path):
     assert len(_attempts(tmp_path / "a")) == 1 and len(_attempts(tmp_path / "b")) == 1
     assert any("a: finished earlier, reused" in m for m in log)
     assert (tmp_path / "logs" / "a.log").read_text().count("== finished") == 1
+
+
+def test_a_cleared_job_runs_again_and_markers_give_every_finished_jobs_timings(tmp_path):
+    def grid():
+        g = Grid(tmp_path)
+        return g, g.add("a", "k", f"{H}:write_value", tmp_path / "a", {"value": 2})
+
+    g, a = grid()
+    SerialExecutor(None).run(g)
+    (m,) = read_markers(tmp_path)
+    assert m["name"] == "a" and m["key"] == a.key and m["cpu_s"] >= 0 and m["seconds"] >= 0
+    clear_finished(tmp_path / "a")
+    clear_finished(tmp_path / "never-ran")  # nothing to clear: no error
+    assert not is_finished(a) and read_markers(tmp_path) == []
+    g, a = grid()
+    SerialExecutor(None).run(g)
+    assert is_finished(a) and len(_attempts(tmp_path / "a")) == 2
 
 
 def test_a_job_that_dies_half_way_is_not_taken_as_finished_and_reruns(tmp_path):
