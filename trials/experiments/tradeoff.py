@@ -20,7 +20,9 @@ actions with torch fp32 on rendered frames.
 
 Each row runs in a child process (peak RSS per row; a crash only loses that row) and is appended
 as one JSON line to ``<out>/rows.jsonl`` when it finishes; a re-run skips rows already there with
-``status == "ok"`` (the settings must match ``<out>/manifest.json``).
+``status == "ok"`` (the settings must match ``<out>/sweep.json``). Each row is a ``tradeoff-row``
+job of :mod:`trials.jobs.dag` in ``<out>/rows/<row>/``; its child process reads its spec from
+``<out>/jobs/<row>/row.json``.
 """
 
 from __future__ import annotations
@@ -78,6 +80,8 @@ KNOBS = (
 )
 DEPLOYMENTS = ("torch-fp32", "onnx-fp32", "onnx-int8", "onnx-fp16")
 BASELINE_KEY = "baseline=quick"
+SETTINGS_NAME = "sweep.json"  # the sweep's settings and their hash; a re-run must match them
+ROW_SPEC_NAME = "row.json"  # what a row's child process measures (settings, row, sweep folder)
 MIN_ATTACK_POOL = 20
 
 
@@ -86,7 +90,7 @@ class TradeoffError(AdvobjError, ValueError):
 
 
 class TradeoffConfig(StrictModel):
-    """What the sweep measures and on how much (written to ``<out>/manifest.json``)."""
+    """What the sweep measures and on how much (written to ``<out>/sweep.json``)."""
 
     policy: str = Field(description="the baseline (reference) policy checkpoint directory")
     resolution_policies: dict[int, str] = Field(
@@ -410,10 +414,10 @@ def run_sweep(
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    manifest = out / "manifest.json"
+    settings_file = out / SETTINGS_NAME
     settings = cfg.model_dump(mode="json")
-    if manifest.is_file():
-        have = json.loads(manifest.read_text()).get("settings", {})
+    if settings_file.is_file():
+        have = json.loads(settings_file.read_text()).get("settings", {})
         # Where the per-resolution policies live only matters to their own rows (each row records its policy).
         diff = sorted(
             k for k in settings if k not in _FREE_SETTINGS and have.get(k) != json.loads(json.dumps(settings[k]))
@@ -423,7 +427,12 @@ def run_sweep(
                 f"{out}: holds a sweep with other settings (fields: {', '.join(diff)}); use another --out"
             )
     else:
-        manifest.write_text(json.dumps({"settings": settings, "hash": _settings_hash(cfg)}, indent=2))
+        other = sorted({r.get("settings_hash") for r in read_results(out)} - {_settings_hash(cfg)}, key=str)
+        if other:  # rows without a settings file: measured with settings no longer on record
+            raise TradeoffError(
+                f"{out}: holds rows measured with other settings (hash {', '.join(map(str, other))}); use another --out"
+            )
+        settings_file.write_text(json.dumps({"settings": settings, "hash": _settings_hash(cfg)}, indent=2))
     selected = select_rows(build_rows(cfg), rows)
     done = {r["key"] for r in read_results(out) if r.get("status") == "ok"}
     todo = []
@@ -454,7 +463,7 @@ def run_sweep(
 def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor, log, mode: str = "worker") -> None:
     """The rows as ``tradeoff-row`` jobs; every finished row's record appended in table order
     (a row that measured an error is recorded and runs again next time)."""
-    from trials.jobs.dag import Grid, GridError
+    from trials.jobs.dag import Grid, GridError, clear_finished, is_finished
 
     grid = Grid(out)
     jobs = {}
@@ -463,7 +472,7 @@ def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor,
         pdir = _policy_dir(cfg, r.policy)
         after = (jobs[r.depends],) if r.depends in jobs else ()
         d = out / "rows" / _slug(r.key)
-        (d / "job.json").unlink(missing_ok=True)  # a row is re-measured whenever it is selected to run
+        clear_finished(d)  # a row is re-measured whenever it is selected to run
         jobs[r.key] = grid.add(
             f"row-{_slug(r.key)}",
             "tradeoff-row",
@@ -482,12 +491,12 @@ def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor,
         err = e
     for r in todo:
         res = out / "rows" / _slug(r.key) / "result.json"
-        if res.is_file() and (res.parent / "job.json").is_file():
+        if res.is_file() and is_finished(jobs[r.key]):
             rec = json.loads(res.read_text())
             _append(out, rec)
             log(f"{r.key}: {rec['status']}" + (f" ({rec.get('error')})" if rec["status"] != "ok" else ""))
             if rec["status"] != "ok":
-                (res.parent / "job.json").unlink()
+                clear_finished(res.parent)
     if err is not None:
         raise err
 
@@ -529,14 +538,13 @@ def _base_record(cfg: TradeoffConfig, row: Row) -> dict:
 def _run_isolated(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
     job = out / "jobs" / _slug(row.key)
     job.mkdir(parents=True, exist_ok=True)
-    (job / "job.json").write_text(json.dumps({"cfg": cfg.model_dump(mode="json"), "row": asdict(row), "out": str(out)}))
+    spec = job / ROW_SPEC_NAME
+    spec.write_text(json.dumps({"cfg": cfg.model_dump(mode="json"), "row": asdict(row), "out": str(out)}))
     result = job / "result.json"
     result.unlink(missing_ok=True)
     root = str(Path(__file__).resolve().parents[2])
     env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.run(
-        [sys.executable, "-m", "trials.experiments.tradeoff", str(job / "job.json"), str(result)], env=env
-    )
+    proc = subprocess.run([sys.executable, "-m", "trials.experiments.tradeoff", str(spec), str(result)], env=env)
     if proc.returncode == 0 and result.is_file():
         return json.loads(result.read_text())
     rec = _base_record(cfg, row)
@@ -741,7 +749,7 @@ def _subset_summary(eval_dir: str, n: int, spec) -> dict:
     d = Path(eval_dir)
     seeds = read_run_info(d)["config"]["seeds"][:n]
     keep = set(seeds)
-    rows = [r for r in read_rows(d / "episodes.csv") if r["condition"] == "attack" and int(r["seed"]) in keep]
+    rows = [r for r in read_rows(d) if r["condition"] == "attack" and int(r["seed"]) in keep]
     s = summarize_rows(rows, spec.object_index("goal"), spec.object_index("adversarial"))
     return {"episodes": s["n"], "tasr": s["tasr"], "asr": s["asr"], "e_trans": s["e_trans"], "e_rot": s["e_rot"]}
 
@@ -957,12 +965,13 @@ def train_resolution_policy(
     ``dagger_iterations`` shortens (or lengthens) the preset's DAgger run; the run length is not
     part of the training fingerprint, so an interrupted longer run in ``out_dir`` resumes.
     """
+    from sim.policies.checkpoint import is_checkpoint
     from sim.policies.presets import resolve_preset
     from sim.policies.train import train_policy
     from sim.spec import load_spec
 
     d = Path(out_dir)
-    if (d / "policy.json").is_file():
+    if is_checkpoint(d):
         log(f"{size} px policy: reusing {d}")
         return d
     extra = {} if dagger_iterations is None else {"dagger": {"iterations": int(dagger_iterations)}}
@@ -1097,11 +1106,11 @@ def _fail_if_every_row_failed(out: Path, lines: list[str]) -> None:
 
 
 def write_tradeoff_report(out: str | Path, plot: str | Path | None = None) -> Path:
-    """The sweep's ``report.md`` and Pareto plots from what ``out`` holds (rows, manifest)."""
+    """The sweep's ``report.md`` and Pareto plots from what ``out`` holds (rows, settings)."""
     out = Path(out)
     expected = []
-    if (out / "manifest.json").is_file():
-        settings = json.loads((out / "manifest.json").read_text())["settings"]
+    if (out / SETTINGS_NAME).is_file():
+        settings = json.loads((out / SETTINGS_NAME).read_text())["settings"]
         expected = [r.key for r in build_rows(load_tradeoff_config(**settings))]
     return write_report(out, read_results(out), expected, KNOBS, plot)
 

@@ -1,6 +1,6 @@
 """Tables, Pareto plot and machine block of a speed-vs-accuracy sweep (:mod:`trials.experiments.tradeoff`).
 
-Everything is computed from ``<out>/rows.jsonl``, ``<out>/manifest.json`` and ``<out>/machine.json``,
+Everything is computed from ``<out>/rows.jsonl``, ``<out>/sweep.json`` and ``<out>/machine.json``,
 so the report can be rebuilt at any time, also from a partial sweep.
 """
 

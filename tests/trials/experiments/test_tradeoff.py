@@ -92,6 +92,13 @@ def test_unknown_knobs_rows_and_bad_settings_are_clear_errors():
     assert [r.key for r in select_rows(rows, ["iterations=30"])] == [BASELINE_KEY, "iterations=30"]
 
 
+def test_rows_of_other_settings_without_a_settings_file_are_refused(tmp_path):
+    (tmp_path / "rows.jsonl").write_text(json.dumps({"key": "eot_envs=2", "status": "ok", "settings_hash": "0"}) + "\n")
+    with pytest.raises(TradeoffError, match="rows measured with other settings"):
+        run_sweep(load_tradeoff_config(policy="ref"), tmp_path, ["eot_envs=2"], progress=False)
+    assert not (tmp_path / "sweep.json").exists()
+
+
 def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, tiny_policy_dir, mixed_pool_file):
     cfg = _tiny(tiny_policy_dir, mixed_pool_file)
     log = []
@@ -117,6 +124,11 @@ def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, ti
     eval_seeds = json.loads((tmp_path / "evals" / "eot_envs_2" / "run.json").read_text())["config"]["seeds"]
     assert len(eval_seeds) == 4 and (tmp_path / "eval_sets" / "ref.json").is_file()
     assert json.loads((tmp_path / "machine.json").read_text())["runs"][0]["start"]["cpu_count"] >= 1
+    # the row is a tradeoff-row job with the job layer's marker; its child's spec is row.json, the settings sweep.json
+    assert json.loads((tmp_path / "rows" / "eot_envs_2" / "job.json").read_text())["kind"] == "tradeoff-row"
+    assert json.loads((tmp_path / "jobs" / "eot_envs_2" / "row.json").read_text())["row"]["knob"] == "eot_envs"
+    assert json.loads((tmp_path / "sweep.json").read_text())["settings"]["episodes"] == 4
+    assert not (tmp_path / "jobs" / "eot_envs_2" / "job.json").exists() and not (tmp_path / "manifest.json").exists()
     # resume: the finished row is skipped, nothing appended
     log.clear()
     run_sweep(cfg, tmp_path, ["eot_envs=2"], progress=False, log=log.append)
@@ -134,6 +146,7 @@ def test_one_row_end_to_end_in_a_child_process_then_resume_skips_it(tmp_path, ti
     res = run_sweep(cfg, tmp_path, ["eot_envs=2"], progress=False, log=log.append, redo=True, isolate=False)
     bad = next(r for r in res if r["key"] == "eot_envs=2")
     assert bad["status"] == "error" and "not task-feasible" in bad["error"]
+    assert not (tmp_path / "rows" / "eot_envs_2" / "job.json").exists()  # an error row is not finished: runs again
     # other settings in the same directory are refused
     with pytest.raises(TradeoffError, match="other settings.*episodes"):
         run_sweep(
