@@ -24,10 +24,7 @@ MODULE = re.compile(r"`([\w/]+\.py)`")
 
 # Non-owners that still spell an owned name, each with its reason. Remove an entry once the module
 # goes through the owner (test_pending_exemptions_are_still_needed fails when one is stale).
-PENDING: dict[tuple[str, str], str] = {
-    ("trials/experiments/findings.py", "episodes.csv"): "another change is editing findings.py; "
-    "load_rows becomes `read_rows(d) if has_rows(d) else None` with d = results/<recipe>",
-}
+PENDING: dict[tuple[str, str], str] = {}
 
 
 def owner_table(text: str) -> list[tuple[list[str], list[str]]]:

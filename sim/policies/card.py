@@ -100,6 +100,8 @@ def load_card(path: str | Path) -> PolicyCard:
         doc = json.loads(card_path.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise PolicyError(f"{card_path}: not a JSON policy card ({err})") from None
+    except RecursionError:
+        raise PolicyError(f"{card_path}: not a JSON policy card (nested too deeply)") from None
     if not isinstance(doc, dict) or doc.get("format") != CARD_FORMAT:
         raise PolicyError(f"{card_path}: not an advobj policy card (missing format {CARD_FORMAT!r})")
     try:

@@ -57,3 +57,14 @@ def test_policy_eval_of_an_absurd_onnx_exits_2_with_one_line_naming_the_file(tmp
     assert ex.value.code == 2
     assert len(err.splitlines()) == 1 and str(path) in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_policy_card_nested_100000_deep_is_one_error_naming_the_file(tmp_path):
+    from sim.policies.card import CARD_NAME, load_card
+
+    d = tmp_path / "ckpt"
+    d.mkdir()
+    (d / CARD_NAME).write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(PolicyError, match="nested too deeply") as err:
+        load_card(d)
+    assert str(d / CARD_NAME) in str(err.value)

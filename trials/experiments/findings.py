@@ -32,7 +32,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from trials.eval.episodes import read_rows
+from trials.eval.episodes import has_rows, read_rows
 from trials.eval.metrics import DISTANCE_BINS_CM, PHI_BINS_DEG, bin_index, bin_labels, mcnemar_exact
 
 __all__ = [
@@ -83,8 +83,8 @@ Rows = Callable[[str], "list[dict] | None"]  # recipe -> its rows (None when not
 
 def load_rows(results: Path, recipe: str) -> list[dict] | None:
     """The rows of ``results/<recipe>/episodes.csv`` (None when the recipe has not been run)."""
-    path = Path(results) / recipe / "episodes.csv"
-    return read_rows(path) if path.is_file() else None
+    d = Path(results) / recipe
+    return read_rows(d) if has_rows(d) else None
 
 
 def _loader(results: Path) -> Rows:
