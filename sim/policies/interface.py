@@ -1,9 +1,11 @@
 """The policy interface shared by torch (white-box) and ONNX (black-box) policies.
 
-A policy maps wrist-camera images to actions through ``act(images) -> (B, 6) float32`` in
-[-1, 1] (the action semantics of :mod:`sim.action`). ``images`` is either what the env returns,
-``(B, H, W, 3)`` uint8, or network input, ``(B, 3, H, W)`` float in [0, 1]. This module is
-numpy-only so black-box use never needs torch.
+A policy maps wrist-camera images (and, when its contract reads one, a state vector) to actions
+through ``act(images[, state])``: ``(B, 6)``, ``(B, K, 6)`` or ``(B, 6K)`` float32 as its
+contract says (:mod:`sim.policies.contract`: ``delta_tcp`` in [-1, 1] with the action semantics
+of :mod:`sim.action`, or ``absolute_tcp`` poses, in chunks of K). ``images`` is either what the
+env returns, ``(B, H, W, 3)`` uint8, or network input, ``(B, 3, H, W)`` float in [0, 1];
+``state`` is ``(B, D)`` float32. This module is numpy-only so black-box use never needs torch.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ class Policy(Protocol):
     image_size: int
     white_box: bool
 
-    def act(self, images) -> np.ndarray: ...
+    def act(self, images, state=None) -> np.ndarray: ...
 
 
 def prepare_images(images, image_size: int) -> np.ndarray:
