@@ -183,9 +183,14 @@ CASE_COLUMNS = ("command", "param", "kind", "exit", "stderr_lines", "first_line"
 CASE_COLUMNS += ("seconds", "peak_rss_mb")
 
 
-def _write_record(out: Path, results: list[dict], figures: dict) -> None:
-    """``cases.csv`` (one row per case) and ``figures.json`` into ``out``: the campaign's record."""
+def _write_record(out: Path, results: list[dict], figures: dict, work: Path) -> None:
+    """``cases.csv`` (one row per case) and ``figures.json`` into ``out``: the campaign's record.
+
+    The scratch folder's path is written as ``<work>``: the record holds no path of the machine."""
     import csv
+
+    def rel(text: str) -> str:
+        return str(text).replace(str(work), "<work>")
 
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "cases.csv", "w", newline="") as f:
@@ -199,8 +204,8 @@ def _write_record(out: Path, results: list[dict], figures: dict) -> None:
                     r["kind"],
                     r["exit"],
                     r["stderr_count"],
-                    r["stderr"][0] if r["stderr"] else "",
-                    "; ".join(r["problems"]),
+                    rel(r["stderr"][0]) if r["stderr"] else "",
+                    rel("; ".join(r["problems"])),
                     len(r["touched"]),
                     r["seconds"],
                     r["peak_rss_mb"],
@@ -332,6 +337,6 @@ def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
     (work / "campaign.json").write_text(json.dumps({"figures": figures, "results": results}, indent=1))
     keep = os.environ.get("ADVOBJ_CAMPAIGN_OUT")  # benchmarks/hostile_campaign.py: the committed record
     if keep:
-        _write_record(Path(keep), results, figures)
+        _write_record(Path(keep), results, figures, work)
     print(f"\nhostile CLI campaign: {json.dumps(figures)} (details: {work / 'campaign.json'})")
     assert not failures, f"{len(failures)} of {len(results)} cases failed:\n" + "\n".join(failures)
