@@ -438,7 +438,7 @@ class HybridRenderer:
         world.prepare()
         T_world_cam = world.camera_pose() if T_world_cam is None else T_world_cam
         r = self.renderer
-        out = r.render(T_world_cam, with_ids=True)
+        out = r.render(T_world_cam, with_ids=True, with_depth=False)  # nothing here reads depth
         adv_mask = out.object_mask(self.adv)
         T_cam_world = invert_T(T_world_cam)
         T_cam_obj = T_cam_world @ world.T_world_objects[self.adv]

@@ -133,12 +133,13 @@ _GL_HELP = (
 class RenderOutput:
     """One rendered frame.
 
-    rgb: (H, W, 3) uint8; depth: (H, W) float32 m along the optical axis (0 where empty);
-    ids: (H, W) int32 id codes, or None when the id pass was skipped.
+    rgb: (H, W, 3) uint8; depth: (H, W) float32 m along the optical axis (0 where empty), or
+    None when not read (``with_depth=False``); ids: (H, W) int32 id codes, or None when the id pass
+    was skipped.
     """
 
     rgb: np.ndarray
-    depth: np.ndarray
+    depth: np.ndarray | None
     ids: np.ndarray | None = None
     object_names: tuple[str, ...] = field(default_factory=tuple)
     face_coded: int | None = None
@@ -194,6 +195,38 @@ def _single_sample_framebuffer(renderer) -> None:
             pr.glRenderbufferStorageMultisample = real
 
     renderer._configure_main_framebuffer = configure
+
+
+def _read_color_only(renderer, scene, flags):
+    """pyrender's ``Renderer._read_main_framebuffer`` without the depth buffer: the same blit and
+    ``glReadPixels`` of the colour (identical bytes), no depth read-back or conversion. Returns
+    ``(color, None)``; a depth-only render or macOS (which resizes) goes to pyrender's own."""
+    import sys
+
+    from OpenGL.GL import (
+        GL_COLOR_BUFFER_BIT,
+        GL_DRAW_FRAMEBUFFER,
+        GL_LINEAR,
+        GL_READ_FRAMEBUFFER,
+        GL_RGB,
+        GL_RGBA,
+        GL_UNSIGNED_BYTE,
+        glBindFramebuffer,
+        glBlitFramebuffer,
+        glReadPixels,
+    )
+    from pyrender.constants import RenderFlags
+
+    if flags & RenderFlags.DEPTH_ONLY or sys.platform == "darwin":
+        return type(renderer)._read_main_framebuffer(renderer, scene, flags)
+    width, height = renderer._main_fb_dims[0], renderer._main_fb_dims[1]
+    glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb_ms)
+    glBindFramebuffer(GL_DRAW_FRAMEBUFFER, renderer._main_fb)
+    glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, GL_COLOR_BUFFER_BIT, GL_LINEAR)
+    glBindFramebuffer(GL_READ_FRAMEBUFFER, renderer._main_fb)
+    c = 4 if flags & RenderFlags.RGBA else 3
+    buf = glReadPixels(0, 0, width, height, GL_RGBA if c == 4 else GL_RGB, GL_UNSIGNED_BYTE)
+    return np.flip(np.frombuffer(buf, dtype=np.uint8).reshape((height, width, c)), axis=0), None
 
 
 def _texture(image: np.ndarray, repeat: bool):
@@ -679,6 +712,7 @@ class SceneRenderer:
         with_color: bool = True,
         variants=None,
         isolate: int | None = None,
+        with_depth: bool = True,
     ) -> RenderOutput:
         """Render from an OpenCV camera pose ``T_world_cam: (4, 4)``.
 
@@ -687,6 +721,8 @@ class SceneRenderer:
         ``isolate``: draw only object ``isolate`` (no table, gripper or other objects). Its pixels
         equal the full render's only where it is visible in the full scene (use them under its
         id-pass mask); elsewhere they show what the other geometry would have hidden.
+        ``with_depth=False``: no depth read-back in any pass (``depth`` is None; the colour and
+        ids are the same bytes), for callers that do not use it.
         """
         import pyrender
 
@@ -699,24 +735,30 @@ class SceneRenderer:
         self.scene.set_pose(self._camera_node, gl_from_cv(T_world_cam))
         self.culled = self._culled(T_world_cam)
         rgb = depth = ids = None
-        if with_color:
-            self._set_pass(True, variants, isolate)
-            rgb, depth = self._renderer.render(self.scene)
-        if with_ids:
-            self._set_pass(False, {}, isolate)
-            bg = self.scene.bg_color.copy()
-            self.scene.bg_color = np.array([0.0, 0.0, 0.0, 1.0])  # code 0 = nothing hit
-            try:
-                flat, d2 = self._renderer.render(self.scene, flags=pyrender.RenderFlags.FLAT)
-            finally:
-                self.scene.bg_color = bg
-            ids = _decode(flat)
-            depth = d2 if depth is None else depth
+        gl = self._renderer._renderer
+        if not with_depth:  # an instance attribute shadows the method for these passes only
+            gl._read_main_framebuffer = lambda scene, flags: _read_color_only(gl, scene, flags)
+        try:
+            if with_color:
+                self._set_pass(True, variants, isolate)
+                rgb, depth = self._renderer.render(self.scene)
+            if with_ids:
+                self._set_pass(False, {}, isolate)
+                bg = self.scene.bg_color.copy()
+                self.scene.bg_color = np.array([0.0, 0.0, 0.0, 1.0])  # code 0 = nothing hit
+                try:
+                    flat, d2 = self._renderer.render(self.scene, flags=pyrender.RenderFlags.FLAT)
+                finally:
+                    self.scene.bg_color = bg
+                ids = _decode(flat)
+                depth = d2 if depth is None else depth
+        finally:
+            if not with_depth:
+                del gl._read_main_framebuffer
         if rgb is None:
             rgb = np.zeros((self.height, self.width, 3), np.uint8)
-        return RenderOutput(
-            np.ascontiguousarray(rgb), depth.astype(np.float32), ids, self.object_names, self.face_coded
-        )
+        depth = None if depth is None else depth.astype(np.float32)
+        return RenderOutput(np.ascontiguousarray(rgb), depth, ids, self.object_names, self.face_coded)
 
     def close(self) -> None:
         """Free this renderer's GL resources (other renderers keep working)."""

@@ -14,7 +14,7 @@ import torch
 
 from attack.render import HybridRenderer, deferred_shading, shade
 from sim.geometry import look_at
-from sim.render import SceneLighting, SceneRenderer
+from sim.render import SceneLighting, SceneRenderer, _read_color_only
 from sim.spec import default_scene
 from sim.world import SimWorld
 
@@ -156,6 +156,28 @@ def test_a_deferred_capture_renders_only_the_colour_and_id_passes(rig, monkeypat
     monkeypatch.setattr(r._renderer, "render", lambda *a, **k: calls.append(k.get("flags")) or real(*a, **k))
     cap = hr.capture(w, _view(w, r.face_coded, 0.3, 30))
     assert cap.fragments.num_pixels > 0 and len(calls) == 2
+
+
+def test_without_depth_the_colour_and_ids_are_the_same_bytes_and_depth_comes_back_after(rig):
+    from pyrender.constants import RenderFlags
+
+    spec, r, hr, w = rig
+    w.prepare()
+    for dist, phi in ((0.25, 10), (0.6, 60)):
+        T = _view(w, r.face_coded, dist, phi)
+        full = r.render(T, with_ids=True)
+        lean = r.render(T, with_ids=True, with_depth=False)
+        assert lean.depth is None and (full.depth > 0).any()
+        np.testing.assert_array_equal(full.rgb, lean.rgb)
+        np.testing.assert_array_equal(full.ids, lean.ids)
+        again = r.render(T, with_ids=True)  # the colour-only reader is gone again
+        np.testing.assert_array_equal(again.depth, full.depth)
+        # pyrender's own RGBA read, byte for byte
+        gl = r._renderer._renderer
+        r._set_pass(True, {}, None)
+        ours, _ = _read_color_only(gl, r.scene, RenderFlags.RGBA)
+        theirs, _ = gl._read_main_framebuffer(r.scene, RenderFlags.RGBA)
+        np.testing.assert_array_equal(ours, theirs)
 
 
 def test_lights_or_materials_the_model_does_not_describe_fall_back_to_the_measured_passes(rig):
