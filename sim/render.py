@@ -16,7 +16,8 @@ Shortcuts that keep every pixel exact (measured in ``benchmarks/bench_render_sho
 * ``render(..., isolate=k)`` draws object ``k`` alone. There are no shadows, so the shading of a
   surface point does not depend on other geometry: at the pixels where ``k`` is visible in the
   full scene (its id-pass mask) the isolated render is identical to the full one. The attack's
-  white/black shading passes read only those pixels.
+  measured shading passes (``HybridRenderer(shading="passes")``) read only those pixels;
+* ``render(..., with_depth=False)`` skips the depth read-back (colour and ids are the same bytes).
 
 Id codes (24-bit, ``r << 16 | g << 8 | b``):
   0                      nothing (background)
@@ -242,7 +243,8 @@ def _material(texture_image: np.ndarray | None, color=(1.0, 1.0, 1.0), repeat: b
     import pyrender
 
     # Dielectric, fully rough: the shading is diffuse (multiplicative in the albedo) plus a
-    # small albedo-independent specular term, which the attack's shading passes recover.
+    # small albedo-independent specular term, which the attack computes per fragment
+    # (attack.render.deferred_shading, from SceneRenderer.lighting) or measures (shading passes).
     kw = dict(metallicFactor=0.0, roughnessFactor=1.0, baseColorFactor=(*color, 1.0))
     if texture_image is not None:
         kw["baseColorTexture"] = _texture(texture_image, repeat)
