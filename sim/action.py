@@ -80,7 +80,7 @@ def next_tcp_pose(T_world_tcp, action, max_step_m: float, max_step_rad: float):
     p_next = intended_position(T_world_tcp, action, max_step_m)
     R_next = R @ so3_exp(drot)
     if _is_torch(action):
-        import torch
+        import torch  # lazy: robot_io start-up (torch)
 
         top = torch.cat([R_next, p_next[..., :, None]], -1)
         bottom = torch.zeros_like(top[..., :1, :])

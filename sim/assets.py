@@ -25,22 +25,30 @@ square of that side for true size), and the wrap layouts and the patch
 
 from __future__ import annotations
 
+import hashlib
+import importlib.metadata
 import io
+import json
 import math
 import os
 import re
 import stat
+import struct
+import tempfile
 import warnings
+import zipfile
 from functools import lru_cache
 from pathlib import Path
 from typing import Callable, NamedTuple
 
 import numpy as np
 import trimesh
-from PIL import Image, ImageDraw
+import xatlas
+from PIL import Image, ImageDraw, ImageFilter
 
 from sim import textures as tx
 from sim.errors import AdvobjError
+from sim.geometry import so3_exp
 
 __all__ = [
     "AssetError",
@@ -262,8 +270,6 @@ def _box_faces(size, uv_of_face):
 
 
 def _ellipsoid(radii, center, subdivisions: int = 2, rotvec=(0.0, 0.0, 0.0)):
-    from sim.geometry import so3_exp
-
     s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
     v = (np.asarray(s.vertices) * np.asarray(radii, float)) @ so3_exp(np.asarray(rotvec, float)).T + np.asarray(
         center, float
@@ -340,9 +346,6 @@ def _read_atlas_entry(entry: Path, key: str, n_vertices: int, n_faces: int):
     checked against what this mesh's atlas can take before anything is decompressed, and no more
     than that is ever inflated.
     """
-    import io
-    import zipfile
-
     limits = _atlas_entry_limits(n_faces)
     cap = sum(d.itemsize * n + _NPY_HEADER_MAX + 512 for d, n in limits.values()) + 4096
     try:
@@ -394,8 +397,6 @@ def _read_atlas_entry(entry: Path, key: str, n_vertices: int, n_faces: int):
 def _write_atlas_entry(folder: Path, key: str, hit) -> None:
     """Store ``hit`` as ``folder/<key>.npz``: written to a fresh temporary file (O_EXCL, random
     name) and renamed over the entry, so no planted link is ever written through."""
-    import tempfile
-
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{key}.", suffix=".tmp", dir=folder)
@@ -415,9 +416,6 @@ def _write_atlas_entry(folder: Path, key: str, hit) -> None:
 def _atlas_key(v32: np.ndarray, f32: np.ndarray) -> str:
     """The cache key of an atlas: sha256 (hex) of xatlas's version and the float32 vertices and
     uint32 faces it sees."""
-    import hashlib
-    import importlib.metadata
-
     try:
         version = importlib.metadata.version("xatlas")
     except importlib.metadata.PackageNotFoundError:
@@ -436,8 +434,6 @@ def _atlas(vertices: np.ndarray, faces: np.ndarray):
     is not a regular file, is damaged, or does not hold this mesh's atlas (its key, shapes, index
     and UV ranges) is dropped and rebuilt.
     """
-    import xatlas
-
     v32, f32 = np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.uint32)
     key = _atlas_key(v32, f32)
     hit = _ATLAS_MEMO.get(key)
@@ -990,9 +986,6 @@ def _first_nonfinite_vertex_line(text: str) -> int | None:
 def _header_face_count(ext: str, data: bytes) -> int | None:
     """The face count a binary or headed format declares (STL, PLY, OFF, GLB/glTF), None when the
     header does not say; read from the header only."""
-    import json
-    import struct
-
     if ext == ".stl" and len(data) >= 84 and not data[:5].lower() == b"solid":
         return struct.unpack("<I", data[80:84])[0]
     if ext == ".stl" and len(data) >= 84 and len(data) == 84 + 50 * struct.unpack("<I", data[80:84])[0]:
@@ -1272,8 +1265,6 @@ def region_texture(mesh: trimesh.Trimesh, texture_u8: np.ndarray) -> np.ndarray:
     renderer samples it), and the optimised faces' UV triangles, grown by 2 texels against seams,
     take the attack's texels. Any other mesh gets the attack's texture as it is.
     """
-    from PIL import ImageFilter
-
     opt = np.asarray(mesh.metadata.get("optimizable_faces", np.ones(len(mesh.faces), bool)), bool)
     image = getattr(getattr(mesh.visual, "material", None), "image", None)
     if mesh.metadata.get("uv_source") != "file" or opt.all() or image is None:

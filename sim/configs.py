@@ -12,12 +12,14 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import warnings
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
+from sim.assets import BUILTIN_MESHES, build_mesh
 from sim.errors import AdvobjError
 from sim.geometry import look_at, make_T, rot_z
 
@@ -127,10 +129,6 @@ def object_poses_world(object_xy_yaw) -> np.ndarray:
 def _mesh_center(
     mesh: str, scale, units: str = "m", up_axis: str | None = None, placement: str = "auto"
 ) -> tuple[float, float, float]:
-    import warnings
-
-    from sim.assets import build_mesh
-
     with warnings.catch_warnings():  # the renderer builds the same mesh and says it once
         warnings.simplefilter("ignore")
         m = build_mesh(mesh, scale, units, up_axis, placement)
@@ -216,8 +214,6 @@ _LATER_OBJECT_DEFAULTS = {"units": "m", "up_axis": None, "placement": "auto", "a
 
 
 def _object_payload(o) -> dict:
-    from sim.assets import BUILTIN_MESHES
-
     d = o.model_dump()
     if d.get("mesh") in BUILTIN_MESHES:
         for k, v in _LATER_OBJECT_DEFAULTS.items():

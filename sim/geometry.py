@@ -46,7 +46,7 @@ def _is_torch(x: Any) -> bool:
 
 def _stack(xs: list, axis: int, like: Any):
     if _is_torch(like):
-        import torch
+        import torch  # lazy: robot_io start-up (torch)
 
         return torch.stack(xs, dim=axis)
     return np.stack(xs, axis=axis)
@@ -71,7 +71,7 @@ def so3_exp(rotvec):
     finite at ``rotvec = 0``.
     """
     if _is_torch(rotvec):
-        import torch
+        import torch  # lazy: robot_io start-up (torch)
 
         theta2 = (rotvec * rotvec).sum(-1)
         small = theta2 < _SMALL**2

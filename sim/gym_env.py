@@ -24,6 +24,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from sim.env import ReachEnv
+from sim.spec import SceneSpec, default_scene, load_scene
+
 __all__ = ["ReachGymEnv", "ENV_ID"]
 
 ENV_ID = "advobj/Reach-v0"
@@ -41,9 +44,6 @@ class ReachGymEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, scene=None, image_size: int | None = None, render_mode: str | None = None):
-        from sim.env import ReachEnv
-        from sim.spec import SceneSpec, default_scene, load_scene
-
         spec = scene if isinstance(scene, SceneSpec) else (default_scene() if scene is None else load_scene(scene))
         size = int(image_size or spec.camera.width)
         if render_mode not in (None, "rgb_array"):

@@ -27,7 +27,7 @@ def upscale(img: np.ndarray, min_side: int = MIN_SIDE) -> np.ndarray:
 
 def labelled(img: np.ndarray, text: str, min_side: int = MIN_SIDE) -> np.ndarray:
     """``img`` upscaled (:func:`upscale`) with ``text`` on a black bar above it: ``(H' + 18, W', 3)`` uint8."""
-    from PIL import Image, ImageDraw
+    from PIL import Image, ImageDraw  # lazy: CLI start-up (PIL)
 
     big = upscale(np.asarray(img, dtype=np.uint8)[..., :3], min_side)
     bar = Image.new("RGB", (big.shape[1], _BAR_PX), (0, 0, 0))
@@ -61,7 +61,7 @@ def contact_sheet(frames: list[np.ndarray], cols: int = 8, max_frames: int = 32)
 
 
 def write_gif(path: str | Path, frames: list[np.ndarray], fps: int = 10) -> Path:
-    import imageio.v3 as iio
+    import imageio.v3 as iio  # lazy: CLI start-up (imageio)
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -21,7 +21,10 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
+
+from sim.geometry import rotation_angle
 
 __all__ = ["PREPROCESS_MODES", "policy_view", "policy_view_K", "fov_deg", "view_mismatch"]
 
@@ -51,8 +54,6 @@ def _geometry(width: int, height: int, size: int, mode: str):
 
 def policy_view(rgb: np.ndarray, size: int, mode: str = "center_crop") -> np.ndarray:
     """``rgb (H, W, 3)`` uint8 as the policy takes it: ``(size, size, 3)`` uint8."""
-    import cv2
-
     rgb = np.asarray(rgb)
     H, W = rgb.shape[:2]
     if (H, W) == (size, size):
@@ -98,8 +99,6 @@ def view_mismatch(
 ) -> list[str]:
     """Sentences for every way the camera the policy looks through differs from its training camera
     beyond the tolerances: field of view, pixel aspect, principal point, mount position and angle."""
-    from sim.geometry import rotation_angle
-
     out = []
     fx, fy = fov_deg(K_view, size, size)
     tx, ty = fov_deg(K_train, size, size)

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy
 
 from sim.errors import AdvobjError
 
@@ -58,10 +61,6 @@ def read_run_info(run_dir: str | Path, name: str = RUN_INFO_NAME) -> dict:
 
 def write_run_info(out_dir: str | Path, config: dict, seed: int | None, name: str = RUN_INFO_NAME) -> Path:
     """Write ``out_dir/run.json`` with the resolved ``config`` (JSON-able), seed and provenance."""
-    import importlib.metadata
-
-    import numpy
-
     # Torch's version from the package metadata: importing torch costs seconds in jobs that never
     # use it (trial plans, reports); its thread count only when the job already imported it.
     torch = sys.modules.get("torch")

@@ -21,6 +21,6 @@ def set_torch_threads(threads: int | None = DEFAULT_TORCH_THREADS) -> None:
         return
     if int(threads) < 0:
         raise ValueError(f"threads must be >= 0, got {threads}")
-    import torch  # lazy: black-box (ONNX) runs never need torch
+    import torch  # lazy: CLI start-up (torch)
 
     torch.set_num_threads(int(threads))

@@ -18,8 +18,14 @@ import hashlib
 import time
 from pathlib import Path
 
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
 from sim.policies.card import CARD_FORMAT, CARD_NAME, PolicyCard, load_card
 from sim.policies.interface import PolicyError
+from sim.policies.onnx_policy import OnnxPolicy
+from sim.policies.policy import VisuomotorPolicy
 
 __all__ = ["WEIGHTS_NAME", "save_checkpoint", "load_checkpoint", "load_policy", "is_checkpoint"]
 
@@ -45,8 +51,6 @@ def save_checkpoint(out_dir: str | Path, policy, card: PolicyCard) -> PolicyCard
     Files are written to temporaries and renamed, so an interrupted save leaves the previous
     checkpoint intact.
     """
-    from safetensors.torch import save_file
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if card.arch != policy.config:
@@ -73,12 +77,6 @@ def load_checkpoint(path: str | Path, device="cpu"):
     from the card's, a weights file that is not safetensors, and weights that do not fit the
     architecture.
     """
-    import torch
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    from sim.policies.policy import VisuomotorPolicy
-
     p = Path(path)
     card = load_card(p)
     if not p.is_dir():
@@ -116,8 +114,6 @@ def load_policy(path: str | Path, device="cpu"):
     """
     p = Path(path)
     if p.is_file() and p.suffix.lower() == ".onnx":
-        from sim.policies.onnx_policy import OnnxPolicy
-
         return OnnxPolicy(p)
     if p.is_dir() or p.name == CARD_NAME:
         return load_checkpoint(p if p.is_dir() else p.parent, device)[0]

@@ -37,6 +37,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
+import torch
 from pydantic import Field, model_validator
 
 from sim.configio import StrictModel
@@ -158,7 +159,6 @@ def first_action(actions):
 def _rot_log(R):
     if not _is_torch(R):
         return so3_log(R)
-    import torch
 
     # Differentiable log map for the loss: atan2 form with floored norms (finite gradients at 0);
     # near pi the axis is less accurate than the numpy path, which the execution uses.
@@ -183,8 +183,6 @@ def to_delta(T_base_tcp, actions, kind: str, max_step_m: float, max_step_rad: fl
     dp = (Rt @ (actions[..., :3] - p)[..., None])[..., 0] / max_step_m
     drot = _rot_log(Rt @ so3_exp(actions[..., 3:])) / max_step_rad
     if _is_torch(actions):
-        import torch
-
         a = torch.cat([dp, drot], -1)
         scale = a.abs().amax(-1, keepdim=True).clamp_min(1.0)
         return a / scale

@@ -23,7 +23,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 from pydantic import Field
+from safetensors.torch import load_file, save_file
+from tqdm.auto import tqdm
 
 from sim.configio import StrictModel
 from sim.policies.interface import PolicyError
@@ -86,9 +89,6 @@ class _State:
         return (self.dir / "progress.json").is_file()
 
     def save(self, policy, optimizer, images, actions, progress: dict) -> None:
-        import torch
-        from safetensors.torch import save_file
-
         self.dir.mkdir(parents=True, exist_ok=True)
         save_file(
             {k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()},
@@ -103,11 +103,6 @@ class _State:
             (self.dir / (name + ".tmp")).replace(self.dir / name)
 
     def load(self, policy, optimizer):
-        import torch
-        from safetensors.torch import load_file
-
-        from sim.policies.interface import PolicyError
-
         try:
             progress = json.loads((self.dir / "progress.json").read_text())
             policy.load_state_dict(load_file(str(self.dir / "model.safetensors")))
@@ -125,8 +120,6 @@ class _State:
 
 
 def _train_steps(policy, optimizer, images, actions, steps: int, batch: int, rng: np.random.Generator, device) -> float:
-    import torch
-
     if steps == 0 or len(images) == 0:
         return float("nan")
     policy.train()
@@ -166,9 +159,6 @@ def train_dagger(
 
     Returns the progress record: per-iteration frames, loss, wall time, success rates.
     """
-    import torch
-    from tqdm.auto import tqdm
-
     out_dir = Path(out_dir)
     if env.num_envs != cfg.num_envs:
         raise ValueError(f"env has {env.num_envs} envs, config says num_envs={cfg.num_envs}")

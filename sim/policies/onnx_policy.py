@@ -12,10 +12,17 @@ image input and a ``(B, 6)`` delta output needs no card; any other contract is r
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from pydantic import ValidationError
 
+from sim.policies.card import PolicyCard
+from sim.policies.contract import decode_actions, policy_contract
 from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError, prepare_images
 
 __all__ = ["export_onnx", "attach_card", "OnnxPolicy", "CARD_METADATA_KEY", "DEFAULT_OPSET"]
@@ -26,14 +33,8 @@ DEFAULT_OPSET = 17
 
 def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET) -> Path:
     """Export torch ``policy`` to ``path`` (opset >= 17) with ``card`` in the metadata."""
-    import warnings
-
-    import onnx
-    import torch
-
     if opset < 17:
         raise PolicyError(f"opset: need >= 17, got {opset}")
-    from sim.policies.contract import policy_contract
 
     if card is None and not policy_contract(policy).is_default:
         # without the card the file could not say what its state input or its chunks mean
@@ -70,8 +71,6 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
     if card is not None:
         attach_card(path, card)
     else:
-        import onnx
-
         onnx.checker.check_model(onnx.load(str(path)))
     return path
 
@@ -79,8 +78,6 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
 def attach_card(path: str | Path, card) -> Path:
     """Write ``card`` (a :class:`sim.policies.card.PolicyCard`) into ONNX file ``path``'s
     metadata, replacing an earlier card: how a policy exported by other code states its contract."""
-    import onnx
-
     path = Path(path)
     model = onnx.load(str(path))
     keep = [(p.key, p.value) for p in model.metadata_props if p.key != CARD_METADATA_KEY]
@@ -107,8 +104,6 @@ class OnnxPolicy:
     white_box = False
 
     def __init__(self, path: str | Path, threads: int = 0, spin: bool = False):
-        import onnxruntime as ort
-
         self.path = Path(path)
         if not self.path.is_file():
             raise PolicyError(f"{self.path}: no such ONNX file")
@@ -142,10 +137,6 @@ class OnnxPolicy:
         meta = self.session.get_modelmeta().custom_metadata_map
         self.card = None
         if CARD_METADATA_KEY in meta:
-            from pydantic import ValidationError
-
-            from sim.policies.card import PolicyCard
-
             try:
                 self.card = PolicyCard.model_validate(json.loads(meta[CARD_METADATA_KEY]))
             except (ValidationError, json.JSONDecodeError) as err:
@@ -156,7 +147,6 @@ class OnnxPolicy:
                 raise PolicyError(
                     f"{self.path}: card says {self.card.arch.image_size} px but the graph takes {self.image_size} px"
                 )
-        from sim.policies.contract import policy_contract
 
         self.contract = policy_contract(self)
         D = self.contract.state_dim
@@ -181,8 +171,6 @@ class OnnxPolicy:
     def act(self, images, state=None) -> np.ndarray:
         """Actions ``(B, 6)`` (or ``(B, K, 6)``) float32 for env images ``(B, S, S, 3)`` uint8 or
         ``(B, 3, S, S)`` floats, and the ``(B, D)`` state when the contract reads one."""
-        from sim.policies.contract import decode_actions
-
         x = prepare_images(images, self.image_size)
         feeds = {self.input_name: x}
         if self.state_name is not None:

@@ -24,6 +24,7 @@ from torch import nn
 
 from sim.configio import StrictModel
 from sim.policies.backbones import BACKBONES, build_backbone
+from sim.policies.contract import PolicyContract
 from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError, prepare_images
 
 __all__ = ["PolicyArch", "VisuomotorPolicy", "IMAGENET_MEAN", "IMAGENET_STD", "ACTION_DIM"]
@@ -59,8 +60,6 @@ class VisuomotorPolicy(nn.Module):
     white_box = True
 
     def __init__(self, config: PolicyArch | None = None, contract=None, **kwargs):
-        from sim.policies.contract import PolicyContract
-
         super().__init__()
         self.config = config if config is not None else PolicyArch(**kwargs)
         c = self.config

@@ -17,15 +17,25 @@ SB3's own ``save``/``load`` use pickle; they are never used. The resumable state
 
 from __future__ import annotations
 
+import copy
 import json
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from gymnasium import spaces
 from pydantic import Field
+from safetensors.torch import load_file, save_file
+from stable_baselines3 import PPO
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.vec_env import VecEnv
+from tqdm.auto import tqdm
 
 from sim.configio import StrictModel
+from sim.policies.dagger import TRAIN_SEED_BASE
 from sim.policies.interface import PolicyError
+from sim.policies.policy import PolicyArch, VisuomotorPolicy
 from sim.policies.rollout import EnvConfig, run_episodes, set_randomization
 
 __all__ = ["PPOConfig", "ReachVecEnv", "PolicyExtractor", "train_ppo", "to_visuomotor", "ACTION_BOUND"]
@@ -51,8 +61,6 @@ class PPOConfig(StrictModel):
 
 
 def _vec_env_base():
-    from stable_baselines3.common.vec_env import VecEnv
-
     return VecEnv
 
 
@@ -60,8 +68,6 @@ class ReachVecEnv(_vec_env_base()):
     """SB3 ``VecEnv`` over a :class:`sim.env.ReachEnv`; observations ``(N, 3, H, W)`` uint8."""
 
     def __init__(self, env, seed_base: int):
-        from gymnasium import spaces
-
         self.env = env
         self._seed_cursor = int(seed_base)
         obs_space = spaces.Box(0, 255, (3, env.height, env.width), np.uint8)
@@ -122,8 +128,6 @@ class ReachVecEnv(_vec_env_base()):
 
 
 def _extractor_base():
-    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-
     return BaseFeaturesExtractor
 
 
@@ -131,8 +135,6 @@ class PolicyExtractor(_extractor_base()):
     """A VisuomotorPolicy up to its last linear layer: images ``(B, 3, H, W)`` in [0, 1] -> ``(B, hidden)``."""
 
     def __init__(self, observation_space, arch: dict):
-        from sim.policies.policy import PolicyArch, VisuomotorPolicy
-
         policy = VisuomotorPolicy(PolicyArch(**arch))
         super().__init__(observation_space, features_dim=policy.config.head_hidden)
         self.policy = policy
@@ -150,8 +152,6 @@ def _unaliased_state(module) -> dict:
 
 
 def _make_model(vec_env, arch, cfg: PPOConfig, seed: int, device):
-    from stable_baselines3 import PPO
-
     return PPO(
         "CnnPolicy",
         vec_env,
@@ -179,8 +179,6 @@ def _make_model(vec_env, arch, cfg: PPOConfig, seed: int, device):
 
 def to_visuomotor(model):
     """The trained actor as a :class:`VisuomotorPolicy` (shares nothing with ``model``), eval mode."""
-    import copy
-
     policy = copy.deepcopy(model.policy.features_extractor.policy)
     policy.mlp[-1].load_state_dict(model.policy.action_net.state_dict())
     return policy.eval()
@@ -202,12 +200,6 @@ def train_ppo(
 
     Returns ``(policy, progress_record)`` with the policy as a :class:`VisuomotorPolicy`.
     """
-    import torch
-    from safetensors.torch import load_file, save_file
-    from tqdm.auto import tqdm
-
-    from sim.policies.dagger import TRAIN_SEED_BASE
-
     if env.num_envs != cfg.num_envs:
         raise ValueError(f"env has {env.num_envs} envs, config says num_envs={cfg.num_envs}")
     state_dir = Path(out_dir) / "train_state"

@@ -11,11 +11,15 @@ from typing import Callable, Literal
 
 import numpy as np
 from pydantic import Field
+from tqdm.auto import tqdm
 
 from sim.action import nonfinite_rows
 from sim.configio import StrictModel
+from sim.env import ReachEnv
+from sim.policies.contract import ActionQueue, call_policy, decode_actions, policy_contract, state_vector, to_delta
 from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX
 from sim.stats import Proportion, proportion
+from sim.variations import Randomization
 
 __all__ = [
     "EnvConfig",
@@ -38,15 +42,11 @@ class EnvConfig(StrictModel):
     noise_std: float = Field(0.0, ge=0.0, le=0.5)
 
     def randomization(self):
-        from sim.variations import Randomization
-
         return Randomization(light=self.light, background=self.background, noise_std=self.noise_std)
 
 
 def make_env(spec, cfg: EnvConfig, num_envs: int, seed: int = 0):
     """A :class:`sim.env.ReachEnv` rendering ``cfg.image_size`` px with ``cfg``'s randomisation."""
-    from sim.env import ReachEnv
-
     return ReachEnv(spec, num_envs=num_envs, image_size=cfg.image_size, seed=seed, randomization=cfg.randomization())
 
 
@@ -126,8 +126,6 @@ def rollout(
             depends on how many episodes share its step).
         on_fill: ``on_fill(slot, j)`` after a slot is reset to start ``j`` (per-episode state).
     """
-    from sim.policies.contract import ActionQueue, call_policy, decode_actions, policy_contract, state_vector, to_delta
-
     starts = list(starts)
     if not starts:
         return
@@ -250,8 +248,6 @@ def evaluate_policy(
     ``env_cfg`` defaults to no randomisation at the policy's image size. Pass ``env`` to reuse an
     existing :class:`sim.env.ReachEnv` (its randomisation is switched to ``env_cfg``).
     """
-    from tqdm.auto import tqdm
-
     env_cfg = env_cfg or EnvConfig(image_size=policy.image_size)
     own = env is None
     if own:

@@ -7,12 +7,18 @@ Outputs in ``out_dir``: the checkpoint (``policy.json`` + ``weights.safetensors`
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
+
+import torch
 
 from sim.configs import spec_fingerprint
 from sim.policies.card import ActionScaling, CleanSuccess, PolicyCard
 from sim.policies.checkpoint import save_checkpoint
+from sim.policies.dagger import train_dagger
+from sim.policies.policy import VisuomotorPolicy
 from sim.policies.pool import built_pool_path, write_feasible_pool
+from sim.policies.ppo import train_ppo
 from sim.policies.presets import TrainConfig
 from sim.policies.rollout import EVAL_SEED_BASE, evaluate_policy, make_env
 from sim.runinfo import git_commit, write_run_info
@@ -34,12 +40,6 @@ def train_policy(
     Once the checkpoint is saved, ``train_state/`` (the resume data: frames, optimizer; hundreds
     of MB) is deleted unless ``keep_state``; the final weights and card stay.
     """
-    import torch
-
-    from sim.policies.dagger import train_dagger
-    from sim.policies.policy import VisuomotorPolicy
-    from sim.policies.ppo import train_ppo
-
     out_dir = Path(out_dir)
     resolved = cfg.model_dump(mode="json")
     resolved["scene"] = {"name": spec.name, "fingerprint": spec_fingerprint(spec)}
@@ -92,8 +92,6 @@ def train_policy(
     )
     card = save_checkpoint(out_dir, policy.cpu(), card)
     if not keep_state and (out_dir / "train_state").is_dir():
-        import shutil
-
         size = sum(f.stat().st_size for f in (out_dir / "train_state").rglob("*") if f.is_file())
         shutil.rmtree(out_dir / "train_state")
         log(f"deleted {out_dir / 'train_state'} ({size / 1e6:.0f} MB of resume data; --keep-state keeps it)")
