@@ -24,10 +24,13 @@ bottom-right, bottom-left): (-s/2, s/2, 0), (s/2, s/2, 0), (s/2, -s/2, 0), (-s/2
 
 from __future__ import annotations
 
+import atexit
 from dataclasses import dataclass, field
 from typing import Callable, Literal, Mapping, Sequence
 
+import cv2
 import numpy as np
+import pupil_apriltags
 
 from calibration.errors import CalibrationError
 from calibration.intrinsics import ARUCO_DICTS, CameraIntrinsics, to_gray
@@ -159,8 +162,6 @@ def reprojection_rms(
 def resolve_dictionary(dictionary: str | int | None) -> str:
     """A dictionary name of :data:`TAG_DICTIONARIES` from a name (case-insensitive, ``DICT_`` prefix
     optional), an OpenCV dictionary id, or None (tag36h11); ValueError names the choices."""
-    import cv2
-
     if dictionary is None:
         return TAG36H11
     if isinstance(dictionary, (int, np.integer)) and not isinstance(dictionary, bool):
@@ -194,10 +195,6 @@ class _AprilTag3:
     @classmethod
     def get(cls):
         if cls._det is None:
-            import atexit
-
-            import pupil_apriltags
-
             # Full resolution (quad_decimate 1): decimation loses the small tags this backend is for.
             # The library's own edge refinement off: on the real photos it lost 2 of 47 tags, and
             # our refine_corners_edges runs after either backend anyway.
@@ -232,8 +229,6 @@ def detect_tag_corners(gray: np.ndarray, dictionary: str | int | None = None, ba
     ``dictionary``: a name of :data:`TAG_DICTIONARIES` (or an OpenCV id); None is tag36h11.
     ``backend`` picks the tag36h11 detector; ArUco dictionaries always use ``cv2.aruco``.
     """
-    import cv2
-
     name = resolve_dictionary(dictionary)
     gray = np.ascontiguousarray(gray, dtype=np.uint8)
     if gray.ndim != 2 or min(gray.shape) < 8:
@@ -275,8 +270,6 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, cells: int = 
     A total-least-squares line through those points per edge, intersected with its neighbours,
     gives the corners. Falls back to ``corners_px`` if the edges cannot be measured.
     """
-    import cv2
-
     c = np.asarray(corners_px, dtype=np.float64)
     centre = c.mean(0)
     lines = []
@@ -329,8 +322,6 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, cells: int = 
 
 def tag_pose_solutions(corners_px: np.ndarray, tag_size_m: float, camera: CameraIntrinsics) -> tuple[PoseSolution, ...]:
     """Both IPPE_SQUARE solutions for one tag, best (lowest reprojection RMS) first; () if PnP fails."""
-    import cv2
-
     obj = tag_object_points(tag_size_m)
     try:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
@@ -483,8 +474,6 @@ def estimate_bundle_pose(
     the IPPE ambiguity; with spread-out tags the wrong reflection no longer fits and it vanishes.
     Returns None if none of the tags has a pose.
     """
-    import cv2
-
     opt = options or TagDetectorOptions()
     used = [d for d in detections if d.tag_id in corners_in_frame and d.solutions]
     if not used:

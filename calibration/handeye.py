@@ -16,11 +16,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
+import cv2
 import numpy as np
 from pydantic import Field, model_validator
 
 from calibration.errors import CalibrationError, DegenerateDataError
-from calibration.io import PoseModel, Strict, T_to_pose, check_T, load_model, write_yaml
+from calibration.intrinsics import ChessboardSpec, estimate_board_pose, load_board_yaml, load_camera_yaml, to_gray
+from calibration.io import PoseModel, Strict, T_to_pose, check_T, load_model, read_image, write_yaml
 from sim.geometry import compose, invert_T, make_T, rotation_angle, se3_exp, so3_log
 
 __all__ = [
@@ -66,8 +68,6 @@ class DiversityReport:
 
 
 def _cv_method(name: str) -> int:
-    import cv2
-
     return {
         "tsai": cv2.CALIB_HAND_EYE_TSAI,
         "park": cv2.CALIB_HAND_EYE_PARK,
@@ -133,8 +133,6 @@ def mean_pose(T) -> np.ndarray:
 
 
 def _solve(T_base_tcp, T_cam_board, method: str) -> np.ndarray:
-    import cv2
-
     R, t = cv2.calibrateHandEye(
         [x[:3, :3] for x in T_base_tcp],
         [x[:3, 3] for x in T_base_tcp],
@@ -334,14 +332,10 @@ def load_samples_yaml(path, min_board_corners: int = 8):
     Image samples are posed with the board and camera files; an image where the board is not found
     is skipped and listed in ``notes`` (it is not an error unless too few samples remain).
     """
-    from calibration.intrinsics import estimate_board_pose, load_board_yaml, load_camera_yaml, to_gray
-    from calibration.io import read_image
-
     path = Path(path)
     f = load_model(path, HandEyeSamplesFile)
     root = path.parent
     board = load_board_yaml(root / f.board) if f.board else None
-    from calibration.intrinsics import ChessboardSpec
 
     if isinstance(board, ChessboardSpec) and board.inner_cols % 2 == board.inner_rows % 2:
         # Turned by 180 deg such a board looks the same, so its detected origin can jump between

@@ -27,6 +27,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from calibration.errors import CalibrationError, CalibrationFileError
 from calibration.io import Strict, load_model, nesting_depth, read_bytes, read_yaml, write_yaml
+from sim.geometry import make_T, so3_exp
 
 __all__ = [
     "BoardSpec",
@@ -92,7 +93,7 @@ class BoardSpec(Strict):
     def _marker_fits(self):
         if self.marker_size_m >= self.square_size_m:
             raise ValueError("marker_size_m must be smaller than square_size_m")
-        import cv2
+        import cv2  # lazy: robot_io start-up (cv2)
 
         n = (self.squares_x * self.squares_y) // 2
         if n > cv2.aruco.getPredefinedDictionary(self.dictionary_id).bytesList.shape[0]:
@@ -104,13 +105,13 @@ class BoardSpec(Strict):
 
     @property
     def dictionary_id(self) -> int:
-        import cv2
+        import cv2  # lazy: robot_io start-up (cv2)
 
         return getattr(cv2.aruco, ARUCO_DICTS[self.dictionary])
 
     def cv_board(self):
         """The ``cv2.aruco.CharucoBoard``."""
-        import cv2
+        import cv2  # lazy: robot_io start-up (cv2)
 
         d = cv2.aruco.getPredefinedDictionary(self.dictionary_id)
         board = cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_size_m, self.marker_size_m, d)
@@ -211,7 +212,7 @@ class CameraIntrinsics:
 
     def project(self, points_cam) -> np.ndarray:
         """Pixels ``(N, 2)`` of camera-frame points ``(N, 3)`` m, with distortion."""
-        import cv2
+        import cv2  # lazy: robot_io start-up (cv2)
 
         pts = np.asarray(points_cam, dtype=np.float64).reshape(-1, 1, 3)
         px, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
@@ -271,7 +272,7 @@ def to_gray(image) -> np.ndarray:
     Floats are taken as 0..1 (if their max is <= 1) or 0..255; uint16 is scaled down.
     Raises ValueError (naming ``image``) only for arrays that are not images at all.
     """
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     a = np.asarray(image)
     if a.ndim == 3 and a.shape[2] == 1:
@@ -299,7 +300,7 @@ def blur_sigma_px(gray: np.ndarray, corners_px: np.ndarray, half_px: int = 6) ->
     It measures focus and motion blur independently of contrast, exposure and noise level (a sharp
     render gives about 0.8 px: the pixel footprint itself).
     """
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     g = gray.astype(np.float32)
     # 3x3 Sobel responds 8x to a unit-slope ramp.
@@ -320,7 +321,7 @@ def blur_sigma_px(gray: np.ndarray, corners_px: np.ndarray, half_px: int = 6) ->
 
 def detect_charuco(gray: np.ndarray, board: BoardSpec):
     """ChArUco corners of ``board`` in ``gray`` -> (corners_px (N, 2), ids (N,)); empty arrays if none."""
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     cb = board.cv_board()
     det = cv2.aruco.CharucoDetector(cb)
@@ -338,7 +339,7 @@ def detect_chessboard(gray: np.ndarray, board: ChessboardSpec, half_window_px: i
     refined to sub-pixel; empty arrays unless the whole pattern is found.
 
     ``half_window_px``: the ``cornerSubPix`` half-window; None adapts it per image (see below)."""
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     empty = np.zeros((0, 2)), np.zeros((0,), dtype=np.int64)
@@ -385,7 +386,7 @@ def detect_board(gray: np.ndarray, board: Board, half_window_px: int | None = No
 
 def count_aruco_markers(gray: np.ndarray, dictionary: str) -> int:
     """How many markers of an ArUco ``dictionary`` (a key of ``ARUCO_DICTS``) ``gray`` shows."""
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, ARUCO_DICTS[dictionary]))
     try:
@@ -408,7 +409,7 @@ def identify_board(
     error naming it. Otherwise a plain chessboard of ``inner_corners`` (or of the first common
     size that is found whole) -> a :class:`ChessboardSpec`. Up to ``max_images`` photos are looked at.
     """
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     sample = list(grays)[:max_images]
     if any(count_aruco_markers(g, charuco.dictionary) >= 4 for g in sample):
@@ -473,7 +474,7 @@ def estimate_board_pose(gray: np.ndarray, board: Board, camera: CameraIntrinsics
     The board frame is OpenCV's: origin at the top-left board corner, +x right, +y down the printed
     board, +z into the board.
     """
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     corners, ids = detect_board(gray, board)
     if len(ids) < min_corners:
@@ -487,7 +488,6 @@ def estimate_board_pose(gray: np.ndarray, board: Board, camera: CameraIntrinsics
     rvec, tvec = cv2.solvePnPRefineLM(obj, corners, camera.K, camera.dist, rvec, tvec)
     proj, _ = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist)
     rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - corners) ** 2, -1))))
-    from sim.geometry import make_T, so3_exp
 
     return make_T(so3_exp(rvec.reshape(3)), tvec.reshape(3)), rms, len(ids)
 
@@ -500,7 +500,7 @@ def calibrate_intrinsics(
     Raises :class:`CalibrationError` if fewer than ``options.min_images`` images survive; the
     message lists every rejected image with its reason.
     """
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     opt = options or CalibrationOptions()
     names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
@@ -582,8 +582,6 @@ def calibrate_intrinsics(
     for k, v in enumerate(views):
         r = reports[v[0]]
         reports[v[0]] = ImageReport(r.name, True, "", r.n_corners, r.blur_px, float(per_view[k]))
-
-    from sim.geometry import make_T, so3_exp
 
     T = make_T(
         so3_exp(np.stack([np.asarray(r).reshape(3) for r in rvecs])),
@@ -879,7 +877,7 @@ def _node_matrix(node, path, name: str) -> tuple[np.ndarray, bool]:
 
 
 def _load_opencv(path) -> CameraIntrinsics:
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)

@@ -286,7 +286,7 @@ def write_yaml(path, data: dict, header: str | None = None) -> Path:
 def read_image(path) -> np.ndarray:
     """An image file as (H, W) grey or (H, W, 3|4) RGB(A) array; unreadable files raise
     :class:`CalibrationFileError`."""
-    import cv2
+    import cv2  # lazy: robot_io start-up (cv2)
 
     check_file(path, "<image>", MAX_IMAGE_BYTES)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

@@ -13,7 +13,12 @@ import math
 from pathlib import Path
 from typing import Sequence
 
+import cv2
+import matplotlib
 import numpy as np
+from matplotlib.backends.backend_pdf import PdfPages
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
 from calibration.errors import CalibrationError
 from calibration.intrinsics import BoardSpec
@@ -104,10 +109,7 @@ def cut_marks(ax, x_mm: float, y_mm: float, w_mm: float, h_mm: float, length_mm:
 
 def page_figure(width_mm: float, height_mm: float):
     """A blank page ``(fig, ax)``: figure sized in inches, axis in mm spanning it, y down."""
-    import matplotlib
-
     matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
 
     fig = Figure(figsize=(width_mm / MM_PER_INCH, height_mm / MM_PER_INCH))
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
@@ -119,8 +121,6 @@ def page_figure(width_mm: float, height_mm: float):
 
 def scale_bar(ax, x_mm: float, y_mm: float):
     """A 50 mm bar with 10 mm ticks, its left end at ``(x_mm, y_mm)``, labelled on its right."""
-    from matplotlib.patches import Rectangle
-
     ax.add_patch(Rectangle((x_mm, y_mm), SCALE_BAR_MM, 1.0, facecolor="black", edgecolor="none"))
     for k in range(6):
         ax.add_patch(Rectangle((x_mm + 10.0 * k - 0.15, y_mm - 2.0), 0.3, 3.0, facecolor="black", edgecolor="none"))
@@ -155,9 +155,6 @@ def tag_sheet_pdf(
     size) below it, inside a cut box marked at its corners; boxes are ``gap_mm`` apart, room for
     the marks and a blade.
     """
-    import cv2
-    from matplotlib.backends.backend_pdf import PdfPages
-
     if not tag_size_mm > 0:
         raise CalibrationError("size_mm: must be positive")
     bad = [i for i in tag_ids if not 0 <= i < TAG36H11_IDS]

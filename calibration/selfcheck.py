@@ -12,7 +12,7 @@ import numpy as np
 from calibration import synthetic as S
 from calibration.apriltag import detect_tags
 from calibration.handeye import HandEyeOptions, solve_hand_eye
-from calibration.intrinsics import BoardSpec, CameraIntrinsics, calibrate_intrinsics
+from calibration.intrinsics import BoardSpec, CameraIntrinsics, calibrate_intrinsics, estimate_board_pose, to_gray
 from sim.geometry import make_T, rotation_angle, so3_exp
 
 __all__ = ["intrinsics_check", "tag_check", "handeye_check", "handeye_images_check"]
@@ -146,8 +146,6 @@ def handeye_images_check(
     options: HandEyeOptions | None = None,
 ) -> dict:
     """Hand-eye error when the board poses come from rendered, blurred, noisy board images (not assumed noise)."""
-    from calibration.intrinsics import estimate_board_pose, to_gray
-
     rng = np.random.default_rng(seed)
     board = BoardSpec()
     K = S.default_K(width, height)

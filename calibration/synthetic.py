@@ -19,9 +19,13 @@ from dataclasses import dataclass
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+import cv2
 import numpy as np
+import pyrender
+import trimesh
+from PIL import Image
 
-from sim.geometry import make_T, so3_exp
+from sim.geometry import compose, invert_T, look_at, make_T, se3_exp, so3_exp, transform_points
 
 __all__ = [
     "TexturedPlane",
@@ -89,8 +93,6 @@ def tag_plane(
 
     ``tag_size_m`` is the side of the black square (OpenCV's marker length).
     """
-    import cv2
-
     d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11 if dictionary is None else dictionary)
     cells = d.markerSize + 2
     side = cells * px_per_cell
@@ -139,7 +141,6 @@ def _renderer(width: int, height: int):
     # One long-lived context: pyrender's delete() eglTerminate()s the shared display, which would
     # kill every other live context (e.g. the sim's renderer) if we created and freed our own.
     global _RENDERER
-    import pyrender
 
     if _RENDERER is None:
         _RENDERER = pyrender.OffscreenRenderer(width, height)
@@ -149,10 +150,6 @@ def _renderer(width: int, height: int):
 
 
 def _quad_mesh(plane: TexturedPlane):
-    import pyrender
-    import trimesh
-    from PIL import Image
-
     img = plane.image if plane.image.ndim == 3 else np.repeat(plane.image[..., None], 3, -1)
     # UV origin is the texture's bottom-left (OpenGL): TL=(0,1), TR=(1,1), BR=(1,0), BL=(0,0).
     uv = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]])
@@ -179,8 +176,6 @@ def render_planes(
 
     ``background`` is the grey level (0..1) where nothing is drawn.
     """
-    import pyrender
-
     K = np.asarray(K, dtype=np.float64)
     scene = pyrender.Scene(bg_color=(background, background, background, 1.0), ambient_light=(1.0, 1.0, 1.0))
     # pyrender measures the principal point from the image edge, OpenCV from the first pixel
@@ -199,8 +194,6 @@ def distort_image(image: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndar
 
     Each output (distorted) pixel samples the ideal image at its undistorted location.
     """
-    import cv2
-
     h, w = image.shape[:2]
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pts = np.stack([u, v], -1).reshape(-1, 1, 2)
@@ -213,8 +206,6 @@ def distort_image(image: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndar
 
 def degrade(image: np.ndarray, blur_sigma_px: float = 0.0, noise_sigma: float = 0.0, seed: int = 0) -> np.ndarray:
     """Gaussian blur (sigma in px) then additive Gaussian noise (sigma in grey levels), clipped to uint8."""
-    import cv2
-
     out = image.astype(np.float32)
     if blur_sigma_px > 0:
         out = cv2.GaussianBlur(out, (0, 0), blur_sigma_px)
@@ -255,8 +246,6 @@ def hand_eye_poses(
     ``lateral_m``, at ``distance_range_m``, aimed near ``board_center_board`` (board frame) with a
     random roll about the optical axis, so motions rotate about diverse axes.
     """
-    from sim.geometry import compose, invert_T, look_at, transform_points
-
     rng = np.random.default_rng(seed)
     T_base_board = np.asarray(T_base_board, dtype=np.float64)
     center = transform_points(T_base_board, np.asarray(board_center_board, dtype=np.float64)[None])[0]
@@ -276,8 +265,6 @@ def hand_eye_poses(
 
 def perturb_poses(T, position_sigma_m: float, rotation_sigma_rad: float, seed: int = 0) -> np.ndarray:
     """``T: (n, 4, 4)`` with Gaussian noise applied in each pose's own frame (per-axis sigmas)."""
-    from sim.geometry import se3_exp
-
     rng = np.random.default_rng(seed)
     T = np.asarray(T, dtype=np.float64)
     xi = np.concatenate(
