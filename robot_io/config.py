@@ -17,11 +17,22 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
-from calibration.io import PoseModel, Vec3, not_a_regular_file
+from calibration.intrinsics import load_camera_yaml
+from calibration.io import PoseModel, Vec3, load_model, not_a_regular_file
+from calibration.io import read_yaml as read_calibration_yaml
+from robot_io.arms.serial import SerialArm
+from robot_io.arms.sim import SimArm
+from robot_io.arms.ur_rtde import URArm
+from robot_io.cameras.depthai import DepthAICamera
+from robot_io.cameras.opencv import OpenCVCamera
+from robot_io.cameras.replay import ReplayCamera
+from robot_io.cameras.sim import SimCamera
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
 from sim.configio import StrictModel, file_error, merged, read_yaml
 from sim.errors import format_validation_error
+from sim.spec import default_scene, load_scene
+from sim.world import SimWorld
 
 __all__ = [
     "HardwareConfig",
@@ -210,9 +221,7 @@ def load_T_tcp_cam(path: str | Path) -> np.ndarray:
     translation component within +-1 km, rotation vector norm at most 100 rad); an error names the
     file and the field.
     """
-    from calibration.io import load_model, read_yaml
-
-    data = read_yaml(path)
+    data = read_calibration_yaml(path)
     if isinstance(data, dict) and set(data) == {"T_tcp_cam"}:
         data = data["T_tcp_cam"]
     return load_model(path, _TcpCamFile, data=data).T
@@ -221,7 +230,6 @@ def load_T_tcp_cam(path: str | Path) -> np.ndarray:
 def _intrinsics(path: Path | None):
     if path is None:
         return None
-    from calibration.intrinsics import load_camera_yaml
 
     return load_camera_yaml(path)
 
@@ -229,58 +237,41 @@ def _intrinsics(path: Path | None):
 # ---------------------------------------------------------------------- factories
 def build_world(cfg: HardwareConfig):
     """The :class:`sim.world.SimWorld` shared by ``sim`` devices (the caller closes it)."""
-    from sim.spec import default_scene, load_scene
-    from sim.world import SimWorld
-
     _regular(cfg.sim.scene, "sim.scene")
     spec = load_scene(cfg.sim.scene) if cfg.sim.scene is not None else default_scene()
     return SimWorld(spec, image_size=cfg.sim.image_size, seed=cfg.sim.seed)
 
 
 def _sim_camera(cfg: HardwareConfig, world):
-    from robot_io.cameras.sim import SimCamera
-
     return SimCamera(world, None if cfg.T_tcp_cam is None else load_T_tcp_cam(cfg.T_tcp_cam))
 
 
 def _opencv_camera(cfg: HardwareConfig, world):
-    from robot_io.cameras.opencv import OpenCVCamera
-
     c = cfg.camera
     return OpenCVCamera(c.device, c.width, c.height, c.fps, c.fourcc, _intrinsics(c.intrinsics), c.timeout_ms)
 
 
 def _depthai_camera(cfg: HardwareConfig, world):
-    from robot_io.cameras.depthai import DepthAICamera
-
     c = cfg.camera
     return DepthAICamera(c.socket, c.width, c.height, c.fps, _intrinsics(c.intrinsics), c.timeout_ms)
 
 
 def _replay_camera(cfg: HardwareConfig, world):
-    from robot_io.cameras.replay import ReplayCamera
-
     c = cfg.camera
     return ReplayCamera(c.path, c.loop, c.fps, _intrinsics(c.intrinsics))
 
 
 def _sim_arm(cfg: HardwareConfig, world):
-    from robot_io.arms.sim import SimArm
-
     a = cfg.arm
     return SimArm(world, a.max_speed_mps, a.max_speed_radps, a.realtime)
 
 
 def _ur_arm(cfg: HardwareConfig, world):
-    from robot_io.arms.ur_rtde import URArm
-
     a = cfg.arm
     return URArm(a.host, a.mode, a.acceleration_mps2, a.lookahead_time_s, a.gain, a.watchdog_min_hz)
 
 
 def _serial_arm(cfg: HardwareConfig, world):
-    from robot_io.arms.serial import SerialArm
-
     a = cfg.arm
     return SerialArm(a.port, a.baudrate, a.timeout_ms, a.retries, a.boot_timeout_ms, a.expect_banner)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+
 from sim.errors import AdvobjError
 
 __all__ = [
@@ -55,8 +57,6 @@ class SafetyStop(RobotIOError):
 
 def require_extra(module: str, extra: str, what: str):
     """Import a vendor SDK lazily; a missing one becomes an error naming the pip extra."""
-    import importlib
-
     try:
         return importlib.import_module(module)
     except ImportError as err:

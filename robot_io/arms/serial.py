@@ -139,7 +139,7 @@ class SerialArm(Arm):
 
     # ------------------------------------------------------------------ link
     def _open(self) -> None:
-        import serial
+        import serial  # lazy: robot_io start-up (serial)
 
         try:
             self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)

@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from robot_io.arms.base import Arm, Fault
+from robot_io.errors import ArmFaultError
 from robot_io.poses import interpolate_pose, is_valid_pose, pose_step
 
 __all__ = ["SimArm"]
@@ -61,8 +62,6 @@ class SimArm(Arm):
 
     def _check(self, T: np.ndarray) -> np.ndarray:
         if self._fault is not None:
-            from robot_io.errors import ArmFaultError
-
             raise ArmFaultError(self._fault)
         if not is_valid_pose(T):
             raise ValueError("sim arm: target must be a finite rigid (4, 4) transform")

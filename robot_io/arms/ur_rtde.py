@@ -25,6 +25,7 @@ import numpy as np
 from robot_io.arms.base import Arm, Fault
 from robot_io.errors import ArmFaultError, MissingExtraError, require_extra
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
+from sim.geometry import so3_log
 
 __all__ = ["URArm", "PROTECTIVE_STOP_RECOVERY"]
 
@@ -259,7 +260,6 @@ class URArm(Arm):
             T_goal = np.asarray(T_base_tcp, dtype=np.float64)
             v = (T_goal[:3, 3] - T_now[:3, 3]) / duration_s
             # Angular velocity in the base frame: the rotation R_goal R_now^T, as axis-angle per second.
-            from sim.geometry import so3_log
 
             w = so3_log(T_goal[:3, :3] @ T_now[:3, :3].T) / duration_s
             self._rtde_c.speedL([float(x) for x in np.concatenate([v, w])], self.acceleration_mps2, float(duration_s))

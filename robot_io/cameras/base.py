@@ -11,6 +11,7 @@ import numpy as np
 # The calibration package owns the intrinsics type and its YAML file; cameras only carry it.
 from calibration.intrinsics import CameraIntrinsics
 from robot_io.device import Device
+from robot_io.errors import MissingIntrinsicsError
 
 __all__ = ["Frame", "CameraIntrinsics", "Camera", "scale_intrinsics"]
 
@@ -46,8 +47,6 @@ def scale_intrinsics(intr: CameraIntrinsics, width: int, height: int, what: str 
     if (width, height) == (intr.width, intr.height):
         return intr
     if width * intr.height != height * intr.width:
-        from robot_io.errors import MissingIntrinsicsError
-
         raise MissingIntrinsicsError(
             f"{what}: frames are {width}x{height} but the intrinsics are for {intr.width}x{intr.height}, "
             "another aspect ratio (a crop): calibrate the camera at the frames' size"

@@ -102,7 +102,7 @@ class OpenCVCamera(Camera):
 
     # ------------------------------------------------------------------ setup
     def _open(self) -> None:
-        import cv2
+        import cv2  # lazy: robot_io start-up (cv2)
 
         src = resolve_device(self.device)
         cap = cv2.VideoCapture(src, cv2.CAP_V4L2)

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from robot_io.cameras.base import Camera, CameraIntrinsics, Frame, scale_intrinsics
 from robot_io.errors import CameraLostError, MissingIntrinsicsError, RobotIOError
@@ -52,7 +53,7 @@ class ReplayCamera(Camera):
             if not self._files:
                 raise RobotIOError(f"replay folder {self.path} holds no images ({', '.join(IMAGE_SUFFIXES)})")
         elif self.path.is_file():
-            import cv2
+            import cv2  # lazy: robot_io start-up (cv2)
 
             self._cap = cv2.VideoCapture(str(self.path))
             if not self._cap.isOpened():
@@ -74,7 +75,6 @@ class ReplayCamera(Camera):
         if self._files:
             if self._index >= len(self._files):
                 return None
-            from PIL import Image
 
             with Image.open(self._files[self._index]) as im:
                 rgb = np.asarray(im.convert("RGB"))
@@ -91,7 +91,7 @@ class ReplayCamera(Camera):
     def _rewind(self) -> None:
         self._index = 0
         if self._cap is not None:
-            import cv2
+            import cv2  # lazy: robot_io start-up (cv2)
 
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
 

@@ -19,7 +19,9 @@ import time
 
 import numpy as np
 
+from calibration.io import T_to_pose
 from robot_io.cameras.base import Camera, CameraIntrinsics, Frame
+from sim.geometry import invert_T, make_T, rot_z, so3_exp
 
 __all__ = ["SimCamera", "SimTag", "sim_tags", "draw_tags", "sim_registry"]
 
@@ -29,7 +31,7 @@ class SimTag:
     registry frame (its centre; the world frame for the table), black square ``size_m``."""
 
     def __init__(self, tag_id: int, size_m: float, role: str, T_object_tag: np.ndarray):
-        import cv2
+        import cv2  # lazy: robot_io start-up (cv2)
 
         self.tag_id, self.size_m, self.role = int(tag_id), float(size_m), str(role)
         self.T_object_tag = np.asarray(T_object_tag, dtype=np.float64)
@@ -45,8 +47,6 @@ class SimTag:
 
 def sim_tags(registry) -> list[SimTag]:
     """The tags of a :class:`calibration.registry.ObjectRegistry`, for :class:`SimCamera`."""
-    from sim.geometry import invert_T
-
     return [SimTag(i, e.size_m, e.object, invert_T(e.T_tag_object.T)) for i, e in sorted(registry.tags.items())]
 
 
@@ -59,9 +59,7 @@ def sim_registry(world, tag_size_m: float = 0.045, table_tags: bool = True):
     is seen by some tag and the single-tag ambiguity resolves), each at its face of the object's
     bounding box; plus two tags lying on the table, 25 cm either side of the world origin along y.
     Ids: table 0-1, goal 10-14, adversarial 20-24."""
-    from calibration.io import T_to_pose
-    from calibration.registry import ObjectRegistry, TagEntry
-    from sim.geometry import invert_T, make_T, rot_z, so3_exp
+    from calibration.registry import ObjectRegistry, TagEntry  # lazy: robot_io start-up (cv2)
 
     tags = {}
     if table_tags:
@@ -97,9 +95,7 @@ def draw_tags(
     ``T_world_objects``: role -> (4, 4) of the object's registry frame in the world. ``depth``
     (H, W) m along the optical axis (0 = nothing): a tag is drawn only where it is not behind it.
     """
-    import cv2
-
-    from sim.geometry import invert_T
+    import cv2  # lazy: robot_io start-up (cv2)
 
     out = rgb.astype(np.float32)
     H, W = rgb.shape[:2]
