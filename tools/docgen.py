@@ -15,6 +15,7 @@ Regenerate with::
 
 from __future__ import annotations
 
+import argparse
 import ast
 import inspect
 import io
@@ -34,6 +35,19 @@ import annotated_types as at
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
+
+from attack.optimize import PRESETS as ATTACK_PRESETS
+from attack.optimize import AttackConfig
+from calibration.handeye import HandEyeSamplesFile, _HandEyeFile
+from calibration.intrinsics import BoardSpec, _CameraFile
+from calibration.registry import ObjectRegistry
+from robot_io.config import HardwareConfig
+from sim.policies.card import PolicyCard
+from sim.policies.presets import PRESETS as POLICY_PRESETS
+from sim.policies.presets import TrainConfig
+from sim.spec import SceneSpec
+from trials.eval.evaluate import EvalConfig
+from trials.real.plan import TrialPlan
 
 __all__ = ["Section", "sections", "render", "model_rows", "DEFAULT_PATH", "main"]
 
@@ -347,59 +361,40 @@ class Section:
 
 
 def _scene():
-    from sim.spec import SceneSpec
-
     return [SceneSpec]
 
 
 def _attack():
-    from attack.optimize import AttackConfig
-
     return [AttackConfig]
 
 
 def _attack_presets():
-    from attack.optimize import PRESETS
-
-    return "Presets (`--preset`); a `--config` YAML overrides single fields on top:\n\n" + presets_table(PRESETS)
+    return "Presets (`--preset`); a `--config` YAML overrides single fields on top:\n\n" + presets_table(ATTACK_PRESETS)
 
 
 def _eval():
-    from trials.eval.evaluate import EvalConfig
-
     return [EvalConfig]
 
 
 def _policy():
-    from sim.policies.card import PolicyCard
-    from sim.policies.presets import TrainConfig
-
     return [PolicyCard, TrainConfig]
 
 
 def _policy_presets():
-    from sim.policies.presets import PRESETS
-
-    return "Training presets (`advobj policy train --preset`); blank: the model default:\n\n" + presets_table(PRESETS)
+    return "Training presets (`advobj policy train --preset`); blank: the model default:\n\n" + presets_table(
+        POLICY_PRESETS
+    )
 
 
 def _hardware():
-    from robot_io.config import HardwareConfig
-
     return [HardwareConfig]
 
 
 def _calibration():
-    from calibration.handeye import HandEyeSamplesFile, _HandEyeFile
-    from calibration.intrinsics import BoardSpec, _CameraFile
-    from calibration.registry import ObjectRegistry
-
     return [BoardSpec, _CameraFile, ObjectRegistry, HandEyeSamplesFile, _HandEyeFile]
 
 
 def _plan():
-    from trials.real.plan import TrialPlan
-
     return [TrialPlan]
 
 
@@ -501,8 +496,6 @@ def render() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-
     ap = argparse.ArgumentParser(
         prog="python -m tools.docgen", description="Render docs/configuration.md from the pydantic models."
     )

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from attack.artifact import TEXTURE_PNG, AttackArtifact
 from sim.policies.card import CARD_NAME, load_card
+from sim.runinfo import git_commit
 from trials.eval.episodes import collect_evals
 from trials.experiments.recipes import RECIPES as REGISTRY
 from trials.jobs.dag import read_markers
@@ -57,7 +58,6 @@ def _machine() -> dict:
 
 def _commit() -> str:
     sys.path.insert(0, str(ROOT))
-    from sim.runinfo import git_commit
 
     return git_commit()
 
