@@ -66,9 +66,17 @@ def instrument(run, timer):
             return cap(*a, **k)
 
     run.hybrid.capture = capture
-    for name in ("render_adversarial", "render_adversarial_batch"):  # per frame (before) or batched
+    # Per frame (before) or batched; wrapped in the renderer's module and wherever the attack's
+    # modules imported the name (a module-level import binds the function itself).
+    import attack.sources as src
+
+    for name in ("render_adversarial", "render_adversarial_batch"):
         if hasattr(ar, name):
-            setattr(ar, name, _timed(timer, "differentiable texture", getattr(ar, name)))
+            fn = getattr(ar, name)
+            timed = _timed(timer, "differentiable texture", fn)
+            for mod in (ar, opt, src):
+                if getattr(mod, name, None) is fn:
+                    setattr(mod, name, timed)
     losses = run.objective.losses
 
     def timed_losses(*a, **k):
