@@ -56,6 +56,7 @@ __all__ = [
 
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 Px = Annotated[int, Field(gt=0, le=8192)]
+SimPx = Annotated[int, Field(gt=0, le=2048)]
 
 
 class _Strict(StrictModel):
@@ -144,7 +145,11 @@ class SimConfig(_Strict):
 
     scene: Path | None = Field(None, description="scene YAML; default: the built-in paper scene")
     seed: int = 0
-    image_size: tuple[Px, Px] | None = Field(None, description="(H, W); default: the scene camera's")
+    # A sim twin renders every frame on the CPU: 2048 px a side covers a 1080p camera's twin; an
+    # 8192 px image took minutes a frame, checked here before any world is built.
+    image_size: tuple[SimPx, SimPx] | None = Field(
+        None, description="(H, W) px, at most 2048 a side; default: the scene camera's"
+    )
 
 
 class HardwareConfig(_Strict):

@@ -46,3 +46,15 @@ def test_a_unix_socket_is_refused_and_regular_files_and_folders_pass(tmp_path):
         s.close()
     (tmp_path / "a.yaml").write_text("a: 1\n")
     assert special_file_argument([str(tmp_path / "a.yaml"), "--out", str(tmp_path), "--n", "3", "nan", ""]) is None
+
+
+def test_a_sim_twin_image_over_2048_px_is_refused_before_any_world_is_built(tmp_path):
+    from robot_io.config import load_hardware_config
+    from sim.errors import AdvobjError
+
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text("camera: {type: sim}\narm: {type: sim}\nsim: {image_size: [8192, 8192]}\n")
+    with pytest.raises(AdvobjError) as err:
+        load_hardware_config(cfg)
+    msg = str(err.value)
+    assert "image_size" in msg and "2048" in msg and "\n" not in msg.strip()
