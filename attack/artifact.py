@@ -21,9 +21,12 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
+from sim.configs import config_id
 from sim.errors import AdvobjError
+from sim.runinfo import write_run_info
 
 __all__ = [
     "TEXTURE_NPY",
@@ -57,8 +60,6 @@ def texture_to_uint8(texture) -> np.ndarray:
 
 
 def write_texture_png(path: str | Path, texture) -> Path:
-    import imageio.v3 as iio
-
     path = Path(path)
     iio.imwrite(path, texture_to_uint8(texture))
     return path
@@ -67,8 +68,6 @@ def write_texture_png(path: str | Path, texture) -> Path:
 def write_config_record(out_dir: str | Path, attack_configs, validation_configs) -> Path:
     """Write ``out_dir/configs.json``: seed and content id (:func:`sim.configs.config_id`) of every
     configuration the attack may draw for EOT and every one its best texture is selected on."""
-    from sim.configs import config_id
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     doc = {
@@ -159,8 +158,6 @@ class AttackArtifact:
         np.save(d / TEXTURE_NPY, np.asarray(self.texture, dtype=np.float32))
         write_texture_png(d / TEXTURE_PNG, self.texture)
         if run == "provenance":
-            from sim.runinfo import write_run_info
-
             write_run_info(d, self.config, self.seed)
         elif run == "plain":
             (d / RUN_JSON).write_text(json.dumps({"config": self.config, "seed": self.seed}, indent=2, default=str))

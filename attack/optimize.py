@@ -34,13 +34,27 @@ from typing import Callable, Literal
 
 import numpy as np
 import torch
+from PIL import Image
 from pydantic import Field, ValidationError
+from tqdm import tqdm
 
-from attack.objective import build_objective
+from attack.artifact import AttackArtifact, texture_to_uint8
+from attack.losses import pose_loss
+from attack.objective import FrameBatch, build_objective
+from attack.pcgrad import normalized_step, pcgrad_many, sum_gradients
+from attack.render import HybridRenderer, render_adversarial_batch
+from attack.schedule import stage_index
 from attack.sources import SimRollouts
 from attack.state import AttackState, better_score, read_best, swap_in
 from sim.configio import StrictModel
+from sim.configs import in_part, sample_pool
+from sim.env import ReachEnv
 from sim.errors import AdvobjError, format_validation_error
+from sim.outcome import object_distances
+from sim.policies.contract import first_action, policy_contract, state_vector, to_delta
+from sim.policies.interface import require_white_box
+from sim.policies.rollout import rollout
+from sim.variations import Randomization
 
 __all__ = [
     "AttackConfig",
@@ -140,8 +154,6 @@ def resolve_config(preset: str, overrides: dict | None = None, source: str = "<o
 
 # ---------------------------------------------------------------------------------------------
 def _benign_texture(mesh, size: int) -> np.ndarray:
-    from PIL import Image
-
     img = getattr(getattr(mesh.visual, "material", None), "image", None)
     if img is None:
         return np.full((size, size, 3), 0.5)
@@ -172,12 +184,6 @@ class AttackRun:
     """
 
     def __init__(self, policy, spec, cfg: AttackConfig, pool=None, out_dir: str | Path | None = None):
-        from attack.render import HybridRenderer
-        from sim.configs import in_part, sample_pool
-        from sim.env import ReachEnv
-        from sim.policies.interface import require_white_box
-        from sim.variations import Randomization
-
         require_white_box(policy)
         self.cfg = cfg
         self.device = torch.device(cfg.device)
@@ -202,7 +208,6 @@ class AttackRun:
             spec = spec.with_updates(objects=objs)
         self.spec = spec
         self.image_size = int(policy.image_size)
-        from sim.policies.contract import policy_contract
 
         # The training rollouts re-plan at every step (the first action of each chunk): the pose
         # loss is defined on the action executed next; validation executes k of K as evaluation does.
@@ -261,11 +266,6 @@ class AttackRun:
         the adversarial object first, and the mean TCP-to-adversarial-object distance (m) at the
         end of the episodes (the tie-breaker: lower is better).
         """
-        from attack.artifact import texture_to_uint8
-        from sim.env import ReachEnv
-        from sim.outcome import object_distances
-        from sim.policies.rollout import rollout
-
         if not self.val_pool:
             raise AttackError("validation_every: validation is off (no held-out configurations)")
         t0 = time.perf_counter()
@@ -302,9 +302,6 @@ class AttackRun:
         """Mean pose loss over the first frame of every validation configuration under the
         current texture (hybrid render, no rollout): the same images at every call, so a change
         is the texture's doing. NaN when the run has no pose term. Uses no training RNG."""
-        from attack.losses import pose_loss
-        from attack.render import render_adversarial_batch
-
         cfg = self.cfg
         if not any(t.name == "pose" for t in self.objective.terms) or not self.val_pool:
             return float("nan")
@@ -361,8 +358,6 @@ class AttackRun:
 
     def _write_attack_source(self, d: Path, texture: torch.Tensor, extra: dict) -> None:
         """A texture folder (:class:`attack.artifact.AttackArtifact`): what ``advobj eval --attack DIR`` reads."""
-        from attack.artifact import AttackArtifact
-
         # Only the attack config (the mesh the texture belongs to): the run directory's own
         # run.json has the provenance, and asking git for it at every checkpoint costs seconds.
         config = {"job": "attack", "attack": self.cfg.model_dump(), **extra}
@@ -371,8 +366,6 @@ class AttackRun:
     # ------------------------------------------------------------------ the policy's contract
     def policy_state(self, T_world_tcp: torch.Tensor) -> torch.Tensor | None:
         """The policy's state input for TCP poses ``(B, 4, 4)`` (None when it reads none)."""
-        from sim.policies.contract import state_vector
-
         st = state_vector(self.contract, T_world_tcp.detach().cpu().numpy(), self.spec.gripper.opening_m)
         return None if st is None else torch.from_numpy(st).to(self.device)
 
@@ -381,8 +374,6 @@ class AttackRun:
 
     def next_delta(self, out: torch.Tensor, T_world_tcp: torch.Tensor) -> torch.Tensor:
         """``(B, 6)`` normalised delta of the first action of each output (every action kind)."""
-        from sim.policies.contract import first_action, to_delta
-
         ep = self.spec.episode
         return to_delta(T_world_tcp, first_action(out), self.contract.action.kind, ep.max_step_m, ep.max_step_rad)
 
@@ -403,9 +394,6 @@ class AttackRun:
         (B, 6)`` (detached) and the rendered ``images (B, 3, H, W)`` (detached). Draws the print
         colour transform from ``state``'s torch RNG.
         """
-        from attack.objective import FrameBatch
-        from attack.render import render_adversarial_batch
-
         cfg = self.cfg
         tex = state.texture.detach().clone().requires_grad_(True)
         ct = self._color_transform(state)
@@ -443,8 +431,6 @@ class AttackRun:
         Returns ``(g, updated)``; a zero or non-finite combined gradient (or no term at all) leaves
         the texture unchanged and ``updated`` False.
         """
-        from attack.pcgrad import normalized_step, pcgrad_many, sum_gradients
-
         if not grads:
             g = torch.zeros_like(state.texture)
         else:
@@ -504,8 +490,6 @@ def attack_step(run: AttackRun, state: AttackState) -> dict:
     objective term's gradient summed over them, the combined gradient, the normalised step.
     Advances ``state`` (texture, iteration, history, RNGs) and the source's scratch episodes;
     returns the logged figures (``terms``: each term's mean per image-action pair)."""
-    from attack.schedule import stage_index
-
     cfg = run.cfg
     names = [t.name for t in run.objective.terms]
     grads = {n: torch.zeros_like(state.texture) for n in names}
@@ -552,8 +536,6 @@ def run_attack(
     """Iterate to ``cfg.iterations`` with validation and checkpoints; Ctrl-C saves a checkpoint,
     then re-raises. The one attack loop: ``on_iteration(run, info)`` runs after each iteration's
     validation and checkpoint (the tradeoff sweep writes its snapshots there)."""
-    from tqdm import tqdm
-
     cfg = run.cfg
     bar = tqdm(total=cfg.iterations, initial=run.state.iteration, desc=desc, disable=not progress, dynamic_ncols=True)
     t0 = time.perf_counter()

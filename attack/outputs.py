@@ -6,10 +6,19 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import imageio.v3 as iio
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 import torch
+import torch.nn.functional as F
+import trimesh
+from PIL import Image
 
 from attack.artifact import AttackArtifact, texture_to_uint8
+from attack.losses import grad_cam
+from attack.render import render_adversarial
+from sim.imaging import hstack, labelled, upscale
 
 __all__ = [
     "textured_mesh",
@@ -22,9 +31,6 @@ __all__ = [
 
 def textured_mesh(mesh, texture_rgb: np.ndarray):
     """A copy of ``mesh`` carrying ``texture_rgb (H, W, 3)`` uint8 on its UVs."""
-    import trimesh
-    from PIL import Image
-
     m = mesh.copy()
     m.visual = trimesh.visual.TextureVisuals(uv=np.asarray(mesh.visual.uv), image=Image.fromarray(texture_rgb))
     return m
@@ -65,10 +71,7 @@ def plot_losses(path: str | Path, history) -> Path:
     """``loss_curves.png``: the held-out validation T-ASR first (the figure that says whether the
     attack works), then the pose and saliency terms and the gradient norm, with a note on why the
     pose loss is no measure of progress."""
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     h = history
     val = bool(getattr(h, "val_iteration", None))
@@ -147,10 +150,6 @@ def summary_lines(metrics: dict) -> list[str]:
 def gradcam_overlay(policy, image: torch.Tensor, state: torch.Tensor | None = None, to_action=None) -> np.ndarray:
     """``image (3, H, W)`` (and the policy's ``state (1, D)``) -> (H, W, 3) uint8 with the Grad-CAM
     map blended in red."""
-    import torch.nn.functional as F
-
-    from attack.losses import grad_cam
-
     x = image[None].detach().clone().requires_grad_(True)  # gives A a graph (weights are frozen)
     A = policy.features(x)
     out = policy.head(A) if state is None else policy.head(A, state)
@@ -166,11 +165,6 @@ def gradcam_overlay(policy, image: torch.Tensor, state: torch.Tensor | None = No
 
 def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dict:
     """Everything a run directory holds besides the checkpoint and run.json."""
-    import imageio.v3 as iio
-
-    from attack.render import render_adversarial
-    from sim.imaging import hstack, labelled, upscale
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tex = run.state.texture.detach().cpu()

@@ -24,6 +24,9 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from attack.schedule import sample_configs, stage_params
+from sim.variations import Randomization, sample_appearance
+
 __all__ = ["Frames", "FrameSource", "SimRollouts"]
 
 
@@ -81,9 +84,6 @@ class SimRollouts:
         self._active = np.zeros(0, np.int64)
 
     def start(self, iteration: int, rng: np.random.Generator) -> None:
-        from attack.schedule import sample_configs, stage_params
-        from sim.variations import Randomization, sample_appearance
-
         cfg, env = self.cfg, self.env
         params = stage_params(cfg.schedule, iteration, cfg.iterations)
         idx = sample_configs(self.pool_r, params, self.spec.init.r_range_m, cfg.num_envs, rng)

@@ -22,6 +22,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
+
+from attack.artifact import AttackArtifact
 
 __all__ = ["History", "AttackState", "better_score", "swap_in", "read_best", "find_checkpoint"]
 
@@ -102,8 +105,6 @@ class AttackState:
 
     def write(self, folder: Path, config: dict) -> None:
         """``state.safetensors``, ``state.json`` (and ``best.safetensors``) into ``folder``."""
-        from safetensors.torch import save_file
-
         save_file(
             {"texture": self.texture.detach().cpu().contiguous(), "torch_rng": self.torch_gen.get_state()},
             str(folder / "state.safetensors"),
@@ -123,8 +124,6 @@ class AttackState:
     @classmethod
     def read(cls, folder: Path, device) -> tuple[AttackState, dict]:
         """``(state, config dict)`` of a checkpoint folder; ``OSError``/``ValueError`` if unreadable."""
-        from safetensors.torch import load_file
-
         doc = json.loads((folder / "state.json").read_text())
         tensors = load_file(str(folder / "state.safetensors"))
         gen = torch.Generator()
@@ -171,8 +170,6 @@ def swap_in(tmp: Path, final: Path) -> Path:
 
 def read_best(best_dir: Path) -> tuple[dict, torch.Tensor] | None:
     """``(best.json, texture (3, S, S))`` of a ``best/`` directory (or its crash-left ``.old``)."""
-    from attack.artifact import AttackArtifact
-
     for d in (best_dir, best_dir.with_name(best_dir.name + ".old")):
         try:
             info = json.loads((d / "best.json").read_text())
