@@ -21,8 +21,8 @@ def run(
     resume: bool = typer.Option(False, "--resume", help="continue from the run directory's checkpoint"),
 ) -> None:
     """Run the attack; writes the texture, textured meshes, plots and metrics into OUT."""
-    from attack.outputs import summary_lines
-    from trials.jobs.attack import AttackJob
+    from attack.outputs import summary_lines  # lazy: CLI start-up (torch, matplotlib)
+    from trials.jobs.attack import AttackJob  # lazy: CLI start-up (torch, onnxruntime)
 
     job = AttackJob(policy=policy, preset=preset, config=config, scene=scene, pool=pool, out=out, resume=resume)
     metrics = job.run(log=typer.echo)

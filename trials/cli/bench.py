@@ -9,6 +9,7 @@ from typing import List, Optional
 import typer
 
 from trials.cli import grid as cli_grid
+from trials.cli.options import key_values
 
 app = typer.Typer(no_args_is_help=True, help="Benchmarks that answer 'what does this knob buy and what does it cost'.")
 
@@ -54,8 +55,7 @@ def tradeoff(
     address: Optional[str] = cli_grid.ADDRESS,
 ) -> None:
     """Sweep attack, evaluation and deployment knobs one at a time; table, Pareto plot and report in OUT."""
-    from trials.cli.options import key_values
-    from trials.experiments.tradeoff import TradeoffJob
+    from trials.experiments.tradeoff import TradeoffJob  # lazy: CLI start-up (torch, onnxruntime)
 
     job = TradeoffJob.build(
         policy,

@@ -6,7 +6,12 @@ import json
 from pathlib import Path
 from typing import List, Optional
 
+import numpy as np
 import typer
+from pydantic import ValidationError
+
+from calibration.errors import CalibrationError
+from sim.errors import AdvobjError, format_validation_error
 
 app = typer.Typer(no_args_is_help=True, help="Calibrate cameras, tags and hand-eye for real trials.")
 
@@ -20,9 +25,7 @@ def _board(
     dictionary: str,
     legacy: bool,
 ):
-    from pydantic import ValidationError
-
-    from calibration.intrinsics import BoardSpec, load_board_yaml
+    from calibration.intrinsics import BoardSpec, load_board_yaml  # lazy: CLI start-up (+51 ms)
 
     if board is not None:
         return load_board_yaml(board)
@@ -36,15 +39,13 @@ def _board(
             legacy_pattern=legacy,
         )
     except ValidationError as err:
-        from sim.errors import AdvobjError, format_validation_error
-
         raise AdvobjError(
             format_validation_error(err, "board (--squares-x/--squares-y/--square-mm/--marker-mm/--dictionary)")
         ) from None
 
 
 def _read_image(path: Path):
-    from calibration.io import read_image
+    from calibration.io import read_image  # lazy: CLI start-up (+11 ms)
 
     return read_image(path)
 
@@ -71,8 +72,8 @@ def board(
     ),
 ) -> None:
     """Write a true-scale printable ChArUco board (PDF) and its description (YAML)."""
-    from calibration.intrinsics import save_board_yaml
-    from calibration.printables import board_pdf
+    from calibration.intrinsics import save_board_yaml  # lazy: CLI start-up (+51 ms)
+    from calibration.printables import board_pdf  # lazy: CLI start-up (cv2, matplotlib)
 
     spec = _board(None, squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
     board_pdf(out, spec, page=page)
@@ -87,7 +88,7 @@ def tags(
     out: Path = typer.Option(Path("tags.pdf"), help="output PDF"),
 ) -> None:
     """Write true-scale printable tag36h11 AprilTags (PDF)."""
-    from calibration.printables import parse_id_ranges, tag_sheet_pdf
+    from calibration.printables import parse_id_ranges, tag_sheet_pdf  # lazy: CLI start-up (cv2, matplotlib)
 
     try:
         id_list = parse_id_ranges(ids)
@@ -135,7 +136,7 @@ def intrinsics(
 ) -> None:
     """Calibrate K and distortion from board photos; report per-image and RMS reprojection error,
     the intrinsics' standard deviations, and the views' coverage of the image and of tilt."""
-    from calibration.intrinsics import (
+    from calibration.intrinsics import (  # lazy: CLI start-up (+51 ms)
         CAMERA_FORMATS,
         CalibrationOptions,
         ChessboardSpec,
@@ -159,8 +160,6 @@ def intrinsics(
                 f"plain chessboard, {corners[0]}x{corners[1]} inner corners (as given)",
             )
         else:  # auto, or a chessboard of unknown size
-            from calibration.errors import CalibrationError
-
             grays = [to_gray(a) for a in arrays]
             spec, how = identify_board(grays, charuco, corners, square_mm / 1000)
             if board == "chessboard" and not isinstance(spec, ChessboardSpec):
@@ -204,7 +203,12 @@ def convert(
     rescale: Optional[str] = typer.Option(None, help="also rescale to WIDTHxHEIGHT (same aspect ratio)"),
 ) -> None:
     """Convert a camera file between formats (and optionally resolutions)."""
-    from calibration.intrinsics import CAMERA_FORMATS, camera_file_format, load_camera_yaml, save_camera_yaml
+    from calibration.intrinsics import (  # lazy: CLI start-up (+51 ms)
+        CAMERA_FORMATS,
+        camera_file_format,
+        load_camera_yaml,
+        save_camera_yaml,
+    )
 
     if fmt not in CAMERA_FORMATS:
         raise typer.BadParameter(f"expected one of {', '.join(CAMERA_FORMATS)}, got {fmt!r}", param_hint="--format")
@@ -244,12 +248,10 @@ def detect(
     as_json: bool = typer.Option(False, "--json", help="print JSON"),
 ) -> None:
     """Print every detected tag (both pose solutions, errors, ambiguity) and every registered object's position."""
-    import numpy as np
-
-    from calibration.apriltag import detect_tags, resolve_dictionary
-    from calibration.intrinsics import load_camera_yaml
-    from calibration.registry import TABLE, load_registry, locate_objects
-    from sim.geometry import invert_T, transform_points
+    from calibration.apriltag import detect_tags, resolve_dictionary  # lazy: CLI start-up (cv2, pupil_apriltags)
+    from calibration.intrinsics import load_camera_yaml  # lazy: CLI start-up (+51 ms)
+    from calibration.registry import TABLE, load_registry, locate_objects  # lazy: CLI start-up (cv2, pupil_apriltags)
+    from sim.geometry import invert_T, transform_points  # lazy: CLI start-up (+3 ms)
 
     try:
         dictionary = resolve_dictionary(dictionary)
@@ -275,8 +277,6 @@ def detect(
     def size_of(i: int):
         s = reg.tag_size(i) if reg else None
         return s if s is not None else default
-
-    from calibration.errors import CalibrationError
 
     try:
         dets = detect_tags(photo, cam, size_of, dictionary=dictionary)
@@ -329,7 +329,12 @@ def handeye(
     refine: bool = typer.Option(True, "--refine/--no-refine", help="refine jointly with the board pose (AX = YB)"),
 ) -> None:
     """Eye-in-hand calibration: solve T_tcp_cam, cross-check two methods, report residuals."""
-    from calibration.handeye import HandEyeOptions, load_samples_yaml, save_hand_eye_yaml, solve_hand_eye
+    from calibration.handeye import (  # lazy: CLI start-up (cv2)
+        HandEyeOptions,
+        load_samples_yaml,
+        save_hand_eye_yaml,
+        solve_hand_eye,
+    )
 
     try:
         opt = HandEyeOptions(method=method, check_method=check, refine=refine)
@@ -347,7 +352,7 @@ def handeye(
 @app.command()
 def selfcheck(seed: int = typer.Option(0, min=0, help="random seed")) -> None:
     """Run the pipeline on synthetic OpenGL renders with known ground truth and print the errors."""
-    from calibration.selfcheck import handeye_check, intrinsics_check, tag_check
+    from calibration.selfcheck import handeye_check, intrinsics_check, tag_check  # lazy: CLI start-up (pyrender, cv2)
 
     i = intrinsics_check(n_images=8, seed=seed)
     typer.echo(

@@ -7,7 +7,10 @@ from typing import List, Optional
 
 import typer
 
+from sim.runtime import set_torch_threads
 from trials.cli import grid as cli_grid
+from trials.cli.options import key_values
+from trials.experiments.recipes import run_eval_grid
 
 
 def eval_command(
@@ -59,9 +62,7 @@ def eval_command(
     shards: Optional[int] = cli_grid.SHARDS,
 ) -> None:
     """Run E episodes per condition on the same task-feasible configurations; write rows, summary and report."""
-    from sim.runtime import set_torch_threads
-    from trials.cli.options import key_values
-    from trials.eval.evaluate import load_eval_config, run_eval
+    from trials.eval.evaluate import load_eval_config, run_eval  # lazy: CLI start-up (torch, onnxruntime)
 
     set_torch_threads(threads)
     shapes = key_values(shape, "--shape", "SHAPE", "DIR")
@@ -83,8 +84,6 @@ def eval_command(
     if workers is None and address is None and shards is None:
         summary = run_eval(cfg, out, resume=resume)
     else:  # the job layer: a pool job, eval-shard jobs, their merge (a re-run resumes; --resume is implied)
-        from trials.experiments.recipes import run_eval_grid
-
         ex, default_shards = cli_grid.executor(workers, address, typer.echo)
         summary = run_eval_grid(cfg, out, ex, shards or default_shards, log=typer.echo)
     typer.echo(format_summary(summary))
@@ -92,7 +91,7 @@ def eval_command(
 
 
 def format_summary(summary: dict) -> str:
-    from trials.eval.report import fmt_err, fmt_rate
+    from trials.eval.report import fmt_err, fmt_rate  # lazy: CLI start-up (matplotlib, PIL)
 
     lines = []
     for name, s in summary["conditions"].items():

@@ -7,8 +7,10 @@ from typing import List, Optional
 
 import typer
 
-from trials.cli.grid import ADDRESS, SHARDS, WORKERS
-from trials.experiments.recipes import RECIPES
+from sim.runtime import set_torch_threads
+from trials.cli.grid import ADDRESS, SHARDS, WORKERS, executor
+from trials.cli.options import key_values
+from trials.experiments.recipes import RECIPES, resolve_experiment, run_experiment
 
 app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
 
@@ -26,11 +28,6 @@ def _run(
     iterations: Optional[int] = None,
     grid: tuple = (None, None, None, "cpu"),
 ) -> None:
-    from sim.runtime import set_torch_threads
-    from trials.cli.grid import executor
-    from trials.cli.options import key_values
-    from trials.experiments.recipes import resolve_experiment, run_experiment
-
     set_torch_threads()
     targets = {arch: Path(d) for arch, d in key_values(target, "--target", "ARCH", "PATH").items()}
     workers, address, shards, device = grid

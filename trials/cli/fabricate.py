@@ -27,7 +27,7 @@ def fabricate_command(
     ),
 ) -> None:
     """Write sheet.pdf + layout.json (cube/cylinder), adversarial.glb/OBJ, and check the print."""
-    from trials.fabrication.fabricate import fabricate
+    from trials.fabrication.fabricate import fabricate  # lazy: CLI start-up (torch, cv2)
 
     tag = (tag_id, tag_size_mm) if tag_id is not None else None
     if units not in ("m", "mm"):

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import time
 from pathlib import Path
 
 import typer
+
+from robot_io.errors import MissingIntrinsicsError
 
 app = typer.Typer(no_args_is_help=True, help="Check the wrist camera and arm of a hardware config.")
 
@@ -17,11 +21,13 @@ def check(
     jog_mm: float = typer.Option(10.0, help="jog distance along base +z in mm"),
 ) -> None:
     """Connect, print the camera's measured fps and latency and the arm pose. Moves nothing unless --jog."""
-    import contextlib
-
-    from robot_io.check import format_pose, jog_z, measure_camera
-    from robot_io.config import build_arm, build_camera, build_world, load_hardware_config
-    from robot_io.errors import MissingIntrinsicsError
+    from robot_io.check import format_pose, jog_z, measure_camera  # lazy: CLI start-up (+6 ms)
+    from robot_io.config import (  # lazy: CLI start-up (trimesh, PIL)
+        build_arm,
+        build_camera,
+        build_world,
+        load_hardware_config,
+    )
 
     cfg = load_hardware_config(config)
     with contextlib.ExitStack() as stack:
@@ -69,9 +75,7 @@ def serial_sim(
     boot_delay_ms: float = typer.Option(1000.0, min=0.0, max=60000.0, help="time to the boot banner, 0-60000 ms"),
 ) -> None:
     """Run the serial arm simulator on a pseudo-terminal and print its port (Ctrl-C to stop)."""
-    import time
-
-    from robot_io.arms.serial_sim import SerialArmSimulator
+    from robot_io.arms.serial_sim import SerialArmSimulator  # lazy: CLI start-up (+16 ms)
 
     sim, path = SerialArmSimulator.on_pty(boot_delay_s=boot_delay_ms / 1000.0)
     typer.echo(f"serial arm simulator on {path}; set arm.port to it")

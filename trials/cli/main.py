@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import importlib.metadata
+import os
+import stat
+import sys
 from pathlib import Path
 from typing import Optional
 
 import typer
+from pydantic import ValidationError
+from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
 
+from sim.errors import AdvobjError, format_validation_error
 from trials.cli import attack as cli_attack
 from trials.cli import bench as cli_bench
 from trials.cli import calibrate as cli_calibrate
@@ -18,6 +25,7 @@ from trials.cli import hw as cli_hw
 from trials.cli import policy as cli_policy
 from trials.cli import scene as cli_scene
 from trials.cli import trial as cli_trial
+from trials.cli.eval import format_summary
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -29,8 +37,6 @@ app = typer.Typer(
 
 def _version(value: bool) -> None:
     if value:
-        import importlib.metadata
-
         typer.echo(f"advobj {importlib.metadata.version('advobj')}")
         raise typer.Exit()
 
@@ -63,8 +69,7 @@ def demo(
     address: Optional[str] = cli_grid.ADDRESS,
 ) -> None:
     """The main job on the built-in scene, with quick settings."""
-    from trials.cli.eval import format_summary
-    from trials.experiments.demo import run_demo
+    from trials.experiments.demo import run_demo  # lazy: CLI start-up (trimesh, PIL)
 
     ex, _ = cli_grid.executor(workers, address, typer.echo)
     result = run_demo(out, seed, log=typer.echo, executor=ex)
@@ -96,9 +101,6 @@ def special_file_argument(argv: list[str]) -> str | None:
     nothing and runs before any command. (A camera device is named in a hardware YAML, never as
     a command-line value.)
     """
-    import os
-    import stat
-
     flag = None
     for tok in argv:
         if tok.startswith("--") and "=" in tok:
@@ -128,12 +130,6 @@ def main() -> None:
     of options that reached a model, and an OS error naming a file (``--out`` naming a directory,
     a read-only folder) all print one line naming the flag, field or file.
     """
-    import sys
-
-    from pydantic import ValidationError
-    from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
-
-    from sim.errors import AdvobjError, format_validation_error
 
     def fail(message: str, code: int = 2):
         typer.secho(f"error: {_one_line(message)}", err=True, fg=typer.colors.RED)

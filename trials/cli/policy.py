@@ -6,7 +6,11 @@ import json
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
+
+from sim.runinfo import write_run_info
+from sim.runtime import set_torch_threads
 
 app = typer.Typer(no_args_is_help=True, help="Train, evaluate and export reference visuomotor policies.")
 
@@ -17,8 +21,6 @@ _THREADS_HELP = (
 
 
 def _set_threads(threads: int) -> None:
-    from sim.runtime import set_torch_threads
-
     if threads < 0:
         raise typer.BadParameter("--threads must be >= 0")
     set_torch_threads(threads)
@@ -56,9 +58,9 @@ def train(
     ),
 ) -> None:
     """Train a policy (DAgger from the privileged expert, or PPO) and evaluate it."""
-    from sim.policies.presets import resolve_preset
-    from sim.policies.train import train_policy
-    from sim.spec import load_spec
+    from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
+    from sim.policies.train import train_policy  # lazy: CLI start-up (torch, onnxruntime)
+    from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
 
     extra = {} if episodes is None else {"final_eval_episodes": episodes}
     if stem is not None:
@@ -96,12 +98,11 @@ def evaluate(
     device: str = typer.Option("cpu"),
 ) -> None:
     """Clean success rate with a 95% Wilson interval; writes the task-feasible pool."""
-    from sim.configs import spec_fingerprint
-    from sim.policies.checkpoint import load_policy
-    from sim.policies.pool import built_pool_path, write_feasible_pool
-    from sim.policies.rollout import EnvConfig, evaluate_policy
-    from sim.runinfo import write_run_info
-    from sim.spec import load_spec
+    from sim.configs import spec_fingerprint  # lazy: CLI start-up (trimesh, PIL)
+    from sim.policies.checkpoint import load_policy  # lazy: CLI start-up (torch, onnxruntime)
+    from sim.policies.pool import built_pool_path, write_feasible_pool  # lazy: CLI start-up (torch, trimesh)
+    from sim.policies.rollout import EnvConfig, evaluate_policy  # lazy: CLI start-up (torch, trimesh)
+    from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
 
     _set_threads(threads)
     pol = load_policy(policy, device=device)
@@ -155,10 +156,8 @@ def export(
     check: bool = typer.Option(True, "--check/--no-check", help="compare onnxruntime with torch on 32 random images"),
 ) -> None:
     """Export a checkpoint to ONNX (black-box use, real trials)."""
-    import numpy as np
-
-    from sim.policies.checkpoint import load_checkpoint
-    from sim.policies.onnx_policy import OnnxPolicy, export_onnx
+    from sim.policies.checkpoint import load_checkpoint  # lazy: CLI start-up (torch, onnxruntime)
+    from sim.policies.onnx_policy import OnnxPolicy, export_onnx  # lazy: CLI start-up (torch, onnxruntime)
 
     pol, card = load_checkpoint(policy)
     export_onnx(pol, onnx, card=card, opset=opset)

@@ -7,6 +7,9 @@ from typing import Optional
 
 import typer
 
+from sim.errors import AdvobjError
+from sim.imaging import write_gif
+
 app = typer.Typer(no_args_is_help=True, help="Render the simulated scene and roll out the expert.")
 
 _SIZE = dict(min=16, max=4096, help="square image size in px, 16-4096 (default: the spec camera's)")
@@ -14,8 +17,6 @@ _SIZE = dict(min=16, max=4096, help="square image size in px, 16-4096 (default: 
 
 def _out_file(out: Path, suffixes: tuple[str, ...], flag: str = "--out") -> Path:
     """``out`` if it can be written as a file of one of ``suffixes``; checked before any work."""
-    from sim.errors import AdvobjError
-
     if out.is_dir():
         raise AdvobjError(f"{flag}: {out} is a directory; give a file name ending in {' or '.join(suffixes)}")
     if out.suffix.lower() not in suffixes:
@@ -31,10 +32,10 @@ def render(
     size: Optional[int] = typer.Option(None, **_SIZE),
 ) -> None:
     """Render the wrist-camera view of one initial configuration."""
-    import imageio.v3 as iio
+    import imageio.v3 as iio  # lazy: CLI start-up (imageio)
 
-    from sim.spec import load_spec
-    from trials.jobs.scene import render_still
+    from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
+    from trials.jobs.scene import render_still  # lazy: CLI start-up (trimesh, PIL)
 
     _out_file(out, (".png",))
 
@@ -56,9 +57,8 @@ def rollout(
     if not expert:
         raise typer.BadParameter("only --expert rollouts exist here; policies roll out with 'advobj policy eval'")
     _out_file(out, (".gif",))
-    from sim.imaging import write_gif
-    from sim.spec import load_spec
-    from trials.jobs.scene import expert_rollout
+    from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
+    from trials.jobs.scene import expert_rollout  # lazy: CLI start-up (trimesh, PIL)
 
     spec = load_spec(scene)
     frames, info = expert_rollout(spec, seed, size)
@@ -76,8 +76,8 @@ def pool(
     out: Path = typer.Option(Path("pool.json"), help="output JSON"),
 ) -> None:
     """Write a pool of initial configurations (reproducible from their seeds)."""
-    from sim.configs import sample_pool, save_pool
-    from sim.spec import load_spec
+    from sim.configs import sample_pool, save_pool  # lazy: CLI start-up (trimesh, PIL)
+    from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
 
     _out_file(out, (".json",))
 

@@ -8,10 +8,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import List, Optional
 
+import numpy as np
 import typer
 
+from sim.runinfo import write_run_info
 from trials.cli.options import key_values
-from trials.real.store import DEFAULT_DB
+from trials.real.store import DEFAULT_DB, StoreError, TrialStore
 
 app = typer.Typer(no_args_is_help=True, help="Real-robot trials: plan, run, export, report.")
 
@@ -52,7 +54,7 @@ def plan_command(
     ),
 ) -> None:
     """Write the randomized real-trial plan (paper design: TCP poses x object layouts per env, shape, condition)."""
-    from trials.real.plan import PlanError
+    from trials.real.plan import PlanError  # lazy: CLI start-up (trimesh, PIL)
 
     # before any work: a session's trials are tied to its plan's sha256, a silent overwrite orphans them
     if out.is_dir():
@@ -64,10 +66,15 @@ def plan_command(
         )
     if sheet is not None and sheet.is_dir():
         raise PlanError(f"--sheet: {sheet} is a directory; give the PDF's file name")
-    from sim.configs import load_pool
-    from sim.runinfo import write_run_info
-    from sim.spec import load_spec
-    from trials.real.plan import design_summary, make_plan, plan_sha256, save_plan, texture_ref
+    from sim.configs import load_pool  # lazy: CLI start-up (trimesh, PIL)
+    from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
+    from trials.real.plan import (  # lazy: CLI start-up (trimesh, PIL)
+        design_summary,
+        make_plan,
+        plan_sha256,
+        save_plan,
+        texture_ref,
+    )
 
     spec = load_spec(scene)
     textures = {key: texture_ref(path, key, spec) for key, path in key_values(texture, "--texture").items()}
@@ -75,10 +82,8 @@ def plan_command(
     if table_frame is not None and hardware is None:
         raise PlanError("--table-frame: only with --hardware (it places the hardware's workspace box)")
     if hardware is not None:
-        import numpy as np
-
-        from robot_io.config import load_hardware_config
-        from trials.real.session import load_T_base_table
+        from robot_io.config import load_hardware_config  # lazy: CLI start-up (trimesh, PIL)
+        from trials.real.session import load_T_base_table  # lazy: CLI start-up (torch, cv2)
 
         hw = load_hardware_config(hardware)
         workspace = (
@@ -112,7 +117,7 @@ def plan_command(
     typer.echo("\n".join(design_summary(plan)))
     typer.echo(f"wrote {out}")
     if sheet is not None:
-        from trials.real.sheet import placement_sheet_pdf
+        from trials.real.sheet import placement_sheet_pdf  # lazy: CLI start-up (matplotlib, trimesh)
 
         n_pages = placement_sheet_pdf(plan, sheet, spec)
         typer.echo(f"wrote {sheet} ({n_pages} pages; print at 100 %)")
@@ -156,7 +161,7 @@ def run_command(
     ),
 ) -> None:
     """Run (or resume) the plan's trials: placement check, policy loop, outcome, operator confirmation, commit."""
-    from trials.real.session import SessionOptions, run_session
+    from trials.real.session import SessionOptions, run_session  # lazy: CLI start-up (torch, cv2)
 
     opts = SessionOptions(
         hardware=hardware,
@@ -176,8 +181,6 @@ def run_command(
     summary = run_session(opts, log=typer.echo)
     t = summary.timings
     if t:
-        import numpy as np
-
         typer.echo(
             f"{len(t)} trials committed; policy loop {np.median([x.loop_hz for x in t]):.1f} Hz median, "
             f"per-trial overhead {np.median([x.overhead_s for x in t]):.2f} s median (placement + move + "
@@ -202,8 +205,6 @@ def export_command(
     format: str = typer.Option("both", "--format", help="csv, parquet or both"),
 ) -> None:
     """Export sessions, trials, steps, object poses and events as CSV and/or Parquet tables."""
-    from trials.real.store import StoreError, TrialStore
-
     if format not in ("csv", "parquet", "both"):
         raise StoreError(f"--format: {format!r} is not csv, parquet or both")
     with TrialStore(db, create=False) as store:
@@ -228,8 +229,6 @@ def amend_command(
     reason: str = typer.Option("", help="why the trial is amended (kept in the audit)"),
 ) -> None:
     """Correct a committed trial's outcome or note; the old values stay in the 'amendments' table."""
-    from trials.real.store import TrialStore
-
     with TrialStore(db, create=False) as store:
         a = store.amend_trial(session, trial, outcome, note, reason)
     typer.echo(
@@ -254,14 +253,19 @@ def report_command(
     out: Path = typer.Option(Path("trial_report"), help="report directory (report.md, report.json)"),
 ) -> None:
     """ASR and T-ASR with Wilson intervals per session and pooled, and Table IV beside the sim evaluation."""
-    from sim.runinfo import write_run_info
-    from trials.real.report import ReportError, audit, load_sim_eval, summarize_trials, table_iv, write_trial_report
-    from trials.real.store import TrialStore
+    from trials.real.report import (  # lazy: CLI start-up (+12 ms)
+        ReportError,
+        audit,
+        load_sim_eval,
+        summarize_trials,
+        table_iv,
+        write_trial_report,
+    )
 
     sims = {key: load_sim_eval(d) for key, d in key_values(sim, "--sim").items()}
     plan_textures = {}
     if plan is not None:
-        from trials.real.plan import load_plan
+        from trials.real.plan import load_plan  # lazy: CLI start-up (trimesh, PIL)
 
         plan_textures = {k: t.sha256 for k, t in load_plan(plan).textures.items()}
     with TrialStore(db, create=False) as store:
@@ -286,7 +290,7 @@ def report_command(
     }
     md, js = write_trial_report(out, summary, table, sources=sources)
     write_run_info(out, {"job": "trial-report", **sources}, None)
-    from trials.real.report import plain_text, table_iv_md
+    from trials.real.report import plain_text, table_iv_md  # lazy: CLI start-up (+12 ms)
 
     typer.echo("\n".join(table_iv_md(table)))  # names and notes escaped: no terminal escape reaches the screen
     for line in summary["audit"]["incomplete"]:

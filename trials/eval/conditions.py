@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from attack.artifact import AttackArtifact
 from sim.errors import AdvobjError
 from sim.variations import Randomization
 
@@ -100,8 +101,6 @@ class Condition:
 
 def load_attack_source(path: str | Path) -> AttackSource:
     """An attack run directory's texture and mesh (:class:`attack.artifact.AttackArtifact`; clear errors if not)."""
-    from attack.artifact import AttackArtifact
-
     art = AttackArtifact.load(path, error=ConditionError)
     return AttackSource(str(art.path), art.texture_u8, art.mesh, art.sha256, art.trained_on)
 

@@ -15,16 +15,39 @@ resumes without redoing anything (:mod:`trials.eval.episodes`).
 from __future__ import annotations
 
 import shutil
+import warnings
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 from pydantic import Field, ValidationError
+from tqdm import tqdm
 
 from sim.action import POLICY_ERROR
 from sim.configio import StrictModel
+from sim.configs import (
+    PoolError,
+    config_id,
+    in_part,
+    load_pool,
+    object_local_centers,
+    part_seeds,
+    sample_config,
+    save_pool,
+)
+from sim.env import ReachEnv
 from sim.errors import AdvobjError, format_validation_error
-from trials.eval.episodes import write_summary
+from sim.imaging import labelled, write_gif
+from sim.policies.checkpoint import load_policy
+from sim.policies.contract import call_policy, decode_actions, policy_contract, to_delta
+from sim.policies.pool import built_pool_path, feasible_pool_path
+from sim.policies.rollout import rollout
+from sim.runinfo import write_run_info
+from sim.spec import load_spec
+from trials.eval.conditions import Condition, Sources, build_conditions, condition_spec
+from trials.eval.episodes import EpisodeStore, read_rows, write_summary
+from trials.eval.metrics import action_errors
+from trials.eval.report import summarize, write_report
 
 __all__ = [
     "EvalError",
@@ -145,12 +168,6 @@ def rollout_condition(
         on_frame: optional ``on_frame(j, step, adv_rgb, clean_rgb)`` for every observation the
             policy acts on (left camera), e.g. to write GIFs.
     """
-    from sim.env import ReachEnv
-    from sim.policies.contract import call_policy, decode_actions, policy_contract, to_delta
-    from sim.policies.rollout import rollout
-    from trials.eval.conditions import condition_spec
-    from trials.eval.metrics import action_errors
-
     if not configs:
         return
     spec_c = condition_spec(spec, cond)
@@ -242,9 +259,6 @@ def build_feasible(
     reaches the goal, the definition of task-feasible. At most ``max_candidates`` (default
     ``4 * n``) are tried. Returns ``(configs, candidates tried)``.
     """
-    from sim.configs import object_local_centers, part_seeds, sample_config
-    from trials.eval.conditions import Condition
-
     if n <= 0:
         return [], 0
     max_candidates = 4 * n if max_candidates is None else int(max_candidates)
@@ -252,7 +266,6 @@ def build_feasible(
     seeds = (s for s in part_seeds(part, start_seed) if s not in skip)
     centers = object_local_centers(spec)
     goal = spec.object_index("goal")
-    from tqdm import tqdm
 
     feasible: list = []
     tried = 0
@@ -290,9 +303,6 @@ def resolve_pool(
     which a resumed evaluation reuses. ``final``: ``cfg.pool`` is the pool to use as it is, even
     short (a grid's pool job already built it; its shards must not build more each).
     """
-    from sim.configs import PoolError, in_part, load_pool, save_pool
-    from sim.policies.pool import built_pool_path, feasible_pool_path
-
     path = built_pool_path(out)
     if path.is_file():  # built by an earlier (interrupted) run of this evaluation: keep using it
         return in_part(load_pool(path, spec), "evaluation"), str(path)
@@ -347,8 +357,6 @@ def resolve_pool(
 def overlap_with_training(configs, conds) -> dict:
     """Per condition with a texture: how many of ``configs`` its texture was optimised or selected
     on (``None``: the texture directory has no configuration record)."""
-    from sim.configs import config_id
-
     ids = {config_id(c) for c in configs}
     out = {}
     for cond in conds:
@@ -390,9 +398,6 @@ def _row(cond_name: str, config, res: dict, spec) -> dict:
 def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: bool):
     """The conditions, scene, configurations, pool source, overlap and resolved config of an
     evaluation (refusing an in-sample one): what every shard and the merge share."""
-    from sim.spec import load_spec
-    from trials.eval.conditions import Sources, build_conditions
-
     conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes)))
     base = load_spec(cfg.scene)
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
@@ -410,8 +415,6 @@ def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: boo
         )
     unknown = sorted(k for k, v in overlap.items() if v is None)
     if unknown:
-        import warnings
-
         warnings.warn(
             f"condition(s) {', '.join(unknown)}: the texture directory records no training configurations "
             "(configs.json), "
@@ -432,8 +435,6 @@ def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: boo
 
 
 def _finish(cfg: EvalConfig, out: Path, rows: list, spec, conds, configs, pool_src, overlap, report: bool) -> dict:
-    from trials.eval.report import summarize, write_report
-
     # In a fixed order: means and intervals then do not depend on the order episodes finished in.
     rows = sorted(rows, key=lambda r: (r["condition"], r["seed"]))
     summary = summarize(
@@ -471,13 +472,6 @@ def run_eval(
     draw or seed: each episode depends on its configuration alone (the policy acts on fixed-size
     batches, :func:`rollout_condition`), so its row is the same in any shard.
     """
-    from tqdm import tqdm
-
-    from sim.imaging import labelled
-    from sim.policies.checkpoint import load_policy
-    from sim.runinfo import write_run_info
-    from trials.eval.episodes import EpisodeStore
-
     out = Path(out)
     policy = load_policy(cfg.policy, cfg.device)
     conds, spec, configs, pool_src, overlap, resolved = _prepare(cfg, out, policy, progress, final_pool)
@@ -519,9 +513,6 @@ def run_eval(
 def merge_eval(cfg: EvalConfig, out: str | Path, shard_dirs) -> dict:
     """Merge the shards of one evaluation (:func:`run_eval` with ``shard``) into ``out``: the
     episodes, GIFs, manifest, summary and report the evaluation run whole writes there."""
-    from sim.runinfo import write_run_info
-    from trials.eval.episodes import EpisodeStore, read_rows
-
     out = Path(out)
     conds, spec, configs, pool_src, overlap, resolved = _prepare(cfg, out, None, False, True)
     store = EpisodeStore(out, resolved, [o.name for o in spec.objects], resume=True)
@@ -555,6 +546,4 @@ def _json_default(o):
 
 
 def _write_gif(path: Path, frames: list) -> None:
-    from sim.imaging import write_gif
-
     write_gif(path, frames)

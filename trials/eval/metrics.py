@@ -27,6 +27,7 @@ from fractions import Fraction
 
 import numpy as np
 
+from sim.geometry import rotation_angle, so3_exp
 from sim.stats import Proportion, proportion
 
 __all__ = [
@@ -78,8 +79,6 @@ def action_errors(a_adv, a_clean, max_step_rad: float) -> tuple[np.ndarray, np.n
     ``e_trans``: L2 norm of the difference of the normalised translation parts ``a[:, :3]``.
     ``e_rot``: geodesic angle (rad) between the commanded rotations ``exp(a[:, 3:] * max_step_rad)``.
     """
-    from sim.geometry import rotation_angle, so3_exp
-
     a = np.asarray(a_adv, dtype=np.float64)
     c = np.asarray(a_clean, dtype=np.float64)
     if a.shape != c.shape or a.ndim != 2 or a.shape[1] != 6:

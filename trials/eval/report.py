@@ -6,8 +6,13 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import imageio.v3 as iio
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+from PIL import Image
 
+from sim.imaging import write_gif
 from trials.eval.metrics import (
     DISTANCE_BINS_CM,
     PHI_BINS_DEG,
@@ -133,10 +138,7 @@ def _fmt_p(p: float) -> str:
 
 
 def _bar_plot(path: Path, summary: dict, key: str, title: str, xlabel: str) -> Path:
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     conds = list(summary["conditions"])
     labels = [k for k in summary["conditions"][conds[0]][key] if k != "outside"]
@@ -173,10 +175,6 @@ def _bar_plot(path: Path, summary: dict, key: str, title: str, xlabel: str) -> P
 
 def _compare_gifs(out: Path, names: list[str]) -> list[Path]:
     """Side-by-side clean | condition GIFs for every recorded seed."""
-    import imageio.v3 as iio
-
-    from sim.imaging import write_gif
-
     made = []
     gdir = out / "gifs"
     for clean_gif in sorted(gdir.glob("clean_seed*.gif")) if gdir.is_dir() else []:
@@ -197,9 +195,6 @@ def _compare_gifs(out: Path, names: list[str]) -> list[Path]:
 
 def write_report(out: str | Path, summary: dict, conds=()) -> Path:
     """Write ``report.md`` with tables, bar plots, rollout GIFs and texture thumbnails."""
-    import imageio.v3 as iio
-    from PIL import Image
-
     out = Path(out)
     names = list(summary["conditions"])
     meta = summary.get("meta", {})

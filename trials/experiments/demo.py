@@ -15,6 +15,23 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import imageio.v3 as iio
+
+from sim.imaging import contact_sheet, write_gif
+from sim.runinfo import write_run_info
+from sim.runtime import set_torch_threads
+from sim.spec import load_spec
+from trials.experiments.recipes import (
+    Context,
+    ensure_attack,
+    ensure_eval,
+    ensure_policy,
+    eval_rows,
+    resolve_experiment,
+    table1_markdown,
+)
+from trials.jobs.scene import expert_rollout
+
 __all__ = ["run_demo", "DEMO_BUDGET"]
 
 # Sized for <= 15 minutes on 2 CPU cores including setup (measured figures: docs/evaluation.md).
@@ -23,23 +40,6 @@ DEMO_BUDGET = dict(attack_overrides={"iterations": 60}, episodes=40, max_steps=6
 
 def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
     """Run the demo into ``out``; returns the evaluation summary plus the expert's outcome."""
-    import imageio.v3 as iio
-
-    from sim.imaging import contact_sheet, write_gif
-    from sim.runinfo import write_run_info
-    from sim.runtime import set_torch_threads
-    from sim.spec import load_spec
-    from trials.experiments.recipes import (
-        Context,
-        ensure_attack,
-        ensure_eval,
-        ensure_policy,
-        eval_rows,
-        resolve_experiment,
-        table1_markdown,
-    )
-    from trials.jobs.scene import expert_rollout
-
     set_torch_threads()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -18,11 +18,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
+import yaml
 from pydantic import Field, ValidationError
 
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
-from trials.eval.episodes import read_summary
+from sim.runinfo import write_run_info
+from trials.eval.episodes import has_manifest, read_rows, read_summary
 
 __all__ = [
     "ExperimentError",
@@ -222,13 +224,13 @@ class Context:
     grid: object = None
 
     def __post_init__(self):
-        from trials.jobs.dag import Grid, SerialExecutor
+        from trials.jobs.dag import Grid, SerialExecutor  # lazy: CLI start-up (+15 ms)
 
         self.grid = self.grid or Grid(self.out)
         self.executor = self.executor or SerialExecutor(self.log, tee=self.progress)
 
     def spec(self):
-        from sim.spec import load_spec
+        from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
 
         return load_spec(self.scene)
 
@@ -333,7 +335,7 @@ def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None
         return Path(ctx.targets[name])
     d = ctx.out / "policies" / name
     preset = preset or ctx.cfg.policy_preset
-    from sim.policies.presets import resolve_preset
+    from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
 
     try:
         resolve_preset(preset, arch=arch, seed=ctx.cfg.seed)
@@ -353,15 +355,15 @@ def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None
 
 def job_train_policy(out: Path, inputs: dict, preset: str, arch: str | None, seed: int, device: str = "cpu") -> None:
     """The ``train-policy`` job: train (or resume, or reuse a finished) policy into ``out``."""
-    from sim.policies.checkpoint import is_checkpoint
-    from sim.policies.presets import resolve_preset
-    from sim.policies.train import train_policy
-    from sim.spec import load_spec
+    from sim.policies.checkpoint import is_checkpoint  # lazy: CLI start-up (torch, onnxruntime)
+    from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
+    from sim.policies.train import train_policy  # lazy: CLI start-up (torch, onnxruntime)
+    from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
 
     if is_checkpoint(out):
         print(f"policy: reusing {out}")
         return
-    from trials.jobs.dag import show_progress
+    from trials.jobs.dag import show_progress  # lazy: CLI start-up (+15 ms)
 
     train_policy(
         resolve_preset(preset, arch=arch, seed=seed),
@@ -375,7 +377,7 @@ def job_train_policy(out: Path, inputs: dict, preset: str, arch: str | None, see
 def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict) -> Path:
     """An ``attack`` job into ``out/attacks/<name>``: reused when finished with the same config,
     resumed if interrupted."""
-    from attack.optimize import resolve_config
+    from attack.optimize import resolve_config  # lazy: CLI start-up (torch, trimesh)
 
     fields = {**ctx.cfg.attack_overrides, **overrides}
     if str(ctx.cfg.device) != "cpu":
@@ -396,12 +398,10 @@ def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict) ->
 
 def job_attack(out: Path, inputs: dict, preset: str, fields: dict) -> None:
     """The ``attack`` job: run, resume or reuse the attack of ``fields`` into ``out``."""
-    import yaml
-
-    from attack.artifact import TEXTURE_NPY, AttackArtifact
-    from attack.optimize import resolve_config
-    from attack.state import find_checkpoint
-    from trials.jobs.attack import attack_job
+    from attack.artifact import TEXTURE_NPY, AttackArtifact  # lazy: CLI start-up (trimesh, PIL)
+    from attack.optimize import resolve_config  # lazy: CLI start-up (torch, trimesh)
+    from attack.state import find_checkpoint  # lazy: CLI start-up (torch, trimesh)
+    from trials.jobs.attack import attack_job  # lazy: CLI start-up (torch, onnxruntime)
 
     want = resolve_config(preset, fields).model_dump()
     if (out / "metrics.json").is_file() and (out / TEXTURE_NPY).is_file():
@@ -414,7 +414,7 @@ def job_attack(out: Path, inputs: dict, preset: str, fields: dict) -> None:
     cfg_path = out / "attack_config.yaml"
     cfg_path.write_text(yaml.safe_dump(fields))
     resume = find_checkpoint(out) is not None
-    from trials.jobs.dag import show_progress
+    from trials.jobs.dag import show_progress  # lazy: CLI start-up (+15 ms)
 
     attack_job(inputs["policy"], preset, cfg_path, inputs.get("scene"), None, out, resume, progress=show_progress())
 
@@ -435,7 +435,7 @@ def ensure_pool(ctx: Context, policy_dir: Path) -> str:
     """The evaluation pool of a policy: a ``pool`` job (``<out>/pools/<policy>-<hash>/``) built once
     per recipe run and shared by all its evaluations, so every arm of every table is paired on the
     same configurations and the clean rollouts that find them are not repeated per evaluation."""
-    from sim.policies.pool import built_pool_path
+    from sim.policies.pool import built_pool_path  # lazy: CLI start-up (torch, trimesh)
 
     c = ctx.cfg
     if c.pool is not None:
@@ -461,12 +461,12 @@ def ensure_pool(ctx: Context, policy_dir: Path) -> str:
 def job_pool(out: Path, inputs: dict, fields: dict) -> None:
     """The ``pool`` job: the policy's task-feasible evaluation-part configurations, saved as
     ``out/feasible_pool.json`` (from the policy's own pool, topped up as ``advobj eval`` does)."""
-    from sim.configs import save_pool
-    from sim.policies.checkpoint import load_policy
-    from sim.policies.pool import built_pool_path
-    from sim.spec import load_spec
-    from trials.eval.evaluate import load_eval_config, resolve_pool
-    from trials.jobs.dag import show_progress
+    from sim.configs import save_pool  # lazy: CLI start-up (trimesh, PIL)
+    from sim.policies.checkpoint import load_policy  # lazy: CLI start-up (torch, onnxruntime)
+    from sim.policies.pool import built_pool_path  # lazy: CLI start-up (torch, trimesh)
+    from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
+    from trials.eval.evaluate import load_eval_config, resolve_pool  # lazy: CLI start-up (torch, onnxruntime)
+    from trials.jobs.dag import show_progress  # lazy: CLI start-up (+15 ms)
 
     ecfg = load_eval_config(
         policy=str(inputs["policy"]),
@@ -510,9 +510,8 @@ def ensure_eval(
 def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, merge: int = 0) -> None:
     """The ``eval-shard`` job (the whole evaluation, or configurations ``k::K`` with ``shard``) and
     their merge (``merge=K``: the K shards under ``out/shards`` into ``out``)."""
-    from trials.eval.episodes import has_manifest
-    from trials.eval.evaluate import load_eval_config, merge_eval, run_eval
-    from trials.jobs.dag import show_progress
+    from trials.eval.evaluate import load_eval_config, merge_eval, run_eval  # lazy: CLI start-up (torch, onnxruntime)
+    from trials.jobs.dag import show_progress  # lazy: CLI start-up (+15 ms)
 
     sv = lambda k: None if k not in inputs else str(inputs[k])  # noqa: E731
     cfg = load_eval_config(
@@ -542,8 +541,8 @@ def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dic
     folder ``run_eval`` writes), in ``shards`` jobs merged there. The pool job resolves the pool as
     ``run_eval`` does (``cfg.pool`` or the policy's own, topped up when short of ``cfg.episodes``),
     so the episodes do not depend on the executor; the shards take its pool as it is."""
-    from sim.policies.pool import built_pool_path
-    from trials.jobs.dag import Grid
+    from sim.policies.pool import built_pool_path  # lazy: CLI start-up (torch, trimesh)
+    from trials.jobs.dag import Grid  # lazy: CLI start-up (+15 ms)
 
     out = Path(out)
     grid = Grid(out)
@@ -615,8 +614,6 @@ def table1(ctx: Context) -> str:
 def eval_rows(ctx: Context, name: str, condition: str | None = None) -> list[dict] | dict[int, dict]:
     """The episode rows of evaluation ``name`` (``<out>/evals/<name>/episodes.csv``); with
     ``condition``, that arm's rows keyed by configuration seed (for paired comparisons)."""
-    from trials.eval.episodes import read_rows
-
     ctx.run_jobs()
     rows = read_rows(ctx.out / "evals" / name)
     return rows if condition is None else {r["seed"]: r for r in rows if r["condition"] == condition}
@@ -651,7 +648,7 @@ def table1_markdown(s: dict, ctx: Context, rows: list[dict] | None = None) -> st
             f"ASR {pair['asr']['b']} / {pair['asr']['c']}, p = {pair['asr']['p_value']:.2g}.",
         ]
     if rows:
-        from trials.experiments.findings import paired_markdown
+        from trials.experiments.findings import paired_markdown  # lazy: CLI start-up (+33 ms)
 
         a = {r["seed"]: r for r in rows if r["condition"] == "attack"}
         b = {r["seed"]: r for r in rows if r["condition"] == "patch"}
@@ -701,7 +698,7 @@ def table2(ctx: Context) -> str:
             ]
         else:
             lines.append("| | | | | | paper | " + " | ".join(["-"] * (2 * len(DIST_LABELS) + 2)) + " |")
-    from trials.experiments.findings import paired_markdown
+    from trials.experiments.findings import paired_markdown  # lazy: CLI start-up (+33 ms)
 
     arms = {key: eval_rows(ctx, f"table2_{key}", "attack") for key, *_ in TABLE2_ROWS}
     for a, b, claim in (
@@ -810,7 +807,7 @@ def lighting(ctx: Context) -> str:
     """Lighting randomisation in the attack (the paper's sim-to-real measure): what it costs (attack
     time, T-ASR under the nominal light) and what it buys (T-ASR under the bright and dim presets
     and under held-out random lights), each texture on the same configurations."""
-    from trials.experiments.findings import paired_markdown
+    from trials.experiments.findings import paired_markdown  # lazy: CLI start-up (+33 ms)
 
     ref = ensure_policy(ctx)
     runs = {
@@ -847,7 +844,7 @@ def lighting(ctx: Context) -> str:
 
 def _arch(pdir: Path) -> str:
     try:
-        from sim.policies.card import load_card
+        from sim.policies.card import load_card  # lazy: CLI start-up (torch)
 
         return load_card(pdir).arch.arch
     except Exception:
@@ -887,9 +884,9 @@ RECIPES: dict[str, Recipe] = {
 def _check_inputs(ctx: Context) -> None:
     """Every input the recipe was given, checked before the first (long) job starts: the scene, the
     pool, the source policy and every target (a checkpoint's card, or an ONNX file that loads)."""
-    from sim.configs import load_pool
-    from sim.policies.card import load_card
-    from sim.policies.checkpoint import load_policy
+    from sim.configs import load_pool  # lazy: CLI start-up (trimesh, PIL)
+    from sim.policies.card import load_card  # lazy: CLI start-up (torch)
+    from sim.policies.checkpoint import load_policy  # lazy: CLI start-up (torch, onnxruntime)
 
     spec = ctx.eval_spec()  # also loads the scene: a bad --scene fails here
     if ctx.cfg.pool is not None:
@@ -917,8 +914,6 @@ def run_experiment(
 ) -> Path:
     """Run recipe ``name`` (its jobs on ``executor``, serial by default, each evaluation in
     ``shards`` jobs); returns the path of its ``table.md``."""
-    from sim.runinfo import write_run_info
-
     if name not in RECIPES:
         raise ExperimentError(f"unknown experiment {name!r}; choose one of {', '.join(RECIPES)}")
     unknown = set(targets or {}) - set(cfg.transfer_targets)

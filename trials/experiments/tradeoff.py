@@ -36,16 +36,41 @@ import shutil
 import subprocess
 import sys
 import time
+import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numpy
+import numpy as np
+import onnx
+import onnxruntime
+import torch
+from onnxruntime.quantization import QuantType, quantize_dynamic
+from onnxruntime.transformers.float16 import convert_float_to_float16
 from pydantic import Field, ValidationError
 
+from attack.artifact import TEXTURE_NPY, AttackArtifact, write_config_record
+from attack.optimize import AttackRun, resolve_config, run_attack
 from sim.configio import StrictModel
+from sim.configs import in_part, load_pool, save_pool
 from sim.errors import AdvobjError, format_validation_error
-from sim.runinfo import read_run_info
+from sim.policies.card import load_card
+from sim.policies.checkpoint import is_checkpoint, load_checkpoint
+from sim.policies.onnx_policy import OnnxPolicy, export_onnx
+from sim.policies.pool import feasible_pool_path
+from sim.policies.presets import resolve_preset
+from sim.policies.train import train_policy
+from sim.runinfo import git_commit, read_run_info, write_run_info
+from sim.runtime import set_torch_threads
+from sim.spec import load_spec
+from sim.stats import proportion
+from trials.eval.conditions import Condition
+from trials.eval.episodes import read_rows
+from trials.eval.evaluate import load_eval_config, rollout_condition, run_eval
+from trials.eval.report import summarize_rows
 from trials.experiments.tradeoff_report import write_report
+from trials.jobs.dag import Grid, GridError, SerialExecutor, clear_finished, is_finished, usable_cpus
 
 __all__ = [
     "TradeoffError",
@@ -205,8 +230,6 @@ def _policy_dir(cfg: TradeoffConfig, label: str) -> str | None:
 
 def build_rows(cfg: TradeoffConfig) -> list[Row]:
     """Every row of the sweep, in run order (dependencies first)."""
-    from attack.optimize import resolve_config
-
     vals = {**DEFAULT_VALUES, **cfg.values}
     base = resolve_config(cfg.attack_preset, cfg.attack_overrides)
     bad = [k for k in cfg.snapshots if not 0 < k < base.iterations]
@@ -311,10 +334,6 @@ def select_rows(rows: list[Row], wanted: list[str] | None) -> list[Row]:
 # ----------------------------------------------------------------------------- machine and results
 def machine_info(threads: int | None = None) -> dict:
     """Cores, CPU model, memory, library versions, thread settings and the load average now."""
-    import numpy
-    import onnxruntime
-    import torch
-
     model = None
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.is_file():
@@ -328,7 +347,6 @@ def machine_info(threads: int | None = None) -> dict:
         for line in meminfo.read_text().splitlines():
             if line.startswith("MemTotal:"):
                 mem_gb = round(int(line.split()[1]) / 2**20, 1)
-    from trials.jobs.dag import usable_cpus
 
     return {
         "cpu_count": os.cpu_count(),
@@ -369,8 +387,6 @@ def _append(out: Path, rec: dict) -> None:
 
 
 def _json_default(o):
-    import numpy as np
-
     if isinstance(o, (np.floating, np.integer)):
         return o.item()
     if isinstance(o, Path):
@@ -410,8 +426,6 @@ def run_sweep(
     texture it reads. Rows read each other's outputs under ``out``: on a cluster, ``out`` must be
     on a filesystem every node shares.
     """
-    from sim.runinfo import write_run_info
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     settings_file = out / SETTINGS_NAME
@@ -450,7 +464,6 @@ def run_sweep(
     machine["runs"].append({"start": machine_info(cfg.threads)})
     info_path.write_text(json.dumps(machine, indent=2))
     write_run_info(out, {"job": "tradeoff", "settings": settings, "rows": [r.key for r in todo]}, cfg.seed)
-    from trials.jobs.dag import SerialExecutor
 
     # Serially each row runs in a child process (isolate) or in-process; on Ray in a fresh worker.
     mode = "worker" if executor is not None else ("child" if isolate else "inline")
@@ -463,8 +476,6 @@ def run_sweep(
 def _run_rows_as_jobs(cfg: TradeoffConfig, todo: list[Row], out: Path, executor, log, mode: str = "worker") -> None:
     """The rows as ``tradeoff-row`` jobs; every finished row's record appended in table order
     (a row that measured an error is recorded and runs again next time)."""
-    from trials.jobs.dag import Grid, GridError, clear_finished, is_finished
-
     grid = Grid(out)
     jobs = {}
     settings = cfg.model_dump(mode="json")
@@ -518,8 +529,6 @@ def job_row(out: Path, inputs: dict, cfg: dict, row: dict, root: str, mode: str 
 
 
 def _base_record(cfg: TradeoffConfig, row: Row) -> dict:
-    from sim.runinfo import git_commit
-
     return {
         "key": row.key,
         "knob": row.knob,
@@ -579,16 +588,11 @@ def _peak_rss_mb() -> float:
 
 
 def _eval_spec(cfg: TradeoffConfig):
-    from sim.spec import load_spec
-
     base = load_spec(cfg.scene)
     return base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
 
 
 def _policy_pool(cfg: TradeoffConfig, label: str, spec) -> tuple[list, str]:
-    from sim.configs import load_pool
-    from sim.policies.pool import feasible_pool_path
-
     if label == "ref" and cfg.pool is not None:
         path = Path(cfg.pool)
     else:
@@ -602,8 +606,6 @@ def _policy_pool(cfg: TradeoffConfig, label: str, spec) -> tuple[list, str]:
 
 def _eval_set(cfg: TradeoffConfig, label: str, out: Path, spec) -> tuple[Path, list, list, str]:
     """``(path, eval configs, attack configs, note)``: the fixed set (written once) and the attack's pool."""
-    from sim.configs import in_part, load_pool, save_pool
-
     pool, src = _policy_pool(cfg, label, spec)
     path = out / "eval_sets" / f"{label}.json"
     if path.is_file():
@@ -642,18 +644,12 @@ def _eval_set(cfg: TradeoffConfig, label: str, out: Path, spec) -> tuple[Path, l
 
 
 def _write_texture_dir(d: Path, texture, attack_cfg, extra: dict) -> Path:
-    from attack.artifact import AttackArtifact
-
     config = {"job": "tradeoff-attack", "attack": attack_cfg.model_dump(), **extra}
     return AttackArtifact.from_tensor(texture, config, attack_cfg.seed).save(d, run="provenance")
 
 
 def _attack(cfg: TradeoffConfig, row: Row, out: Path, spec, attack_cfgs: list) -> dict:
     """Run the row's attack; write the final texture (and the baseline's snapshots); return timings."""
-    from attack.artifact import write_config_record
-    from attack.optimize import AttackRun, resolve_config, run_attack
-    from sim.policies.checkpoint import load_checkpoint
-
     acfg = resolve_config(cfg.attack_preset, {**cfg.attack_overrides, **row.overrides})
     policy, card = load_checkpoint(_policy_dir(cfg, row.policy))
     d = out / "attacks" / _slug(row.key)
@@ -705,8 +701,6 @@ def _attack(cfg: TradeoffConfig, row: Row, out: Path, spec, attack_cfgs: list) -
 def _evaluate(
     cfg: TradeoffConfig, row: Row, out: Path, attack_dir: str, episodes: int, pool: str | None, seed: int
 ) -> dict:
-    from trials.eval.evaluate import load_eval_config, run_eval
-
     d = out / "evals" / _slug(row.key)
     if d.exists():
         shutil.rmtree(d)
@@ -743,9 +737,6 @@ def _evaluate(
 
 def _subset_summary(eval_dir: str, n: int, spec) -> dict:
     """The first ``n`` configurations (in pool order) of an evaluation, summarised alone."""
-    from trials.eval.episodes import read_rows
-    from trials.eval.report import summarize_rows
-
     d = Path(eval_dir)
     seeds = read_run_info(d)["config"]["seeds"][:n]
     keep = set(seeds)
@@ -770,8 +761,6 @@ def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
                 rec.update(_attack(cfg, row, out, spec, attack_cfgs))
                 rec.update(_evaluate(cfg, row, out, rec["attack_dir"], len(eval_cfgs), str(set_path), cfg.seed))
             else:
-                from attack.artifact import TEXTURE_NPY, AttackArtifact
-
                 base_dir = out / "attacks" / _slug(BASELINE_KEY)
                 if not (base_dir / TEXTURE_NPY).is_file():
                     raise TradeoffError(
@@ -811,8 +800,6 @@ def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
                 rec["image_size"] = _image_size(cfg, row.policy)
         rec["status"] = "ok"
     except Exception as err:  # recorded in the row; the sweep goes on with the next row
-        import traceback
-
         rec.update(
             status="error",
             error=f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}",
@@ -826,8 +813,6 @@ def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
 
 
 def _image_size(cfg: TradeoffConfig, label: str) -> int:
-    from sim.policies.card import load_card
-
     return int(load_card(_policy_dir(cfg, label)).arch.image_size)
 
 
@@ -848,8 +833,6 @@ class _Recorder:
 
 
 def _latency_ms(act, frames, batch: int, reps: int) -> dict:
-    import numpy as np
-
     n = len(frames)
     for i in range(3):
         act(frames[(i * batch) % n : (i * batch) % n + batch])
@@ -874,10 +857,6 @@ def _latency_ms(act, frames, batch: int, reps: int) -> dict:
 
 
 def _clean_success(policy, spec, configs, num_envs: int) -> dict:
-    from sim.stats import proportion
-    from trials.eval.conditions import Condition
-    from trials.eval.evaluate import rollout_condition
-
     goal = spec.object_index("goal")
     ok = [False] * len(configs)
 
@@ -889,12 +868,6 @@ def _clean_success(policy, spec, configs, num_envs: int) -> dict:
 
 
 def _deployment(cfg: TradeoffConfig, row: Row, out: Path, spec) -> dict:
-    import numpy as np
-    import torch
-
-    from sim.policies.checkpoint import load_checkpoint
-    from sim.policies.onnx_policy import OnnxPolicy, export_onnx
-
     torch_policy, card = load_checkpoint(_policy_dir(cfg, row.policy))
     _, eval_cfgs, _, _ = _eval_set(cfg, row.policy, out, spec)
     configs = eval_cfgs[: max(cfg.deploy_episodes, 1)]
@@ -917,14 +890,9 @@ def _deployment(cfg: TradeoffConfig, row: Row, out: Path, spec) -> dict:
         fp32 = export_onnx(torch_policy, d / "policy_fp32.onnx", card=card)
         path = fp32
         if variant == "onnx-int8":
-            from onnxruntime.quantization import QuantType, quantize_dynamic
-
             path = d / "policy_int8.onnx"
             quantize_dynamic(str(fp32), str(path), weight_type=QuantType.QInt8)
         elif variant == "onnx-fp16":
-            import onnx
-            from onnxruntime.transformers.float16 import convert_float_to_float16
-
             path = d / "policy_fp16.onnx"
             onnx.save(convert_float_to_float16(onnx.load(str(fp32)), keep_io_types=True), str(path))
         policy = OnnxPolicy(path, threads=cfg.threads)
@@ -965,11 +933,6 @@ def train_resolution_policy(
     ``dagger_iterations`` shortens (or lengthens) the preset's DAgger run; the run length is not
     part of the training fingerprint, so an interrupted longer run in ``out_dir`` resumes.
     """
-    from sim.policies.checkpoint import is_checkpoint
-    from sim.policies.presets import resolve_preset
-    from sim.policies.train import train_policy
-    from sim.spec import load_spec
-
     d = Path(out_dir)
     if is_checkpoint(d):
         log(f"{size} px policy: reusing {d}")
@@ -1019,8 +982,6 @@ class TradeoffJob(StrictModel):
             raise TradeoffError(format_validation_error(err, "tradeoff job")) from None
 
     def run(self, log=print, progress: bool = True, executor=None) -> Path:
-        from sim.runtime import set_torch_threads
-
         set_torch_threads()
         cfg, out, res = self.config, Path(self.out), dict(self.config.resolution_policies)
         rows, train_missing, train_iterations, redo = (
@@ -1034,7 +995,6 @@ class TradeoffJob(StrictModel):
         if not self.report_only:
             # every policy loaded before any row runs (card, weights and their hash, the arch they fit):
             # a bad --policy fails now, not as 17 failed rows
-            from sim.policies.checkpoint import load_checkpoint
 
             for flag, d in [("--policy", cfg.policy)] + [
                 (f"--res-policy {s}", v) for s, v in sorted(cfg.resolution_policies.items())
@@ -1117,8 +1077,6 @@ def write_tradeoff_report(out: str | Path, plot: str | Path | None = None) -> Pa
 
 # ----------------------------------------------------------------------------- child entry point
 def _child(job_path: str, result_path: str) -> int:
-    from sim.runtime import set_torch_threads
-
     job = json.loads(Path(job_path).read_text())
     cfg = TradeoffConfig(**job["cfg"])
     set_torch_threads(cfg.threads)

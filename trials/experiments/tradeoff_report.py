@@ -10,6 +10,9 @@ import json
 import math
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
+
 __all__ = [
     "pareto_front",
     "attack_table",
@@ -194,10 +197,8 @@ def plot_pareto(rows: list[dict], path: str | Path, cost: str = "attack_wall_s")
     Pareto front of the baseline policy's rows."""
     if cost not in _COST_LABEL:
         raise ValueError(f"cost: one of {sorted(_COST_LABEL)}, got {cost!r}")
-    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     pts = [r for r in _ok(rows, ("attack", "snapshot")) if r.get(cost) is not None and r["tasr"].get("n")]
     same = [r for r in pts if r["policy"] == "ref"]

@@ -33,9 +33,26 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+import cv2
+import matplotlib
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.backends.backend_pdf import PdfPages
+from matplotlib.patches import Polygon, Rectangle
+from PIL import Image, ImageDraw
+from tqdm import tqdm
 
+from attack.artifact import RUN_JSON, AttackArtifact
+from attack.outputs import export_meshes
+from calibration.printables import image_mm, page_figure, scale_bar
+from calibration.registry import ObjectRegistry, save_registry
+from sim.assets import AssetError, build_mesh, region_texture, texel_density_ratio
+from sim.geometry import make_T, so3_exp
+from sim.runinfo import write_run_info
+from sim.spec import default_scene
+from trials.eval.conditions import ConditionError
 from trials.fabrication.base import FabricationError, mesh_ring_mm, sample_bilinear
+from trials.fabrication.print_check import check_print, write_check
 
 __all__ = [
     "SHEET_SHAPES",
@@ -91,8 +108,6 @@ def optimised_texel_size_mm(mesh, width_px: int, height_px: int) -> dict | None:
     """How large one texel of a ``width_px x height_px`` texture is on the mesh's optimised faces:
     the side (mm) of a texel's footprint per face (sqrt of 3D area over texel count), its
     area-weighted median and 10th/90th percentiles. None if no optimised face has UV area."""
-    from sim.assets import texel_density_ratio
-
     per_uv = texel_density_ratio(mesh)  # metres per UV unit, per face
     opt = np.asarray(mesh.metadata.get("optimizable_faces", np.ones(len(mesh.faces), bool)), bool)
     ok = opt & np.isfinite(per_uv)
@@ -109,15 +124,10 @@ def optimised_texel_size_mm(mesh, width_px: int, height_px: int) -> dict | None:
 
 def load_run(run_dir) -> RunSource:
     """Read an ``advobj attack run`` directory (clear errors naming the missing/bad file)."""
-    from attack.artifact import AttackArtifact
-    from trials.eval.conditions import ConditionError
-
     art = AttackArtifact.load(run_dir, error=ConditionError)
     scene = art.scene
     adv = next((o for o in scene.get("objects", []) if isinstance(o, dict) and o.get("role") == "adversarial"), None)
     if adv is None:
-        from sim.spec import default_scene
-
         o = next(o for o in default_scene().objects if o.role == "adversarial")
         adv = {"mesh": o.mesh, "scale": o.scale}
     mesh = art.mesh or adv.get("mesh")
@@ -332,8 +342,6 @@ def _rect_poly(x, y, w, h):
 def _rot_about_edge(e0: np.ndarray, e1: np.ndarray, towards: np.ndarray) -> np.ndarray:
     """4x4 rotation by 90 deg about the paper-plane line e0 -> e1 (3D, z = 0) that moves point
     ``towards`` (3D, on the plane) into the page (+z: behind the printed side)."""
-    from sim.geometry import make_T, so3_exp
-
     d = (e1 - e0) / np.linalg.norm(e1 - e0)
     for sgn in (1.0, -1.0):
         R = so3_exp(d * sgn * np.pi / 2)
@@ -567,8 +575,6 @@ def tag_card(tag_id: int, tag_size_mm: float, shape: str, mesh) -> Piece:
     face. The footprint is drawn with the object's +x to the right and +y up (its -y, front, face
     toward the card's bottom edge), so ``T_tag_object`` is a pure translation.
     """
-    import cv2
-
     if not 0 <= tag_id < 587:
         raise FabricationError(f"tag_id: tag36h11 has ids 0..586, got {tag_id}")
     if not tag_size_mm > 0:
@@ -868,8 +874,6 @@ def region_raster(texture: np.ndarray, region: Region, dpi: int) -> np.ndarray:
 
 def _cap_mask(piece: Piece, region: Region, shape_hw) -> np.ndarray:
     """(h, w) bool: raster pixels within BLEED_MM of the cap's cut polygon."""
-    from PIL import Image, ImageDraw
-
     h, w = shape_hw
     x0, y0, rw, rh = region.rect_mm
     cx, cy = piece.fold["centre_mm"]
@@ -884,10 +888,6 @@ def _cap_mask(piece: Piece, region: Region, shape_hw) -> np.ndarray:
 
 
 def _draw_piece(ax, piece: Piece, at: Placed, texture: np.ndarray, dpi: int) -> None:
-    from matplotlib.patches import Polygon
-
-    from calibration.printables import image_mm
-
     ox, oy = at.x_mm, at.y_mm
     for r in piece.regions:
         img = region_raster(texture, r, dpi)
@@ -931,10 +931,6 @@ def _draw_piece(ax, piece: Piece, at: Placed, texture: np.ndarray, dpi: int) -> 
 
 
 def _draw_item(ax, item: Item, at: Placed, page: int, n_pages: int) -> None:
-    from matplotlib.patches import Rectangle
-
-    from calibration.printables import scale_bar
-
     x, y = at.x_mm, at.y_mm
     if item.kind == "title":
         lines = list(item.data["lines"])
@@ -976,13 +972,7 @@ def draw_pages(
 ) -> list[np.ndarray]:
     """Draw every page once: save it to ``pdf_path`` (if given) and rasterise it with Agg at the
     layout DPI. Returns the page rasters (H_px, W_px, 3) uint8 (empty if ``raster`` is False)."""
-    import matplotlib
-
     matplotlib.use("Agg", force=False)
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.backends.backend_pdf import PdfPages
-
-    from calibration.printables import page_figure
 
     W, H = layout.page_mm
     pieces = {p.name: p for p in layout.pieces}
@@ -1017,15 +1007,11 @@ def draw_pages(
 # ============================================================================ orchestration
 def _run_json(run_dir) -> Path:
     """The texture folder's ``run.json`` (named in errors about what it records)."""
-    from attack.artifact import RUN_JSON
-
     return Path(run_dir) / RUN_JSON
 
 
 def _attack_field(run_dir, name: str):
     """A field of the attack config in ``run_dir/run.json`` (None when absent or unreadable)."""
-    from attack.artifact import AttackArtifact
-
     try:
         return AttackArtifact.load(run_dir).attack_config.get(name)
     except (OSError, ValueError):
@@ -1052,12 +1038,6 @@ def fabricate(
     unless ``check`` is False, ``print_check.png`` / ``print_check.json``; a failed check raises
     :class:`FabricationError` after writing them.
     """
-    from tqdm import tqdm
-
-    from attack.outputs import export_meshes
-    from sim.assets import AssetError, build_mesh
-    from sim.runinfo import write_run_info
-
     t0 = time.perf_counter()
     # every option first: nothing is written for a run that would be refused later (build_layout checks again)
     if not (isinstance(dpi, int) and 30 <= dpi <= 1200):
@@ -1116,7 +1096,6 @@ def fabricate(
         "tweak": asdict(tweak) if tweak != LayoutTweak() else None,
     }
     write_run_info(out, config, None)
-    from sim.assets import region_texture
 
     printed = region_texture(mesh, src.texture)
     if printed is not src.texture:
@@ -1155,8 +1134,6 @@ def fabricate(
     (out / "layout.json").write_text(json.dumps(layout.to_json(), indent=2))
     card = next((p for p in layout.pieces if p.kind == "card"), None)
     if card is not None:
-        from calibration.registry import ObjectRegistry, save_registry
-
         save_registry(out / "objects.yaml", ObjectRegistry.model_validate(tag_registry(card, mesh)))
     with tqdm(total=layout.n_pages, desc="sheet pages", unit="page", disable=not progress) as bar:
         rasters = draw_pages(layout, src.texture, out / "sheet.pdf", raster=check, progress=bar.update)
@@ -1172,8 +1149,6 @@ def fabricate(
         f"{dpi} dpi, {summary['sheet_seconds']:.1f} s): print at 100 % and check the {CHECK_LINE_MM:g} mm line"
     )
     if check:
-        from trials.fabrication.print_check import check_print, write_check
-
         t1 = time.perf_counter()
         result = check_print(layout, rasters, mesh, src.texture, progress=progress)
         summary["check_seconds"] = time.perf_counter() - t1

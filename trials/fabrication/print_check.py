@@ -16,8 +16,14 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
+from tqdm import tqdm
 
+from sim import textures as tx
+from sim.geometry import look_at, make_T
+from sim.render import SceneRenderer
+from sim.spec import default_scene
 from trials.fabrication.base import FabricationError, mesh_ring_mm, sample_page
 
 __all__ = [
@@ -134,8 +140,6 @@ def reconstruct_texture(
         ``"piece tile name"`` -> (S, S) bool texels read from that printed region), covered (S, S)
         bool texels some face maps to, unread (S, S) bool covered texels no piece prints.
     """
-    from sim import textures as tx
-
     faces = np.asarray(mesh.faces, np.int64)
     verts = np.asarray(mesh.vertices, float) * 1000.0
     face_id, bary = tx.rasterize_uv(np.asarray(mesh.visual.uv, float), faces, size)
@@ -217,12 +221,6 @@ def _render_views(
     mesh_name: str, textures: list[np.ndarray], progress: bool = False
 ) -> list[list[tuple[np.ndarray, np.ndarray]]]:
     """Render the mesh with each texture from :data:`VIEWS_DEG`: per texture, per view (rgb, mask)."""
-    from tqdm import tqdm
-
-    from sim.geometry import look_at, make_T
-    from sim.render import SceneRenderer
-    from sim.spec import default_scene
-
     spec = default_scene()
     objs = [
         {**o.with_mesh(mesh_name), "scale": 1.0} if o.role == "adversarial" else o.model_dump() for o in spec.objects
@@ -278,8 +276,6 @@ def check_print(layout, rasters, mesh, texture: np.ndarray, progress: bool = Fal
 def write_check(out_dir, result: CheckResult) -> dict[str, Path]:
     """``print_check.json`` and ``print_check.png`` (rows: optimised, printed back, |diff| x4;
     one column per view)."""
-    import imageio.v3 as iio
-
     out = Path(out_dir)
     (out / "print_check.json").write_text(json.dumps(result.summary(), indent=2))
     cols = []

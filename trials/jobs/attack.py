@@ -2,11 +2,22 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from pydantic import Field
 
-from sim.configio import StrictModel
+from attack.artifact import write_config_record
+from attack.optimize import AttackError, AttackRun, resolve_config, run_attack
+from attack.outputs import write_outputs
+from attack.state import find_checkpoint
+from sim.configio import StrictModel, file_error, read_yaml
+from sim.configs import PoolError, in_part, load_pool, save_pool, spec_fingerprint
+from sim.policies.checkpoint import load_policy
+from sim.policies.pool import built_pool_path, feasible_pool_path
+from sim.runinfo import write_run_info
+from sim.spec import load_spec
+from trials.eval.evaluate import build_feasible
 
 __all__ = ["AttackJob", "attack_job", "top_up_attack_pool", "MIN_ATTACK_CONFIGS"]
 
@@ -18,10 +29,6 @@ def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool 
     """``pool`` plus task-feasible configurations built for the parts the attack uses ("attack",
     and "validation" when validation is on) that hold too few (saved as ``out/feasible_pool.json``
     and reused on resume). The evaluation part is never touched."""
-    from sim.configs import in_part, load_pool, save_pool
-    from sim.policies.pool import built_pool_path
-    from trials.eval.evaluate import build_feasible
-
     path = built_pool_path(out)
     if path.is_file():
         return load_pool(path, spec)
@@ -42,8 +49,6 @@ def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool 
                 desc=f"feasible pool ({part})",
             )
             if not got and not in_part(pool, part):
-                from attack.optimize import AttackError
-
                 raise AttackError(
                     f"feasible pool: the clean policy reached the goal in none of the {tried} configurations of this "
                     f"scene tried for the {part} part, so there is nothing to attack from: it does not do the task "
@@ -64,10 +69,6 @@ def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool 
 
 def pool_matches_scene(path: Path, spec) -> bool:
     """Whether the pool file at ``path`` was made for ``spec`` (its fingerprint); False if unreadable."""
-    import json
-
-    from sim.configs import spec_fingerprint
-
     try:
         return json.loads(Path(path).read_text(encoding="utf-8")).get("spec_fingerprint") == spec_fingerprint(spec)
     except (OSError, ValueError, AttributeError):
@@ -77,17 +78,6 @@ def pool_matches_scene(path: Path, spec) -> bool:
 def attack_job(
     policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True, log=print
 ) -> dict:
-    from attack.artifact import write_config_record
-    from attack.optimize import AttackError, AttackRun, resolve_config, run_attack
-    from attack.outputs import write_outputs
-    from attack.state import find_checkpoint
-    from sim.configio import file_error, read_yaml
-    from sim.configs import PoolError, load_pool
-    from sim.policies.checkpoint import load_policy
-    from sim.policies.pool import built_pool_path, feasible_pool_path
-    from sim.runinfo import write_run_info
-    from sim.spec import load_spec
-
     overrides = {}
     if config_path is not None:
         # An empty file is an empty set of overrides; anything else not a mapping is refused.

@@ -44,6 +44,7 @@ Logs
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import importlib
 import importlib.util
@@ -52,6 +53,7 @@ import json
 import os
 import re
 import shutil
+import socket
 import sys
 import tarfile
 import tempfile
@@ -63,6 +65,7 @@ from pathlib import Path
 from typing import Callable
 
 from sim.errors import AdvobjError
+from sim.runtime import set_torch_threads
 
 __all__ = [
     "show_progress",
@@ -365,7 +368,6 @@ def execute(job: Job, log_path: str | Path, tee: bool = False) -> dict:
     log_path = Path(log_path)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     threads = max(1, int(job.num_cpus))
-    from sim.runtime import set_torch_threads
 
     set_torch_threads(threads)
     t0, c0 = time.perf_counter(), _cpu_seconds()
@@ -393,8 +395,6 @@ def execute(job: Job, log_path: str | Path, tee: bool = False) -> dict:
 def _lock(job: Job):
     """An exclusive lock on the job's output folder while it runs: two runs sharing an ``--out``
     never write one folder at once (the second fails in one line; re-run it afterwards)."""
-    import fcntl
-
     path = Path(job.out) / ".job.lock"
     with open(path, "w") as f:
         try:
@@ -564,7 +564,7 @@ def _shared_task(doc: dict) -> dict:
 
 def _node_id() -> str:
     try:
-        import ray
+        import ray  # lazy: optional dependency (ray)
 
         return ray.get_runtime_context().get_node_id()
     except Exception:
@@ -591,7 +591,7 @@ def _ray_installed() -> bool:
 def _import_ray(flag: str):
     """``ray``, or one line naming ``flag`` and how to install it (a broken install included)."""
     try:
-        import ray
+        import ray  # lazy: optional dependency (ray)
     except ImportError as err:
         raise GridError(f"{flag}: Ray cannot be imported ({_one_line(err)}); install it with {_RAY_EXTRA}") from None
     return ray
@@ -629,8 +629,6 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
     running ``ray.init`` itself under a watchdog would leave a half-connected Ray in the process.
     A cluster with TLS on (``RAY_USE_TLS``) expects a TLS handshake first: only the connection is
     checked then."""
-    import socket
-
     host, sep, port = address.rpartition(":")
     if not sep or not host or not port.isdigit():
         raise GridError(f"--address: expected 'auto' or HOST:PORT, got {address!r}")
@@ -719,7 +717,7 @@ class RayExecutor:
 
     # -- cluster
     def _init(self):
-        import ray
+        import ray  # lazy: optional dependency (ray)
 
         if ray.is_initialized():
             return False
@@ -743,8 +741,8 @@ class RayExecutor:
         return True
 
     def _detect_shared(self, root: Path) -> bool:
-        import ray
-        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+        import ray  # lazy: optional dependency (ray)
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy  # lazy: optional dependency (ray)
 
         if self.shared_fs is not None:
             return self.shared_fs

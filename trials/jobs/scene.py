@@ -5,24 +5,22 @@ expert rollout (the scene loader is :func:`sim.spec.load_spec`; GIFs and contact
 from __future__ import annotations
 
 import numpy as np
+from tqdm import tqdm
+
+from sim.env import ReachEnv
+from sim.world import SimWorld
 
 __all__ = ["render_still", "expert_rollout"]
 
 
 def render_still(spec, seed: int, size: int | None = None) -> np.ndarray:
     """Wrist-camera frame of the initial configuration for ``seed`` (H, W, 3) uint8."""
-    from sim.world import SimWorld
-
     with SimWorld(spec, image_size=size, seed=seed) as world:
         return world.render(with_ids=False).rgb
 
 
 def expert_rollout(spec, seed: int, size: int | None = None, progress: bool = True) -> tuple[list[np.ndarray], dict]:
     """Run the privileged expert for one episode; returns the frames and the final ``info``."""
-    from tqdm import tqdm
-
-    from sim.env import ReachEnv
-
     with ReachEnv(spec, num_envs=1, image_size=size, seed=seed) as env:
         obs, info = env.reset(seed=seed)
         frames = [obs[0]]

@@ -25,6 +25,11 @@ from typing import Mapping, Protocol
 
 import numpy as np
 
+from calibration.apriltag import detect_tags
+from calibration.frames import T_base_object
+from calibration.registry import locate_objects, visible_tag_fraction
+from sim.geometry import invert_T, rot_z
+
 __all__ = [
     "LocatedObject",
     "Locator",
@@ -99,8 +104,6 @@ class SimLocator:
         self.rng = np.random.default_rng(seed)
 
     def locate(self, frame, T_base_tcp) -> dict[str, LocatedObject]:
-        from sim.geometry import rot_z
-
         w = self.world
         out = {}
         centers = w.object_center_array
@@ -137,9 +140,6 @@ class TagLocator:
         self.T_base_table = np.asarray(T_base_table, dtype=np.float64)
 
     def observe(self, frame):
-        from calibration.apriltag import detect_tags
-        from calibration.registry import locate_objects
-
         dets = detect_tags(frame.rgb, self.intrinsics, self.registry.tag_size)
         return locate_objects(dets, self.registry, self.intrinsics)
 
@@ -148,8 +148,6 @@ class TagLocator:
 
     def from_observations(self, observations: Mapping, T_base_tcp) -> dict[str, LocatedObject]:
         """Table-frame objects from :class:`calibration.registry.ObjectObservation` s seen at ``T_base_tcp``."""
-        from sim.geometry import invert_T
-
         T_table_cam = invert_T(self.T_base_table) @ np.asarray(T_base_tcp, dtype=np.float64) @ self.T_tcp_cam
         out = {}
         for role in ("goal", "adversarial"):
@@ -160,8 +158,6 @@ class TagLocator:
             alts = [(T_table_cam @ a)[:3, 3] for a in obs.alternatives]
             vis = None
             if self.registry is not None and self.intrinsics is not None:
-                from calibration.registry import visible_tag_fraction
-
                 vis = visible_tag_fraction(self.registry, role, obs.T_cam_object, obs.tag_ids, self.intrinsics)
             out[role] = LocatedObject(
                 role,
@@ -178,8 +174,6 @@ class TagLocator:
     @staticmethod
     def estimate_T_base_table(observations: Mapping, T_base_tcp, T_tcp_cam) -> np.ndarray | None:
         """``T_base_table`` from the registry's ``table`` tags seen at ``T_base_tcp`` (None if not seen)."""
-        from calibration.frames import T_base_object
-
         obs = observations.get("table")
         if obs is None:
             return None

@@ -40,10 +40,13 @@ import errno
 import os
 import select
 import sys
+import termios
+import tty
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
+from sim.configio import file_error, read_yaml
 from sim.errors import AdvobjError
 
 __all__ = [
@@ -119,8 +122,6 @@ class AutoOperator:
 
 def load_answers(path: str | Path):
     """``{trial_id: Decision}`` or ``[Decision, ...]`` from an answers YAML (errors name the entry)."""
-    from sim.configio import file_error, read_yaml
-
     p = Path(path)
     data = read_yaml(p, "answers file", error=file_error(AnswersError), mapping=False)
 
@@ -202,8 +203,6 @@ class TerminalOperator:
         if not self.tty:
             yield
             return
-        import termios
-        import tty
 
         fd = self.stdin.fileno()
         try:
@@ -223,8 +222,6 @@ class TerminalOperator:
     def _discard_typeahead(self) -> None:
         """Drop keys typed before a prompt, so a stale enter cannot answer a question not yet shown."""
         if self.tty:
-            import termios
-
             try:
                 termios.tcflush(self.stdin.fileno(), termios.TCIFLUSH)
             except termios.error as err:

@@ -39,9 +39,14 @@ from typing import Annotated, Literal, Sequence
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
+from calibration.io import write_yaml
+from sim.assets import BUILTIN_MESHES
 from sim.configio import StrictModel, file_error, read_yaml
+from sim.configs import object_local_centers, object_poses_world, sample_config
 from sim.errors import AdvobjError, format_validation_error
+from sim.geometry import invert_T, make_T, so3_exp, so3_log, transform_points
 from sim.paths import SAFE_NAME_RULE, SafeName, name_problem
+from trials.eval.conditions import load_attack_source
 
 __all__ = [
     "PlanError",
@@ -96,16 +101,12 @@ class Pose(_Strict):
 
     def T(self) -> np.ndarray:
         """The (4, 4) homogeneous transform."""
-        from sim.geometry import make_T, so3_exp
-
         return make_T(
             so3_exp(np.asarray(self.rotvec_rad, dtype=np.float64)), np.asarray(self.translation_m, dtype=np.float64)
         )
 
     @staticmethod
     def from_T(T) -> "Pose":
-        from sim.geometry import so3_log
-
         T = np.asarray(T, dtype=np.float64)
         return Pose(
             translation_m=tuple(float(x) for x in T[:3, 3]), rotvec_rad=tuple(float(x) for x in so3_log(T[:3, :3]))
@@ -272,8 +273,6 @@ def texture_ref(path: str | Path, key: str, spec=None) -> TextureRef:
     shape itself for ``/adv3d`` (a run on the scene's own adversarial mesh counts when that mesh is
     the shape).
     """
-    from trials.eval.conditions import load_attack_source
-
     shape, _, cond = key.partition("/")
     if cond not in TEXTURED or not shape:
         raise PlanError(f"--texture {key}: key must be '<shape>/adv3d' or '<shape>/patch'")
@@ -301,8 +300,6 @@ def _check_names(what: str, names: Sequence[str]) -> list[str]:
 
 def _in_view(spec, T_world_tcp: np.ndarray, points_world: np.ndarray) -> bool:
     """Whether every point ``(N, 3)`` lies in front of the wrist camera and inside its image."""
-    from sim.geometry import invert_T, transform_points
-
     T_cam_world = invert_T(T_world_tcp @ spec.camera.T_tcp_cam)
     p = transform_points(T_cam_world, points_world)
     if np.any(p[:, 2] <= spec.camera.znear_m):
@@ -323,8 +320,6 @@ def _valid_start(spec, T_world_tcp: np.ndarray, centers_world: np.ndarray) -> bo
 
 def _draw_configs(spec, rng: np.random.Generator, pool):
     """An endless stream of initial configurations: from the pool (shuffled, each once) or sampled."""
-    from sim.configs import object_local_centers, sample_config
-
     if pool is not None:
         for i in rng.permutation(len(pool)):
             yield pool[int(i)]
@@ -340,8 +335,6 @@ def _poses(
 ) -> tuple[list[TcpPose], list[ObjectLayout]]:
     """``workspace``: ``(min_m, max_m, T_base_table)``, the safety box in the arm's base frame; only
     TCP poses inside it are drawn."""
-    from sim.configs import object_local_centers, object_poses_world
-
     centers_local = object_local_centers(spec)
     goal, adv = spec.object_index("goal"), spec.object_index("adversarial")
     stream = _draw_configs(spec, rng, pool)
@@ -419,8 +412,6 @@ def make_plan(
     ``max_steps``, ``control_hz``, ``placement_tolerance_m``, ``placement_tolerance_rad``).
     ``workspace``: ``(min_m, max_m, T_base_table)`` of a cell's safety box: start poses are drawn inside it.
     """
-    from sim.assets import BUILTIN_MESHES
-
     envs = _check_names("--env", envs)
     shapes = _check_names("--shape", shapes)
     conditions = _check_names("--condition", conditions)
@@ -535,8 +526,6 @@ Each scenario tag adds one full block of trials carrying that tag (trial id suff
 
 def save_plan(plan: TrialPlan, path: str | Path) -> Path:
     """Write ``plan`` as YAML with a header comment (frames, conditions, design summary)."""
-    from calibration.io import write_yaml
-
     header = _HEADER + "\n\n" + "\n".join(design_summary(plan))
     return write_yaml(path, plan.model_dump(mode="json"), header=header)
 

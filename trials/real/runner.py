@@ -43,6 +43,7 @@ sha256 differs from the one it started with.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -50,9 +51,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 
+from calibration.outcome import measure_reach
+from robot_io.errors import ArmFaultError, RobotIOError, SafetyStop
 from sim.errors import AdvobjError
+from sim.policies.contract import ActionQueue, call_policy, decode_actions, policy_contract, state_vector, to_delta
+from sim.policyview import policy_view
 from trials.real.locate import placement_issues
 from trials.real.operator import Decision
 from trials.real.store import (
@@ -357,7 +363,6 @@ class TrialRunner:
         tracked = {
             r: (obj, -1) for r, obj in placed.items()
         }  # role -> (last seen pose, step; -1 = the placement check)
-        import contextlib
 
         with getattr(self.operator, "running", contextlib.nullcontext)():
             steps, stop_reason, t_loop, light = self._loop(trial, placed, tracked, fdir, rel_dir, events, t0)
@@ -454,13 +459,9 @@ class TrialRunner:
                 return located, attempt, True
 
     def _policy_image(self, rgb: np.ndarray) -> np.ndarray:
-        from sim.policyview import policy_view
-
         return policy_view(rgb, int(self.policy.image_size), policy_preprocess(self.policy))
 
     def _reached_now(self, T_base_tcp, tracked) -> bool:
-        from calibration.outcome import measure_reach
-
         if not self.stop_on_reach or any(r not in tracked for r in ROLES):
             return False
         p = (self.T_table_base @ T_base_tcp)[:3, 3]
@@ -497,23 +498,11 @@ class TrialRunner:
         return f"{role} last seen {where}, at [{', '.join(f'{v:.3f}' for v in obj.center_table_m)}] m"
 
     def _loop(self, trial, placed, tracked, fdir: Path, rel_dir: str, events, t0):
-        import cv2
-
-        from robot_io.errors import ArmFaultError, SafetyStop
-
         period = 1.0 / float(self.plan.control_hz)
         steps: list[StepRecord] = []
         stop_reason = "max_steps"
         light = None
         moved: set[str] = set()
-        from sim.policies.contract import (
-            ActionQueue,
-            call_policy,
-            decode_actions,
-            policy_contract,
-            state_vector,
-            to_delta,
-        )
 
         contract = policy_contract(self.policy)
         queue = ActionQueue(contract, 1)
@@ -612,9 +601,6 @@ class TrialRunner:
         returns to the final pose, so the operator judges the trial where it ended. After a fault,
         a safety stop or a policy error the arm does not move again: the object stays unseen.
         """
-        from calibration.outcome import measure_reach
-        from robot_io.errors import RobotIOError
-
         T_base_final = self.arm.tcp_pose()
         T_table_tcp = self.T_table_base @ T_base_final
         final = self._locate()

@@ -26,21 +26,43 @@ recorded in the session's ``runs``.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
+import importlib.metadata
 import math
+import time
 from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
+from calibration.errors import CalibrationFileError
+from calibration.io import PoseModel, load_model, read_yaml
+from calibration.registry import load_registry, save_registry
+from robot_io.cameras.sim import sim_registry, sim_tags
+from robot_io.config import build_arm, build_camera, build_world, load_hardware_config, load_T_tcp_cam
+from robot_io.errors import MissingIntrinsicsError
 from sim.configio import StrictModel, merged
 from sim.errors import AdvobjError
+from sim.policies.checkpoint import is_checkpoint, load_checkpoint, load_policy
+from sim.policies.contract import call_policy, decode_actions, policy_contract, state_vector
+from sim.policies.onnx_policy import OnnxPolicy
+from sim.policyview import policy_view_K, view_mismatch
+from sim.runinfo import git_commit, write_run_info
+from sim.spec import load_spec
+from trials.real.locate import SimLocator, TagLocator
+from trials.real.locks import arm_lock
+from trials.real.operator import AutoOperator, ScriptedOperator, TerminalOperator
+from trials.real.plan import load_plan, plan_sha256
+from trials.real.runner import TrialRunner, policy_preprocess
+from trials.real.stage import SimStage
 from trials.real.store import (
     DEFAULT_DB,
     SESSION_NAME_RULE,
     SessionInfo,
+    TrialStore,
     check_database,
     check_session_name,
     session_frames_dir,
@@ -173,10 +195,7 @@ def load_trial_policy(path: str | Path, threads: int = 1):
     """An ``.onnx`` file through onnxruntime with ``threads`` threads, else the project's loader (checkpoints)."""
     p = Path(path)
     if p.suffix.lower() == ".onnx" and p.is_file():
-        from sim.policies.onnx_policy import OnnxPolicy
-
         return OnnxPolicy(p, threads=threads)
-    from sim.policies.checkpoint import is_checkpoint, load_checkpoint, load_policy
 
     if is_checkpoint(p):
         policy, card = load_checkpoint(p)
@@ -187,8 +206,6 @@ def load_trial_policy(path: str | Path, threads: int = 1):
 
 def load_T_base_table(path: str | Path) -> np.ndarray:
     """``T_base_table`` from ``{T_base_table: {translation_m: [..], rotvec_rad: [..]}}`` (or the pose at top level)."""
-    from calibration.io import PoseModel, load_model, read_yaml
-
     data = read_yaml(path)
     if isinstance(data, dict) and set(data) == {"T_base_table"}:
         data = data["T_base_table"]
@@ -196,8 +213,6 @@ def load_T_base_table(path: str | Path) -> np.ndarray:
 
 
 def _scene_spec(plan, hw):
-    from sim.spec import load_spec
-
     if plan.scene is not None:
         return load_spec(Path(plan.scene))
     return load_spec(hw.sim.scene)
@@ -232,13 +247,6 @@ def prepare_session(opts: SessionOptions, *, operator=None, log=print) -> Prepar
     ``operator``: an explicit :class:`Operator`; else ``opts.auto_confirm`` / ``opts.answers`` pick
     the scripted ones and the default is the terminal UI. ``log``: where notes and warnings go (None: nowhere).
     """
-    import importlib.metadata
-
-    from robot_io.config import load_hardware_config
-    from sim.runinfo import git_commit
-    from trials.real.operator import AutoOperator, ScriptedOperator, TerminalOperator
-    from trials.real.plan import load_plan, plan_sha256
-
     # First of all, before anything is read or written: the session name becomes the directory
     # frames/<session> beside the database, which must stay inside frames/ (no symlink out of it);
     # and an existing database must pass SQLite's quick_check (a damaged one is never written to).
@@ -264,7 +272,6 @@ def prepare_session(opts: SessionOptions, *, operator=None, log=print) -> Prepar
     if table_frame is not None:
         # Loaded and checked whatever the devices (a NaN, inf or absurd value: one line naming the
         # file and the field), never silently ignored.
-        from calibration.errors import CalibrationFileError
 
         try:
             T_file = load_T_base_table(table_frame)
@@ -347,14 +354,6 @@ def run_prepared(
     ``on_trial_end(trial)`` is called after each committed trial, ``on_ready(runner, world)`` before
     the first one (tests use it to reach the sim world and stage).
     """
-    import contextlib
-
-    from robot_io.config import build_arm, build_camera, build_world
-    from sim.runinfo import write_run_info
-    from trials.real.locks import arm_lock
-    from trials.real.runner import TrialRunner
-    from trials.real.store import TrialStore
-
     log = log or (lambda _text: None)
     hw, plan, sim, info, opts = prep.hw, prep.plan, prep.sim, prep.info, prep.opts
     with contextlib.ExitStack() as stack:  # closed in reverse: devices, world, stage, the locks, store
@@ -391,9 +390,6 @@ def run_prepared(
             log(warning)
         T_base_table, stage = np.eye(4), None
         if sim:
-            from trials.real.locate import SimLocator
-            from trials.real.stage import SimStage
-
             locator = SimLocator(world)
             stage = SimStage(world, plan, opts.plan.parent)
             stages.append(stage)
@@ -448,11 +444,6 @@ def run_session(
 def camera_view_warnings(camera, policy, spec, hw) -> list[str]:
     """How the real camera, as the policy sees it through its card's ``preprocess``, differs from
     the camera the policy was trained with (the scene's): field of view, pixel aspect, mount."""
-    from robot_io.config import load_T_tcp_cam
-    from robot_io.errors import MissingIntrinsicsError
-    from sim.policyview import policy_view_K, view_mismatch
-    from trials.real.runner import policy_preprocess
-
     try:
         intr = camera.intrinsics
     except MissingIntrinsicsError:
@@ -472,10 +463,6 @@ def _check_policy_outputs(policy, spec, policy_path) -> float:
     output its contract cannot read (shape, a missing state input) or a runtime error of the model
     fails the session here, in one line, instead of in the middle of the first trial. Returns the
     second (warm) call's time in seconds, the inference latency a chunk's frame age includes."""
-    import time
-
-    from sim.policies.contract import call_policy, decode_actions, policy_contract, state_vector
-
     c = policy_contract(policy)
     S = int(policy.image_size)
     T = np.eye(4)
@@ -499,8 +486,6 @@ def _check_chunk_frame_age(policy, plan, hw, inference_s: float = 0.0) -> None:
     """Refuse a policy whose chunks outlive the safety layer's frame-age limit: the k-th action of
     a chunk is sent (k - 1) control periods, plus the policy's inference time, after the frame it
     was computed from."""
-    from sim.policies.contract import policy_contract
-
     c = policy_contract(policy)
     k = c.action.execute
     age_ms = (k - 1) * 1000.0 / float(plan.control_hz) + 1000.0 * float(inference_s)
@@ -555,10 +540,6 @@ def _sim_tag_locator(camera, world, registry, session_dir, log):
     (written into the session folder). The sim world frame is the table frame, so ``T_base_table``
     is the identity and the chain uses the sim camera's own mount.
     """
-    from calibration.registry import load_registry
-    from robot_io.cameras.sim import sim_tags
-    from trials.real.locate import TagLocator
-
     if registry is not None:
         reg = load_registry(registry)
         camera.tags = sim_tags(reg)
@@ -581,13 +562,9 @@ class _SimTaggedLocator:
         self._spec = None
 
     def locate(self, frame, T_base_tcp):
-        from calibration.registry import save_registry
-        from robot_io.cameras.sim import sim_registry, sim_tags
-
         if self._spec is not self.world.spec:  # staged a new scene: tag its objects (the frame shows the old tags)
             self._spec = self.world.spec
             reg = sim_registry(self.world)
-            import hashlib
 
             adv = self.world.spec.adversarial
             # A file name from the mesh's name and a digest of its source and scale: never a path.
@@ -606,10 +583,6 @@ class _SimTaggedLocator:
 
 def _tag_locator(hw, camera, arm, registry, table_frame, stored_T_base_table=None, log=print):
     """The tag locator and ``T_base_table``: from ``table_frame``, else the session's stored one, else estimated."""
-    from calibration.registry import load_registry
-    from robot_io.config import load_T_tcp_cam
-    from trials.real.locate import TagLocator
-
     if hw.T_tcp_cam is None:
         raise SessionSetupError("T_tcp_cam: the hardware config must name the hand-eye result for tag-based locating")
     reg = load_registry(registry)

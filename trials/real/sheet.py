@@ -20,7 +20,15 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+from matplotlib.backends.backend_pdf import PdfPages
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+from scipy.spatial import ConvexHull
+
+from sim.assets import build_mesh
+from sim.spec import load_spec
 
 __all__ = ["placement_sheet_pdf", "footprint_xy_m", "ROWS_PER_PAGE", "sheet_page_count"]
 
@@ -34,10 +42,6 @@ def footprint_xy_m(mesh: str, scale=1.0, **mesh_kwargs) -> np.ndarray:
 
     ``mesh_kwargs``: a mesh file's ``units``, ``up_axis`` and ``placement`` (the scene object's
     :meth:`~sim.spec.ObjectSpec.mesh_kwargs`), so the outline is the one the sim places."""
-    from scipy.spatial import ConvexHull
-
-    from sim.assets import build_mesh
-
     xy = np.asarray(build_mesh(mesh, scale, **mesh_kwargs).vertices, dtype=np.float64)[:, :2]
     return xy[ConvexHull(xy).vertices]
 
@@ -53,8 +57,6 @@ def _place(outline: np.ndarray, xy, yaw: float) -> np.ndarray:
 
 
 def _layout_page(pdf, plan, layout, outlines: dict) -> None:
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=A4_IN)
     fig.suptitle(f"Object layout o{layout.index}  (plan seed {plan.seed})", fontsize=13, y=0.97)
     ax = fig.add_axes((0.1, 0.36, 0.82, 0.56))
@@ -124,14 +126,10 @@ def _layout_page(pdf, plan, layout, outlines: dict) -> None:
 
 
 def _square(center, side, **kw):
-    from matplotlib.patches import Rectangle
-
     return Rectangle((center[0] - side / 2, center[1] - side / 2), side, side, **kw)
 
 
 def _tcp_page(pdf, plan) -> None:
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=A4_IN)
     fig.suptitle(f"Initial TCP poses  (plan seed {plan.seed})", fontsize=13, y=0.97)
     rows = ["pose   x (cm)   y (cm)   z (cm)    rotvec (deg)                 approach axis meets table at (cm)", ""]
@@ -158,8 +156,6 @@ def _tcp_page(pdf, plan) -> None:
 
 
 def _order_pages(pdf, plan) -> None:
-    from matplotlib.figure import Figure
-
     n_pages = math.ceil(len(plan.trials) / ROWS_PER_PAGE)
     head = (
         f"{'order':>5}  {'trial id':<34} {'env':<5} {'shape':<10} {'cond':<6} {'tcp':<4} {'layout':<6} "
@@ -184,12 +180,7 @@ def placement_sheet_pdf(plan, path, spec=None) -> int:
     ``spec``: the scene the plan was made for (default: ``plan.scene`` or the built-in scene); it
     gives the goal mesh and the adversarial object's scale for the footprints.
     """
-    import matplotlib
-
     matplotlib.use("Agg", force=False)
-    from matplotlib.backends.backend_pdf import PdfPages
-
-    from sim.spec import load_spec
 
     spec = load_spec(plan.scene) if spec is None else spec
     adv_meshes = list(plan.shapes) + (["patch"] if "patch" in plan.conditions else [])

@@ -22,7 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.configs import object_poses_world
 from sim.errors import AdvobjError
+from sim.render import SceneRenderer
+from trials.eval.conditions import load_attack_source
 
 __all__ = ["StageError", "SimStage", "load_texture"]
 
@@ -36,8 +39,6 @@ def load_texture(ref, plan_dir: Path | None = None) -> np.ndarray:
 
     A relative path is tried as given, then relative to ``plan_dir``.
     """
-    from trials.eval.conditions import load_attack_source
-
     p = Path(ref.path)
     if not p.is_absolute() and not p.exists() and plan_dir is not None:
         p = plan_dir / p
@@ -90,8 +91,6 @@ class SimStage:
 
     def prepare(self, trial) -> None:
         """Scene and object poses for ``trial`` (the TCP stays where the arm is)."""
-        from sim.render import SceneRenderer
-
         mesh = self.plan.mesh_for(trial)
         tex, tex_key = self.texture(trial)
         key = (mesh, tex_key)
@@ -118,8 +117,6 @@ class SimStage:
 
     def follow_guidance(self, issues) -> None:
         """Move each object by the correction the placement check asked for."""
-        from sim.configs import object_poses_world
-
         T = self.world.T_world_objects.copy()
         for issue in issues:
             if issue.missing:

@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+import yaml
 
 from sim.errors import AdvobjError
 from sim.paths import UnsafePathError, check_name, safe_join
@@ -267,7 +268,7 @@ def _allow_policy_error(con: sqlite3.Connection) -> None:
 # ---------------------------------------------------------------------- records
 def pose_vec(T) -> list[float]:
     """``[x, y, z, rx, ry, rz]`` of a (4, 4) transform (NaN-filled for ``None``)."""
-    from sim.geometry import so3_log
+    from sim.geometry import so3_log  # lazy: CLI start-up (+3 ms)
 
     if T is None:
         return [float("nan")] * 6
@@ -1035,8 +1036,6 @@ class TrialStore:
 
     def planned_trials(self, session: str) -> int:
         """How many trials the session's plan has (from the plan text stored with it)."""
-        import yaml
-
         row = self.con.execute("SELECT plan_text FROM sessions WHERE name = ?", (session,)).fetchone()
         try:
             return len((yaml.safe_load(row["plan_text"]) or {}).get("trials", []))
@@ -1109,8 +1108,8 @@ class TrialStore:
         return paths
 
     def export_parquet(self, out_dir: str | Path, tables: Iterable[str] = EXPORT_TABLES) -> list[Path]:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
+        import pyarrow as pa  # lazy: CLI start-up (pyarrow)
+        import pyarrow.parquet as pq  # lazy: CLI start-up (pyarrow)
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -1126,7 +1125,7 @@ class TrialStore:
 
     def _column_types(self, name: str) -> dict:
         """Arrow types from the declared SQLite types (so an empty or all-NULL column keeps its type)."""
-        import pyarrow as pa
+        import pyarrow as pa  # lazy: CLI start-up (pyarrow)
 
         m = {"INTEGER": pa.int64(), "REAL": pa.float64(), "TEXT": pa.string()}
         types = {"session": pa.string(), "trial_id": pa.string()}

@@ -425,7 +425,8 @@ def _tiny_demo(monkeypatch, art: Artifacts):
             pool=str(art.pool),
         ),
     )
-    monkeypatch.setattr(ex, "ensure_policy", lambda ctx, name="reference", **kw: art.policy)
+    for mod in (ex, demo):  # demo binds ensure_policy at import
+        monkeypatch.setattr(mod, "ensure_policy", lambda ctx, name="reference", **kw: art.policy)
 
 
 def _tiny_experiments(monkeypatch, art: Artifacts):

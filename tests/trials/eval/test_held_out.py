@@ -184,7 +184,8 @@ def test_the_demo_gives_overlap_0(tmp_path, policy_with_pool, monkeypatch):
     import trials.experiments.recipes as ex
 
     monkeypatch.setattr(demo, "DEMO_BUDGET", dict(attack_overrides=TINY_ATTACK, episodes=2, num_envs=2, gifs=0))
-    monkeypatch.setattr(ex, "ensure_policy", lambda ctx, name="reference", **kw: policy_with_pool)
+    for mod in (ex, demo):  # demo binds ensure_policy at import
+        monkeypatch.setattr(mod, "ensure_policy", lambda ctx, name="reference", **kw: policy_with_pool)
     demo.run_demo(tmp_path / "demo", log=lambda m: None)
     overlap = json.loads((tmp_path / "demo" / "evals" / "demo" / "manifest.json").read_text())["config"]["overlap"]
     assert overlap == {"attack": 0, "patch": 0}

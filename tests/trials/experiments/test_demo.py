@@ -22,7 +22,8 @@ def test_demo_writes_report_with_table_plots_and_gifs(tmp_path, monkeypatch, tin
             pool=str(pool_file),
         ),
     )
-    monkeypatch.setattr(ex, "ensure_policy", lambda ctx, name="reference", **kw: tiny_policy_dir)
+    for mod in (ex, demo):  # demo binds ensure_policy at import
+        monkeypatch.setattr(mod, "ensure_policy", lambda ctx, name="reference", **kw: tiny_policy_dir)
     result = demo.run_demo(tmp_path, log=lambda m: None)
     report = (tmp_path / "report.md").read_text()
     assert "| 3D Object | ours |" in report and "| 2D Patch | paper |" in report

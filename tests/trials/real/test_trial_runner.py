@@ -194,16 +194,14 @@ def test_estimated_table_frame_is_stored_and_reused_on_resume(tmp_path, monkeypa
     """Without --table-frame the frame is estimated once, at the session's start; a resume reuses the stored one."""
     from types import SimpleNamespace
 
-    import calibration.registry
-    import robot_io.config
     from sim.geometry import make_T, rot_z
     from trials.real import session as session_mod
     from trials.real.store import SessionInfo
 
     T_est = make_T(rot_z(0.4), np.array([0.3, -0.1, 0.02]))
     estimates = []
-    monkeypatch.setattr(calibration.registry, "load_registry", lambda path: "registry")
-    monkeypatch.setattr(robot_io.config, "load_T_tcp_cam", lambda path: np.eye(4))
+    monkeypatch.setattr(session_mod, "load_registry", lambda path: "registry")
+    monkeypatch.setattr(session_mod, "load_T_tcp_cam", lambda path: np.eye(4))
     monkeypatch.setattr(TagLocator, "observe", lambda self, frame: {})
     monkeypatch.setattr(
         TagLocator, "estimate_T_base_table", staticmethod(lambda obs, T_tcp, T_tcp_cam: estimates.append(1) or T_est)
