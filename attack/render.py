@@ -27,11 +27,14 @@ Texture convention: ``texture: (3, Ht, Wt)`` float sRGB in [0, 1], row 0 = top o
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from sim.geometry import invert_T
 
 __all__ = [
     "Fragments",
@@ -218,7 +221,6 @@ def deferred_shading(
     undefined: a zero normal or ``l = -v`` normalise to zero (the clamps then apply), a point light
     at the fragment counts as 1e-12 m^2 away.
     """
-    import math
 
     def t(x):
         return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
@@ -433,7 +435,6 @@ class HybridRenderer:
 
     def capture(self, world, T_world_cam: np.ndarray | None = None) -> Capture:
         """Render ``world`` (a :class:`sim.world.SimWorld` sharing this renderer)."""
-        from sim.geometry import invert_T
 
         world.prepare()
         T_world_cam = world.camera_pose() if T_world_cam is None else T_world_cam

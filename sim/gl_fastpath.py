@@ -52,7 +52,7 @@ _c_int, _c_uint, _c_float, _c_ptr, _c_bool = (
 
 def _load_funcs() -> dict:
     """``name -> ctypes function`` bound to the GL library PyOpenGL itself uses."""
-    from OpenGL.platform import PLATFORM
+    from OpenGL.platform import PLATFORM  # lazy: robot_io start-up (pyrender, OpenGL)
 
     lib = PLATFORM.GL
     out = {}
@@ -125,7 +125,7 @@ def _counting_forward_pass(self, scene, flags, seg_node_map=None):
 
 
 def _lighting_once_per_pass(self, scene, program, node, flags):
-    from pyrender.constants import MAX_N_LIGHTS, RenderFlags
+    from pyrender.constants import MAX_N_LIGHTS, RenderFlags  # lazy: robot_io start-up (pyrender, OpenGL)
 
     lit = getattr(self, "_advobj_lit", None)
     exact = (
@@ -148,8 +148,8 @@ def install() -> bool:
     global _ORIGINAL, _ORIGINAL_LIGHTING, _ORIGINAL_FORWARD, _FUNCS
     if os.environ.get("ADVOBJ_GL_FASTPATH", "1") == "0":
         return False
-    from pyrender.renderer import Renderer
-    from pyrender.shader_program import ShaderProgram
+    from pyrender.renderer import Renderer  # lazy: robot_io start-up (pyrender, OpenGL)
+    from pyrender.shader_program import ShaderProgram  # lazy: robot_io start-up (pyrender, OpenGL)
 
     if _ORIGINAL is not None:
         return True
@@ -171,8 +171,8 @@ def uninstall() -> None:
     global _ORIGINAL, _ORIGINAL_LIGHTING, _ORIGINAL_FORWARD
     if _ORIGINAL is None:
         return
-    from pyrender.renderer import Renderer
-    from pyrender.shader_program import ShaderProgram
+    from pyrender.renderer import Renderer  # lazy: robot_io start-up (pyrender, OpenGL)
+    from pyrender.shader_program import ShaderProgram  # lazy: robot_io start-up (pyrender, OpenGL)
 
     ShaderProgram.set_uniform = _ORIGINAL
     Renderer._bind_lighting, Renderer._forward_pass = _ORIGINAL_LIGHTING, _ORIGINAL_FORWARD

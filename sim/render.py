@@ -30,7 +30,8 @@ Id codes (24-bit, ``r << 16 | g << 8 | b``):
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+import sys
+from dataclasses import dataclass, field, replace
 
 from sim.errors import AdvobjError
 
@@ -39,8 +40,10 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np
 import trimesh
 
-from sim.assets import region_texture
+from sim import gl_fastpath
+from sim.assets import build_mesh, default_texture, region_texture, table_mesh
 from sim.geometry import make_T, so3_exp
+from sim.variations import table_variant_texture
 
 __all__ = [
     "RenderError",
@@ -177,7 +180,7 @@ def _decode(rgb: np.ndarray) -> np.ndarray:
 
 def _single_sample_framebuffer(renderer) -> None:
     """Make a pyrender ``Renderer`` allocate its 'multisample' buffers with 0 samples."""
-    from OpenGL import GL
+    from OpenGL import GL  # lazy: robot_io start-up (pyrender, OpenGL)
 
     original = renderer._configure_main_framebuffer
 
@@ -187,7 +190,7 @@ def _single_sample_framebuffer(renderer) -> None:
         def no_msaa(target, samples, fmt, w, h):
             return real(target, 0, fmt, w, h)
 
-        import pyrender.renderer as pr
+        import pyrender.renderer as pr  # lazy: robot_io start-up (pyrender, OpenGL)
 
         pr.glRenderbufferStorageMultisample = no_msaa
         try:
@@ -202,7 +205,6 @@ def _read_color_only(renderer, scene, flags):
     """pyrender's ``Renderer._read_main_framebuffer`` without the depth buffer: the same blit and
     ``glReadPixels`` of the colour (identical bytes), no depth read-back or conversion. Returns
     ``(color, None)``; a depth-only render or macOS (which resizes) goes to pyrender's own."""
-    import sys
 
     from OpenGL.GL import (
         GL_COLOR_BUFFER_BIT,
@@ -215,8 +217,8 @@ def _read_color_only(renderer, scene, flags):
         glBindFramebuffer,
         glBlitFramebuffer,
         glReadPixels,
-    )
-    from pyrender.constants import RenderFlags
+    )  # lazy: robot_io start-up (pyrender, OpenGL)
+    from pyrender.constants import RenderFlags  # lazy: robot_io start-up (pyrender, OpenGL)
 
     if flags & RenderFlags.DEPTH_ONLY or sys.platform == "darwin":
         return type(renderer)._read_main_framebuffer(renderer, scene, flags)
@@ -231,8 +233,8 @@ def _read_color_only(renderer, scene, flags):
 
 
 def _texture(image: np.ndarray, repeat: bool):
-    import pyrender
-    from OpenGL.GL import GL_CLAMP_TO_EDGE, GL_REPEAT
+    import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
+    from OpenGL.GL import GL_CLAMP_TO_EDGE, GL_REPEAT  # lazy: robot_io start-up (pyrender, OpenGL)
 
     wrap = GL_REPEAT if repeat else GL_CLAMP_TO_EDGE
     sampler = pyrender.Sampler(wrapS=wrap, wrapT=wrap)
@@ -240,7 +242,7 @@ def _texture(image: np.ndarray, repeat: bool):
 
 
 def _material(texture_image: np.ndarray | None, color=(1.0, 1.0, 1.0), repeat: bool = False):
-    import pyrender
+    import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
 
     # Dielectric, fully rough: the shading is diffuse (multiplicative in the albedo) plus a
     # small albedo-independent specular term, which the attack computes per fragment
@@ -258,7 +260,7 @@ def _uv_of(mesh: trimesh.Trimesh) -> np.ndarray | None:
 
 def textured_pyrender_mesh(mesh: trimesh.Trimesh, texture_image: np.ndarray | None, color=None, repeat=False):
     """A pyrender mesh of ``mesh`` with smooth normals, UVs and a texture (or a flat color)."""
-    import pyrender
+    import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
 
     uv = _uv_of(mesh)
     if texture_image is not None and uv is None:
@@ -279,7 +281,7 @@ def id_pyrender_mesh(mesh: trimesh.Trimesh, code: int | None):
     ``code=None`` codes each face as ``FACE_BASE + face index`` (vertices unshared so the
     per-vertex color is constant over each face).
     """
-    import pyrender
+    import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
 
     faces = np.asarray(mesh.faces)
     if code is None:
@@ -360,7 +362,6 @@ class SceneLighting:
 
     def in_frame(self, T_frame_world: np.ndarray) -> "SceneLighting":
         """The same lights expressed in another frame (``T_frame_world: (4, 4)``, rigid)."""
-        from dataclasses import replace
 
         T = np.asarray(T_frame_world, dtype=np.float64)
         R, t = T[:3, :3], T[:3, 3]
@@ -405,10 +406,9 @@ class SceneRenderer:
         frustum_cull: bool = True,
     ):
         try:
-            import pyrender
+            import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
         except Exception as err:  # ImportError, or PyOpenGL failing to find the platform library
             raise RenderError(f"{_GL_HELP} (import failed: {err})") from None
-        from sim.assets import build_mesh, default_texture, table_mesh
 
         self.spec = spec
         self.width = int(width or spec.camera.width)
@@ -421,7 +421,6 @@ class SceneRenderer:
         except Exception as err:
             raise RenderError(f"{_GL_HELP} (context creation failed: {type(err).__name__}: {err})") from None
         _single_sample_framebuffer(self._renderer._renderer)
-        from sim import gl_fastpath
 
         gl_fastpath.install()  # bit-identical images, less Python per uniform (see the module)
 
@@ -489,7 +488,7 @@ class SceneRenderer:
             if img is not None:
                 return np.asarray(img.convert("RGB"))
             return default_texture(mesh.metadata.get("name", "plain"))
-        import imageio.v3 as iio
+        import imageio.v3 as iio  # lazy: robot_io start-up (imageio)
 
         try:
             img = iio.imread(texture)
@@ -500,7 +499,6 @@ class SceneRenderer:
         return np.ascontiguousarray(img[..., :3]).astype(np.uint8)
 
     def _add_static(self, mesh, texture, code, repeat, default_name):
-        from sim.assets import default_texture
 
         tex = self._resolve_texture(texture, mesh, lambda _n: default_texture(default_name))
         if tex is None:  # a flat color: a tiny image keeps one code path for texture swaps
@@ -512,7 +510,7 @@ class SceneRenderer:
 
     def set_lights(self, lighting) -> None:
         """Replace ambient and lights with a :class:`sim.spec.LightingSpec`."""
-        import pyrender
+        import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
 
         for n in self._light_nodes:
             self.scene.remove_node(n)
@@ -542,7 +540,6 @@ class SceneRenderer:
         """Apply a :class:`sim.variations.Appearance` (lights, table, backdrop); no-op if current."""
         if appearance == getattr(self, "_appearance", None):
             return
-        from sim.variations import table_variant_texture
 
         self.set_lights(appearance.lighting)
         self.set_background(appearance.background if appearance.background is not None else self.spec.background)
@@ -570,7 +567,7 @@ class SceneRenderer:
 
     def add_variant(self, k: int, variant: str, image: np.ndarray | None, color=(1.0, 1.0, 1.0)) -> None:
         """Register an alternative look of object ``k`` selectable per render (e.g. white albedo)."""
-        import pyrender
+        import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
 
         mesh = self._objects[k].mesh
         if image is not None:
@@ -588,8 +585,8 @@ class SceneRenderer:
         than pyrender binds, when it picks the nearest per object). This renderer never builds
         such materials; the check keeps a caller from silently shading another model.
         """
-        import pyrender
-        from pyrender.constants import MAX_N_LIGHTS
+        import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
+        from pyrender.constants import MAX_N_LIGHTS  # lazy: robot_io start-up (pyrender, OpenGL)
 
         scene = self.scene
         if any(
@@ -726,7 +723,7 @@ class SceneRenderer:
         ``with_depth=False``: no depth read-back in any pass (``depth`` is None; the colour and
         ids are the same bytes), for callers that do not use it.
         """
-        import pyrender
+        import pyrender  # lazy: robot_io start-up (pyrender, OpenGL)
 
         variants = dict(variants or {})
         for k, name in variants.items():
@@ -774,7 +771,7 @@ class SceneRenderer:
         if getattr(platform, "_egl_context", None) is not None:
             # pyrender's own delete() calls eglTerminate, which destroys every context on the
             # shared EGL display, i.e. every other live renderer: destroy only ours.
-            from OpenGL import EGL
+            from OpenGL import EGL  # lazy: robot_io start-up (pyrender, OpenGL)
 
             EGL.eglMakeCurrent(platform._egl_display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
             EGL.eglDestroyContext(platform._egl_display, platform._egl_context)
