@@ -10,8 +10,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy
-
 from sim.errors import AdvobjError
 
 __all__ = ["RUN_INFO_NAME", "RunInfoError", "git_commit", "write_run_info", "read_run_info"]
@@ -78,7 +76,7 @@ def write_run_info(out_dir: str | Path, config: dict, seed: int | None, name: st
         "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "python": platform.python_version(),
         "torch": torch_version,
-        "numpy": numpy.__version__,
+        "numpy": sys.modules["numpy"].__version__ if "numpy" in sys.modules else importlib.metadata.version("numpy"),
         "torch_threads": torch.get_num_threads() if torch is not None else None,
         "machine": platform.machine(),
     }

@@ -195,3 +195,15 @@ def test_the_lazy_import_check_catches_an_unmarked_one():
         "        import ray  # lazy: optional dependency (ray)\n"
     )
     assert _unmarked_lazy_imports(src) == [4, 8, 9, 11]
+
+
+def test_the_cli_start_up_loads_no_heavy_package():
+    """`advobj --help` stays within its start-up budget (benchmarks/bench_cli_startup.py): importing the
+    CLI loads none of the packages its commands import lazily."""
+    import subprocess
+    import sys
+
+    heavy = ("numpy", "torch", "pyrender", "OpenGL", "cv2", "matplotlib", "trimesh", "onnxruntime", "ray", "PIL")
+    code = f"import sys, trials.cli.main; print(','.join(m for m in {heavy!r} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == ""

@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 from typing import List, Optional
 
-import numpy as np
 import typer
 from pydantic import ValidationError
 
@@ -248,6 +247,8 @@ def detect(
     as_json: bool = typer.Option(False, "--json", help="print JSON"),
 ) -> None:
     """Print every detected tag (both pose solutions, errors, ambiguity) and every registered object's position."""
+    import numpy as np  # lazy: CLI start-up (numpy)
+
     from calibration.apriltag import detect_tags, resolve_dictionary  # lazy: CLI start-up (cv2, pupil_apriltags)
     from calibration.intrinsics import load_camera_yaml  # lazy: CLI start-up (+51 ms)
     from calibration.registry import TABLE, load_registry, locate_objects  # lazy: CLI start-up (cv2, pupil_apriltags)

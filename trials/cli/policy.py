@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
 import typer
 
 from sim.runinfo import write_run_info
@@ -156,6 +155,8 @@ def export(
     check: bool = typer.Option(True, "--check/--no-check", help="compare onnxruntime with torch on 32 random images"),
 ) -> None:
     """Export a checkpoint to ONNX (black-box use, real trials)."""
+    import numpy as np  # lazy: CLI start-up (numpy)
+
     from sim.policies.checkpoint import load_checkpoint  # lazy: CLI start-up (torch, onnxruntime)
     from sim.policies.onnx_policy import OnnxPolicy, export_onnx  # lazy: CLI start-up (torch, onnxruntime)
 

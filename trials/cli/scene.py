@@ -8,7 +8,6 @@ from typing import Optional
 import typer
 
 from sim.errors import AdvobjError
-from sim.imaging import write_gif
 
 app = typer.Typer(no_args_is_help=True, help="Render the simulated scene and roll out the expert.")
 
@@ -62,6 +61,8 @@ def rollout(
 
     spec = load_spec(scene)
     frames, info = expert_rollout(spec, seed, size)
+    from sim.imaging import write_gif  # lazy: CLI start-up (numpy)
+
     write_gif(out, frames)
     reached = int(info["reached"][0])
     name = spec.objects[reached].name if reached >= 0 else "nothing"

@@ -8,7 +8,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import List, Optional
 
-import numpy as np
 import typer
 
 from sim.runinfo import write_run_info
@@ -54,6 +53,8 @@ def plan_command(
     ),
 ) -> None:
     """Write the randomized real-trial plan (paper design: TCP poses x object layouts per env, shape, condition)."""
+    import numpy as np  # lazy: CLI start-up (numpy)
+
     from trials.real.plan import PlanError  # lazy: CLI start-up (trimesh, PIL)
 
     # before any work: a session's trials are tied to its plan's sha256, a silent overwrite orphans them
@@ -161,6 +162,8 @@ def run_command(
     ),
 ) -> None:
     """Run (or resume) the plan's trials: placement check, policy loop, outcome, operator confirmation, commit."""
+    import numpy as np  # lazy: CLI start-up (numpy)
+
     from trials.real.session import SessionOptions, run_session  # lazy: CLI start-up (torch, cv2)
 
     opts = SessionOptions(

@@ -49,14 +49,16 @@ import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import TYPE_CHECKING, Iterable, Sequence
 
-import numpy as np
 import yaml
 
 from sim.errors import AdvobjError
 from sim.paths import UnsafePathError, check_name, safe_join
 from trials.real.locks import FileLock, LockBusy, describe_holder, holder_identity, pid_running
+
+if TYPE_CHECKING:  # annotations only: numpy is imported where it is used (CLI start-up)
+    import numpy as np
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -268,6 +270,8 @@ def _allow_policy_error(con: sqlite3.Connection) -> None:
 # ---------------------------------------------------------------------- records
 def pose_vec(T) -> list[float]:
     """``[x, y, z, rx, ry, rz]`` of a (4, 4) transform (NaN-filled for ``None``)."""
+    import numpy as np  # lazy: CLI start-up (numpy)
+
     from sim.geometry import so3_log  # lazy: CLI start-up (+3 ms)
 
     if T is None:
@@ -652,6 +656,8 @@ class TrialStore:
 
     def open_session(self, info: SessionInfo) -> int:
         """The id of session ``info.name``: created, or resumed if :meth:`check_resume` allows; records this run."""
+        import numpy as np  # lazy: CLI start-up (numpy)
+
         self.check_resume(info)
         row = self.session(info.name)
         T_json = (
@@ -709,6 +715,8 @@ class TrialStore:
 
     def stored_T_base_table(self, name: str) -> np.ndarray | None:
         """The table frame session ``name`` was started with (None: no such session, or none stored)."""
+        import numpy as np  # lazy: CLI start-up (numpy)
+
         row = self.session(name)
         if row is None or row["T_base_table_json"] is None:
             return None
@@ -849,6 +857,8 @@ class TrialStore:
     # ------------------------------------------------------------------ trials
     def commit_trial(self, session_id: int, rec: TrialRecord) -> int:
         """Insert one whole trial atomically; returns its row id. Nothing of it remains on failure."""
+        import numpy as np  # lazy: CLI start-up (numpy)
+
         for name, value in (("auto_outcome", rec.auto_outcome), ("operator_outcome", rec.operator_outcome)):
             if value is not None and value not in OUTCOMES:
                 raise StoreError(f"trial {rec.trial_id}: {name} {value!r} is not one of {', '.join(OUTCOMES)}")
