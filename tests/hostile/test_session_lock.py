@@ -200,7 +200,8 @@ def test_two_cli_runs_of_one_session_the_later_is_refused_while_the_first_commit
     """The issue's scenario with two ``advobj trial run`` processes: the second starts once the
     first has committed a trial, is refused, and no committed trial's frame changes."""
     db = tmp_path / "trials.sqlite"
-    plan = small_plan(tmp_path / "long.yaml", tmp_path, n_tcp=5, n_layouts=2, max_steps=6)
+    # 90 trials of up to 30 steps: the first run must outlive the second's start-up, even on a loaded machine
+    plan = small_plan(tmp_path / "long.yaml", tmp_path, n_tcp=5, n_layouts=6, max_steps=30)
     args = _run_args({**files, "plan": plan}, db)
     first = subprocess.Popen(
         [sys.executable, "-m", "trials.cli.main", *args], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
