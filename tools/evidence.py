@@ -66,6 +66,11 @@ def run(
     recipe: str, episodes: int, policy: str | None, work: Path, results: Path, extra: list[str], name: str | None = None
 ) -> int:
     name = name or recipe
+    commit = _commit()
+    if commit.endswith("+dirty"):
+        # A committed result must name the code that made it: commit first (or run from a clean clone).
+        print(f"evidence: the checkout has uncommitted changes ({commit}); commit them first", file=sys.stderr)
+        return 2
     out = work / name
     # Paths relative to the checkout, so the recorded command is the one a reader types there.
     cmd = [
@@ -86,7 +91,7 @@ def run(
     record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
     attempt = {
         "command": " ".join(["advobj"] + cmd[1:]),
-        "commit": _commit(),
+        "commit": commit,
         "machine": _machine(),
         "start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }

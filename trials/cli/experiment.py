@@ -27,6 +27,8 @@ def _run(
     archs: Optional[str] = None,
     iterations: Optional[int] = None,
     grid: tuple = (None, None, None, "cpu"),
+    attack_seeds: Optional[str] = None,
+    rows: Optional[str] = None,
 ) -> None:
     set_torch_threads()
     targets = {arch: Path(d) for arch, d in key_values(target, "--target", "ARCH", "PATH").items()}
@@ -39,6 +41,8 @@ def _run(
         device=device,
         attack_overrides=None if iterations is None else {"iterations": iterations},
         transfer_targets=None if archs is None else tuple(a.strip() for a in archs.split(",") if a.strip()),
+        attack_seeds=_int_list(attack_seeds, "--attack-seeds"),
+        rows=None if rows is None else tuple(r.strip() for r in rows.split(",") if r.strip()),
     )
     path = run_experiment(
         name,
@@ -55,6 +59,16 @@ def _run(
     typer.echo(f"table: {path}")
 
 
+def _int_list(text: Optional[str], flag: str) -> Optional[tuple]:
+    """``"0,1,2"`` as a tuple of ints (None when not given); anything else is a bad ``flag``."""
+    if text is None:
+        return None
+    try:
+        return tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise typer.BadParameter(f"expected comma-separated integers, got {text!r}", param_hint=flag) from None
+
+
 _PRESET = typer.Option("quick", help="quick (2 CPU cores) or paper (the paper's budget)")
 _OUT = typer.Option(None, help="output directory (default: runs/<experiment>-<preset>); re-running it resumes")
 _POLICY = typer.Option(
@@ -64,6 +78,13 @@ _EPISODES = typer.Option(None, min=1, help="override the preset's episodes per c
 _SCENE = typer.Option(None, help="scene YAML (default: the built-in paper scene)")
 _POOL = typer.Option(None, help="task-feasible pool JSON for every evaluation (default: each policy's own)")
 _ITERATIONS = typer.Option(None, min=1, help="attack iterations of every attack (default: the attack preset's)")
+_ATTACK_SEEDS = typer.Option(
+    None,
+    "--attack-seeds",
+    help="comma-separated attack seeds: independent attack runs per arm, each evaluated on the same configurations "
+    "(default: 0)",
+)
+_ROWS = typer.Option(None, "--rows", help="comma-separated Table II rows to run (default: all; table2 only)")
 _DEVICE = typer.Option("cpu", help="torch device of every job; 'cuda' jobs ask Ray for a GPU each")
 
 
@@ -96,7 +117,11 @@ def _command(name: str, recipe):
         address: Optional[str] = ADDRESS,
         shards: Optional[int] = SHARDS,
         device: str = _DEVICE,
+        attack_seeds: Optional[str] = _ATTACK_SEEDS,
+        rows: Optional[str] = _ROWS,
     ) -> None:
+        if rows is not None and name != "table2":
+            raise typer.BadParameter("only the table2 recipe has rows", param_hint="--rows")
         if not recipe.transfer:
             for flag, given in (("--target", target), ("--archs", archs)):
                 if given:
@@ -115,6 +140,8 @@ def _command(name: str, recipe):
             archs,
             iterations=iterations,
             grid=(workers, address, shards, device),
+            attack_seeds=attack_seeds,
+            rows=rows,
         )
 
     command.__doc__ = recipe.help

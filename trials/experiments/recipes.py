@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable, Literal
 
 import yaml
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, field_validator
 
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
@@ -63,6 +63,30 @@ class ExperimentConfig(StrictModel):
     )
     device: str = Field("cpu", description="torch device of every job (cuda jobs ask the executor for a GPU)")
     seed: int = 0
+    attack_seeds: tuple[int, ...] = Field(
+        (0,),
+        min_length=1,
+        description="independent attack runs per arm (the attack's seed); each is evaluated on the same configurations",
+    )
+    rows: tuple[str, ...] | None = Field(None, description="Table II rows to run (default: all)")
+
+    @field_validator("attack_seeds")
+    @classmethod
+    def _distinct_seeds(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if len(set(v)) != len(v) or any(s < 0 for s in v):
+            raise ValueError("attack seeds must be distinct and >= 0")
+        return tuple(v)
+
+    @field_validator("rows")
+    @classmethod
+    def _known_rows(cls, v):
+        if v is None:
+            return v
+        known = [r[0] for r in TABLE2_ROWS]
+        bad = [r for r in v if r not in known]
+        if bad or not v:
+            raise ValueError(f"unknown Table II row {bad[0] if bad else ''!r}; choose from {', '.join(known)}")
+        return tuple(v)
 
 
 PRESETS: dict[str, dict] = {
@@ -603,12 +627,72 @@ def _header(title: str, ctx: Context, note: str = "") -> list[str]:
     ]
 
 
+def seeded(name: str, seed: int) -> str:
+    """The name of attack seed ``seed``'s run of ``name`` (an attack or an evaluation folder):
+    ``name`` itself for seed 0 (what single-seed runs wrote, so they are reused), else
+    ``name-seed<k>``."""
+    return name if int(seed) == 0 else f"{name}-seed{int(seed)}"
+
+
+def seed_of(name: str) -> int:
+    """The attack seed of a run folder named by :func:`seeded` (0 without a ``-seed<k>`` suffix)."""
+    head, sep, tail = name.rpartition("-seed")
+    return int(tail) if sep and head and tail.isdigit() else 0
+
+
+def unseeded(name: str) -> str:
+    """``name`` without its ``-seed<k>`` suffix (the arm a seed's run belongs to)."""
+    head, sep, tail = name.rpartition("-seed")
+    return head if sep and head and tail.isdigit() else name
+
+
+def ensure_seeded_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict, seed: int) -> Path:
+    """:func:`ensure_attack` for attack seed ``seed``: an independent optimisation run (its own
+    training configurations, sampling and validation draws) of the same method."""
+    return ensure_attack(ctx, policy_dir, seeded(name, seed), overrides if seed == 0 else {**overrides, "seed": seed})
+
+
 def table1(ctx: Context) -> str:
     ref = ensure_policy(ctx)
-    att = ensure_attack(ctx, ref, "c2f", {"schedule": "c2f"})
-    pat = ensure_attack(ctx, ref, "patch", {"schedule": "c2f", "adversarial_mesh": "patch"})
-    s = ensure_eval(ctx, ref, "table1", ["attack", "patch"], attack=att, patch=pat)
-    return table1_markdown(s, ctx, eval_rows(ctx, "table1"))
+    first = None
+    for seed in ctx.cfg.attack_seeds:
+        att = ensure_seeded_attack(ctx, ref, "c2f", {"schedule": "c2f"}, seed)
+        pat = ensure_seeded_attack(ctx, ref, "patch", {"schedule": "c2f", "adversarial_mesh": "patch"}, seed)
+        s = ensure_eval(ctx, ref, seeded("table1", seed), ["attack", "patch"], attack=att, patch=pat)
+        first = first or (s, seeded("table1", seed))
+    s, name = first
+    text = table1_markdown(s, ctx, eval_rows(ctx, name))
+    return text + seeds_markdown(ctx, {"3D": ("table1", "attack"), "patch": ("table1", "patch")})
+
+
+def seeds_markdown(ctx: Context, arms: dict[str, tuple[str, str]]) -> str:
+    """Per-seed T-ASR of each arm (``label -> (evaluation name, condition)``), with the mean and
+    the spread over attack seeds; empty for a single seed. The tests between arms that account
+    for both the seeds and the configurations are in results/findings.md."""
+    seeds = ctx.cfg.attack_seeds
+    if len(seeds) < 2:
+        return ""
+    lines = [
+        "",
+        f"## T-ASR per attack seed ({len(seeds)} independent attack runs per arm, same configurations)",
+        "",
+        "| arm | " + " | ".join(f"seed {s}" for s in seeds) + " | mean | sd over seeds | n configs |",
+        "|---|" + "---|" * (len(seeds) + 3),
+    ]
+    for label, (ev, cond) in arms.items():
+        rates, ns = [], set()
+        for seed in seeds:
+            rows = eval_rows(ctx, seeded(ev, seed), cond)
+            ns.add(len(rows))
+            rates.append(sum(int(r["targeted"]) for r in rows.values()) / max(len(rows), 1))
+        mean = sum(rates) / len(rates)
+        sd = (sum((x - mean) ** 2 for x in rates) / (len(rates) - 1)) ** 0.5
+        lines.append(
+            f"| {label} | "
+            + " | ".join(f"{100 * x:.2f}" for x in rates)
+            + f" | {100 * mean:.2f} | {100 * sd:.2f} | {'/'.join(str(n) for n in sorted(ns))} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def eval_rows(ctx: Context, name: str, condition: str | None = None) -> list[dict] | dict[int, dict]:
@@ -670,11 +754,17 @@ def table2(ctx: Context) -> str:
         + " |",
         "|---|---|---|---|---|---|" + "---|---|" * (len(DIST_LABELS) + 1),
     ]
-    evals = {
-        key: ensure_eval(ctx, ref, f"table2_{key}", ["attack"], attack=ensure_attack(ctx, ref, key, overrides))
-        for key, *_, overrides in TABLE2_ROWS
-    }
-    for key, row, strat, flags, overrides in TABLE2_ROWS:
+    rows = [r for r in TABLE2_ROWS if ctx.cfg.rows is None or r[0] in ctx.cfg.rows]
+    first = ctx.cfg.attack_seeds[0]
+    evals = {}
+    for key, *_, overrides in rows:
+        for seed in ctx.cfg.attack_seeds:
+            att = ensure_seeded_attack(ctx, ref, key, overrides, seed)
+            e = ensure_eval(ctx, ref, seeded(f"table2_{key}", seed), ["attack"], attack=att)
+            evals.setdefault(key, e)
+    if len(ctx.cfg.attack_seeds) > 1:
+        lines[2] += f" Rows and paired tests below: attack seed {first}; every seed in the last section."
+    for key, row, strat, flags, overrides in rows:
         cs = evals[key]["conditions"]["attack"]
         chk = " | ".join("x" if f else "" for f in flags)
         rates = [f"{_pct(cs['by_distance'][b]['tasr'])} | {_pct(cs['by_distance'][b]['asr'])}" for b in DIST_LABELS]
@@ -700,7 +790,7 @@ def table2(ctx: Context) -> str:
             lines.append("| | | | | | paper | " + " | ".join(["-"] * (2 * len(DIST_LABELS) + 2)) + " |")
     from trials.experiments.findings import paired_markdown  # lazy: CLI start-up (+33 ms)
 
-    arms = {key: eval_rows(ctx, f"table2_{key}", "attack") for key, *_ in TABLE2_ROWS}
+    arms = {key: eval_rows(ctx, seeded(f"table2_{key}", first), "attack") for key, *_ in rows}
     for a, b, claim in (
         ("c2f", "ns", ">="),
         ("ns", "f2c", ">"),
@@ -715,7 +805,7 @@ def table2(ctx: Context) -> str:
             lines += ["", f"## Paired T-ASR test: {a} vs {b}, by initial distance r", ""] + paired_markdown(
                 a, b, arms[a], arms[b], "r", claim
             )
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n" + seeds_markdown(ctx, {key: (f"table2_{key}", "attack") for key, *_ in rows})
 
 
 def table3(ctx: Context) -> str:

@@ -5,6 +5,7 @@ import json
 import pytest
 
 from tests.trials.conftest import MAX_STEPS
+from trials.eval.episodes import read_rows
 from trials.experiments.recipes import PAPER, ExperimentError, resolve_experiment, run_experiment
 
 TINY_ATTACK = {
@@ -99,3 +100,33 @@ def test_recipe_inputs_are_validated(tmp_path, tiny_policy_dir):
         resolve_experiment("quick", episodes=0)
     with pytest.raises(ExperimentError, match="--target"):
         run_experiment("transfer", resolve_experiment("quick"), tmp_path, targets={"alexnet": tiny_policy_dir})
+
+
+def test_attack_seeds_are_independent_runs_evaluated_on_the_same_configurations(tmp_path, tiny_policy_dir, pool_file):
+    path = run_experiment(
+        "table2",
+        _cfg(pool_file, attack_seeds=(0, 3), rows=("c2f", "ns")),
+        tmp_path,
+        policy=tiny_policy_dir,
+        progress=False,
+        log=lambda m: None,
+    )
+    # seed 0 keeps the single-seed names (reused by earlier runs); other seeds get their own folders
+    assert sorted(p.name for p in (tmp_path / "attacks").iterdir()) == ["c2f", "c2f-seed3", "ns", "ns-seed3"]
+    run = json.loads((tmp_path / "attacks" / "ns-seed3" / "run.json").read_text())
+    assert run["config"]["attack"]["seed"] == 3 and run["config"]["attack"]["schedule"] == "ns"
+    assert json.loads((tmp_path / "attacks" / "ns" / "run.json").read_text())["config"]["attack"]["seed"] == 0
+    seeds = {
+        d: sorted(r["seed"] for r in read_rows(tmp_path / "evals" / d)) for d in ("table2_c2f", "table2_c2f-seed3")
+    }
+    assert seeds["table2_c2f"] == seeds["table2_c2f-seed3"] and seeds["table2_c2f"]
+    text = path.read_text()
+    assert "T-ASR per attack seed (2 independent attack runs per arm" in text
+    assert "| c2f |" in text and "| ns |" in text and "f2c" not in text.split("T-ASR per attack seed")[1]
+
+
+def test_attack_seeds_and_rows_are_validated():
+    with pytest.raises(ExperimentError, match="distinct"):
+        resolve_experiment("quick", attack_seeds=(1, 1))
+    with pytest.raises(ExperimentError, match="unknown Table II row 'nope'"):
+        resolve_experiment("quick", rows=("nope",))
