@@ -13,8 +13,23 @@ discordant pairs decides, at alpha = 0.05 (two-sided):
 - **inconclusive**: not significant; the interval of the paired difference says how large an
   effect the data can still hide.
 
-A "not below" claim (C2F >= NS) holds when C2F's point estimate is at least NS's and it is not
-significantly below; it does not hold when significantly below, and is inconclusive otherwise.
+A "not below" claim (C2F >= NS) is a non-inferiority test with the margin :data:`NI_MARGIN`
+(5 percentage points): it holds when the lower end of the 95% interval of the paired difference is
+above -5 pp; it does not hold when the whole interval is below 0 and reaches -5 pp or lower; it is
+inconclusive otherwise. A difference that is merely not significant never makes it hold.
+
+Per-bin verdicts test several bins at once: each uses the Bonferroni level alpha / m (m = the bins
+with episodes), stated above each table.
+
+Attack seeds: a claim about a method needs several independent attack runs. A finding with
+``seeds`` names the recipe run (e.g. ``table2-seeds``) where each arm ran under several attack seeds
+(evaluations ``X``, ``X-seed1``, ...) on the same configurations. There the difference of the two
+arms' mean T-ASR over seeds gets a 95% interval from a two-level bootstrap
+(:func:`over_seeds`): configurations resampled with replacement, paired across every run, and each
+arm's seeds resampled with replacement independently (different arms' seeds are different
+optimisations), so both the configuration and the seed-to-seed variance are in it. The finding's
+verdict is then the one over seeds, with the same rules on that interval; the single-texture
+verdict is printed beside it.
 Transfer (F5) compares different policies on their own task-feasible configurations, so it is not
 paired: it holds when the 95% interval of T-ASR(target) / T-ASR(white-box) lies above 1/2.
 
@@ -31,12 +46,18 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from statistics import NormalDist
+
+import numpy as np
 
 from trials.eval.episodes import has_rows, read_rows
 from trials.eval.metrics import DISTANCE_BINS_CM, PHI_BINS_DEG, bin_index, bin_labels, mcnemar_exact
 
 __all__ = [
     "ALPHA",
+    "NI_MARGIN",
+    "OverSeeds",
+    "over_seeds",
     "OBLIQUE_PHI_DEG",
     "Arm",
     "Part",
@@ -64,6 +85,10 @@ __all__ = [
 ]
 
 ALPHA = 0.05
+#: Non-inferiority margin of a ">=" claim (as a proportion: 5 percentage points).
+NI_MARGIN = 0.05
+#: Bootstrap resamples of the over-seeds interval (:func:`over_seeds`) and their fixed seed.
+BOOTSTRAP, BOOTSTRAP_SEED = 4000, 0
 # "Oblique views" for F1: the paper's Table I shows the 2D patch collapsing from phi = 50 deg on.
 OBLIQUE_PHI_DEG = 50.0
 ROOT = Path(__file__).resolve().parents[2]
@@ -193,7 +218,10 @@ class Finding:
     - ``partial``: the verdict is the measured parts' and the claim names the parts not measured;
       ``optional``: left out until its recipe has rows;
     - ``parts_title``, ``shortfall``: the heading of the per-part section (findings with more than
-      one part) and what it says when a part does not hold.
+      one part) and what it says when a part does not hold;
+    - ``seeds``: the recipe run whose arms ran under several attack seeds (:func:`over_seeds`); its
+      verdict, once it has rows, is the finding's;
+    - ``where_b_wins``: the table is followed by the bins where the second arm's rate is higher.
     """
 
     id: str
@@ -214,6 +242,8 @@ class Finding:
     optional: bool = False
     parts_title: str = "parts"
     shortfall: str = ""
+    seeds: str | None = None
+    where_b_wins: bool = False
 
     def __post_init__(self):
         kinds = {p.claim == "ratio" for p in self.parts}
@@ -262,13 +292,24 @@ SALIENCY = _t2("c2f", "c2f_no_saliency", ("with saliency", "without"), short=("s
 FINDINGS: tuple[Finding, ...] = (
     Finding(
         "F1",
+        "3D object > 2D patch in T-ASR, overall (all viewing angles)",
+        "T-ASR 57.9% vs 39.9% overall (Table I)",
+        "table1",
+        (_3D_PATCH,),
+        bins="phi",
+        seeds="table1-seeds",
+        where_b_wins=True,
+    ),
+    Finding(
+        "F1-oblique",
         f"3D object > 2D patch in T-ASR at oblique views (phi >= {OBLIQUE_PHI_DEG:.0f} deg)",
-        _TABLE_I,
+        "T-ASR at phi 50-60 / 60-70 / 70-90 deg: 51.0 / 40.0 / 34.2% vs 27.0 / 15.0 / 10.6% (Table I)",
         "table1",
         (_3D_PATCH,),
         subgroup=_OBLIQUE,
         complement=True,
-        bins="phi",
+        seeds="table1-seeds",
+        title=f"F1 at oblique views (phi >= {OBLIQUE_PHI_DEG:.0f} deg) and below",
     ),
     # The same test against the paper's policy (ResNet-18 at 128 px), at the budget that fitted a session.
     Finding(
@@ -290,11 +331,24 @@ FINDINGS: tuple[Finding, ...] = (
         (C2F_NS, NS_F2C),
         bins="r",
         binned=(C2F_NS, NS_F2C, C2F_F2C),
+        seeds="table2-seeds",
         extras=(_t2("c2f", "coarse", ("C2F", "coarse-only")), _t2("c2f", "fine", ("C2F", "fine-only"))),
     ),
     Finding(
         "F3",
-        "targeted > untargeted in T-ASR (the paper: far greater)",
+        "targeted > untargeted in T-ASR, with somewhere else to go (three objects: the untargeted attack can send "
+        "the policy to the cube)",
+        "T-ASR 80.4% vs 0.04% (Table II, rows f and c)",
+        "table2-f3",
+        (TARGETED,),
+        bins="r",
+        seeds="table2-f3",
+        optional=True,
+        title="F3 in the three-object scene by initial distance r (results/table2-f3/)",
+    ),
+    Finding(
+        "F3-two-objects",
+        "as F3 in the two-object scene, where a policy pushed off the goal can only reach the adversarial object",
         "T-ASR 80.4% vs 0.04% (Table II, rows f and c)",
         "table2",
         (TARGETED,),
@@ -307,6 +361,7 @@ FINDINGS: tuple[Finding, ...] = (
         "table2",
         (SALIENCY,),
         bins="r",
+        seeds="table2-seeds",
     ),
     Finding(
         "F5",
@@ -388,16 +443,32 @@ def paired_by_bin(
     return [(lab, paired(a, b, event, where=lambda r, k=k: bin_of(r, key) == k)) for k, lab in enumerate(labels)]
 
 
-def verdict(pr: Paired, claim: str = ">") -> str:
-    """``holds`` / ``does not hold`` / ``inconclusive`` for the claim "A > B" (or "A >= B")."""
+def z_of(alpha: float) -> float:
+    """The two-sided normal quantile of level ``alpha`` (1.96 at 0.05)."""
+    return NormalDist().inv_cdf(1.0 - alpha / 2.0)
+
+
+def interval_verdict(lo: float, hi: float, claim: str = ">") -> str:
+    """The verdict on "A > B" (``">"``) or "A >= B" (``">="``, non-inferiority with margin
+    :data:`NI_MARGIN`) from an interval ``[lo, hi]`` of the difference A - B."""
+    if claim == ">":
+        return "holds" if lo > 0 else ("does not hold" if hi < 0 else "inconclusive")
+    if lo > -NI_MARGIN:
+        return "holds"
+    return "does not hold" if hi < 0 else "inconclusive"
+
+
+def verdict(pr: Paired, claim: str = ">", tests: int = 1) -> str:
+    """``holds`` / ``does not hold`` / ``inconclusive`` for the claim "A > B" (McNemar at
+    alpha / ``tests``) or "A >= B" (the paired difference's interval at level alpha / ``tests``
+    against the margin :data:`NI_MARGIN`)."""
     if not pr.n:
         return "not measured"
-    sig = pr.p < ALPHA
+    alpha = ALPHA / max(1, int(tests))
     if claim == ">":
+        sig = pr.p < alpha
         return "holds" if sig and pr.diff > 0 else ("does not hold" if sig else "inconclusive")
-    if sig and pr.diff < 0:
-        return "does not hold"
-    return "holds" if pr.diff >= 0 else "inconclusive"
+    return interval_verdict(*pr.diff_ci(z_of(alpha)), claim)
 
 
 def _combine(verdicts: list[str]) -> str:
@@ -415,6 +486,109 @@ def _ratio_ci(k1: int, n1: int, k2: int, n2: int, z: float = 1.959964) -> tuple[
     r = (k1 / n1) / (k2 / n2)
     se = math.sqrt(1 / k1 - 1 / n1 + 1 / k2 - 1 / n2)
     return r, r * math.exp(-z * se), r * math.exp(z * se)
+
+
+@dataclass(frozen=True)
+class OverSeeds:
+    """A paired part over attack seeds: each arm's T-ASR per seed on the same ``n`` configurations,
+    the difference of the means over seeds with its two-level bootstrap 95% interval, and the verdict
+    on that interval."""
+
+    part: Part
+    seeds: tuple[int, ...]
+    n: int
+    rates_a: tuple[float, ...]
+    rates_b: tuple[float, ...]
+    diff: float
+    lo: float
+    hi: float
+    verdict: str
+
+    @staticmethod
+    def _sd(x: tuple[float, ...]) -> float:
+        m = sum(x) / len(x)
+        return math.sqrt(sum((v - m) ** 2 for v in x) / (len(x) - 1)) if len(x) > 1 else math.nan
+
+    @property
+    def mean_a(self) -> float:
+        return sum(self.rates_a) / len(self.rates_a)
+
+    @property
+    def mean_b(self) -> float:
+        return sum(self.rates_b) / len(self.rates_b)
+
+    @property
+    def sd_a(self) -> float:
+        return self._sd(self.rates_a)
+
+    @property
+    def sd_b(self) -> float:
+        return self._sd(self.rates_b)
+
+
+def seed_arms(rows: list[dict] | None, a: Arm) -> dict[int, dict[int, dict]]:
+    """``attack seed -> (configuration seed -> row)`` of arm ``a`` in a multi-seed recipe run: the
+    evaluations ``a.eval`` (attack seed 0) and ``a.eval-seed<k>``."""
+    out: dict[int, dict[int, dict]] = {}
+    for r in rows or []:
+        if r["condition"] != a.condition:
+            continue
+        name = r["eval"]
+        if name == a.eval:
+            k = 0
+        elif name.startswith(a.eval + "-seed") and name[len(a.eval) + 5 :].isdigit():
+            k = int(name[len(a.eval) + 5 :])
+        else:
+            continue
+        out.setdefault(k, {})[r["seed"]] = r
+    return out
+
+
+def over_seeds(
+    part: Part,
+    a: dict[int, dict[int, dict]],
+    b: dict[int, dict[int, dict]],
+    event: str = "targeted",
+    where=None,
+    resamples: int = BOOTSTRAP,
+    seed: int = BOOTSTRAP_SEED,
+) -> OverSeeds | None:
+    """Part ``part`` over attack seeds (``seed -> config -> row`` per arm, :func:`seed_arms`); None
+    with fewer than two seeds. Both arms must have the same attack seeds, else ValueError.
+
+    The statistic is mean over seeds of the arm's rate, A minus B, on the configurations every run
+    has (restricted by ``where``). Its interval is a two-level (hierarchical) bootstrap: each of
+    ``resamples`` draws resamples the configurations with replacement (the same draw for every run,
+    since they share the configurations) and, independently per arm, the arm's seeds with
+    replacement. A bootstrap over only 3 seeds understates the seed variance somewhat (a resample
+    of 3 has less spread than the population); the per-seed rates are printed so the reader sees it.
+    """
+    if sorted(a) != sorted(b):
+        raise ValueError(f"{part.label}: the arms have different attack seeds, {sorted(a)} vs {sorted(b)}")
+    seeds = tuple(sorted(a))
+    if len(seeds) < 2:
+        return None
+    runs = [*a.values(), *b.values()]
+    configs = sorted(set.intersection(*(set(x) for x in runs)))
+    if where is not None:
+        configs = [c for c in configs if where(a[seeds[0]][c])]
+    if not configs:
+        return OverSeeds(part, seeds, 0, (), (), math.nan, math.nan, math.nan, "not measured")
+    xa = np.array([[float(a[s][c][event]) for c in configs] for s in seeds])  # (k, n)
+    xb = np.array([[float(b[s][c][event]) for c in configs] for s in seeds])
+    k, n = xa.shape
+    rng = np.random.default_rng(seed)
+    rows = np.arange(resamples)[:, None]
+    cw = np.zeros((resamples, n))
+    np.add.at(cw, (rows, rng.integers(0, n, size=(resamples, n))), 1.0 / n)  # configuration weights
+    wa, wb = np.zeros((resamples, k)), np.zeros((resamples, k))
+    np.add.at(wa, (rows, rng.integers(0, k, size=(resamples, k))), 1.0 / k)  # seed weights, arm A
+    np.add.at(wb, (rows, rng.integers(0, k, size=(resamples, k))), 1.0 / k)  # and arm B, independent
+    stat = ((wa @ xa - wb @ xb) * cw).sum(axis=1)
+    lo, hi = (float(v) for v in np.quantile(stat, [0.025, 0.975]))
+    ra, rb = tuple(float(v) for v in xa.mean(1)), tuple(float(v) for v in xb.mean(1))
+    diff = sum(ra) / k - sum(rb) / k
+    return OverSeeds(part, seeds, n, ra, rb, diff, lo, hi, interval_verdict(lo, hi, part.claim))
 
 
 # --- evaluation ---------------------------------------------------------------------------------
@@ -468,6 +642,8 @@ class Evaluated:
     binned: tuple[Binned, ...] = ()
     complement: Paired | None = None
     extras: tuple[tuple[Part, Paired], ...] = ()
+    seeds: tuple[OverSeeds, ...] = ()
+    single: str = ""  # the verdict on the recipe's one texture per arm (the verdict when no seed runs)
 
 
 def _ratio_outcome(f: Finding, part: Part, rows: list[dict] | None) -> Outcome:
@@ -516,7 +692,14 @@ def evaluate(f: Finding, rows_of: Rows, results: Path) -> Evaluated | None:
     if f.subgroup and f.complement:
         complement = paired(*sides(f.parts[0]), f.event, where=f.subgroup.outside)
     extras = tuple((p, paired(*sides(p), f.event)) for p in f.extras)
-    return Evaluated(f, claim, v, parts, binned, complement, extras)
+    over: tuple[OverSeeds, ...] = ()
+    if f.seeds and f.test == "paired McNemar" and (srows := rows_of(f.seeds)):
+        got = [over_seeds(p, seed_arms(srows, p.a), seed_arms(srows, p.b), f.event, f.subgroup) for p in f.parts]
+        over = tuple(o for o in got if o is not None)
+    single = v
+    if over and len(over) == len(f.parts):
+        v = _combine([o.verdict for o in over])
+    return Evaluated(f, claim, v, parts, binned, complement, extras, over, single)
 
 
 def findings(results: Path, registry: tuple[Finding, ...] = FINDINGS) -> dict[str, Evaluated]:
@@ -567,7 +750,18 @@ def _bin_table(
     """Markdown table of a paired comparison per bin (``(label, Paired)`` pairs); a verdict column when
     ``claim`` is given; an empty bin says so instead of showing 0%."""
     rate, cols = _rate(event), 7 if claim else 6
-    lines = [
+    m = sum(1 for _, q in by_bin if q.n)
+    lines = (
+        [
+            f"Per-bin verdicts test {m} bins at once: each at the Bonferroni level alpha / {m} = "
+            f"{ALPHA / max(1, m):.2g}"
+            + (f" (non-inferiority margin {100 * NI_MARGIN:.0f} pp)." if claim == ">=" else "."),
+            "",
+        ]
+        if claim
+        else []
+    )
+    lines += [
         f"| {label} | n | {name_a} {rate} % | {name_b} {rate} % | only {name_a} / only {name_b} | p |"
         + (" verdict |" if claim else ""),
         "|---" * cols + "|",
@@ -575,7 +769,7 @@ def _bin_table(
     for lab, q in by_bin:
         lines.append(
             f"| {lab} | {q.n} | {_pct(q.rate_a)} | {_pct(q.rate_b)} | {q.b} / {q.c} | {_p(q.p)} |"
-            + (f" {verdict(q, claim)} |" if claim else "")
+            + (f" {verdict(q, claim, m)} |" if claim else "")
             if q.n
             else f"| {lab} | 0 | (no episodes) | (no episodes) | - | - |" + (" - |" if claim else "")
         )
@@ -635,12 +829,87 @@ def render(f: dict[str, Evaluated], prefix: str = "") -> str:
     for e in f.values():
         measured = e.verdict != "not measured"
         ours = _ours(e) if measured else "not run yet"
-        data = f"results/{e.finding.recipe}/"
-        link = f"[{data}]({prefix}{data})" if measured else "-"
+        if e.seeds:
+            ours += "; over attack seeds: " + "; ".join(_seeds_text(o) for o in e.seeds)
+        data = [f"results/{e.finding.recipe}/"] + ([f"results/{e.finding.seeds}/"] if e.seeds else [])
+        link = ", ".join(f"[{d}]({prefix}{d})" for d in dict.fromkeys(data)) if measured else "-"
         lines.append(
-            f"| **{e.finding.id}** {e.claim} | {e.finding.paper} | {ours} | {_p_cell(e)} | **{e.verdict}** | {link} |"
+            f"| **{e.finding.id}** {e.claim} | {e.finding.paper} | {ours} | {_p_cell(e)} | {_verdict_cell(e)} "
+            f"| {link} |"
         )
+    for e in f.values():
+        if e.finding.where_b_wins and e.binned:
+            lines += ["", _b_wins_text(e)]
     return "\n".join(lines) + "\n"
+
+
+def _b_wins_text(e: Evaluated) -> str:
+    """Where the second arm of a binned finding wins: the bins where its rate is higher, and those
+    where it is significantly higher at the Bonferroni level of the bins."""
+    b = e.binned[0]
+    na, nb = b.part.names
+    bins = [(lab, q) for lab, q in b.by_bin if q.n]
+    ahead = [lab for lab, q in bins if q.diff < 0]
+    sig = [lab for lab, q in bins if verdict(q, ">", len(bins)) == "does not hold"]
+    unit = UNITS[e.finding.bins]
+    text = f"**Where the {nb} wins ({e.finding.id}, results/{e.finding.recipe}/):** "
+    if not ahead:
+        return text + f"in no {e.finding.bins} bin is the {nb}'s {_rate(e.finding.event)} higher."
+    text += f"its {_rate(e.finding.event)} is higher than the {na}'s at {e.finding.bins} " + ", ".join(
+        f"{lab} {unit}" for lab in ahead
+    )
+    if sig:
+        return text + f"; significantly so (Bonferroni over {len(bins)} bins) at " + ", ".join(sig) + f" {unit}."
+    return text + f"; in none of them significantly (Bonferroni over {len(bins)} bins)."
+
+
+def _verdict_cell(e: Evaluated) -> str:
+    if e.seeds:
+        return f"**{e.verdict}** over {len(e.seeds[0].seeds)} attack seeds (one texture: {e.single})"
+    if e.verdict == "not measured" or e.finding.test == "ratio CI":
+        return f"**{e.verdict}**"
+    return f"**{e.verdict}** (one texture per arm; no seed runs)"
+
+
+def _seeds_text(o: OverSeeds) -> str:
+    a, b = o.part.names
+    if not o.n:
+        return f"{a} vs {b}: no configurations"
+    return (
+        f"{a} {_pct(o.mean_a)}% (sd {_pct(o.sd_a)}) vs {b} {_pct(o.mean_b)}% (sd {_pct(o.sd_b)}), difference "
+        f"{100 * o.diff:+.1f} pp, 95% CI [{100 * o.lo:+.1f}, {100 * o.hi:+.1f}] "
+        f"({len(o.seeds)} seeds x {o.n} configurations)"
+    )
+
+
+def _seeds_section(f: dict[str, Evaluated]) -> list[str]:
+    """Every multi-seed part: each arm's T-ASR per attack seed, the means, the interval and verdicts."""
+    es = [e for e in f.values() if e.seeds]
+    if not es:
+        return []
+    lines = [
+        "## Over attack seeds",
+        "",
+        "Each arm ran as independent attack optimisations (attack seeds), every one evaluated on the same held-out "
+        "configurations. Difference: mean over seeds of A's rate minus B's. Interval: two-level bootstrap "
+        f'({BOOTSTRAP} resamples of the configurations, and independently of each arm\'s seeds); a ">=" claim is '
+        f"non-inferiority with margin {100 * NI_MARGIN:.0f} pp. With 3 seeds the seed resampling is coarse, so read "
+        "the per-seed rates too.",
+        "",
+        "| finding | claim | n configs | A per seed % | A mean (sd) % | B per seed % | B mean (sd) % | difference pp "
+        "| 95% CI pp | verdict over seeds | one texture |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in es:
+        for o in e.seeds:
+            one = next((x.verdict for x in e.parts if x.part == o.part), "-")
+            lines.append(
+                f"| {e.finding.id} | {o.part.label} | {o.n} | {', '.join(_pct(x) for x in o.rates_a)} | "
+                f"{_pct(o.mean_a)} ({_pct(o.sd_a)}) | {', '.join(_pct(x) for x in o.rates_b)} | "
+                f"{_pct(o.mean_b)} ({_pct(o.sd_b)}) | {100 * o.diff:+.1f} | [{100 * o.lo:+.1f}, {100 * o.hi:+.1f}] | "
+                f"**{o.verdict}** | {one} |"
+            )
+    return lines
 
 
 def _subgroup_lines(e: Evaluated) -> list[str]:
@@ -730,6 +999,7 @@ def render_details(f: dict[str, Evaluated], extra: Sequence[list[str]] = ()) -> 
             "definitions in `trials/experiments/findings.py`. alpha = 0.05, two-sided.",
         ],
         [render(f, "../").removesuffix("\n")],
+        *([sec] if (sec := _seeds_section(f)) else []),
         *_bins_sections(f),
         *extra,
         *(_parts_section(e) for e in f.values() if len(e.parts) > 1),

@@ -1,0 +1,246 @@
+"""The README's findings table, recomputed from the committed CSVs with code independent of
+``trials.experiments.findings``: the csv module, exact binomial sums and a pure-Python bootstrap.
+What the module prints must agree with what this file computes on its own."""
+
+import csv
+import math
+import random
+import re
+from pathlib import Path
+
+import pytest
+
+from trials.experiments import findings as fd
+
+ROOT = Path(__file__).resolve().parents[3]
+RESULTS = ROOT / "results"
+
+# Each finding's arms, written out here (not read from the module's registry):
+# id -> (single-texture recipe, seeds recipe or None, [(eval a, cond a, eval b, cond b, claim)], phi at least)
+ARMS = {
+    "F1": ("table1", "table1-seeds", [("table1", "attack", "table1", "patch", ">")], None),
+    "F1-oblique": ("table1", "table1-seeds", [("table1", "attack", "table1", "patch", ">")], 50.0),
+    "F2": (
+        "table2",
+        "table2-seeds",
+        [("table2_c2f", "attack", "table2_ns", "attack", ">="), ("table2_ns", "attack", "table2_f2c", "attack", ">")],
+        None,
+    ),
+    "F3": ("table2-f3", "table2-f3", [("table2_c2f", "attack", "table2_c2f_untargeted", "attack", ">")], None),
+    "F3-two-objects": ("table2", None, [("table2_c2f", "attack", "table2_c2f_untargeted", "attack", ">")], None),
+    "F4": ("table2", "table2-seeds", [("table2_c2f", "attack", "table2_c2f_no_saliency", "attack", ">")], None),
+}
+NUM = r"[+-]?\d+(?:\.\d+)?"
+PAIR = re.compile(
+    rf"(?P<ra>{NUM})% vs [\w\- ]+? (?P<rb>{NUM})% \(difference (?P<d>{NUM}) pp, 95% CI \[(?P<lo>{NUM}), "
+    rf"(?P<hi>{NUM})\]; discordant (?P<b>\d+)/(?P<c>\d+); n = (?P<n>\d+)\)"
+)
+SEEDS = re.compile(
+    rf"(?P<ma>{NUM})% \(sd (?P<sa>{NUM}|n/a)\) vs [\w\- ]+? (?P<mb>{NUM})% \(sd (?P<sb>{NUM}|n/a)\), difference "
+    rf"(?P<d>{NUM}) pp, 95% CI \[(?P<lo>{NUM}), (?P<hi>{NUM})\] \((?P<k>\d+) seeds x (?P<n>\d+) configurations\)"
+)
+
+
+def _rows(recipe):
+    with open(RESULTS / recipe / "episodes.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _table_rows():
+    text = (ROOT / "README.md").read_text()
+    block = text.split("<!-- findings:start", 1)[1].split("<!-- findings:end -->", 1)[0]
+    out = {}
+    for line in block.splitlines():
+        m = re.match(r"\| \*\*([\w-]+)\*\* ", line)
+        if m:
+            out[m.group(1)] = line.split(" | ")
+    return out
+
+
+def _arm(rows, ev, cond):
+    return {int(r["seed"]): r for r in rows if r["eval"] == ev and r["condition"] == cond}
+
+
+def _phi_deg(r):
+    return math.degrees(float(r["phi_rad"]))
+
+
+def _mcnemar_p(b, c):
+    n = b + c
+    if n == 0:
+        return 1.0
+    k = min(b, c)
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n)
+
+
+def _single(rows, ev_a, c_a, ev_b, c_b, phi_min):
+    a, b = _arm(rows, ev_a, c_a), _arm(rows, ev_b, c_b)
+    keys = [s for s in a if s in b and (phi_min is None or _phi_deg(a[s]) >= phi_min)]
+    ta = [a[s]["targeted"] in ("1", "True", "true") for s in keys]
+    tb = [b[s]["targeted"] in ("1", "True", "true") for s in keys]
+    n = len(keys)
+    only_a = sum(x and not y for x, y in zip(ta, tb))
+    only_b = sum(y and not x for x, y in zip(ta, tb))
+    d = (only_a - only_b) / n
+    half = 1.959964 * math.sqrt(max(0.0, (only_a + only_b) / n - d * d) / n)
+    return dict(n=n, b=only_a, c=only_b, ra=sum(ta) / n, rb=sum(tb) / n, d=d, lo=d - half, hi=d + half)
+
+
+def _by_seed(rows, ev, cond):
+    out = {}
+    for r in rows:
+        if r["condition"] != cond:
+            continue
+        m = re.fullmatch(re.escape(ev) + r"(?:-seed(\d+))?", r["eval"])
+        if m:
+            out.setdefault(int(m.group(1) or 0), {})[int(r["seed"])] = r["targeted"] in ("1", "True", "true")
+    return out
+
+
+def _bootstrap(xa, xb, resamples=3000, seed=12345):
+    """Two-level bootstrap written plainly: configurations, then each arm's seeds, with replacement."""
+    rng = random.Random(seed)
+    k, n = len(xa), len(xa[0])
+    stats = []
+    for _ in range(resamples):
+        cs = [rng.randrange(n) for _ in range(n)]
+        sa = [rng.randrange(k) for _ in range(k)]
+        sb = [rng.randrange(k) for _ in range(k)]
+        ma = sum(sum(xa[s][c] for c in cs) / n for s in sa) / k
+        mb = sum(sum(xb[s][c] for c in cs) / n for s in sb) / k
+        stats.append(ma - mb)
+    stats.sort()
+    return stats[int(0.025 * resamples)], stats[int(0.975 * resamples) - 1]
+
+
+def _committed(recipe):
+    return recipe is not None and (RESULTS / recipe / "episodes.csv").is_file()
+
+
+TABLE = _table_rows()
+
+
+@pytest.mark.parametrize("fid", [f for f in ARMS if f in TABLE])
+def test_the_single_texture_figures_recompute_from_the_csvs(fid):
+    recipe, _, parts, phi_min = ARMS[fid]
+    rows = _rows(recipe)
+    printed = list(PAIR.finditer(TABLE[fid][2]))
+    assert len(printed) == len(parts), TABLE[fid][2]
+    for m, (ea, ca, eb, cb, claim) in zip(printed, parts):
+        got = _single(rows, ea, ca, eb, cb, phi_min)
+        assert (int(m["n"]), int(m["b"]), int(m["c"])) == (got["n"], got["b"], got["c"])
+        assert float(m["ra"]) == pytest.approx(100 * got["ra"], abs=0.051)
+        assert float(m["rb"]) == pytest.approx(100 * got["rb"], abs=0.051)
+        assert float(m["d"]) == pytest.approx(100 * got["d"], abs=0.051)
+        assert float(m["lo"]) == pytest.approx(100 * got["lo"], abs=0.051)
+        assert float(m["hi"]) == pytest.approx(100 * got["hi"], abs=0.051)
+
+
+@pytest.mark.parametrize("fid", [f for f in ARMS if f in TABLE])
+def test_the_verdict_follows_the_stated_rules(fid):
+    recipe, seeds_recipe, parts, phi_min = ARMS[fid]
+    cell = TABLE[fid][4]
+    if _committed(seeds_recipe):
+        assert "over 3 attack seeds" in cell or re.search(r"over \d+ attack seeds", cell), cell
+        return  # the over-seeds verdict is checked in the next test
+    rows = _rows(recipe)
+    verdicts = []
+    for ea, ca, eb, cb, claim in parts:
+        g = _single(rows, ea, ca, eb, cb, phi_min)
+        if claim == ">":
+            sig = _mcnemar_p(g["b"], g["c"]) < 0.05
+            verdicts.append("holds" if sig and g["d"] > 0 else "does not hold" if sig else "inconclusive")
+        else:  # non-inferiority with a 5 pp margin on the 95% interval
+            verdicts.append("holds" if g["lo"] > -0.05 else "does not hold" if g["hi"] < 0 else "inconclusive")
+    want = (
+        "does not hold"
+        if "does not hold" in verdicts
+        else "holds"
+        if all(v == "holds" for v in verdicts)
+        else "inconclusive"
+    )
+    assert cell.startswith(f"**{want}**"), (cell, verdicts)
+
+
+@pytest.mark.parametrize("fid", [f for f in ARMS if f in TABLE and _committed(ARMS[f][1])])
+def test_the_over_seeds_figures_recompute_with_an_independent_bootstrap(fid):
+    _, seeds_recipe, parts, phi_min = ARMS[fid]
+    rows = _rows(seeds_recipe)
+    phi = {int(r["seed"]): _phi_deg(r) for r in rows}
+    printed = list(SEEDS.finditer(TABLE[fid][2]))
+    assert len(printed) == len(parts), TABLE[fid][2]
+    verdicts = []
+    for m, (ea, ca, eb, cb, claim) in zip(printed, parts):
+        a, b = _by_seed(rows, ea, ca), _by_seed(rows, eb, cb)
+        assert sorted(a) == sorted(b) and len(a) >= 3, "arms need the same attack seeds, at least 3"
+        configs = sorted(set.intersection(*(set(x) for x in [*a.values(), *b.values()])))
+        configs = [c for c in configs if phi_min is None or phi[c] >= phi_min]
+        xa = [[int(a[s][c]) for c in configs] for s in sorted(a)]
+        xb = [[int(b[s][c]) for c in configs] for s in sorted(b)]
+        k, n = len(xa), len(configs)
+        ra, rb = [sum(x) / n for x in xa], [sum(x) / n for x in xb]
+        ma, mb = sum(ra) / k, sum(rb) / k
+        sd = lambda v, m: math.sqrt(sum((x - m) ** 2 for x in v) / (len(v) - 1))  # noqa: E731
+        assert (int(m["k"]), int(m["n"])) == (k, n)
+        assert float(m["ma"]) == pytest.approx(100 * ma, abs=0.051)
+        assert float(m["mb"]) == pytest.approx(100 * mb, abs=0.051)
+        assert float(m["sa"]) == pytest.approx(100 * sd(ra, ma), abs=0.051)
+        assert float(m["sb"]) == pytest.approx(100 * sd(rb, mb), abs=0.051)
+        assert float(m["d"]) == pytest.approx(100 * (ma - mb), abs=0.051)
+        lo, hi = _bootstrap(xa, xb)
+        # two bootstraps of a few thousand draws agree to Monte Carlo error, not digit for digit
+        assert float(m["lo"]) == pytest.approx(100 * lo, abs=1.5) and float(m["hi"]) == pytest.approx(100 * hi, abs=1.5)
+        plo, phi_ = float(m["lo"]) / 100, float(m["hi"]) / 100
+        if claim == ">":
+            verdicts.append("holds" if plo > 0 else "does not hold" if phi_ < 0 else "inconclusive")
+        else:
+            verdicts.append("holds" if plo > -0.05 else "does not hold" if phi_ < 0 else "inconclusive")
+    want = (
+        "does not hold"
+        if "does not hold" in verdicts
+        else "holds"
+        if all(v == "holds" for v in verdicts)
+        else "inconclusive"
+    )
+    assert TABLE[fid][4].startswith(f"**{want}** over {k} attack seeds"), TABLE[fid][4]
+
+
+def test_every_committed_multi_seed_result_feeds_its_findings():
+    for fid, (_, seeds_recipe, _, _) in ARMS.items():
+        if fid in TABLE and _committed(seeds_recipe):
+            assert "over attack seeds" in TABLE[fid][2], f"{fid}: results/{seeds_recipe}/ is committed but unused"
+
+
+def _seeded(a, b, rates_a, rates_b, n=200, seed=0):
+    rng = random.Random(seed)
+    mk = lambda rates: {  # noqa: E731
+        s: {c: {"targeted": rng.random() < p, "phi_rad": 0.5, "r_m": 0.5} for c in range(n)}
+        for s, p in zip((0, 1, 2), rates)
+    }
+    return mk(rates_a), mk(rates_b)
+
+
+def test_over_seeds_needs_equal_seed_sets_and_widens_with_the_seed_spread():
+    part = fd.Part(fd.Arm("x"), fd.Arm("y"), ("x", "y"))
+    a, b = _seeded("x", "y", (0.6, 0.6, 0.6), (0.4, 0.4, 0.4))
+    with pytest.raises(ValueError, match="different attack seeds"):
+        fd.over_seeds(part, a, {0: b[0], 1: b[1]})
+    steady = fd.over_seeds(part, a, b)
+    assert steady.verdict == "holds" and steady.lo > 0
+    # one lucky seed: seed 0 alone would say "holds", the three together do not
+    a2, b2 = _seeded("x", "y", (0.75, 0.35, 0.45), (0.5, 0.5, 0.5))
+    spread = fd.over_seeds(part, a2, b2)
+    one = fd.paired(a2[0], b2[0])
+    assert fd.verdict(one) == "holds" and spread.verdict != "holds"
+    assert spread.hi - spread.lo > steady.hi - steady.lo
+    assert fd.over_seeds(part, {0: a[0]}, {0: b[0]}) is None  # one seed is not a seed analysis
+
+
+def test_over_seeds_interval_matches_the_plain_bootstrap():
+    part = fd.Part(fd.Arm("x"), fd.Arm("y"), ("x", "y"), ">=")
+    a, b = _seeded("x", "y", (0.55, 0.5, 0.6), (0.5, 0.52, 0.48), n=150, seed=3)
+    o = fd.over_seeds(part, a, b)
+    xa = [[int(a[s][c]["targeted"]) for c in range(150)] for s in (0, 1, 2)]
+    xb = [[int(b[s][c]["targeted"]) for c in range(150)] for s in (0, 1, 2)]
+    lo, hi = _bootstrap(xa, xb)
+    assert o.lo == pytest.approx(lo, abs=0.015) and o.hi == pytest.approx(hi, abs=0.015)
