@@ -24,7 +24,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from sim.configs import config_id
+from sim.configs import config_id, pose_id
 from sim.errors import AdvobjError
 from sim.runinfo import write_run_info
 
@@ -39,6 +39,7 @@ __all__ = [
     "write_texture_png",
     "write_config_record",
     "read_config_record",
+    "overlap_count",
 ]
 
 TEXTURE_NPY = "texture.npy"
@@ -66,14 +67,15 @@ def write_texture_png(path: str | Path, texture) -> Path:
 
 
 def write_config_record(out_dir: str | Path, attack_configs, validation_configs) -> Path:
-    """Write ``out_dir/configs.json``: seed and content id (:func:`sim.configs.config_id`) of every
-    configuration the attack may draw for EOT and every one its best texture is selected on."""
+    """Write ``out_dir/configs.json``: seed, content id (:func:`sim.configs.config_id`) and pose id
+    (:func:`sim.configs.pose_id`, without the seed) of every configuration the attack may draw for
+    EOT and every one its best texture is selected on."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     doc = {
         "format": _RECORD_FORMAT,
         **{
-            part: [{"seed": int(c.seed), "id": config_id(c)} for c in cs]
+            part: [{"seed": int(c.seed), "id": config_id(c), "pose": pose_id(c)} for c in cs]
             for part, cs in (("attack", attack_configs), ("validation", validation_configs))
         },
     }
@@ -85,7 +87,9 @@ def write_config_record(out_dir: str | Path, attack_configs, validation_configs)
 
 def read_config_record(texture_dir: str | Path) -> set[str] | None:
     """The configuration ids a texture folder was optimised or selected on, or ``None`` when no
-    record exists. ``best/`` and ``checkpoint/`` textures use their run folder's record."""
+    record exists: each entry's content id, and ``"pose:<pose id>"`` where the record has pose ids
+    (:func:`overlap_count` matches either). ``best/`` and ``checkpoint/`` textures use their run
+    folder's record."""
     d = Path(texture_dir)
     for cand in (d / CONFIG_RECORD, d.parent / CONFIG_RECORD):
         if cand.is_file():
@@ -93,10 +97,21 @@ def read_config_record(texture_dir: str | Path) -> set[str] | None:
                 doc = json.loads(cand.read_text())
                 if not isinstance(doc, dict) or doc.get("format") != _RECORD_FORMAT:
                     raise ValueError(f"format is not {_RECORD_FORMAT!r}")
-                return {e["id"] for part in ("attack", "validation") for e in doc[part]}
+                return {
+                    key
+                    for part in ("attack", "validation")
+                    for e in doc[part]
+                    for key in (e["id"], *((f"pose:{e['pose']}",) if "pose" in e else ()))
+                }
             except (OSError, ValueError, KeyError, TypeError) as err:
                 raise ValueError(f"{cand}: not a configuration record ({err})") from None
     return None
+
+
+def overlap_count(configs, seen) -> int:
+    """How many of ``configs`` a configuration record (:func:`read_config_record`) holds: by content
+    id, or by pose id where the record has them (the same poses under another seed count)."""
+    return sum(1 for c in configs if config_id(c) in seen or f"pose:{pose_id(c)}" in seen)
 
 
 @dataclass(frozen=True)

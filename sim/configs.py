@@ -36,6 +36,7 @@ __all__ = [
     "PARTS",
     "config_part",
     "config_id",
+    "pose_id",
     "in_part",
     "part_seeds",
 ]
@@ -115,6 +116,21 @@ def config_id(config: "InitialConfig") -> str:
     """Content hash of one configuration (seed and every resolved value): the identity used to
     prove that an evaluation and an attack share no configuration, whatever files they came from."""
     payload = json.dumps(config.to_dict(), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(payload.encode()).hexdigest()[:20]
+
+
+def pose_id(config: "InitialConfig") -> str:
+    """Content hash of one configuration's poses, without its seed: the object placements, the
+    start pose and its polar coordinates, rounded to 1e-9 (nm, nrad). Two configurations drawn
+    from different seeds that put everything in the same place share it, so an overlap check on it
+    can find what a check on :func:`config_id` (which includes the seed) cannot."""
+    d = config.to_dict()
+    d.pop("seed")
+
+    def rounded(v):
+        return [rounded(x) for x in v] if isinstance(v, (list, tuple)) else round(float(v), 9) + 0.0
+
+    payload = json.dumps({k: rounded(v) for k, v in d.items()}, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(payload.encode()).hexdigest()[:20]
 
 

@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from attack.artifact import CONFIG_RECORD, TEXTURE_NPY, ArtifactError, AttackArtifact, write_config_record
+from attack.artifact import (
+    CONFIG_RECORD,
+    TEXTURE_NPY,
+    ArtifactError,
+    AttackArtifact,
+    overlap_count,
+    read_config_record,
+    write_config_record,
+)
 
 
 def _art(seed=0, size=8):
@@ -39,9 +47,37 @@ def test_provenance_run_json_records_the_commit_and_best_folders_use_the_run_rec
     doc = json.loads((tmp_path / "run.json").read_text())
     assert doc["config"]["attack"]["adversarial_mesh"] == "cube" and "git_commit" in doc
     spec = default_scene()
-    write_config_record(tmp_path, sample_pool(spec, 2, part="attack"), sample_pool(spec, 1, part="validation"))
+    attack, validation = sample_pool(spec, 2, part="attack"), sample_pool(spec, 1, part="validation")
+    write_config_record(tmp_path, attack, validation)
     _art(1).save(tmp_path / "best")
-    assert len(AttackArtifact.load(tmp_path / "best").trained_on) == 3
+    seen = AttackArtifact.load(tmp_path / "best").trained_on
+    assert overlap_count(attack + validation, seen) == 3
+    assert overlap_count(sample_pool(spec, 5, part="evaluation"), seen) == 0
+
+
+def test_the_overlap_is_found_by_pose_even_under_another_seed(tmp_path):
+    """The check can fail: the same poses drawn under a different seed (another id) still count."""
+    import dataclasses
+
+    from sim.configs import config_id, sample_pool
+    from sim.spec import default_scene
+
+    spec = default_scene()
+    attack = sample_pool(spec, 3, part="attack")
+    write_config_record(tmp_path, attack, [])
+    seen = read_config_record(tmp_path)
+    twin = dataclasses.replace(attack[1], seed=10**6 + 7)  # same poses, another seed: another content id
+    assert config_id(twin) != config_id(attack[1])
+    assert overlap_count([twin], seen) == 1
+    moved = dataclasses.replace(attack[1], r_m=attack[1].r_m + 1e-6)
+    assert overlap_count([moved], seen) == 0
+    # a record written before pose ids existed still matches by content id
+    doc = json.loads((tmp_path / CONFIG_RECORD).read_text())
+    for e in doc["attack"]:
+        e.pop("pose")
+    (tmp_path / CONFIG_RECORD).write_text(json.dumps(doc))
+    old = read_config_record(tmp_path)
+    assert overlap_count(attack, old) == 3 and overlap_count([twin], old) == 0
 
 
 @pytest.mark.parametrize(

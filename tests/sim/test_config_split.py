@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sim.configs import PARTS, config_id, config_part, in_part, part_seeds, sample_config, sample_pool
+from sim.configs import PARTS, config_id, config_part, in_part, part_seeds, pose_id, sample_config, sample_pool
 from sim.spec import default_scene
 
 
@@ -44,3 +44,14 @@ def test_config_id_is_a_content_hash():
     assert config_id(a) == config_id(sample_config(spec, 3)) != config_id(b)
     moved = spec.with_updates(init={**spec.init.model_dump(), "r_range_m": (0.3, 0.5)})
     assert config_id(sample_config(moved, 3)) != config_id(a)  # same seed, other scene: another configuration
+
+
+def test_pose_id_ignores_the_seed_and_sees_every_pose():
+    import dataclasses
+
+    spec = default_scene()
+    a = sample_config(spec, 3)
+    assert pose_id(dataclasses.replace(a, seed=99)) == pose_id(a) != pose_id(sample_config(spec, 4))
+    assert pose_id(dataclasses.replace(a, phi_rad=a.phi_rad + 1e-6)) != pose_id(a)
+    # -0.0 and 0.0 are the same pose
+    assert pose_id(dataclasses.replace(a, theta_rad=-0.0)) == pose_id(dataclasses.replace(a, theta_rad=0.0))
