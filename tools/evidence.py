@@ -24,7 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from attack.artifact import TEXTURE_PNG, AttackArtifact
+from attack.artifact import CONFIG_RECORD, TEXTURE_PNG, AttackArtifact
 from sim.policies.card import CARD_NAME, load_card
 from sim.runinfo import git_commit
 from trials.eval.episodes import collect_evals
@@ -114,6 +114,15 @@ def run(
     return rc
 
 
+def _portable(path: str) -> str:
+    """``path`` relative to the checkout (no machine path goes into results/); outside it, its name."""
+    p = Path(path)
+    try:
+        return str(p.resolve().relative_to(ROOT))
+    except ValueError:
+        return f"<outside the checkout>/{p.name}"
+
+
 def collect(name: str, work: Path, results: Path) -> Path:
     """Copy the finished run ``work/<name>`` into ``results/<name>``."""
     src, dst = work / name, results / name
@@ -137,6 +146,19 @@ def collect(name: str, work: Path, results: Path) -> Path:
         }
         shutil.copyfile(at / TEXTURE_PNG, dst / "textures" / f"{at.name}.png")
     (dst / "attacks.json").write_text(json.dumps(attacks, indent=1))
+    # What the held-out claim rests on: the evaluation pools and every attack's configuration record.
+    for at in sorted((src / "attacks").iterdir()):
+        if (at / CONFIG_RECORD).is_file():
+            (dst / "attack_configs").mkdir(exist_ok=True)
+            shutil.copyfile(at / CONFIG_RECORD, dst / "attack_configs" / f"{at.name}.json")
+    for pool in sorted((src / "pools").glob("*/feasible_pool.json")) if (src / "pools").is_dir() else []:
+        doc = json.loads(pool.read_text())
+        meta = doc.get("meta") if isinstance(doc.get("meta"), dict) else {}
+        for key in ("policy", "base"):
+            if isinstance(meta.get(key), str):
+                meta[key] = _portable(meta[key])
+        (dst / "pools").mkdir(exist_ok=True)
+        (dst / "pools" / f"{pool.parent.name}.json").write_text(json.dumps(doc))
     policies = {}
     for card_path in sorted(src.glob(f"policies/*/{CARD_NAME}")):
         clean = load_card(card_path).clean_success
