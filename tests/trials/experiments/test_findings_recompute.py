@@ -3,6 +3,7 @@
 What the module prints must agree with what this file computes on its own."""
 
 import csv
+import json
 import math
 import random
 import re
@@ -244,3 +245,13 @@ def test_over_seeds_interval_matches_the_plain_bootstrap():
     xb = [[int(b[s][c]["targeted"]) for c in range(150)] for s in (0, 1, 2)]
     lo, hi = _bootstrap(xa, xb)
     assert o.lo == pytest.approx(lo, abs=0.015) and o.hi == pytest.approx(hi, abs=0.015)
+
+
+@pytest.mark.parametrize("fid", [f for f in ARMS if f in TABLE])
+def test_a_result_from_an_uncommitted_checkout_is_marked(fid):
+    for recipe in {ARMS[fid][0], ARMS[fid][1]} - {None}:
+        if not _committed(recipe) or f"results/{recipe}/" not in TABLE[fid][5]:
+            continue
+        attempts = json.loads((RESULTS / recipe / "run.json").read_text())["attempts"]
+        dirty = any(a["commit"].endswith("+dirty") for a in attempts)
+        assert (f"[results/{recipe}/](results/{recipe}/) (dirty)" in TABLE[fid][5]) == dirty, (recipe, TABLE[fid][5])
