@@ -51,6 +51,7 @@ from sim.configs import in_part, sample_pool
 from sim.env import ReachEnv
 from sim.errors import AdvobjError, format_validation_error
 from sim.outcome import object_distances
+from sim.policies.checkpoint import as_white_box
 from sim.policies.contract import first_action, policy_contract, state_vector, to_delta
 from sim.policies.interface import require_white_box
 from sim.policies.rollout import rollout
@@ -110,8 +111,8 @@ class AttackConfig(StrictModel):
 PRESETS: dict[str, dict] = {
     # A few minutes on 2 CPU cores. The paper's eta = 0.1 moves a 256^2 texture too little in a
     # few hundred steps; a smaller texture and a larger step make the short run count.
-    # Validation every 20 iterations on 16 held-out configurations costs ~10 s a call at 64 px
-    # (~20% of the run's wall time; benchmarks/bench_render_shortcuts.py --validation).
+    # Validation every 20 iterations on 16 held-out configurations: 1.27 s a call at 64 px, 8.4 s
+    # of a 43.3 s run (7 calls; results/table2/attacks.json, arm c2f, "validation").
     "quick": {
         "iterations": 120,
         "num_envs": 4,
@@ -176,7 +177,9 @@ class AttackRun:
     """An attack on ``policy`` in ``spec``; drives the loop and owns the checkpoints.
 
     Args:
-        policy: a white-box :class:`sim.policies.policy.VisuomotorPolicy` (ONNX is refused).
+        policy: a white-box policy: a :class:`sim.policies.policy.VisuomotorPolicy`, a ``.pt2`` or
+            converted ``.onnx`` file's :class:`sim.policies.graph_policy.GraphPolicy`; an
+            :class:`sim.policies.onnx_policy.OnnxPolicy` is converted here (``sim.policies.checkpoint.as_white_box``).
         spec: the scene; ``cfg.adversarial_mesh`` may swap the adversarial object's mesh.
         cfg: the :class:`AttackConfig`.
         pool: task-feasible initial configurations (``None``: generated from the scene, unfiltered).
@@ -184,6 +187,9 @@ class AttackRun:
     """
 
     def __init__(self, policy, spec, cfg: AttackConfig, pool=None, out_dir: str | Path | None = None):
+        # An ONNX file's torch conversion, checked against onnxruntime on frames of this scene
+        # (sim.policies.onnx_torch); a refused conversion ends here, before anything is rendered or written.
+        policy = as_white_box(policy, cfg.device, spec)
         require_white_box(policy)
         self.cfg = cfg
         self.device = torch.device(cfg.device)
