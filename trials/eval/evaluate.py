@@ -5,6 +5,7 @@ For every condition the same task-feasible initial configurations are rolled out
 observation of the same state (the adversarial object in its benign look, same light, same
 background, same sensor-noise draw) is rendered too, in the same frame via a renderer variant, and
 the policy's action on it gives the per-step action errors (:func:`trials.eval.metrics.action_errors`).
+The episodes themselves are :func:`sim.policies.paired.rollout_paired`'s.
 
 Rendering is the standard pyrender path (:class:`sim.render.SceneRenderer`) with the texture on
 the mesh. Episodes run ``num_envs`` at a time; a slot whose episode ends is refilled at once, and
@@ -35,13 +36,12 @@ from sim.configs import (
     sample_config,
     save_pool,
 )
-from sim.env import ReachEnv
 from sim.errors import AdvobjError, format_validation_error
 from sim.imaging import labelled, write_gif
 from sim.policies.checkpoint import load_policy
-from sim.policies.contract import call_policy, decode_actions, policy_contract, to_delta
+from sim.policies.contract import policy_contract, to_delta
+from sim.policies.paired import rollout_paired
 from sim.policies.pool import built_pool_path, feasible_pool_path
-from sim.policies.rollout import rollout
 from sim.runinfo import write_run_info
 from sim.spec import load_spec
 from trials.eval.conditions import Condition, Sources, build_conditions, condition_spec
@@ -101,60 +101,13 @@ def load_eval_config(**fields) -> EvalConfig:
 
 
 # ---------------------------------------------------------------------------------------------
-def _noise_rng(seed: int) -> np.random.Generator:
-    """Per-episode sensor-noise stream: a function of the config seed only (paired across arms)."""
-    return np.random.default_rng(np.random.SeedSequence([int(seed), 0x5E75]))
-
-
-def _noisy(rgb: np.ndarray, z: np.ndarray | None) -> np.ndarray:
-    if z is None:
-        return rgb
-    return np.clip(np.rint(rgb.astype(np.float32) + z), 0, 255).astype(np.uint8)
-
-
-class _Observer:
-    """Renders attacked and clean observations of the env's worlds for one condition."""
-
-    def __init__(self, env, cond):
-        self.env = env
-        self.cond = cond
-        self.adv = env.adv_index
-        self.attacked = cond.texture is not None
-        if self.attacked:
-            # The color node keeps the benign look; the attack texture is a variant, so the
-            # attacked and the clean view of one state come from the same scene setup.
-            env.renderer.add_variant(self.adv, "attack", cond.texture)
-        self.noise = [None] * env.num_envs
-
-    def reset(self, i: int, seed: int) -> None:
-        self.noise[i] = _noise_rng(seed)
-
-    def views(self, i: int) -> dict[str, np.ndarray]:
-        """``{"adv": (V, H, W, 3), "clean": (V, H, W, 3)}`` uint8, V = 1 (mono) or 2 (stereo)."""
-        w = self.env.worlds[i]
-        r = self.env.renderer
-        w.prepare()
-        poses = [w.camera_pose()] + ([w.camera_pose(right=True)] if self.cond.stereo else [])
-        std = w.appearance.noise_std
-        out = {"adv": [], "clean": []}
-        for T in poses:
-            z = (
-                self.noise[i].normal(0.0, std * 255.0, size=(r.height, r.width, 3)).astype(np.float32)
-                if std > 0
-                else None
-            )
-            clean = _noisy(r.render(T, with_ids=False).rgb, z)
-            out["clean"].append(clean)
-            out["adv"].append(
-                _noisy(r.render(T, with_ids=False, variants={self.adv: "attack"}).rgb, z) if self.attacked else clean
-            )
-        return {k: np.stack(v) for k, v in out.items()}
-
-
 def rollout_condition(
     policy, spec, cond, configs, num_envs: int, on_done: Callable[[int, dict], None], on_frame: Callable | None = None
 ) -> None:
     """Roll out one episode per config under ``cond``; call ``on_done(j, result)`` as each ends.
+
+    The episodes are :func:`sim.policies.paired.rollout_paired`'s; this adds the condition's scene
+    and the per-step action errors.
 
     Args:
         policy: ``act(images (B, S, S, 3) uint8) -> (B, 6)`` with ``image_size = S``.
@@ -171,75 +124,55 @@ def rollout_condition(
     if not configs:
         return
     spec_c = condition_spec(spec, cond)
-    S = int(policy.image_size)
-    N = max(1, min(int(num_envs), len(configs)))
-    env = ReachEnv(spec_c, num_envs=N, image_size=S, seed=0, randomization=cond.randomization, render_obs=False)
-    contract = policy_contract(policy)
-    kind, ep = contract.action.kind, spec_c.episode
-    try:
-        obs = _Observer(env, cond)
-        slot_of = [-1] * N  # config index per slot
-        err = np.zeros((N, 3))  # summed e_trans, e_rot, and the number of policy calls
+    kind, ep = policy_contract(policy).action.kind, spec_c.episode
+    slot_of = [-1] * max(1, int(num_envs))  # config index per slot
+    err = np.zeros((len(slot_of), 3))  # summed e_trans, e_rot, and the number of policy calls
 
-        def fill(i: int, j: int) -> None:
-            slot_of[i] = j
-            obs.reset(i, configs[j].seed)
-            err[i] = 0.0
+    def fill(i: int, j: int) -> None:
+        slot_of[i] = j
+        err[i] = 0.0
 
-        def query(slots, state):
-            views = [obs.views(i) for i in slots]
-            V = views[0]["adv"].shape[0]
-            batch = np.concatenate([v["adv"] for v in views] + ([v["clean"] for v in views] if obs.attacked else []))
-            st = None if state is None else np.repeat(state, V, axis=0)
-            if st is not None and obs.attacked:
-                st = np.concatenate([st, st])
-            # A fixed batch size: conv kernels pick their blocking by batch size, so an image's
-            # action would otherwise depend (in the last bits) on which other episodes share its
-            # step, and an episode's row on how the evaluation was sharded.
-            B = len(batch)
-            fixed = int(num_envs) * V * (2 if obs.attacked else 1)
-            if B < fixed:
-                batch = np.concatenate([batch, np.zeros((fixed - B, *batch.shape[1:]), batch.dtype)])
-                if st is not None:
-                    st = np.concatenate([st, np.zeros((fixed - B, st.shape[1]), st.dtype)])
-            raw = decode_actions(np.asarray(call_policy(policy, batch, st), dtype=np.float64)[:B], contract, B)
-            a = raw.reshape(B // V, V, *raw.shape[1:]).mean(1)  # stereo: the views' mean action
-            a_adv = a[: len(slots)]
-            a_clean = a[len(slots) :] if obs.attacked else a_adv
-            T = env.T_world_tcp[slots]
-            e_t, e_r = action_errors(
-                to_delta(T, a_adv[:, 0], kind, ep.max_step_m, ep.max_step_rad),
-                to_delta(T, a_clean[:, 0], kind, ep.max_step_m, ep.max_step_rad),
-                ep.max_step_rad,
-            )
-            if on_frame is not None:
-                for k, i in enumerate(slots):
-                    on_frame(slot_of[i], int(env.steps[i]), views[k]["adv"][0], views[k]["clean"][0])
-            err[slots, 0] += e_t
-            err[slots, 1] += e_r
-            err[slots, 2] += 1
-            return a_adv
+    def measure(slots, T, steps, a_adv, a_clean, views):
+        e_t, e_r = action_errors(
+            to_delta(T, a_adv[:, 0], kind, ep.max_step_m, ep.max_step_rad),
+            to_delta(T, a_clean[:, 0], kind, ep.max_step_m, ep.max_step_rad),
+            ep.max_step_rad,
+        )
+        if on_frame is not None:
+            for k, i in enumerate(slots):
+                on_frame(slot_of[i], int(steps[k]), views[k]["adv"][0], views[k]["clean"][0])
+        err[slots, 0] += e_t
+        err[slots, 1] += e_r
+        err[slots, 2] += 1
 
-        def done(j, i, res):
-            n = err[i, 2]  # errors are measured where the policy is asked (every step unless chunked)
-            on_done(
-                j,
-                {
-                    "reached": res["reached"],
-                    "policy_error": res["policy_error"],
-                    "steps": res["steps"],
-                    "min_dist": res["min_dist"],
-                    "e_trans": float(err[i, 0] / n) if n else float("nan"),
-                    "e_rot": float(err[i, 1] / n) if n else float("nan"),
-                },
-            )
+    def done(j, i, res):
+        n = err[i, 2]  # errors are measured where the policy is asked (every step unless chunked)
+        on_done(
+            j,
+            {
+                "reached": res["reached"],
+                "policy_error": res["policy_error"],
+                "steps": res["steps"],
+                "min_dist": res["min_dist"],
+                "e_trans": float(err[i, 0] / n) if n else float("nan"),
+                "e_rot": float(err[i, 1] / n) if n else float("nan"),
+            },
+        )
 
-        rollout(env, configs, policy, done, query=query, on_fill=fill)
-    finally:
-        env.close()
+    rollout_paired(
+        policy,
+        spec_c,
+        configs,
+        num_envs,
+        done,
+        texture=cond.texture,
+        stereo=cond.stereo,
+        randomization=cond.randomization,
+        on_fill=fill,
+        on_actions=measure,
+    )
 
 
-# ---------------------------------------------------------------------------------------------
 def build_feasible(
     policy,
     spec,
@@ -298,10 +231,11 @@ def resolve_pool(
     or selected on. The base is ``cfg.pool`` (it must match the scene), else the policy's own pool
     (:func:`sim.policies.pool.feasible_pool_path`) if it was made for this scene and episode
     length; its evaluation-part configurations are used as they are. When they are fewer than
-    ``cfg.episodes``, more are built here (:func:`build_feasible`, candidate seeds of the
-    evaluation part from ``cfg.seed`` on) and the result is saved as ``out/feasible_pool.json``,
-    which a resumed evaluation reuses. ``final``: ``cfg.pool`` is the pool to use as it is, even
-    short (a grid's pool job already built it; its shards must not build more each).
+    ``cfg.episodes``, more are built here (:func:`build_feasible`, candidate
+    seeds of the evaluation part from ``cfg.seed`` on) and the result is saved as
+    ``out/feasible_pool.json``, which a resumed evaluation reuses. ``final``: ``cfg.pool`` is the
+    pool to use as it is, even short (a grid's pool job already built it; its shards must not
+    build more each).
     """
     path = built_pool_path(out)
     if path.is_file():  # built by an earlier (interrupted) run of this evaluation: keep using it
