@@ -1,7 +1,9 @@
 """Closed-loop episodes observed through the standard renderer, an attacked look beside the clean one.
 
 The rollout core of ``advobj eval`` (:func:`trials.eval.evaluate.rollout_condition`, one call per
-condition). The loop is :func:`sim.policies.rollout.rollout`; this module supplies its
+condition) and of the task-feasible pool (:func:`sim.policies.pool.build_feasible`, the clean
+look only), so a configuration is task-feasible exactly when the evaluation's clean arm reaches
+the goal from it. The loop is :func:`sim.policies.rollout.rollout`; this module supplies its
 query: the views a policy acts on and one fixed-size policy call per step.
 
 At every step the clean observation of a state (the adversarial object in its benign look) is

@@ -119,11 +119,12 @@ def test_staging_ships_links_inside_the_folder_and_refuses_links_out_and_loops(t
 
 def test_a_short_pool_is_topped_up_the_same_serially_and_through_the_job_layer(tmp_path, tiny_policy_dir, monkeypatch):
     """One evaluation-part configuration for 3 episodes: ``run_eval`` and the job layer (a pool
-    job, then 2 shards) both top it up to 3 with the same configurations. Which configurations are
-    task-feasible is stubbed (an untrained policy reaches no goal): the rule is what is checked."""
+    job, then 2 shards) both top it up to 3 with the same configurations. The candidates' clean
+    rollouts are stubbed to reach the goal (an untrained policy reaches none): the rule is what is
+    checked."""
     from sim.configs import sample_pool, save_pool
+    from sim.policies import pool as feasible_pool
     from sim.spec import default_scene
-    from trials.eval import evaluate
     from trials.eval.evaluate import load_eval_config, run_eval
     from trials.experiments.recipes import run_eval_grid
     from trials.jobs.dag import SerialExecutor
@@ -133,11 +134,12 @@ def test_a_short_pool_is_topped_up_the_same_serially_and_through_the_job_layer(t
     short = tmp_path / "short.json"
     save_pool(short, spec, sample_pool(spec, 1, seed=0, part="evaluation"))
 
-    def feasible(policy, spec, part, n, start_seed=0, num_envs=8, exclude=(), **kw):
-        got = [c for c in sample_pool(spec, n + len(exclude), seed=start_seed, part=part) if c.seed not in exclude]
-        return got[:n], n
+    def all_reach_the_goal(policy, spec, configs, num_envs, on_done, **kw):
+        assert not kw  # the clean look: no texture, no stereo, no randomisation
+        for j in range(len(configs)):
+            on_done(j, j % num_envs, {"reached": spec.object_index("goal")})
 
-    monkeypatch.setattr(evaluate, "build_feasible", feasible)
+    monkeypatch.setattr(feasible_pool, "rollout_paired", all_reach_the_goal)
     cfg = load_eval_config(
         policy=str(tiny_policy_dir),
         pool=str(short),

@@ -5,7 +5,8 @@ For every condition the same task-feasible initial configurations are rolled out
 observation of the same state (the adversarial object in its benign look, same light, same
 background, same sensor-noise draw) is rendered too, in the same frame via a renderer variant, and
 the policy's action on it gives the per-step action errors (:func:`trials.eval.metrics.action_errors`).
-The episodes themselves are :func:`sim.policies.paired.rollout_paired`'s.
+The episodes themselves are :func:`sim.policies.paired.rollout_paired`'s, the core the
+task-feasible pool is built with too (:func:`sim.policies.pool.build_feasible`).
 
 Rendering is the standard pyrender path (:class:`sim.render.SceneRenderer`) with the texture on
 the mesh. Episodes run ``num_envs`` at a time; a slot whose episode ends is refilled at once, and
@@ -26,25 +27,16 @@ from tqdm import tqdm
 
 from sim.action import POLICY_ERROR
 from sim.configio import StrictModel
-from sim.configs import (
-    PoolError,
-    config_id,
-    in_part,
-    load_pool,
-    object_local_centers,
-    part_seeds,
-    sample_config,
-    save_pool,
-)
+from sim.configs import PoolError, config_id, in_part, load_pool, save_pool
 from sim.errors import AdvobjError, format_validation_error
 from sim.imaging import labelled, write_gif
 from sim.policies.checkpoint import load_policy
 from sim.policies.contract import policy_contract, to_delta
 from sim.policies.paired import rollout_paired
-from sim.policies.pool import built_pool_path, feasible_pool_path
+from sim.policies.pool import build_feasible, built_pool_path, feasible_pool_path
 from sim.runinfo import write_run_info
 from sim.spec import load_spec
-from trials.eval.conditions import Condition, Sources, build_conditions, condition_spec
+from trials.eval.conditions import Sources, build_conditions, condition_spec
 from trials.eval.episodes import EpisodeStore, read_rows, write_summary
 from trials.eval.metrics import action_errors
 from trials.eval.report import summarize, write_report
@@ -54,7 +46,6 @@ __all__ = [
     "EvalWarning",
     "EvalConfig",
     "rollout_condition",
-    "build_feasible",
     "resolve_pool",
     "overlap_with_training",
     "run_eval",
@@ -106,7 +97,8 @@ def rollout_condition(
 ) -> None:
     """Roll out one episode per config under ``cond``; call ``on_done(j, result)`` as each ends.
 
-    The episodes are :func:`sim.policies.paired.rollout_paired`'s; this adds the condition's scene
+    The episodes are :func:`sim.policies.paired.rollout_paired`'s (the same core builds the
+    task-feasible pool, :func:`sim.policies.pool.build_feasible`); this adds the condition's scene
     and the per-step action errors.
 
     Args:
@@ -173,54 +165,6 @@ def rollout_condition(
     )
 
 
-def build_feasible(
-    policy,
-    spec,
-    part: str,
-    n: int,
-    start_seed: int = 0,
-    num_envs: int = 8,
-    exclude=(),
-    max_candidates: int | None = None,
-    progress: bool = True,
-    desc: str = "feasible pool",
-) -> tuple[list, int]:
-    """Up to ``n`` task-feasible configurations of ``part`` (:func:`sim.configs.config_part`).
-
-    Candidates are the part's seeds from ``start_seed`` on, minus the seeds in ``exclude`` (those
-    already in hand); each is rolled out once under the clean condition and kept when the policy
-    reaches the goal, the definition of task-feasible. At most ``max_candidates`` (default
-    ``4 * n``) are tried. Returns ``(configs, candidates tried)``.
-    """
-    if n <= 0:
-        return [], 0
-    max_candidates = 4 * n if max_candidates is None else int(max_candidates)
-    skip = {int(s) for s in exclude}
-    seeds = (s for s in part_seeds(part, start_seed) if s not in skip)
-    centers = object_local_centers(spec)
-    goal = spec.object_index("goal")
-
-    feasible: list = []
-    tried = 0
-    bar = tqdm(total=n, desc=desc, disable=not progress, dynamic_ncols=True)
-    while len(feasible) < n and tried < max_candidates:
-        # twice the shortfall per round: a policy reaching the goal half the time needs one round
-        k = min(max(num_envs, 2 * (n - len(feasible))), max_candidates - tried)
-        cands = [sample_config(spec, next(seeds), centers) for _ in range(k)]
-        ok = np.zeros(k, bool)
-
-        def done(j, res):
-            ok[j] = res["reached"] == goal
-
-        rollout_condition(policy, spec, Condition("clean"), cands, num_envs, done)
-        tried += k
-        new = [c for c, good in zip(cands, ok) if good][: n - len(feasible)]
-        feasible += new
-        bar.update(len(new))
-    bar.close()
-    return feasible, tried
-
-
 def resolve_pool(
     cfg: EvalConfig, policy, spec, out: Path, progress: bool = True, final: bool = False
 ) -> tuple[list, str]:
@@ -231,7 +175,7 @@ def resolve_pool(
     or selected on. The base is ``cfg.pool`` (it must match the scene), else the policy's own pool
     (:func:`sim.policies.pool.feasible_pool_path`) if it was made for this scene and episode
     length; its evaluation-part configurations are used as they are. When they are fewer than
-    ``cfg.episodes``, more are built here (:func:`build_feasible`, candidate
+    ``cfg.episodes``, more are built here (:func:`sim.policies.pool.build_feasible`, candidate
     seeds of the evaluation part from ``cfg.seed`` on) and the result is saved as
     ``out/feasible_pool.json``, which a resumed evaluation reuses. ``final``: ``cfg.pool`` is the
     pool to use as it is, even short (a grid's pool job already built it; its shards must not

@@ -14,10 +14,9 @@ from attack.state import find_checkpoint
 from sim.configio import StrictModel, file_error, read_yaml
 from sim.configs import PoolError, in_part, load_pool, save_pool, spec_fingerprint
 from sim.policies.checkpoint import load_policy
-from sim.policies.pool import built_pool_path, feasible_pool_path
+from sim.policies.pool import build_feasible, built_pool_path, feasible_pool_path
 from sim.runinfo import write_run_info
 from sim.spec import load_spec
-from trials.eval.evaluate import build_feasible
 
 __all__ = ["AttackJob", "attack_job", "top_up_attack_pool", "MIN_ATTACK_CONFIGS"]
 

@@ -205,27 +205,28 @@ def test_feasible_pool_keeps_only_configs_the_clean_policy_solves(tmp_path, monk
     """Building the pool: candidates (seeds of the evaluation part only) are rolled out clean and only
     goal-reaching ones are kept, in seed order."""
     from sim.configs import part_seeds
+    from sim.policies import pool as feasible_pool
 
     goal = short_spec.object_index("goal")
     seeds = part_seeds("evaluation", 100)
     cands = [next(seeds) for _ in range(40)]
     want = [s for s in cands if s % 3 == 0][:4]
 
-    def fake_rollout(policy, spec, cond, configs, num_envs, on_done, on_frame=None):
-        assert cond.name == "clean" and cond.texture is None
+    def fake_rollout(policy, spec, configs, num_envs, on_done, **kw):
+        assert not kw  # the clean look: no texture, no stereo, no randomisation
         for j, c in enumerate(configs):
-            on_done(j, {"reached": goal if c.seed % 3 == 0 else -1})
+            on_done(j, j % num_envs, {"reached": goal if c.seed % 3 == 0 else -1})
 
-    monkeypatch.setattr(ev, "rollout_condition", fake_rollout)
+    monkeypatch.setattr(feasible_pool, "rollout_paired", fake_rollout)
     cfg = load_eval_config(policy=str(tiny_policy_dir), episodes=4, max_steps=MAX_STEPS, num_envs=2, seed=100)
     pool, src = ev.resolve_pool(cfg, None, short_spec, tmp_path, progress=False)
     assert [c.seed for c in pool] == want and src == str(tmp_path / "feasible_pool.json")
     assert [c.seed for c in load_pool(tmp_path / "feasible_pool.json", short_spec)] == want
 
     monkeypatch.setattr(
-        ev,
-        "rollout_condition",
-        lambda p, s, c, configs, n, on_done, f=None: [on_done(j, {"reached": -1}) for j in range(len(configs))],
+        feasible_pool,
+        "rollout_paired",
+        lambda p, s, configs, n, on_done, **kw: [on_done(j, 0, {"reached": -1}) for j in range(len(configs))],
     )
     with pytest.raises(ev.EvalError, match="nothing is task-feasible"):
         ev.resolve_pool(cfg, None, short_spec, tmp_path / "other", progress=False)
