@@ -119,9 +119,29 @@ def test_trials_is_split_into_its_rooms_and_the_docs_generator_is_a_dev_tool():
     assert not into_cli, "modules outside trials/cli import the CLI:\n" + "\n".join(sorted(into_cli))
 
 
+def _room(module: str) -> str:
+    return ".".join(module.split(".")[:2])
+
+
+# Rooms of trials/ that stand side by side: neither imports the other, not even lazily. What both
+# need lives below them (the task-feasible pool builder: sim.policies.pool.build_feasible).
+SIBLING_ROOMS = {("trials.jobs", "trials.eval"), ("trials.eval", "trials.jobs")}
+
+
+def _between_siblings(edges: dict[str, set[str]]) -> list[str]:
+    return sorted(f"{a} -> {b}" for a, ts in edges.items() for b in ts if (_room(a), _room(b)) in SIBLING_ROOMS)
+
+
+def test_jobs_and_eval_do_not_import_each_other():
+    across = _between_siblings(_edges(_modules()))
+    assert not across, "trials/jobs and trials/eval import each other:\n" + "\n".join(across)
+
+
 def test_the_check_itself_sees_a_loop_and_an_upward_import():
     edges = {"sim.a": {"sim.b"}, "sim.b": {"sim.a"}, "trials.x": set()}
     assert _cycles(edges) == [["sim.a", "sim.b"]]
+    edges = {"trials.jobs.attack": {"trials.eval.evaluate", "sim.policies.pool"}, "trials.eval.evaluate": set()}
+    assert _between_siblings(edges) == ["trials.jobs.attack -> trials.eval.evaluate"]
 
 
 # Imports sit at the top of their module. An import inside a function stays only where a start-up
