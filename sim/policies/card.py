@@ -1,8 +1,8 @@
 """The policy card (``policy.json``): what a policy is, reads and outputs, and where it came from.
 
 This module owns the card's format; a checkpoint directory (:mod:`sim.policies.checkpoint`) holds
-one beside its weights, and an ONNX file carries one in its metadata
-(:mod:`sim.policies.onnx_policy`).
+one beside its weights, an ONNX file carries one in its metadata (:mod:`sim.policies.onnx_policy`)
+and a ``.pt2`` ExportedProgram in its archive (:mod:`sim.policies.pt2`).
 """
 
 from __future__ import annotations
@@ -60,6 +60,12 @@ class PolicyCard(_Strict):
     )
     contract: PolicyContract = Field(
         default_factory=PolicyContract, description="state inputs and action semantics (sim.policies.contract)"
+    )
+    feature_map: str | None = Field(
+        None,
+        description="policy files (.onnx, .pt2) attacked white-box: the graph value Grad-CAM and the saliency loss "
+        "read (an ONNX tensor name, a .pt2 graph node name); None: the last 4-D map with more than one cell on "
+        "every path from the image to the actions (sim.policies.graph_policy)",
     )
     training: dict[str, Any] = Field(default_factory=dict, description="resolved training config")
     clean_success: CleanSuccess | None = None

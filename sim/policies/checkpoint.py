@@ -25,9 +25,11 @@ from safetensors.torch import load_file, save_file
 from sim.policies.card import CARD_FORMAT, CARD_NAME, PolicyCard, load_card
 from sim.policies.interface import PolicyError
 from sim.policies.onnx_policy import OnnxPolicy
+from sim.policies.onnx_torch import convert_onnx
 from sim.policies.policy import VisuomotorPolicy
+from sim.policies.pt2 import load_pt2
 
-__all__ = ["WEIGHTS_NAME", "save_checkpoint", "load_checkpoint", "load_policy", "is_checkpoint"]
+__all__ = ["WEIGHTS_NAME", "save_checkpoint", "load_checkpoint", "load_policy", "as_white_box", "is_checkpoint"]
 
 WEIGHTS_NAME = "weights.safetensors"
 
@@ -106,17 +108,35 @@ def load_checkpoint(path: str | Path, device="cpu"):
     return policy.to(torch.device(device)).eval(), card
 
 
-def load_policy(path: str | Path, device="cpu"):
+def load_policy(path: str | Path, device="cpu", white_box: bool = False, spec=None):
     """Any policy behind the :class:`sim.policies.interface.Policy` interface.
 
-    A checkpoint directory gives a white-box :class:`VisuomotorPolicy`; an ``.onnx`` file a
-    black-box :class:`sim.policies.onnx_policy.OnnxPolicy`. Anything else is refused.
+    A checkpoint directory gives a white-box :class:`VisuomotorPolicy`; a ``.pt2`` ExportedProgram
+    a white-box :class:`sim.policies.graph_policy.GraphPolicy` (:mod:`sim.policies.pt2`); an
+    ``.onnx`` file the black-box :class:`sim.policies.onnx_policy.OnnxPolicy` (onnxruntime), or
+    with ``white_box`` its torch conversion, checked against onnxruntime on frames of ``spec``
+    (default: the built-in scene) before it is returned (:mod:`sim.policies.onnx_torch`).
+    Anything else is refused.
     """
     p = Path(path)
-    if p.is_file() and p.suffix.lower() == ".onnx":
-        return OnnxPolicy(p)
+    suffix = p.suffix.lower()
+    if p.is_file() and suffix == ".onnx":
+        onnx_policy = OnnxPolicy(p)
+        return convert_onnx(onnx_policy, device, spec) if white_box else onnx_policy
+    if p.is_file() and suffix == ".pt2":
+        return load_pt2(p, device)
     if p.is_dir() or p.name == CARD_NAME:
         return load_checkpoint(p if p.is_dir() else p.parent, device)[0]
     if p.exists():
-        raise PolicyError(f"{p}: not a policy; expected a checkpoint directory (with {CARD_NAME}) or an .onnx file")
+        raise PolicyError(
+            f"{p}: not a policy; expected a checkpoint directory (with {CARD_NAME}), an .onnx or a .pt2 file"
+        )
     raise PolicyError(f"{p}: no such file or directory")
+
+
+def as_white_box(policy, device="cpu", spec=None):
+    """``policy`` itself when it has gradients; an :class:`OnnxPolicy`'s checked torch conversion
+    (frames of ``spec``); anything else unchanged (the attack then refuses it)."""
+    if isinstance(policy, OnnxPolicy):
+        return convert_onnx(policy, device, spec)
+    return policy

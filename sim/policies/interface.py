@@ -1,4 +1,4 @@
-"""The policy interface shared by torch (white-box) and ONNX (black-box) policies.
+"""The policy interface shared by white-box (torch) and black-box (onnxruntime) policies.
 
 A policy maps wrist-camera images (and, when its contract reads one, a state vector) to actions
 through ``act(images[, state])``: ``(B, 6)``, ``(B, K, 6)`` or ``(B, 6K)`` float32 as its
@@ -38,7 +38,7 @@ class PolicyError(AdvobjError, ValueError):
 
 
 class WhiteBoxRequired(AdvobjError, TypeError):
-    """A gradient-based method was given a policy without gradients (e.g. an ONNX file)."""
+    """A gradient-based method was given a policy without gradients."""
 
 
 @runtime_checkable
@@ -90,6 +90,6 @@ def require_white_box(policy) -> None:
         return
     kind = type(policy).__name__
     raise WhiteBoxRequired(
-        f"the attack needs a white-box torch policy (a checkpoint directory with policy.json), got a {kind}; "
-        "ONNX and other black-box policies can be evaluated (advobj policy eval) but not attacked"
+        f"the attack needs a white-box policy (a checkpoint directory with policy.json, a .pt2 or an .onnx file), "
+        f"got a {kind}; other black-box policies can be evaluated (advobj policy eval) but not attacked"
     )

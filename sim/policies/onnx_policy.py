@@ -4,7 +4,9 @@ The exported graph has the input ``images: (B, 3, S, S)`` float32 in [0, 1] (nor
 inside the graph), a second input ``state: (B, D)`` float32 when the policy reads proprioception,
 and one output ``actions``: ``(B, 6)``, or ``(B, K, 6)`` for chunks (:mod:`sim.policies.contract`);
 the batch axis is dynamic. The policy card travels in the model's metadata (key
-``advobj_policy_card``), so an exported file is self-describing. A user's ONNX policy with one
+``advobj_policy_card``), so an exported file is self-describing; for the built-in network it
+names the backbone's last feature map (``feature_map``), where a white-box conversion
+(:mod:`sim.policies.onnx_torch`) cuts the graph for Grad-CAM. A user's ONNX policy with one
 image input and a ``(B, 6)`` delta output needs no card; any other contract is read from the card
 (:func:`attach_card` writes one into an existing file).
 """
@@ -69,10 +71,22 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
     finally:
         policy.train(was_training)
     if card is not None:
+        if card.feature_map is None and isinstance(getattr(policy, "reduce", None), torch.nn.Module):
+            card = card.model_copy(update={"feature_map": _backbone_output(onnx.load(str(path)), path)})
         attach_card(path, card)
     else:
         onnx.checker.check_model(onnx.load(str(path)))
     return path
+
+
+def _backbone_output(model, path) -> str:
+    """The ONNX tensor the built-in network's backbone ends in (the input of its head's first
+    convolution, ``reduce``): the feature map its Grad-CAM reads, recorded in the exported card so
+    a white-box conversion cuts the graph where the checkpoint does."""
+    for node in model.graph.node:
+        if node.op_type == "Conv" and node.name.startswith("/reduce/"):
+            return node.input[0]
+    raise PolicyError(f"{path}: the exported graph has no head convolution (/reduce/...) to take the feature map from")
 
 
 def attach_card(path: str | Path, card) -> Path:

@@ -7,12 +7,19 @@ from typing import Optional
 
 import typer
 
-app = typer.Typer(no_args_is_help=True, help="Optimise a 3D adversarial texture against a white-box policy.")
+app = typer.Typer(
+    no_args_is_help=True,
+    help="Optimise a 3D adversarial texture against a white-box policy (checkpoint, .pt2 or .onnx).",
+)
 
 
 @app.command()
 def run(
-    policy: Path = typer.Option(..., help="white-box policy checkpoint directory"),
+    policy: Path = typer.Option(
+        ...,
+        help="white-box policy: a checkpoint directory, a .pt2 (torch.export) file, or an .onnx file (converted to "
+        "torch and checked against onnxruntime on 32 rendered frames first)",
+    ),
     preset: str = typer.Option("quick", help="quick | paper"),
     config: Optional[Path] = typer.Option(None, help="YAML whose fields override the preset's"),
     scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),

@@ -1,0 +1,402 @@
+"""``.pt2`` files (torch.export ExportedPrograms) as white-box policies, and their export.
+
+The file is the archive ``torch.export.save`` writes; the policy card travels inside it as the
+extra file ``advobj_policy_card.json`` (``extra_files`` of ``torch.export.save``), so an exported
+policy is one self-describing file, as an ONNX file with its metadata is. A one-image policy with
+a ``(B, 6)`` ``delta_tcp`` output needs no card.
+
+What loading guarantees. ``torch.export.load`` is not safe on an untrusted file as it stands
+(torch 2.13, ``torch/export/pt2_archive/_package.py`` and ``torch/_export/serde/serialize.py``):
+it unpickles weights and constants marked ``use_pickle`` (``torch.load(weights_only=False)``,
+``pickle.loads``), loads TorchScript custom objects, retries the example inputs with
+``weights_only=False`` when the safe load fails, loads AOTInductor shared libraries, parses symbolic
+shapes with ``sympy.sympify`` (Python ``eval``), resolves a node's target as any attribute path
+under ``torch``, ``math`` or ``operator`` (``torch.hub.load`` included), writes parameter names
+into the Python source it generates for the module, and runs the archive's guard code with
+``exec`` when a module is made with guards. So :func:`load_pt2` reads the file into memory once
+and checks the archive before torch sees a byte of it; it refuses:
+
+* an archive that is not exactly what ``torch.export.save`` of a plain model writes: one model,
+  stored (uncompressed) entries, no AOTInductor code, no legacy pickled weights;
+* any weight or constant stored as a pickle, any custom or opaque object, any subgraph;
+* example inputs that ``torch.load(weights_only=True)`` cannot read;
+* a node target other than an ATen operator (``torch.ops.aten.*``; ``from_file``, ``save`` and
+  ``_print`` excluded) or Python's arithmetic on sizes (``operator``, ``math``, ``torch.sym_*``);
+* a symbolic shape outside sympy's own constructors of integers and symbols;
+* a name or parameter path that is not letters, digits, ``_`` and ``.``;
+* an archive or schema version this torch does not read ("exported by an incompatible torch").
+
+It then calls ``torch.export.load`` on those bytes and ``ExportedProgram.module(check_guards=False)``,
+so the guard code is never run. What runs afterwards is ATen kernels on tensors: no Python from
+the file is imported or executed. What is not guaranteed: that the graph computes what its author
+says (the card is the author's word), or memory and time bounds beyond the file-size cap.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import re
+import zipfile
+from pathlib import Path
+
+import torch
+from torch._export.serde.schema import SCHEMA_VERSION
+from torch.export.pt2_archive import constants as pt2c
+
+from sim.policies.card import PolicyCard
+from sim.policies.contract import policy_contract
+from sim.policies.graph_policy import GraphPolicy, pick_feature_node, split_graph
+from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError
+
+__all__ = ["CARD_ENTRY", "MAX_PT2_BYTES", "export_pt2", "check_archive", "load_pt2"]
+
+CARD_ENTRY = "advobj_policy_card.json"
+MAX_PT2_BYTES = 1 << 30  # a visuomotor policy file; larger ones are refused before they are read
+_MAX_JSON_BYTES = 64 << 20
+_SAFE = re.compile(r"^[A-Za-z0-9_.\-]*$")
+_ROOT = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_ENTRY = re.compile(
+    r"^(archive_format|archive_version|byteorder|\.data/version|\.data/serialization_id|models/model\.json|"
+    r"data/weights/model_weights_config\.json|data/weights/weight_\d+|data/constants/model_constants_config\.json|"
+    r"data/constants/tensor_\d+|data/sample_inputs/model\.pt|extra/[A-Za-z0-9_.\-]+)$"
+)
+_ATEN = re.compile(r"^torch\.ops\.aten\.([A-Za-z_][A-Za-z0-9_]*)\.([A-Za-z_][A-Za-z0-9_]*)$")
+_ATEN_DENIED = frozenset({"from_file", "save", "_print"})
+_PY_TARGETS = frozenset(
+    {f"_operator.{n}" for n in ("getitem", "add", "sub", "mul", "floordiv", "truediv", "mod", "pow", "neg", "pos")}
+    | {f"_operator.{n}" for n in ("eq", "ne", "lt", "le", "gt", "ge", "and_", "or_", "not_", "abs")}
+    | {f"math.{n}" for n in ("ceil", "floor", "trunc", "sqrt")}
+    | {f"torch.{n}" for n in ("sym_float", "sym_int", "sym_max", "sym_min", "sym_not", "sym_ite", "sym_sqrt")}
+)
+_DENIED_KEYS = frozenset({"as_graph", "as_operator", "as_custom_obj"})
+# what torch's deserializer hands to sympy.sympify: srepr-style constructors over symbols and numbers
+_SYMPY_NAMES = frozenset(
+    {"Symbol", "Integer", "Add", "Mul", "Pow", "Rational", "Max", "Min", "Mod", "Abs", "Eq", "Ne", "Lt", "Le", "Gt"}
+    | {"Ge", "And", "Or", "Not", "True", "False", "positive", "integer", "nonnegative", "real", "finite"}
+    | {"FloorDiv", "ModularIndexing", "Where", "PythonMod", "CleanDiv", "CeilToInt", "FloorToInt", "CeilDiv"}
+    | {"IntTrueDiv", "PowByNatural", "TruncToInt", "Identity", "oo", "zoo"}
+)
+_EXPR_TOKEN = re.compile(
+    r"\s*(?:(?P<name>[A-Za-z_][A-Za-z0-9_]*)|(?P<str>'[A-Za-z_][A-Za-z0-9_]*')|(?P<num>\d+(?:\.\d+)?)|"
+    r"(?P<op>\*\*|//|[=!<>]=|[-+*/%(),=<>]))"
+)
+_SYMBOL = re.compile(r"^[a-z]+\d+$")
+
+
+def _safe_expr(expr: str) -> bool:
+    pos = 0
+    while pos < len(expr):
+        m = _EXPR_TOKEN.match(expr, pos)
+        if m is None or m.end() == pos:
+            return expr[pos:].strip() == ""
+        name = m.group("name")
+        if name is not None and name not in _SYMPY_NAMES and not _SYMBOL.match(name):
+            return False
+        pos = m.end()
+    return True
+
+
+def _check_target(target, where: str) -> None:
+    if not isinstance(target, str):
+        raise PolicyError(f"{where}: a node's target is not a name")
+    m = _ATEN.match(target)
+    if m is not None:
+        op, overload = m.groups()
+        if op in _ATEN_DENIED:
+            raise PolicyError(f"{where}: operator aten.{op} reads or writes outside the tensors; refused")
+        packet = getattr(torch.ops.aten, op, None) if not op.startswith("__") else None
+        if packet is None or not hasattr(packet, overload):
+            raise PolicyError(f"{where}: operator {target} is not an ATen operator of this torch")
+        return
+    if target not in _PY_TARGETS:
+        shown = target if len(target) <= 80 else target[:77] + "..."
+        raise PolicyError(
+            f"{where}: node target {shown!r} is not an ATen operator; only torch.ops.aten.* and arithmetic on sizes "
+            "are run (no custom operators, higher-order operators or Python callables)"
+        )
+
+
+def _walk(o, where: str, key: str = "") -> None:
+    """Check every value of the model's JSON that reaches code (see the module docstring)."""
+    if isinstance(o, dict):
+        for k, v in o.items():
+            if not isinstance(k, str) or not _SAFE.match(k):
+                raise PolicyError(f"{where}: the graph holds a name that is not letters, digits, '_', '.' or '-'")
+            if k in _DENIED_KEYS:
+                raise PolicyError(f"{where}: the graph holds {k[3:]} arguments (subgraphs, operators or objects)")
+            if k in ("metadata", "in_spec", "out_spec", "guards_code", "torch_version", "as_string", "as_strings"):
+                # not run: debug metadata, pytree specs (registered types only), guard code (never made into a
+                # function: check_guards=False), literal strings (quoted by repr in the generated code)
+                continue
+            if k == "target":
+                _check_target(v, where)
+            elif k == "expr_str":
+                if not isinstance(v, str) or not _safe_expr(v):
+                    shown = str(v)[:60]
+                    raise PolicyError(f"{where}: symbolic shape {shown!r} is not an expression of sizes; refused")
+            elif k == "custom_obj_values" and v:
+                raise PolicyError(f"{where}: the graph holds custom objects; refused")
+            else:
+                _walk(v, where, k)
+    elif isinstance(o, list):
+        for v in o:
+            _walk(v, where, key)
+    elif isinstance(o, str) and not _SAFE.match(o):
+        raise PolicyError(f"{where}: the graph holds a name ({o[:40]!r}) that is not letters, digits, '_', '.' or '-'")
+
+
+def _json(z: zipfile.ZipFile, name: str, where: str):
+    if z.getinfo(name).file_size > _MAX_JSON_BYTES:
+        raise PolicyError(f"{where}: {name} is over {_MAX_JSON_BYTES >> 20} MiB")
+    try:
+        return json.loads(z.read(name))
+    except (ValueError, RecursionError, UnicodeDecodeError) as err:
+        raise PolicyError(f"{where}: {name} is not JSON ({str(err).splitlines()[0][:100]})") from None
+
+
+def check_archive(data: bytes, where: str) -> str | None:
+    """Check the bytes of a ``.pt2`` file as the module docstring says; returns its card's JSON
+    (``None`` if it has none). Raises :class:`PolicyError` naming ``where``."""
+    try:
+        z = zipfile.ZipFile(io.BytesIO(data))
+        infos = z.infolist()
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
+        raise PolicyError(f"{where}: not a torch.export archive (.pt2 is a zip file: {err})") from None
+    if not infos:
+        raise PolicyError(f"{where}: not a torch.export archive (empty zip)")
+    root = infos[0].filename.split("/", 1)[0]
+    files: dict[str, zipfile.ZipInfo] = {}
+    for info in infos:
+        name = info.filename
+        if not _ROOT.match(root) or not name.startswith(root + "/"):
+            raise PolicyError(f"{where}: archive entry {name[:80]!r} is outside the archive's folder")
+        rel = name[len(root) + 1 :]
+        if info.is_dir():
+            continue
+        if rel.startswith(pt2c.AOTINDUCTOR_DIR):
+            raise PolicyError(f"{where}: holds AOTInductor compiled code ({rel[:60]}); only exported programs load")
+        if not _ENTRY.match(rel):
+            raise PolicyError(
+                f"{where}: unexpected archive entry {rel[:80]!r} (pickled weights, custom objects and other models "
+                "are not loaded)"
+            )
+        if info.compress_type != zipfile.ZIP_STORED:
+            raise PolicyError(f"{where}: archive entry {rel!r} is compressed; torch.export.save stores entries")
+        files[rel] = info
+    need = ("archive_format", "archive_version", "models/model.json", "data/weights/model_weights_config.json")
+    need += ("data/constants/model_constants_config.json", "data/sample_inputs/model.pt")
+    missing = [n for n in need if n not in files]
+    if missing:
+        raise PolicyError(f"{where}: not a complete torch.export archive (no {missing[0]}; truncated or not a .pt2)")
+
+    def read(rel: str) -> bytes:
+        try:
+            return z.read(files[rel].filename)
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
+            raise PolicyError(f"{where}: archive entry {rel} is unreadable ({err}); truncated?") from None
+
+    fmt = read("archive_format").decode("utf-8", "replace").strip()
+    version = read("archive_version").decode("utf-8", "replace").strip()
+    model = _json(z, files["models/model.json"].filename, where)
+    if not isinstance(model, dict):
+        raise PolicyError(f"{where}: models/model.json is not an exported program")
+    made_by = str(model.get("torch_version", "unknown torch"))[:40]
+    schema = model.get("schema_version") if isinstance(model.get("schema_version"), dict) else {}
+    if (
+        fmt != pt2c.ARCHIVE_FORMAT_VALUE
+        or version != pt2c.ARCHIVE_VERSION_VALUE
+        or schema.get("major") != SCHEMA_VERSION[0]
+    ):
+        raise PolicyError(
+            f"{where}: exported by an incompatible torch ({made_by!r}: archive {fmt!r} version {version!r}, schema "
+            f"{schema.get('major')}.{schema.get('minor')}); this torch {torch.__version__} reads archive version "
+            f"{pt2c.ARCHIVE_VERSION_VALUE}, schema {SCHEMA_VERSION[0]}.x: export it again with this torch"
+        )
+    for cfg_name, folder, prefix in (
+        ("data/weights/model_weights_config.json", pt2c.WEIGHTS_DIR, pt2c.WEIGHT_FILENAME_PREFIX),
+        ("data/constants/model_constants_config.json", pt2c.CONSTANTS_DIR, pt2c.TENSOR_CONSTANT_FILENAME_PREFIX),
+    ):
+        cfg = _json(z, files[cfg_name].filename, where)
+        entries = cfg.get("config") if isinstance(cfg, dict) else None
+        if not isinstance(entries, dict):
+            raise PolicyError(f"{where}: {cfg_name} is not a payload config")
+        for fqn, meta in entries.items():
+            if not isinstance(meta, dict) or meta.get("use_pickle") is not False:
+                raise PolicyError(f"{where}: {fqn[:60]!r} is stored as a pickle; pickles are never loaded")
+            path_name = meta.get("path_name")
+            if not isinstance(path_name, str) or not re.fullmatch(prefix + r"\d+", path_name):
+                raise PolicyError(f"{where}: {fqn[:60]!r} is not a plain tensor ({str(path_name)[:40]!r})")
+            if folder + path_name not in files:
+                raise PolicyError(f"{where}: {fqn[:60]!r}: its data {path_name} is missing; truncated?")
+            _walk({"fqn": fqn, "meta": meta}, where)
+    _walk(model, where)
+    try:
+        torch.load(io.BytesIO(read("data/sample_inputs/model.pt")), weights_only=True)
+    except Exception as err:  # noqa: BLE001 - torch.load's safe unpickler raises many types
+        raise PolicyError(
+            f"{where}: its example inputs are not plain tensors ({type(err).__name__}); they would be unpickled"
+        ) from None
+    card = files.get(f"{pt2c.EXTRA_DIR}{CARD_ENTRY}")
+    return None if card is None else read(card.filename[len(root) + 1 :]).decode("utf-8", "replace")
+
+
+def export_pt2(policy, path: str | Path, card=None, max_batch: int = 1024) -> Path:
+    """Export torch ``policy`` to ``path`` with ``torch.export`` (dynamic batch) and ``card`` inside.
+
+    The inputs are those of :func:`sim.policies.onnx_policy.export_onnx`: ``images (B, 3, S, S)``
+    in [0, 1] and, for a policy that reads state, ``state (B, D)``. For the built-in network the
+    card names the backbone's last map as ``feature_map`` (where Grad-CAM reads). Stack traces
+    (source paths of the exporting machine) are dropped from the graph's metadata.
+    """
+    if card is None and not policy_contract(policy).is_default:
+        raise PolicyError(
+            f"card: a policy with the contract ({policy_contract(policy).describe()}) needs its card in the file"
+        )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    s = policy.image_size
+    D = policy_contract(policy).state_dim
+    was_training = policy.training
+    policy.eval()
+    try:
+        batch = torch.export.Dim("batch", min=1, max=max_batch)
+        args = (torch.rand(2, 3, s, s, device=policy.device),) + (
+            (torch.rand(2, D, device=policy.device),) if D else ()
+        )
+        dyn = tuple({0: batch} for _ in args)
+        ep = torch.export.export(policy, args, dynamic_shapes=dyn)
+    finally:
+        policy.train(was_training)
+    for node in ep.graph.nodes:
+        node.meta.pop("stack_trace", None)
+    extra = {}
+    if card is not None:
+        if card.feature_map is None and isinstance(getattr(policy, "reduce", None), torch.nn.Module):
+            card = card.model_copy(update={"feature_map": _backbone_output(ep, path)})
+        extra[CARD_ENTRY] = card.model_dump_json()
+    tmp = path.with_name(path.name + ".tmp.pt2")
+    torch.export.save(ep, str(tmp), extra_files=extra)
+    tmp.replace(path)
+    return path
+
+
+def _backbone_output(ep, path) -> str:
+    """The node the built-in network's backbone ends in: the input of its head's first
+    convolution (module ``reduce.0``)."""
+    for node in ep.graph.nodes:
+        stack = node.meta.get("nn_module_stack") or {}
+        paths = [v[0] for v in stack.values()]
+        if node.op == "call_function" and paths and paths[-1] == "reduce.0" and node.args:
+            return node.args[0].name
+    raise PolicyError(f"{path}: the exported graph has no head convolution (reduce.0) to take the feature map from")
+
+
+def _card(text: str | None, where: str):
+    if text is None:
+        return None
+    try:
+        return PolicyCard.model_validate(json.loads(text))
+    except Exception as err:  # noqa: BLE001 - pydantic and json name the field
+        raise PolicyError(f"{where}: {CARD_ENTRY}: not a valid policy card ({str(err).splitlines()[0]})") from None
+
+
+def load_pt2(path: str | Path, device="cpu") -> GraphPolicy:
+    """The white-box :class:`GraphPolicy` of the ``.pt2`` file ``path`` (checked as the module
+    docstring says). Raises :class:`PolicyError` in one line naming the file."""
+    p = Path(path)
+    where = str(p)
+    if not p.is_file():
+        raise PolicyError(f"{where}: no such .pt2 file")
+    size = p.stat().st_size
+    if size > MAX_PT2_BYTES:
+        raise PolicyError(f"{where}: {size >> 20} MiB is over the {MAX_PT2_BYTES >> 20} MiB a policy file may have")
+    data = p.read_bytes()
+    card = _card(check_archive(data, where), where)
+    log = logging.getLogger("torch.export")
+    level = log.level
+    log.setLevel(logging.CRITICAL)  # torch logs a traceback before its legacy fallback; the error is ours
+    try:
+        ep = torch.export.load(io.BytesIO(data))
+        gm = ep.module(check_guards=False)
+    except PolicyError:
+        raise
+    except Exception as err:  # noqa: BLE001 - torch's deserializer raises many types
+        msg = " ".join(str(err).split())[:200]
+        raise PolicyError(f"{where}: torch cannot load it ({type(err).__name__}: {msg})") from None
+    finally:
+        log.setLevel(level)
+    users = list(ep.graph_signature.user_inputs)
+    metas = {n.name: n.meta.get("val") for n in ep.graph.nodes if n.op == "placeholder"}
+    if len(users) not in (1, 2) or len(ep.graph_signature.user_outputs) < 1:
+        raise PolicyError(
+            f"{where}: a policy takes an image (and optionally a state) and returns actions; this program takes "
+            f"{len(users)} inputs"
+        )
+    shape = tuple(getattr(metas.get(users[0]), "shape", ()))
+    if len(shape) != 4 or shape[1] != 3 or not isinstance(shape[2], int) or shape[2] != shape[3]:
+        raise PolicyError(f"{where}: input {users[0]!r} must be (B, 3, S, S) with a fixed S, got {shape}")
+    S = int(shape[2])
+    if not IMAGE_SIZE_MIN_PX <= S <= IMAGE_SIZE_MAX_PX:
+        raise PolicyError(
+            f"{where}: input {users[0]!r} takes {S} px images; advobj renders "
+            f"{IMAGE_SIZE_MIN_PX}..{IMAGE_SIZE_MAX_PX} px"
+        )
+
+    class _Carrier:  # policy_contract reads a card attribute
+        pass
+
+    carrier = _Carrier()
+    carrier.card = card
+    contract = policy_contract(carrier)
+    if card is not None and card.arch.image_size != S:
+        raise PolicyError(f"{where}: card says {card.arch.image_size} px but the program takes {S} px")
+    D = contract.state_dim
+    if D and len(users) != 2:
+        raise PolicyError(
+            f"{where}: the card's contract reads state {list(contract.state)} but the program has no state input"
+        )
+    if len(users) == 2:
+        st = tuple(getattr(metas.get(users[1]), "shape", ()))
+        if not D:
+            raise PolicyError(
+                f"{where}: the program has a second input {users[1]!r} but no card says what it holds; write a card "
+                "with contract.state into the file"
+            )
+        if len(st) != 2 or (isinstance(st[1], int) and st[1] != D):
+            raise PolicyError(
+                f"{where}: input {users[1]!r} must be (B, {D}) for state {list(contract.state)}, got {st}"
+            )
+    nodes = {n.name: n for n in gm.graph.nodes}
+    placeholders = [n for n in gm.graph.nodes if n.op == "placeholder"]
+    image = placeholders[0]
+    state = placeholders[1] if len(placeholders) > 1 else None
+    out_node = next(n for n in gm.graph.nodes if n.op == "output")
+    flat = out_node.args[0]
+    while isinstance(flat, (tuple, list)):
+        flat = flat[0]
+    if not isinstance(flat, torch.fx.Node):
+        raise PolicyError(f"{where}: the program's first output is not a tensor")
+    actions = flat
+    example = (torch.rand(2, 3, S, S),) + ((torch.zeros(2, D),) if state is not None else ())
+    try:
+        if card is not None and card.feature_map:
+            if card.feature_map not in nodes:
+                raise PolicyError(f"{where}: card feature_map: {card.feature_map!r} is not a node of the program")
+            feature = nodes[card.feature_map]
+        else:
+            feature = pick_feature_node(gm, image, actions, example, where)
+        features, head = split_graph(gm, image, state, actions, feature, where)
+        policy = GraphPolicy(features, head, S, contract, card=card, source=p, format="pt2", feature_map=feature.name)
+        with torch.no_grad():
+            policy(*example)
+    except PolicyError:
+        raise
+    except Exception as err:  # noqa: BLE001 - the program failing on a plain input
+        msg = " ".join(str(err).split())[:200]
+        raise PolicyError(
+            f"{where}: the program fails on a (2, 3, {S}, {S}) input ({type(err).__name__}: {msg})"
+        ) from None
+    policy.check = {"reference": "none (the exported program is the policy)", "format": "pt2"}
+    return policy.to(torch.device(device))
