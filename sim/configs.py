@@ -37,6 +37,7 @@ __all__ = [
     "config_part",
     "config_id",
     "pose_id",
+    "copy_pool",
     "in_part",
     "part_seeds",
 ]
@@ -266,6 +267,20 @@ def save_pool(path: str | Path, spec, configs: list[InitialConfig], meta: dict |
     tmp.write_text(json.dumps(doc))
     tmp.replace(path)
     return path
+
+
+def copy_pool(src: str | Path, dst: str | Path, meta=None) -> Path:
+    """Copy a pool file to ``dst`` as it is, its ``meta`` passed through ``meta(dict) -> dict`` when
+    given (e.g. to drop machine paths before it is committed)."""
+    doc = json.loads(Path(src).read_text(encoding="utf-8"))
+    if meta is not None:
+        doc["meta"] = meta(dict(doc.get("meta") or {}))
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(dst.name + ".tmp")
+    tmp.write_text(json.dumps(doc), encoding="utf-8")
+    tmp.replace(dst)
+    return dst
 
 
 def load_pool(path: str | Path, spec=None) -> list[InitialConfig]:

@@ -25,16 +25,17 @@ import time
 from pathlib import Path
 
 from attack.artifact import CONFIG_RECORD, TEXTURE_PNG, AttackArtifact
+from sim.configs import copy_pool
 from sim.policies.card import CARD_NAME, load_card
+from sim.policies.pool import built_pool_path
 from sim.runinfo import git_commit
 from trials.eval.episodes import collect_evals
 from trials.experiments.recipes import RECIPES as REGISTRY
+from trials.experiments.record import read_record, write_record
 from trials.jobs.dag import read_markers
 
 ROOT = Path(__file__).resolve().parent.parent
 RECIPES = tuple(REGISTRY)  # the one list (trials.experiments.recipes.RECIPES)
-#: The evidence record in ``results/<name>/`` (attempts, rows, CPU time): this tool's own format.
-RECORD_NAME = "run.json"
 
 
 def _machine() -> dict:
@@ -87,8 +88,7 @@ def run(
     if policy:
         cmd += ["--policy", policy]
     cmd += extra
-    record_path = results / name / RECORD_NAME
-    record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
+    record = read_record(results / name)
     attempt = {
         "command": " ".join(["advobj"] + cmd[1:]),
         "commit": commit,
@@ -107,8 +107,7 @@ def run(
         load_avg_end=list(os.getloadavg()),
     )
     record["attempts"].append(attempt)
-    (results / name).mkdir(parents=True, exist_ok=True)
-    record_path.write_text(json.dumps(record, indent=2))
+    write_record(results / name, record)
     if rc == 0:
         collect(name, work, results)
     return rc
@@ -151,25 +150,25 @@ def collect(name: str, work: Path, results: Path) -> Path:
         if (at / CONFIG_RECORD).is_file():
             (dst / "attack_configs").mkdir(exist_ok=True)
             shutil.copyfile(at / CONFIG_RECORD, dst / "attack_configs" / f"{at.name}.json")
-    for pool in sorted((src / "pools").glob("*/feasible_pool.json")) if (src / "pools").is_dir() else []:
-        doc = json.loads(pool.read_text())
-        meta = doc.get("meta") if isinstance(doc.get("meta"), dict) else {}
-        for key in ("policy", "base"):
-            if isinstance(meta.get(key), str):
-                meta[key] = _portable(meta[key])
-        (dst / "pools").mkdir(exist_ok=True)
-        (dst / "pools" / f"{pool.parent.name}.json").write_text(json.dumps(doc))
+    for job in sorted((src / "pools").iterdir()) if (src / "pools").is_dir() else []:
+        if built_pool_path(job).is_file():
+            copy_pool(
+                built_pool_path(job),
+                dst / "pools" / f"{job.name}.json",
+                meta=lambda m: {
+                    k: _portable(v) if k in ("policy", "base") and isinstance(v, str) else v for k, v in m.items()
+                },
+            )
     policies = {}
     for card_path in sorted(src.glob(f"policies/*/{CARD_NAME}")):
         clean = load_card(card_path).clean_success
         policies[card_path.parent.name] = None if clean is None else clean.model_dump(mode="json")
-    record_path = dst / RECORD_NAME
-    record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
+    record = read_record(dst)
     record["episodes_rows"] = n_rows
     # Jobs that ran on Ray workers are not this process's children: their CPU time is in their finished markers.
     record["jobs_cpu_s"] = round(sum(m.get("cpu_s", 0.0) for m in read_markers(src)), 1)
     record["trained_policies_clean_success"] = policies
-    record_path.write_text(json.dumps(record, indent=2))
+    write_record(dst, record)
     return dst
 
 

@@ -52,6 +52,7 @@ import numpy as np
 
 from trials.eval.episodes import has_rows, read_rows
 from trials.eval.metrics import DISTANCE_BINS_CM, PHI_BINS_DEG, bin_index, bin_labels, mcnemar_exact
+from trials.experiments.record import RECORD_NAME, is_dirty
 
 __all__ = [
     "ALPHA",
@@ -851,7 +852,7 @@ def render(f: dict[str, Evaluated], prefix: str = "", dirty: set[str] = frozense
         lines += [
             "",
             "(dirty): made from a checkout with uncommitted changes that were not recorded ("
-            + ", ".join(f"results/{d}/run.json" for d in sorted(dirty))
+            + ", ".join(f"results/{d}/{RECORD_NAME}" for d in sorted(dirty))
             + "); the evidence tool now refuses such a checkout.",
         ]
     return "\n".join(lines) + "\n"
@@ -862,10 +863,7 @@ def dirty_recipes(f: dict[str, Evaluated], results: Path = ROOT / "results") -> 
     out = set()
     for e in f.values():
         for d in {e.finding.recipe, *([e.finding.seeds] if e.seeds else [])}:
-            rec = Path(results) / d / "run.json"
-            if rec.is_file() and any(
-                str(a.get("commit", "")).endswith("+dirty") for a in json.loads(rec.read_text()).get("attempts", [])
-            ):
+            if is_dirty(Path(results) / d):
                 out.add(d)
     return out
 
