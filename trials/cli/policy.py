@@ -1,4 +1,4 @@
-"""``advobj policy``: train, evaluate and export reference visuomotor policies."""
+"""``advobj policy``: train, evaluate and export reference visuomotor policies (.onnx, .pt2)."""
 
 from __future__ import annotations
 
@@ -150,27 +150,49 @@ def evaluate(
 @app.command()
 def export(
     policy: Path = typer.Argument(..., help="checkpoint directory"),
-    onnx: Path = typer.Option(..., "--onnx", help="output .onnx file"),
+    onnx: Optional[Path] = typer.Option(None, "--onnx", help="output .onnx file"),
+    pt2: Optional[Path] = typer.Option(None, "--pt2", help="output .pt2 file (torch.export ExportedProgram)"),
     opset: int = typer.Option(17, min=17, help="ONNX opset (>= 17)"),
-    check: bool = typer.Option(True, "--check/--no-check", help="compare onnxruntime with torch on 32 random images"),
+    check: bool = typer.Option(
+        True, "--check/--no-check", help="compare each file with the checkpoint on 32 random images"
+    ),
 ) -> None:
-    """Export a checkpoint to ONNX (black-box use, real trials)."""
+    """Export a checkpoint to ONNX and/or a .pt2 ExportedProgram, with its card inside.
+
+    Both files can be attacked white-box (advobj attack run --policy FILE); an .onnx file is also
+    what onnxruntime runs black-box (evaluation, real trials)."""
     import numpy as np  # lazy: CLI start-up (numpy)
+    import torch  # lazy: CLI start-up (torch)
 
     from sim.policies.checkpoint import load_checkpoint  # lazy: CLI start-up (torch, onnxruntime)
     from sim.policies.onnx_policy import OnnxPolicy, export_onnx  # lazy: CLI start-up (torch, onnxruntime)
+    from sim.policies.pt2 import export_pt2, load_pt2  # lazy: CLI start-up (torch)
 
+    if onnx is None and pt2 is None:
+        raise typer.BadParameter("give --onnx FILE, --pt2 FILE or both", param_hint="--onnx / --pt2")
+    for flag, path, suffix in (("--onnx", onnx, ".onnx"), ("--pt2", pt2, ".pt2")):
+        if path is not None and path.suffix.lower() != suffix:
+            raise typer.BadParameter(f"{path}: the file name must end in {suffix}", param_hint=flag)
     pol, card = load_checkpoint(policy)
-    export_onnx(pol, onnx, card=card, opset=opset)
-    msg = (
-        f"wrote {onnx} (opset {opset}, input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1], output "
-        "actions (B, 6))"
-    )
-    if check:
-        x = np.random.default_rng(0).random((32, 3, pol.image_size, pol.image_size), dtype=np.float32)
-        diff = float(np.abs(OnnxPolicy(onnx).act(x) - pol.act(x)).max())
-        msg += f"; max |onnx - torch| on 32 random images = {diff:.2e}"
-        if diff > 1e-4:
-            typer.secho(msg, fg=typer.colors.RED)
-            raise typer.Exit(1)
-    typer.echo(msg)
+    x = np.random.default_rng(0).random((32, 3, pol.image_size, pol.image_size), dtype=np.float32)
+    shape = f"input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1], output actions (B, 6)"
+    written = []
+    if onnx is not None:
+        export_onnx(pol, onnx, card=card, opset=opset)
+        written.append((onnx, f"opset {opset}", lambda: OnnxPolicy(onnx).act(x), "onnx"))
+    if pt2 is not None:
+        export_pt2(pol, pt2, card=card)
+        written.append((pt2, f"torch {torch.__version__}", lambda: load_pt2(pt2).act(x), "pt2"))
+    failed = False
+    for path, what, run, name in written:
+        msg = f"wrote {path} ({what}, {shape})"
+        if check:
+            diff = float(np.abs(run() - pol.act(x)).max())
+            msg += f"; max |{name} - torch| on 32 random images = {diff:.2e}"
+            if diff > 1e-4:
+                typer.secho(msg, fg=typer.colors.RED)
+                failed = True
+                continue
+        typer.echo(msg)
+    if failed:
+        raise typer.Exit(1)

@@ -9,10 +9,9 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-import onnx
 import pytest
 import torch
-from onnx import TensorProto, helper, numpy_helper
+from onnx import helper, numpy_helper
 
 from attack.optimize import AttackRun, resolve_config
 from sim.configs import sample_pool
@@ -23,6 +22,7 @@ from sim.policies.onnx_policy import OnnxPolicy, export_onnx
 from sim.policies.onnx_torch import ATOL, convert_onnx, onnx2torch_module
 from sim.policies.pt2 import export_pt2
 from sim.spec import default_scene
+from tests.policy_files import linear_head, mismatched_onnx, onnx_graph, unsupported_op_onnx
 from tests.policy_zoo import card_of, contract_of, tiny_policy
 
 CONTRACTS = {
@@ -102,33 +102,8 @@ def test_texture_gradients_agree_between_onnx_pt2_and_the_native_module(tmp_path
             assert diff <= 1e-3 * scale, f"{term}: {name} differs by {diff:.3g} (scale {scale:.3g})"
 
 
-def _graph(path, nodes, inits, size=32, opset=17):
-    image = helper.make_tensor_value_info("images", TensorProto.FLOAT, ["B", 3, size, size])
-    action = helper.make_tensor_value_info("actions", TensorProto.FLOAT, ["B", 6])
-    model = helper.make_model(
-        helper.make_graph(nodes, "g", [image], [action], inits), opset_imports=[helper.make_opsetid("", opset)]
-    )
-    onnx.checker.check_model(model)
-    onnx.save(model, str(path))
-    return path
-
-
-def _linear_head(src: str, n_in: int, seed: int = 0):
-    """Nodes and initializers: Flatten(src) @ W -> Tanh -> actions (B, 6)."""
-    w = np.random.default_rng(seed).standard_normal((n_in, 6)).astype(np.float32) * 0.05
-    nodes = [
-        helper.make_node("Flatten", [src], ["flat"]),
-        helper.make_node("MatMul", ["flat", "w"], ["mm"]),
-        helper.make_node("Tanh", ["mm"], ["actions"]),
-    ]
-    return nodes, [numpy_helper.from_array(w, "w")]
-
-
 def test_an_operator_onnx2torch_lacks_is_refused_by_name_and_the_file_still_runs_black_box(tmp_path):
-    head, inits = _linear_head("shrunk", 3 * 32 * 32)
-    path = _graph(
-        tmp_path / "shrink.onnx", [helper.make_node("Shrink", ["images"], ["shrunk"], lambd=0.1)] + head, inits
-    )
+    path = unsupported_op_onnx(tmp_path / "shrink.onnx")
     with pytest.raises(PolicyError) as err:
         load_policy(path, white_box=True)
     msg = str(err.value)
@@ -137,26 +112,8 @@ def test_an_operator_onnx2torch_lacks_is_refused_by_name_and_the_file_still_runs
     assert isinstance(o, OnnxPolicy) and o.act(np.zeros((2, 32, 32, 3), np.uint8)).shape == (2, 6)
 
 
-def resize_policy(path, size=32, out=20):
-    """A policy whose Resize (nearest, ONNX's default half_pixel and round_prefer_floor) onnx2torch
-    converts to torch's nearest (asymmetric, floor): it converts, and computes another policy."""
-    nodes = [
-        helper.make_node("Shape", ["images"], ["shp"]),
-        helper.make_node("Slice", ["shp", "zero", "one"], ["b"]),
-        helper.make_node("Concat", ["b", "tail"], ["sz"], axis=0),
-        helper.make_node("Resize", ["images", "", "", "sz"], ["small"], mode="nearest"),
-    ]
-    head, inits = _linear_head("small", 3 * out * out)
-    inits += [
-        numpy_helper.from_array(np.array([0], np.int64), "zero"),
-        numpy_helper.from_array(np.array([1], np.int64), "one"),
-        numpy_helper.from_array(np.array([3, out, out], np.int64), "tail"),
-    ]
-    return _graph(path, nodes + head, inits, size)
-
-
 def test_a_conversion_that_differs_from_onnxruntime_is_refused_naming_the_output_and_the_difference(tmp_path):
-    path = resize_policy(tmp_path / "resize.onnx")
+    path = mismatched_onnx(tmp_path / "resize.onnx")
     with pytest.raises(PolicyError) as err:
         load_policy(path, white_box=True)
     msg = str(err.value)
@@ -191,8 +148,8 @@ def test_without_a_card_the_last_spatial_map_on_every_path_is_the_feature_map(tm
         helper.make_node("Relu", ["c1"], ["r1"]),
         helper.make_node("GlobalAveragePool", ["r1"], ["pooled"]),  # (B, 8, 1, 1): one cell, not a map
     ]
-    head, inits = _linear_head("pooled", 8)
-    path = _graph(tmp_path / "user.onnx", nodes + head, inits + [numpy_helper.from_array(w, "k")])
+    head, inits = linear_head("pooled", 8)
+    path = onnx_graph(tmp_path / "user.onnx", nodes + head, inits + [numpy_helper.from_array(w, "k")])
     g = load_policy(path, white_box=True)
     assert g.feature_map == "r1" and g.features(torch.rand(2, 3, 32, 32)).shape == (2, 8, 16, 16)
 
