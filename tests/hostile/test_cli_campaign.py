@@ -41,10 +41,12 @@ BLOBS = {
     "corrupt_image": b"\x89PNG\r\n\x1a\n" + bytes(100),
     # 100,000 nested arrays: a RecursionError in json, a segfault in OpenCV's FileStorage
     "deep_json": b"[" * 100_000 + b"]" * 100_000,
+    "corrupt_pt2": b"PK\x03\x04" + bytes(range(256)) * 4,  # a zip header, then junk: no torch.export archive
 }
 SUFFIX = {
     "corrupt_mesh": ".obj",
     "corrupt_onnx": ".onnx",
+    "corrupt_pt2": ".pt2",
     "corrupt_sqlite": ".sqlite",
     "corrupt_image": ".png",
     "deep_json": ".json",
@@ -52,6 +54,19 @@ SUFFIX = {
 # Not files at all: a FIFO with no writer and a device that never ends (each would block a reader).
 SPECIAL_KINDS = ("fifo", "dev_zero")
 PATH_KINDS = tuple(BLOBS) + ("missing", "directory", "traversal") + SPECIAL_KINDS
+# Well-formed policy files the white-box path must refuse (tests/policy_files.py builds each), given
+# only where a policy is attacked or, for a .pt2, loaded at all: an ONNX file with an operator
+# onnx2torch lacks or a conversion that differs from onnxruntime is still a valid black-box policy.
+POLICY_FILE_KINDS = {
+    "onnx_unsupported_op": ("unsupported_op_onnx", ".onnx"),
+    "onnx_mismatch": ("mismatched_onnx", ".onnx"),
+    "pt2_truncated": ("truncated_pt2", ".pt2"),
+    "pt2_other_torch": ("other_torch_pt2", ".pt2"),
+}
+TARGETED = {
+    (("attack", "run"), "policy"): tuple(POLICY_FILE_KINDS),
+    (("policy", "eval"), "policy"): ("pt2_truncated", "pt2_other_torch"),
+}
 # Peak resident memory of the whole campaign process (every case runs in it): a bound on each case's.
 RSS_CAP_MB = 4096
 OUTPUT_NAMES = {"out", "db", "plot", "sheet"}  # parameters naming where a command writes
@@ -107,6 +122,7 @@ def _cases():
                 cases += [(path, p.name, n) for n in NUMBERS]
             elif kind == "str" and p.name in ("session", "name", "trial_id"):
                 cases.append((path, p.name, "traversal"))
+            cases += [(path, p.name, k) for k in TARGETED.get((tuple(path), p.name), ())]
     return cases
 
 
@@ -144,6 +160,11 @@ def _value(kind: str, inputs: Path, name: str) -> str:
         if not p.exists():
             os.mkfifo(p)
         return str(p)
+    if kind in POLICY_FILE_KINDS:
+        from tests import policy_files
+
+        builder, suffix = POLICY_FILE_KINDS[kind]
+        return str(getattr(policy_files, builder)(inputs / f"{kind}_{name}{suffix}"))
     p = inputs / f"{kind}_{name}{SUFFIX.get(kind, '.yaml')}"
     p.write_bytes(BLOBS[kind])
     return str(p)
