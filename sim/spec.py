@@ -7,17 +7,18 @@ dotted path (``objects.1.pose.yaw_deg: ...``) and the file it came from.
 from __future__ import annotations
 
 import math
+import re
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 import yaml
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_serializer, model_validator
 
 from sim.configio import StrictModel, file_error, merged, read_yaml
 from sim.errors import AdvobjError, format_validation_error
-from sim.geometry import make_T, so3_exp
+from sim.geometry import look_at, make_T, so3_exp
 
 __all__ = [
     "load_spec",
@@ -28,6 +29,10 @@ __all__ = [
     "ObjectPose",
     "ObjectSpec",
     "CameraSpec",
+    "SceneCameraSpec",
+    "LookAt",
+    "UnknownCameraError",
+    "WRIST",
     "GripperSpec",
     "EpisodeSpec",
     "InitSpec",
@@ -140,8 +145,9 @@ class ObjectSpec(_Strict):
         return kw
 
 
-class CameraSpec(_Strict):
-    """Wrist camera. Give either fx/fy/cx/cy or ``fov_deg`` (vertical field of view)."""
+class _Intrinsics(_Strict):
+    """A pinhole camera's image size, intrinsics and clip distances: give either fx/fy/cx/cy or
+    ``fov_deg`` (vertical field of view)."""
 
     width: Annotated[int, Field(gt=0, le=4096)] = 128
     height: Annotated[int, Field(gt=0, le=4096)] = 128
@@ -152,11 +158,6 @@ class CameraSpec(_Strict):
     fov_deg: Annotated[float, Field(gt=1, lt=179)] | None = 70.0
     znear_m: Positive = 0.005
     zfar_m: Positive = 10.0
-    # Mount extrinsic: camera pose in the TCP frame, as translation (m) + axis-angle (rad).
-    t_tcp_cam_m: tuple[float, float, float] = (0.0, -0.04, -0.06)
-    rotvec_tcp_cam: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    # Stereo option: a second camera offset by this baseline along the first camera's +x.
-    stereo_baseline_m: Annotated[float, Field(ge=0)] = 0.0
 
     @model_validator(mode="after")
     def _intrinsics(self):
@@ -186,9 +187,128 @@ class CameraSpec(_Strict):
             cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
+    def intrinsics(self) -> dict:
+        """This camera's size, intrinsics and clip distances (the fields of this base)."""
+        return {k: getattr(self, k) for k in _Intrinsics.model_fields}
+
+
+class CameraSpec(_Intrinsics):
+    """Wrist camera. Give either fx/fy/cx/cy or ``fov_deg`` (vertical field of view)."""
+
+    # Mount extrinsic: camera pose in the TCP frame, as translation (m) + axis-angle (rad).
+    t_tcp_cam_m: tuple[float, float, float] = (0.0, -0.04, -0.06)
+    rotvec_tcp_cam: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Stereo option: a second camera offset by this baseline along the first camera's +x.
+    stereo_baseline_m: Annotated[float, Field(ge=0)] = 0.0
+
     @property
     def T_tcp_cam(self) -> np.ndarray:
         return make_T(so3_exp(np.asarray(self.rotvec_tcp_cam)), np.asarray(self.t_tcp_cam_m))
+
+
+WRIST = "wrist"
+CAMERA_NAME = r"[a-z][a-z0-9_]{0,31}"
+SCENE_REACH_M = 100.0  # a scene camera's position (and look-at target) lies within this of the table origin
+
+Position = tuple[float, float, float]
+
+
+def _check_reach(v: Position | None) -> Position | None:
+    if v is not None and max(abs(c) for c in v) > SCENE_REACH_M:
+        raise ValueError(f"each coordinate must lie within +-{SCENE_REACH_M:g} m of the table origin")
+    return v
+
+
+class LookAt(_Strict):
+    """A camera pose given by where the camera stands and the point it looks at (table frame, m).
+
+    The optical axis runs from ``eye_m`` to ``target_m``; the image's up is as close to ``up`` as
+    the view allows (looking straight along ``up``, the image's up is +y of the table)."""
+
+    # Where the camera stands (m, each coordinate within +-100).
+    eye_m: Position
+    # The point the optical axis passes through (m), at least 1 mm from eye_m.
+    target_m: Position
+    up: Position = Field((0.0, 0.0, 1.0), description="the table-frame direction that appears up in the image")
+
+    _v_eye = field_validator("eye_m")(_check_reach)
+    _v_target = field_validator("target_m")(_check_reach)
+
+    @field_validator("up")
+    @classmethod
+    def _up(cls, v):
+        if math.hypot(*v) < 1e-6:
+            raise ValueError("up must be non-zero")
+        return v
+
+    @model_validator(mode="after")
+    def _apart(self):
+        if math.dist(self.eye_m, self.target_m) < 1e-3:
+            raise ValueError("eye_m and target_m must be at least 1 mm apart")
+        return self
+
+
+class SceneCameraSpec(_Intrinsics):
+    """A fixed camera in the scene (e.g. a lab's third-person view): size and intrinsics as the
+    wrist camera's, and its pose in the table (world) frame, OpenCV convention (+x right, +y down,
+    +z along the optical axis). Give the pose either as ``t_table_cam_m`` + ``rotvec_table_cam``
+    (``T_table_cam``) or as ``look_at``, not both."""
+
+    name: str = Field(description="a letter, then lower case letters, digits or _ (at most 32); not 'wrist'")
+    # The pose T_table_cam as translation + axis-angle, like the wrist camera's mount:
+    # where the camera stands (m, each coordinate within +-100).
+    t_table_cam_m: Position | None = None
+    # Its orientation, axis-angle (rad, norm at most 2 pi): the camera's axes in the table frame.
+    rotvec_table_cam: Position | None = None
+    # The pose as where the camera stands and what it looks at, instead of the two fields above.
+    look_at: LookAt | None = None
+
+    _v_t = field_validator("t_table_cam_m")(_check_reach)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v):
+        if v == WRIST:
+            raise ValueError("'wrist' names the wrist camera (the scene's camera field); call this one otherwise")
+        if not re.fullmatch(CAMERA_NAME, v):
+            raise ValueError(
+                f"{v!r}: a camera name is a lower case letter, then lower case letters, digits or _ (<= 32)"
+            )
+        return v
+
+    @field_validator("rotvec_table_cam")
+    @classmethod
+    def _angle(cls, v):
+        if v is not None and math.hypot(*v) > 2 * math.pi + 1e-9:
+            raise ValueError("the rotation angle (the vector's norm) must be at most 2 pi rad")
+        return v
+
+    @model_validator(mode="after")
+    def _pose(self):
+        explicit = (self.t_table_cam_m is not None, self.rotvec_table_cam is not None)
+        if self.look_at is not None and any(explicit):
+            raise ValueError(
+                f"camera {self.name!r}: give its pose as t_table_cam_m + rotvec_table_cam or as look_at, not both"
+            )
+        if self.look_at is None and not all(explicit):
+            missing = [f for f, g in zip(("t_table_cam_m", "rotvec_table_cam"), explicit) if not g]
+            raise ValueError(
+                f"camera {self.name!r} has no extrinsics: {' and '.join(missing)} missing (its pose in the table "
+                "frame; or give look_at: {eye_m, target_m})"
+            )
+        return self
+
+    @property
+    def T_table_cam(self) -> np.ndarray:
+        """(4, 4) the camera's pose in the table (world) frame, OpenCV camera axes."""
+        if self.look_at is not None:
+            a = self.look_at
+            return look_at(np.asarray(a.eye_m), np.asarray(a.target_m), np.asarray(a.up))
+        return make_T(so3_exp(np.asarray(self.rotvec_table_cam, dtype=np.float64)), np.asarray(self.t_table_cam_m))
+
+
+class UnknownCameraError(SpecError):
+    """A camera name the scene does not have; the message lists the ones it has."""
 
 
 class GripperSpec(_Strict):
@@ -249,8 +369,30 @@ class SceneSpec(_Strict):
     gripper: GripperSpec = GripperSpec()
     episode: EpisodeSpec = EpisodeSpec()
     init: InitSpec = InitSpec()
+    scene_cameras: list[SceneCameraSpec] = Field(
+        default_factory=list,
+        description="fixed cameras besides the wrist camera (which is named 'wrist'), each posed in the table frame",
+    )
 
     _v_bg = field_validator("background")(_check_rgb)
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # Without scene cameras a scene dumps exactly as before they existed: the run records and
+        # the evaluation config hashes that hold a scene's dump stay the same.
+        d = handler(self)
+        if not self.scene_cameras:
+            d.pop("scene_cameras", None)
+        return d
+
+    @field_validator("scene_cameras")
+    @classmethod
+    def _camera_names(cls, cams):
+        names = [c.name for c in cams]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"camera names must be unique, repeated: {sorted(dup)}")
+        return cams
 
     @model_validator(mode="after")
     def _roles(self):
@@ -281,6 +423,35 @@ class SceneSpec(_Strict):
     @property
     def adversarial(self) -> ObjectSpec:
         return self.objects[self.object_index("adversarial")]
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        """Every camera of the scene: ``"wrist"`` (the :attr:`camera` field), then the scene cameras."""
+        return (WRIST, *(c.name for c in self.scene_cameras))
+
+    def camera_spec(self, name: str) -> CameraSpec | SceneCameraSpec:
+        """The camera called ``name``: :attr:`camera` for ``"wrist"``, else that scene camera.
+
+        Both carry what a renderer needs: ``width``/``height``, ``K()``, ``znear_m``/``zfar_m``;
+        a scene camera also its fixed pose ``T_table_cam``. An unknown name raises
+        :class:`UnknownCameraError` listing the scene's cameras.
+        """
+        if name == WRIST:
+            return self.camera
+        for c in self.scene_cameras:
+            if c.name == name:
+                return c
+        raise UnknownCameraError(f"unknown camera {name!r}; this scene has: {', '.join(self.camera_names)}")
+
+    def for_camera(self, name: str) -> "SceneSpec":
+        """This scene seen through camera ``name``: its size, intrinsics and clip distances in the
+        :attr:`camera` slot, so a :class:`sim.render.SceneRenderer` built from it renders that
+        camera (the slot's mount fields are unused there: the renderer takes each pose as given).
+        The wrist camera's is this scene itself."""
+        cam = self.camera_spec(name)
+        if name == WRIST:
+            return self
+        return self.with_updates(camera=CameraSpec(**cam.intrinsics()))
 
     def with_updates(self, **changes) -> "SceneSpec":
         """A validated copy with top-level fields replaced."""
