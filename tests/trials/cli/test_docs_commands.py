@@ -313,6 +313,12 @@ class Artifacts:
             shutil.copy(self.onnx, dst)
         return dst
 
+    @property
+    def pt2_copy(self) -> Path:
+        """The tiny policy as a .pt2 file (the workflow's 'my_policy.pt2')."""
+        self.invoke(self.fmt("policy export {policy} --pt2 {tmp}/my_policy.pt2"))
+        return self.tmp / "my_policy.pt2"
+
     # ---- your own mesh
     @property
     def my_scene(self) -> Path:
@@ -544,8 +550,9 @@ TINY: dict[str, Tiny] = {
     "advobj policy export runs/policy-quick --onnx policy.onnx": Tiny(
         "policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)
     ),
-    "advobj policy export runs/policy-quick --onnx runs/policy-quick.onnx": Tiny(
-        "policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)
+    "advobj policy export runs/policy-quick --onnx runs/policy-quick.onnx --pt2 runs/policy-quick.pt2": Tiny(
+        "policy export {policy} --onnx {tmp}/policy.onnx --pt2 {tmp}/policy.pt2",
+        ("{tmp}/policy.onnx", "{tmp}/policy.pt2"),
     ),
     # ---- workflow: your mesh
     "advobj scene render my_scene.yaml --seed 0 --size 256 --out runs/scene/my_scene.png": Tiny(
@@ -563,6 +570,18 @@ TINY: dict[str, Tiny] = {
     "advobj policy eval my_policy.onnx --episodes 200 --out runs/my_policy-eval": Tiny(
         "policy eval {onnx_copy} --episodes 2 --num-envs 2 --out {tmp}/my_policy-eval",
         ("{tmp}/my_policy-eval/feasible_pool.json",),
+    ),
+    "advobj attack run --policy my_policy.onnx --pool runs/my_policy-eval/feasible_pool.json --out "
+    "runs/attack-onnx": Tiny(
+        "attack run --policy {onnx_copy} --config {tiny_attack} --out {tmp}/attack-onnx",
+        ("{tmp}/attack-onnx/texture.npy", "{tmp}/attack-onnx/metrics.json"),
+        dropped={"--pool": "the untrained tiny policy solves no configuration: its pool is empty"},
+    ),
+    "advobj attack run --policy my_policy.pt2 --pool runs/my_policy-eval/feasible_pool.json --out "
+    "runs/attack-pt2": Tiny(
+        "attack run --policy {pt2_copy} --config {tiny_attack} --out {tmp}/attack-pt2",
+        ("{tmp}/attack-pt2/texture.npy", "{tmp}/attack-pt2/metrics.json"),
+        dropped={"--pool": "the untrained tiny policy solves no configuration: its pool is empty"},
     ),
     # ---- workflow: attack
     ATTACK_LINE: Tiny(
@@ -825,7 +844,8 @@ def _workflow_block(marker: str) -> str:
 
 
 def test_workflow_export_script_writes_a_two_input_chunked_onnx_policy_that_rolls_out(tmp_path):
-    """The 'attack your own policy' export script of docs/workflow.md, at a smaller input size."""
+    """The 'attack your own policy' export script of docs/workflow.md, at a smaller input size: the
+    ONNX file rolls out on onnxruntime, and it and the .pt2 load white-box."""
     import numpy as np
 
     from sim.policies.contract import policy_contract
@@ -834,8 +854,12 @@ def test_workflow_export_script_writes_a_two_input_chunked_onnx_policy_that_roll
     from sim.spec import default_scene
 
     code = _workflow_block("class LabPolicy")
-    path = tmp_path / "lab_policy.onnx"
-    for old, new in {"S, K = 96, 8": "S, K = 32, 8", '"lab_policy.onnx"': repr(str(path))}.items():
+    path, pt2 = tmp_path / "lab_policy.onnx", tmp_path / "lab_policy.pt2"
+    for old, new in {
+        "S, K = 96, 8": "S, K = 32, 8",
+        '"lab_policy.onnx"': repr(str(path)),
+        '"lab_policy.pt2"': repr(str(pt2)),
+    }.items():
         assert old in code, f"docs/workflow.md export script changed: {old!r} not found; update this test"
         code = code.replace(old, new)
     exec(compile(code, "docs/workflow.md", "exec"), {"__name__": "workflow_export"})
@@ -850,6 +874,16 @@ def test_workflow_export_script_writes_a_two_input_chunked_onnx_policy_that_roll
     finally:
         env.close()
     assert (res.steps >= 1).all() and np.isfinite(res.min_goal_dist).all()
+    # both files load white-box with the card's contract, and compute the same policy
+    from sim.policies.checkpoint import load_policy
+
+    images = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
+    state = np.zeros((2, 7), np.float32)
+    ref = policy.act(images, state)
+    for f in (path, pt2):
+        white = load_policy(f, white_box=True)
+        assert white.white_box and policy_contract(white) == c
+        np.testing.assert_allclose(white.act(images, state), ref, atol=1e-4)
 
 
 def _anchors(path: Path) -> set[str]:
