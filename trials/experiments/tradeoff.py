@@ -7,31 +7,60 @@ policy) and variants that change one knob each. Every attack row is measured the
    sampling its EOT configurations from the attack part of the policy's task-feasible pool
    (:func:`sim.configs.config_part`; at least 20 are required);
 2. its texture is evaluated with :func:`trials.eval.evaluate.run_eval` (paired clean/attack arms) on
-   one fixed evaluation set per policy: the first ``episodes`` evaluation-part configurations of its pool,
-   written once to ``<out>/eval_sets/<policy>.json`` and reused by every row of that policy.
+   ONE fixed evaluation set per policy: the first ``episodes`` (default 300) evaluation-part
+   configurations of its task-feasible pool, topped up by the evaluation's own pool builder
+   (:func:`trials.eval.evaluate.resolve_pool`) when the pool holds fewer. The set is built once,
+   before any row runs (timed), written to ``<out>/eval_sets/<policy>.json`` and used by every row
+   of that policy, so all rows of a policy are paired on the same configurations and the report
+   tests each against the baseline with McNemar's exact test.
+
+Attack seeds (``attack_seeds``, e.g. ``(0, 1, 2)``): every row that changes the attack (the
+baseline, the attack knobs and the baseline's ``iterations`` snapshots) runs once per attack seed,
+as independent optimisations evaluated on the same set; its key carries ``@seed<k>`` for seeds
+other than 0 (``eot_envs=1@seed2``). A row is paired with the baseline run of its own attack seed.
+Rows that do not change the attack run once: ``eval_episodes`` (the first seed's baseline texture
+evaluated again on the first N configurations of the same set, N = ``big_episodes``), the
+``deployment`` rows (the policy forward as torch fp32, ONNX fp32, ONNX int8 dynamic quantisation,
+ONNX fp16, with its actions compared with torch fp32 on rendered frames) and the
+``policy_resolution`` rows (another policy, on its own fixed set: not paired with the baseline).
 
 The ``iterations`` rows cost nothing extra: the baseline run snapshots its texture at
 ``snapshots`` (e.g. 30 and 60 of 120) and these rows only evaluate the snapshots, charging the
-attack time the baseline had spent at that iteration. ``eval_episodes`` evaluates the baseline
-texture on a larger feasible set (built by ``run_eval``), with the first ``episodes`` of it
-summarised too, so the interval widths come from one run. ``deployment`` rows time the policy
-forward (torch fp32, ONNX fp32, ONNX int8 dynamic quantisation, ONNX fp16) and compare its
-actions with torch fp32 on rendered frames.
+attack time the baseline had spent at that iteration.
 
 Each row runs in a child process (peak RSS per row; a crash only loses that row) and is appended
-as one JSON line to ``<out>/rows.jsonl`` when it finishes; a re-run skips rows already there with
-``status == "ok"`` (the settings must match ``<out>/sweep.json``). Each row is a ``tradeoff-row``
-job of :mod:`trials.jobs.dag` in ``<out>/rows/<row>/``; its child process reads its spec from
+as one JSON line to ``<out>/rows.jsonl`` when it finishes, with wall and CPU time of its attack,
+its evaluation and the whole row; a re-run skips rows already there with ``status == "ok"`` (the
+settings must match ``<out>/sweep.json``). Each row is a ``tradeoff-row`` job of
+:mod:`trials.jobs.dag` in ``<out>/rows/<row>/``; its child process reads its spec from
 ``<out>/jobs/<row>/row.json``.
+
+The committed evidence (``results/tradeoff/``) comes from this module's command line::
+
+    python -m trials.experiments.tradeoff evidence --policy runs/evidence/policy-quick \\
+        --out runs/evidence/tradeoff --episodes 300 --attack-seeds 0,1,2 --train-missing
+    python -m trials.experiments.tradeoff collect --out runs/evidence/tradeoff   # the copy only
+
+``evidence`` refuses a checkout with uncommitted changes, runs ``sweep`` (the same options as
+``advobj bench tradeoff``, plus ``--attack-seeds``) as a child process, records the attempt
+(command, commit, machine, wall and CPU time, exit code) in ``results/tradeoff/run.json`` and then
+runs :func:`collect`: ``rows.jsonl`` (every record as measured; paths relative, no tracebacks),
+``episodes.csv`` (every row's per-episode outcomes, its evaluation's name in the first column),
+``summary.json``, the fixed evaluation sets (``eval_sets/``), every attack's configuration record
+(``attack_configs/``) and texture (``textures/``), ``sweep.json``, ``machine.json``, ``report.md``
+and the Pareto plots. ``docs/speed-vs-accuracy.md``'s tables are generated from that folder by
+``python -m trials.experiments.tradeoff_report`` (``--check``: exit 1 if the doc is stale).
 """
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
 import platform
 import resource
+import shlex
 import shutil
 import subprocess
 import sys
@@ -48,28 +77,27 @@ import onnxruntime
 import torch
 from onnxruntime.quantization import QuantType, quantize_dynamic
 from onnxruntime.transformers.float16 import convert_float_to_float16
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, field_validator
 
-from attack.artifact import TEXTURE_NPY, AttackArtifact, write_config_record
+from attack.artifact import CONFIG_RECORD, TEXTURE_NPY, TEXTURE_PNG, AttackArtifact, write_config_record
 from attack.optimize import AttackRun, resolve_config, run_attack
 from sim.configio import StrictModel
-from sim.configs import in_part, load_pool, save_pool
+from sim.configs import config_id, in_part, load_pool, save_pool
 from sim.errors import AdvobjError, format_validation_error
 from sim.policies.card import load_card
 from sim.policies.checkpoint import is_checkpoint, load_checkpoint
 from sim.policies.onnx_policy import OnnxPolicy, export_onnx
-from sim.policies.pool import feasible_pool_path
+from sim.policies.pool import built_pool_path, feasible_pool_path
 from sim.policies.presets import resolve_preset
 from sim.policies.train import train_policy
-from sim.runinfo import git_commit, read_run_info, write_run_info
+from sim.runinfo import git_commit, write_run_info
 from sim.runtime import set_torch_threads
 from sim.spec import load_spec
 from sim.stats import proportion
 from trials.eval.conditions import Condition
-from trials.eval.episodes import read_rows
-from trials.eval.evaluate import load_eval_config, rollout_condition, run_eval
-from trials.eval.report import summarize_rows
-from trials.experiments.tradeoff_report import write_report
+from trials.eval.episodes import collect_evals, read_rows
+from trials.eval.evaluate import load_eval_config, resolve_pool, rollout_condition, run_eval
+from trials.experiments.tradeoff_report import KNOBS, attack_outcomes, latest_records, write_report
 from trials.jobs.dag import Grid, GridError, SerialExecutor, clear_finished, is_finished, usable_cpus
 
 __all__ = [
@@ -80,31 +108,25 @@ __all__ = [
     "DEPLOYMENTS",
     "QUICK_CHECK",
     "load_tradeoff_config",
+    "baseline_key",
     "build_rows",
+    "set_size",
     "select_rows",
     "run_sweep",
     "read_results",
     "machine_info",
     "train_resolution_policy",
     "TradeoffJob",
+    "collect",
+    "evidence",
+    "main",
 ]
 
-#: Every knob of the sweep, in table order (issue 9).
-KNOBS = (
-    "baseline",
-    "iterations",
-    "eot_envs",
-    "rollout_steps",
-    "sampler",
-    "texture_size",
-    "saliency",
-    "pcgrad",
-    "policy_resolution",
-    "eval_episodes",
-    "deployment",
-)
 DEPLOYMENTS = ("torch-fp32", "onnx-fp32", "onnx-int8", "onnx-fp16")
-BASELINE_KEY = "baseline=quick"
+BASELINE_KEY = "baseline=quick"  # the baseline row of attack seed 0 with the default preset
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "results" / "tradeoff"  # the committed evidence (:func:`collect`)
+RECORD_NAME = "run.json"  # the evidence record in RESULTS: attempts (command, commit, machine, wall, CPU)
 SETTINGS_NAME = "sweep.json"  # the sweep's settings and their hash; a re-run must match them
 ROW_SPEC_NAME = "row.json"  # what a row's child process measures (settings, row, sweep folder)
 MIN_ATTACK_POOL = 20
@@ -132,9 +154,21 @@ class TradeoffConfig(StrictModel):
         default_factory=dict, description="knob -> values to sweep (default: DEFAULT_VALUES)"
     )
     snapshots: tuple[int, ...] = Field((30, 60), description="baseline iterations evaluated as the 'iterations' rows")
-    episodes: int = Field(100, ge=1, description="paired episodes per row (the fixed evaluation set)")
-    big_episodes: int = Field(500, ge=1, description="episodes of the eval_episodes row")
-    big_seed: int = Field(100_000, ge=0, description="first candidate seed of the eval_episodes row's feasible set")
+    episodes: int = Field(
+        300, ge=1, description="paired episodes per row: the first N configurations of the policy's fixed set"
+    )
+    big_episodes: int | None = Field(
+        None,
+        ge=1,
+        description="episodes of the eval_episodes row: the baseline texture evaluated again on the first N "
+        "configurations of the same fixed set (default: a third of episodes; N > episodes makes the set that large)",
+    )
+    attack_seeds: tuple[int, ...] = Field(
+        (0,),
+        min_length=1,
+        description="attack seeds: every row that changes the attack runs once per seed (independent "
+        "optimisations, each evaluated on the same configurations)",
+    )
     max_steps: int = Field(60, ge=1)
     eval_num_envs: int = Field(8, ge=1)
     deploy_episodes: int = Field(50, ge=0, description="clean episodes per deployment variant")
@@ -142,7 +176,16 @@ class TradeoffConfig(StrictModel):
     pool: str | None = Field(None, description="task-feasible pool for the baseline policy (default: the policy's own)")
     scene: str | None = None
     threads: int = Field(1, ge=1, description="torch / onnxruntime intra-op threads in every row")
-    seed: int = 0
+    seed: int = Field(
+        0, ge=0, description="first candidate seed when a fixed set needs more configurations than the pool holds"
+    )
+
+    @field_validator("attack_seeds")
+    @classmethod
+    def _distinct_seeds(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if len(set(v)) != len(v) or any(s < 0 for s in v):
+            raise ValueError("attack seeds must be distinct and >= 0")
+        return tuple(v)
 
 
 DEFAULT_VALUES: dict[str, list] = {
@@ -180,7 +223,7 @@ QUICK_CHECK = dict(
     },
     snapshots=(2,),
     episodes=4,
-    big_episodes=8,
+    big_episodes=2,
     eval_num_envs=4,
     deploy_episodes=4,
     latency_reps=5,
@@ -196,17 +239,20 @@ def load_tradeoff_config(**fields) -> TradeoffConfig:
     unknown = sorted(set(cfg.values) - set(KNOBS))
     if unknown:
         raise TradeoffError(f"values: unknown knob(s) {', '.join(unknown)}; knobs are {', '.join(KNOBS)}")
+    if "seed" in cfg.attack_overrides:
+        raise TradeoffError("attack_overrides: the attack's seed is set per row by attack_seeds, not here")
     return cfg
 
 
 # ----------------------------------------------------------------------------- the sweep as data
 @dataclass(frozen=True)
 class Row:
-    """One line of the table: a knob at one value, and how to measure it.
+    """One line of the table: a knob at one value (under one attack seed), and how to measure it.
 
     ``kind``: ``attack`` (attack + evaluation), ``snapshot`` (evaluate the baseline's texture at an
-    earlier iteration), ``episodes`` (evaluate the baseline's texture on a larger set),
-    ``deployment`` (policy forward variants).
+    earlier iteration), ``episodes`` (evaluate the baseline's texture on the first N configurations
+    of the same fixed set), ``deployment`` (policy forward variants). ``attack_seed``: the attack's
+    seed (None for rows without an attack); seeds other than 0 are part of the key.
     """
 
     knob: str
@@ -216,10 +262,21 @@ class Row:
     overrides: dict = field(default_factory=dict)
     depends: str | None = None
     note: str = ""
+    attack_seed: int | None = None
+
+    @property
+    def name(self) -> str:
+        """The knob setting, the same for every attack seed: ``eot_envs=1``."""
+        return f"{self.knob}={self.value}"
 
     @property
     def key(self) -> str:
-        return f"{self.knob}={self.value}"
+        return self.name + (f"@seed{self.attack_seed}" if self.attack_seed else "")
+
+
+def baseline_key(cfg: TradeoffConfig, attack_seed: int = 0) -> str:
+    """The key of the baseline row of ``attack_seed`` (``baseline=quick``, ``baseline=quick@seed1``)."""
+    return f"baseline={cfg.attack_preset}" + (f"@seed{attack_seed}" if attack_seed else "")
 
 
 def _policy_dir(cfg: TradeoffConfig, label: str) -> str | None:
@@ -228,35 +285,21 @@ def _policy_dir(cfg: TradeoffConfig, label: str) -> str | None:
     return cfg.resolution_policies.get(int(label[2:]))
 
 
+def _on_off(v):
+    """A switch as on/off; anything else as it is (1 is not "on")."""
+    return ("on" if v else "off") if isinstance(v, bool) else v
+
+
 def build_rows(cfg: TradeoffConfig) -> list[Row]:
-    """Every row of the sweep, in run order (dependencies first)."""
+    """Every row of the sweep, in run order (dependencies first): per attack seed the baseline, its
+    snapshots and the attack knobs; then the rows that run once (deployment, eval_episodes,
+    policy_resolution), on the first attack seed where they need one."""
     vals = {**DEFAULT_VALUES, **cfg.values}
     base = resolve_config(cfg.attack_preset, cfg.attack_overrides)
     bad = [k for k in cfg.snapshots if not 0 < k < base.iterations]
     if bad:
         raise TradeoffError(f"snapshots: {bad} not inside the baseline's 1..{base.iterations - 1} iterations")
-    rows = [
-        Row(
-            "baseline",
-            cfg.attack_preset,
-            "attack",
-            "ref",
-            note=f"{base.iterations} it, {base.num_envs} envs x {base.rollout_steps} steps, "
-            f"texture {base.texture_size}, {base.sampler}, saliency {'on' if base.use_saliency else 'off'}, pcgrad "
-            f"{'on' if base.pcgrad else 'off'}",
-        )
-    ]
-    rows += [
-        Row(
-            "iterations",
-            str(k),
-            "snapshot",
-            "ref",
-            depends=BASELINE_KEY,
-            note=f"snapshot of the baseline run (baseline: {base.iterations})",
-        )
-        for k in sorted(cfg.snapshots)
-    ]
+    knob_rows = []  # (knob, value, overrides, note), the same for every attack seed
     for knob, (fname, conv) in _ATTACK_FIELD.items():
         for v in vals[knob]:
             try:
@@ -265,31 +308,49 @@ def build_rows(cfg: TradeoffConfig) -> list[Row]:
                 raise TradeoffError(f"values.{knob}: bad value {v!r}") from None
             if value == getattr(base, fname):
                 continue  # that is the baseline itself
-            was = getattr(base, fname)
-            rows.append(
-                Row(
-                    knob,
-                    str(v),
-                    "attack",
-                    "ref",
-                    {fname: value},
-                    note=f"baseline: { ({True: 'on', False: 'off'}.get(was, was)) }",
-                )
+            knob_rows.append((knob, str(v), {fname: value}, f"baseline: {_on_off(getattr(base, fname))}"))
+    rows = []
+    for seed in cfg.attack_seeds:
+        rows.append(
+            Row(
+                "baseline",
+                cfg.attack_preset,
+                "attack",
+                "ref",
+                note=f"{base.iterations} it, {base.num_envs} envs x {base.rollout_steps} steps, "
+                f"texture {base.texture_size}, {base.sampler}, saliency {_on_off(base.use_saliency)}, pcgrad "
+                f"{_on_off(base.pcgrad)}",
+                attack_seed=seed,
             )
+        )
+        rows += [
+            Row(
+                "iterations",
+                str(k),
+                "snapshot",
+                "ref",
+                depends=baseline_key(cfg, seed),
+                note=f"snapshot of the baseline run (baseline: {base.iterations})",
+                attack_seed=seed,
+            )
+            for k in sorted(cfg.snapshots)
+        ]
+        rows += [Row(k, v, "attack", "ref", ov, note=note, attack_seed=seed) for k, v, ov, note in knob_rows]
     for s in vals["deployment"]:
         if s not in DEPLOYMENTS:
             raise TradeoffError(f"values.deployment: unknown variant {s!r}; choose from {', '.join(DEPLOYMENTS)}")
         rows.append(Row("deployment", s, "deployment", "ref"))
-    big = vals["eval_episodes"] or [cfg.big_episodes]
-    for n in big:
+    first = cfg.attack_seeds[0]
+    for n in _eval_episodes_values(cfg):
         rows.append(
             Row(
                 "eval_episodes",
-                str(int(n)),
+                str(n),
                 "episodes",
                 "ref",
-                depends=BASELINE_KEY,
-                note=f"baseline texture; first {cfg.episodes} of the same run summarised too",
+                depends=baseline_key(cfg, first),
+                note=f"the baseline texture on the first {n} configurations of the same fixed set",
+                attack_seed=first,
             )
         )
     for s in vals["policy_resolution"]:
@@ -299,7 +360,8 @@ def build_rows(cfg: TradeoffConfig) -> list[Row]:
                 str(int(s)),
                 "attack",
                 f"px{int(s)}",
-                note="quick preset on a quick-trained policy at this size",
+                note="quick preset on a quick-trained policy at this size (its own fixed set: not paired)",
+                attack_seed=first,
             )
         )
     keys = [r.key for r in rows]
@@ -308,20 +370,40 @@ def build_rows(cfg: TradeoffConfig) -> list[Row]:
     return rows
 
 
+def _eval_episodes_values(cfg: TradeoffConfig) -> list[int]:
+    vals = {**DEFAULT_VALUES, **cfg.values}["eval_episodes"] or [
+        cfg.big_episodes if cfg.big_episodes is not None else max(1, cfg.episodes // 3)
+    ]
+    try:
+        out = [int(v) for v in vals]
+    except (TypeError, ValueError):
+        raise TradeoffError(f"values.eval_episodes: expected episode counts, got {vals!r}") from None
+    if any(v < 1 for v in out):
+        raise TradeoffError(f"values.eval_episodes: counts must be >= 1, got {out}")
+    return out
+
+
+def set_size(cfg: TradeoffConfig, label: str) -> int:
+    """Configurations in the fixed evaluation set of policy ``label``: ``episodes``, or more for the
+    reference policy when an ``eval_episodes`` row asks for more (every row uses a prefix of it)."""
+    return max([cfg.episodes, *_eval_episodes_values(cfg)]) if label == "ref" else cfg.episodes
+
+
 def select_rows(rows: list[Row], wanted: list[str] | None) -> list[Row]:
-    """Rows named by key (``eot_envs=1``) or knob (``eot_envs``), plus their dependencies."""
+    """Rows named by key (``eot_envs=1@seed2``), setting (``eot_envs=1``: every attack seed) or knob
+    (``eot_envs``), plus their dependencies."""
     if not wanted:
         return list(rows)
     by_key = {r.key: r for r in rows}
     chosen: set[str] = set()
     for w in wanted:
-        hits = [r.key for r in rows if r.key == w or r.knob == w]
+        hits = [r.key for r in rows if w in (r.key, r.name, r.knob)]
         if not hits:
-            if w.split("=")[0] not in KNOBS:
-                raise TradeoffError(f"rows: unknown knob {w.split('=')[0]!r}; knobs are {', '.join(KNOBS)}")
-            raise TradeoffError(
-                f"rows: no row {w!r}; rows of that knob: {', '.join(r.key for r in rows if r.knob == w.split('=')[0])}"
-            )
+            knob = w.split("=")[0]
+            if knob not in KNOBS:
+                raise TradeoffError(f"rows: unknown knob {knob!r}; knobs are {', '.join(KNOBS)}")
+            names = dict.fromkeys(r.name for r in rows if r.knob == knob)
+            raise TradeoffError(f"rows: no row {w!r}; rows of that knob: {', '.join(names)}")
         chosen.update(hits)
     for k in list(chosen):
         dep = by_key[k].depends
@@ -366,17 +448,7 @@ def machine_info(threads: int | None = None) -> dict:
 
 def read_results(out: str | Path) -> list[dict]:
     """The rows of ``<out>/rows.jsonl`` (the last record per key wins; a torn last line is ignored)."""
-    path = Path(out) / "rows.jsonl"
-    if not path.is_file():
-        return []
-    latest: dict[str, dict] = {}
-    for line in path.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        latest[rec["key"]] = rec
-    return list(latest.values())
+    return latest_records(_result_lines(Path(out)))
 
 
 def _append(out: Path, rec: dict) -> None:
@@ -454,7 +526,7 @@ def run_sweep(
         if r.key in done and not redo:
             log(f"{r.key}: done, skipped")
         elif _policy_dir(cfg, r.policy) is None:
-            if rows and (r.key in rows or r.knob in rows):
+            if rows and (r.key in rows or r.name in rows or r.knob in rows):
                 raise TradeoffError(f"{r.key}: needs a {r.policy[2:]} px policy (--res-policy {r.policy[2:]}=DIR)")
             log(f"{r.key}: no {r.policy[2:]} px policy given (--res-policy {r.policy[2:]}=DIR), not run")
         else:
@@ -464,6 +536,11 @@ def run_sweep(
     machine["runs"].append({"start": machine_info(cfg.threads)})
     info_path.write_text(json.dumps(machine, indent=2))
     write_run_info(out, {"job": "tradeoff", "settings": settings, "rows": [r.key for r in todo]}, cfg.seed)
+    # The fixed evaluation set of each policy, once, before any row (every row then only reads it).
+    for label in dict.fromkeys(r.policy for r in todo):
+        if not eval_set_path(out, label).is_file():
+            log(f"evaluation set of the {label} policy: the first {set_size(cfg, label)} task-feasible configurations")
+            _build_eval_set(cfg, label, out, _eval_spec(cfg), progress)
 
     # Serially each row runs in a child process (isolate) or in-process; on Ray in a fresh worker.
     mode = "worker" if executor is not None else ("child" if isolate else "inline")
@@ -531,9 +608,11 @@ def job_row(out: Path, inputs: dict, cfg: dict, row: dict, root: str, mode: str 
 def _base_record(cfg: TradeoffConfig, row: Row) -> dict:
     return {
         "key": row.key,
+        "name": row.name,
         "knob": row.knob,
         "value": row.value,
         "kind": row.kind,
+        "attack_seed": row.attack_seed,
         "policy": row.policy,
         "policy_dir": _policy_dir(cfg, row.policy),
         "note": row.note,
@@ -553,7 +632,7 @@ def _run_isolated(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
     result.unlink(missing_ok=True)
     root = str(Path(__file__).resolve().parents[2])
     env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.run([sys.executable, "-m", "trials.experiments.tradeoff", str(spec), str(result)], env=env)
+    proc = subprocess.run([sys.executable, "-m", "trials.experiments.tradeoff", "row", str(spec), str(result)], env=env)
     if proc.returncode == 0 and result.is_file():
         return json.loads(result.read_text())
     rec = _base_record(cfg, row)
@@ -568,7 +647,8 @@ def _run_inline(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
 
 
 def _slug(key: str) -> str:
-    return key.replace("=", "_").replace("/", "_")
+    """A row's folder name: ``eot_envs=1@seed2`` -> ``eot_envs_1_seed2``."""
+    return key.replace("=", "_").replace("/", "_").replace("@", "_")
 
 
 # ----------------------------------------------------------------------------- one row
@@ -604,35 +684,90 @@ def _policy_pool(cfg: TradeoffConfig, label: str, spec) -> tuple[list, str]:
     return load_pool(path, spec), str(path)
 
 
-def _eval_set(cfg: TradeoffConfig, label: str, out: Path, spec) -> tuple[Path, list, list, str]:
-    """``(path, eval configs, attack configs, note)``: the fixed set (written once) and the attack's pool."""
+def eval_set_path(out: str | Path, label: str) -> Path:
+    """Where the sweep keeps the fixed evaluation set of policy ``label``."""
+    return Path(out) / "eval_sets" / f"{label}.json"
+
+
+def _build_eval_set(cfg: TradeoffConfig, label: str, out: Path, spec, progress: bool = True) -> Path:
+    """Write the fixed evaluation set of policy ``label`` (timed): the first :func:`set_size`
+    evaluation-part configurations of its task-feasible pool, topped up by
+    :func:`trials.eval.evaluate.resolve_pool` (clean rollouts of the evaluation part's next seeds
+    from ``cfg.seed``, kept where the policy reaches the goal) when the pool holds fewer."""
+    path = eval_set_path(out, label)
+    n = set_size(cfg, label)
+    clock = _Clock()
     pool, src = _policy_pool(cfg, label, spec)
-    path = out / "eval_sets" / f"{label}.json"
-    if path.is_file():
-        eval_cfgs = load_pool(path, spec)
-        stale = {c.seed for c in eval_cfgs} - {c.seed for c in pool}
-        if stale:
-            raise TradeoffError(
-                f"{path}: evaluation set not task-feasible for {src} ({len(stale)} configurations are not in its pool; "
-                "was the policy replaced?); move the file away to rebuild it"
-            )
-    else:
-        eval_cfgs = in_part(pool, "evaluation")[: cfg.episodes]
-        save_pool(
-            path,
-            spec,
-            eval_cfgs,
-            meta={
-                "kind": "task-feasible",
-                "source": src,
-                "first": len(eval_cfgs),
-                "part": "evaluation",
-                "definition": "the first evaluation-part configurations of the policy's task-feasible pool",
-            },
+    configs, built = in_part(pool, "evaluation"), None
+    if len(configs) < n:
+        pdir = _policy_dir(cfg, label)
+        policy, _ = load_checkpoint(pdir)
+        ecfg = load_eval_config(
+            policy=pdir,
+            conditions=("clean",),
+            episodes=n,
+            max_steps=cfg.max_steps,
+            num_envs=cfg.eval_num_envs,
+            seed=cfg.seed,
+            pool=src,
+            scene=cfg.scene,
+            gifs=0,
         )
-    note = ""
-    if len(eval_cfgs) < cfg.episodes:
-        note = f"pool holds {len(eval_cfgs)} < {cfg.episodes} evaluation-part configurations; evaluated on all of them"
+        configs, built = resolve_pool(ecfg, policy, spec, _built_dir(out, label), progress)
+    if len(configs) < n:
+        raise TradeoffError(
+            f"{label} policy ({_policy_dir(cfg, label)}): only {len(configs)} task-feasible evaluation-part "
+            f"configurations found, the sweep needs {n} (--episodes / --big-episodes)"
+        )
+    wall, cpu = clock.read()
+    save_pool(
+        path,
+        spec,
+        configs[:n],
+        meta={
+            "kind": "task-feasible",
+            "part": "evaluation",
+            "definition": "the first evaluation-part configurations of the policy's task-feasible pool, topped up "
+            "with clean rollouts of the part's next seeds where the pool held fewer",
+            "policy": _policy_dir(cfg, label),
+            "source": src,
+            "from_source": min(n, len(in_part(pool, "evaluation"))),
+            "built": built,
+            "first": n,
+            "build_wall_s": wall,
+            "build_cpu_s": cpu,
+        },
+    )
+    return path
+
+
+def _built_dir(out: Path, label: str) -> Path:
+    return Path(out) / "eval_sets" / label
+
+
+def _eval_set(cfg: TradeoffConfig, label: str, out: Path, spec) -> tuple[Path, list, list]:
+    """``(path, fixed set, attack configs)``: the fixed set of policy ``label`` (built by
+    :func:`run_sweep` before any row) checked against the pool it came from, and the attack's pool."""
+    path = eval_set_path(out, label)
+    if not path.is_file():
+        raise TradeoffError(f"{path}: no fixed evaluation set (run_sweep builds it before the rows)")
+    eval_cfgs = load_pool(path, spec)
+    pool, src = _policy_pool(cfg, label, spec)
+    known = {config_id(c) for c in pool}
+    built = built_pool_path(_built_dir(out, label))
+    if built.is_file():
+        known |= {config_id(c) for c in load_pool(built, spec)}
+    stale = [c.seed for c in eval_cfgs if config_id(c) not in known]
+    if stale:
+        raise TradeoffError(
+            f"{path}: evaluation set not task-feasible for {src} ({len(stale)} configurations are not in its pool; "
+            "was the policy replaced?); move the file away to rebuild it"
+        )
+    if len(eval_cfgs) < set_size(cfg, label):
+        raise TradeoffError(
+            f"{path}: holds {len(eval_cfgs)} configurations, the settings need {set_size(cfg, label)}; move it away "
+            "to rebuild it"
+        )
     # The attack sees only the attack and validation parts (AttackRun filters), never eval_cfgs.
     attack_cfgs = in_part(pool, "attack") + in_part(pool, "validation")
     if len(in_part(pool, "attack")) < MIN_ATTACK_POOL:
@@ -640,7 +775,7 @@ def _eval_set(cfg: TradeoffConfig, label: str, out: Path, spec) -> tuple[Path, l
             f"{src}: only {len(in_part(pool, 'attack'))} attack-part configurations (need {MIN_ATTACK_POOL}); "
             "evaluate the policy on more episodes ('advobj policy eval --episodes N') or pass --pool"
         )
-    return path, eval_cfgs, attack_cfgs, note
+    return path, eval_cfgs, attack_cfgs
 
 
 def _write_texture_dir(d: Path, texture, attack_cfg, extra: dict) -> Path:
@@ -650,12 +785,13 @@ def _write_texture_dir(d: Path, texture, attack_cfg, extra: dict) -> Path:
 
 def _attack(cfg: TradeoffConfig, row: Row, out: Path, spec, attack_cfgs: list) -> dict:
     """Run the row's attack; write the final texture (and the baseline's snapshots); return timings."""
-    acfg = resolve_config(cfg.attack_preset, {**cfg.attack_overrides, **row.overrides})
+    seed = {} if row.attack_seed is None else {"seed": row.attack_seed}
+    acfg = resolve_config(cfg.attack_preset, {**cfg.attack_overrides, **row.overrides, **seed})
     policy, card = load_checkpoint(_policy_dir(cfg, row.policy))
     d = out / "attacks" / _slug(row.key)
     if d.exists():
         shutil.rmtree(d)  # an interrupted earlier try: start clean so the timing is whole
-    snaps = set(cfg.snapshots) if row.key == BASELINE_KEY else set()
+    snaps = set(cfg.snapshots) if row.knob == "baseline" else set()
     snap_times = {}
     clock = _Clock()
     run = AttackRun(policy, spec, acfg, pool=attack_cfgs, out_dir=None)
@@ -722,6 +858,7 @@ def _evaluate(
     a, c = summary["conditions"]["attack"], summary["conditions"]["clean"]
     return {
         "eval_dir": str(d),
+        "eval_name": d.name,  # its rows' name in the committed episodes.csv
         "eval_wall_s": wall,
         "eval_cpu_s": cpu,
         "episodes": a["n"],
@@ -735,16 +872,6 @@ def _evaluate(
     }
 
 
-def _subset_summary(eval_dir: str, n: int, spec) -> dict:
-    """The first ``n`` configurations (in pool order) of an evaluation, summarised alone."""
-    d = Path(eval_dir)
-    seeds = read_run_info(d)["config"]["seeds"][:n]
-    keep = set(seeds)
-    rows = [r for r in read_rows(d) if r["condition"] == "attack" and int(r["seed"]) in keep]
-    s = summarize_rows(rows, spec.object_index("goal"), spec.object_index("adversarial"))
-    return {"episodes": s["n"], "tasr": s["tasr"], "asr": s["asr"], "e_trans": s["e_trans"], "e_rot": s["e_rot"]}
-
-
 def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
     rec = _base_record(cfg, row)
     rec["load_start"] = list(os.getloadavg())
@@ -754,17 +881,16 @@ def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
         if row.kind == "deployment":
             rec.update(_deployment(cfg, row, out, spec))
         else:
-            set_path, eval_cfgs, attack_cfgs, note = _eval_set(cfg, row.policy, out, spec)
-            if note:
-                rec["note"] = (rec["note"] + "; " if rec["note"] else "") + note
+            set_path, eval_cfgs, attack_cfgs = _eval_set(cfg, row.policy, out, spec)
+            rec["eval_set"] = f"eval_sets/{set_path.name}"
+            n = int(row.value) if row.kind == "episodes" else cfg.episodes  # a prefix of the fixed set
             if row.kind == "attack":
                 rec.update(_attack(cfg, row, out, spec, attack_cfgs))
-                rec.update(_evaluate(cfg, row, out, rec["attack_dir"], len(eval_cfgs), str(set_path), cfg.seed))
             else:
-                base_dir = out / "attacks" / _slug(BASELINE_KEY)
+                base_dir = out / "attacks" / _slug(row.depends)
                 if not (base_dir / TEXTURE_NPY).is_file():
                     raise TradeoffError(
-                        f"{row.key}: needs the baseline row's texture in {base_dir}; run the baseline row first"
+                        f"{row.key}: needs the baseline row's texture in {base_dir}; run {row.depends} first"
                     )
                 rec["attack_config"] = AttackArtifact.load(base_dir, error=TradeoffError).attack_config
                 if row.kind == "snapshot":
@@ -777,27 +903,15 @@ def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
                         attack_wall_s=snap["wall_s"],
                         attack_cpu_s=snap["cpu_s"],
                     )
-                    rec.update(_evaluate(cfg, row, out, rec["attack_dir"], len(eval_cfgs), str(set_path), cfg.seed))
-                else:  # episodes
-                    n = int(row.value)
-                    base_rec = next(
-                        (r for r in read_results(out) if r["key"] == BASELINE_KEY and r["status"] == "ok"), None
-                    )
+                else:  # episodes: the baseline's texture again, on the first n configurations of the set
+                    base_rec = _finished_record(out, row.depends)
                     rec.update(
                         attack_dir=str(base_dir),
                         attack_wall_s=base_rec and base_rec["attack_wall_s"],
                         attack_cpu_s=base_rec and base_rec["attack_cpu_s"],
                     )
-                    rec.update(_evaluate(cfg, row, out, str(base_dir), n, None, cfg.big_seed))
-                    rec["subset"] = _subset_summary(rec["eval_dir"], cfg.episodes, spec)
-                    if rec["eval_pool"].startswith(str(out)):
-                        rec["note"] += (
-                            f"; its own feasible set (candidate seeds from {cfg.big_seed}), built inside the timed "
-                            "evaluation"
-                        )
-                    else:
-                        rec["note"] += "; the policy's own feasible pool (overlaps the attack's EOT pool)"
                 rec["image_size"] = _image_size(cfg, row.policy)
+            rec.update(_evaluate(cfg, row, out, rec["attack_dir"], n, str(set_path), cfg.seed))
         rec["status"] = "ok"
     except Exception as err:  # recorded in the row; the sweep goes on with the next row
         rec.update(
@@ -810,6 +924,17 @@ def _measure_row(cfg: TradeoffConfig, row: Row, out: Path) -> dict:
     rec["peak_rss_mb"] = _peak_rss_mb()
     rec["load_end"] = list(os.getloadavg())
     return rec
+
+
+def _finished_record(out: Path, key: str) -> dict | None:
+    """The newest ``ok`` record of row ``key``: its job's result (a row that ran earlier in this
+    invocation is appended to rows.jsonl only when the invocation ends), else rows.jsonl's."""
+    res = Path(out) / "rows" / _slug(key) / "result.json"
+    if res.is_file():
+        rec = json.loads(res.read_text())
+        if rec.get("status") == "ok":
+            return rec
+    return next((r for r in read_results(out) if r["key"] == key and r.get("status") == "ok"), None)
 
 
 def _image_size(cfg: TradeoffConfig, label: str) -> int:
@@ -869,7 +994,7 @@ def _clean_success(policy, spec, configs, num_envs: int) -> dict:
 
 def _deployment(cfg: TradeoffConfig, row: Row, out: Path, spec) -> dict:
     torch_policy, card = load_checkpoint(_policy_dir(cfg, row.policy))
-    _, eval_cfgs, _, _ = _eval_set(cfg, row.policy, out, spec)
+    _, eval_cfgs, _ = _eval_set(cfg, row.policy, out, spec)
     configs = eval_cfgs[: max(cfg.deploy_episodes, 1)]
     # Frames: what the torch fp32 policy sees on clean rollouts of the evaluation set.
     rec = _Recorder(torch_policy, cap=512)
@@ -964,10 +1089,15 @@ class TradeoffJob(StrictModel):
         cls, policy, out, resolution_policies: dict | None = None, quick_check: bool = False, **fields
     ) -> "TradeoffJob":
         """A validated job from the command line's values; ``fields`` holds the sweep settings
-        given (``episodes``, ``big_episodes``, ``pool``, ``scene``, ``max_steps``; None = default)
+        given (``episodes``, ``big_episodes``, ``attack_seeds``, ``pool``, ``scene``, ``max_steps``;
+        None = default)
         and the job's own (``rows``, ``train_missing``, ``train_iterations``, ``plot``,
         ``report_only``, ``redo``)."""
-        settings = {k: fields.pop(k) for k in ("episodes", "big_episodes", "pool", "scene", "max_steps") if k in fields}
+        settings = {
+            k: fields.pop(k)
+            for k in ("episodes", "big_episodes", "attack_seeds", "pool", "scene", "max_steps")
+            if k in fields
+        }
         cfg_fields = dict(QUICK_CHECK) if quick_check else {}
         cfg_fields.update({k: (str(v) if isinstance(v, Path) else v) for k, v in settings.items() if v is not None})
         res = {}
@@ -1066,13 +1196,317 @@ def _fail_if_every_row_failed(out: Path, lines: list[str]) -> None:
 
 
 def write_tradeoff_report(out: str | Path, plot: str | Path | None = None) -> Path:
-    """The sweep's ``report.md`` and Pareto plots from what ``out`` holds (rows, settings)."""
+    """The sweep's ``report.md`` and Pareto plots from what ``out`` holds (rows, settings, the rows'
+    per-episode outcomes for the paired tests)."""
     out = Path(out)
     expected = []
     if (out / SETTINGS_NAME).is_file():
         settings = json.loads((out / SETTINGS_NAME).read_text())["settings"]
-        expected = [r.key for r in build_rows(load_tradeoff_config(**settings))]
-    return write_report(out, read_results(out), expected, KNOBS, plot)
+        known = {k: v for k, v in settings.items() if k in TradeoffConfig.model_fields}
+        expected = [r.key for r in build_rows(load_tradeoff_config(**known))]
+    rows = read_results(out)
+    return write_report(out, rows, expected, KNOBS, plot, outcomes=_sweep_outcomes(out, rows))
+
+
+def _eval_name(rec: dict) -> str | None:
+    if rec.get("eval_name"):
+        return rec["eval_name"]
+    return Path(rec["eval_dir"]).name if rec.get("eval_dir") else None
+
+
+def _sweep_outcomes(out: Path, rows: list[dict]) -> dict[str, dict[int, bool]]:
+    """Targeted or not, per configuration seed, of every finished row's attacked episodes."""
+    episodes = []
+    for r in rows:
+        name = _eval_name(r)
+        if r.get("status") == "ok" and name:
+            episodes += [{**e, "eval": name} for e in read_rows(out / "evals" / name)]
+    return attack_outcomes(episodes)
+
+
+# ----------------------------------------------------------------------------- the committed evidence
+def _portable(obj, out: Path):
+    """``obj`` with the checkout's and the sweep folder's absolute paths made relative (a committed
+    record names no machine path); tracebacks are left out (the error line stays)."""
+    sweep = str(Path(out).resolve())
+    try:
+        rel = Path(sweep).relative_to(ROOT).as_posix()
+    except ValueError:
+        rel = Path(sweep).name
+    root = str(ROOT) + os.sep
+
+    def fix(x):
+        if isinstance(x, dict):
+            return {k: fix(v) for k, v in x.items() if k != "traceback"}
+        if isinstance(x, list):
+            return [fix(v) for v in x]
+        if isinstance(x, str):
+            return x.replace(sweep, rel).replace(root, "")
+        return x
+
+    return fix(obj)
+
+
+def _write_json(path: Path, doc) -> None:
+    path.write_text(json.dumps(doc, indent=1, default=_json_default) + "\n")
+
+
+def collect(out: str | Path, results: str | Path = RESULTS) -> Path:
+    """Copy what a reader needs of the sweep in ``out`` into ``results`` (``results/tradeoff/``).
+
+    ``rows.jsonl`` (every record as measured, the newest per key being the one reported),
+    ``episodes.csv`` and ``summary.json`` (every reported row's evaluation:
+    :func:`trials.eval.episodes.collect_evals`, its name in the first column ``eval`` and in the
+    record's ``eval_name``), ``eval_sets/`` (the fixed configuration sets), ``attack_configs/`` and
+    ``textures/`` (each attack's configuration record and final texture), ``sweep.json``,
+    ``machine.json``, ``report.md``, the Pareto plots, and ``run.json`` (the attempts recorded by
+    :func:`evidence`, plus the rows, their commits and summed wall and CPU time). Returns ``results``.
+    """
+    out, dst = Path(out), Path(results)
+    lines = []
+    for line in _result_lines(out):
+        try:
+            lines.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a torn last line (as read_results)
+    if not lines:
+        raise TradeoffError(f"{out}: no rows.jsonl to collect")
+    write_tradeoff_report(out)
+    dst.mkdir(parents=True, exist_ok=True)
+    for sub in ("eval_sets", "attack_configs", "textures"):
+        if (dst / sub).exists():
+            shutil.rmtree(dst / sub)
+        (dst / sub).mkdir()
+    (dst / "rows.jsonl").write_text("".join(json.dumps(_portable(r, out), default=_json_default) + "\n" for r in lines))
+    latest = latest_records(_result_lines(out))
+    ok = [r for r in latest if r.get("status") == "ok"]
+    n_rows = collect_evals(dst, [out / "evals" / _eval_name(r) for r in ok if _eval_name(r)])
+    for name in (SETTINGS_NAME, "machine.json"):
+        if (out / name).is_file():
+            _write_json(dst / name, _portable(json.loads((out / name).read_text()), out))
+    for name in ("report.md", "tradeoff_pareto.png", "tradeoff_pareto_cpu.png"):
+        if (out / name).is_file():
+            shutil.copyfile(out / name, dst / name)
+    sets = {}
+    for f in sorted((out / "eval_sets").glob("*.json")):
+        doc = _portable(json.loads(f.read_text()), out)
+        _write_json(dst / "eval_sets" / f.name, doc)
+        meta = doc.get("meta", {})
+        sets[f.stem] = {
+            "configurations": len(doc.get("configs", [])),
+            "build_wall_s": meta.get("build_wall_s"),
+            "build_cpu_s": meta.get("build_cpu_s"),
+        }
+    for r in ok:
+        d = out / "attacks" / _slug(r["key"])
+        if r["kind"] != "attack" or not d.is_dir():
+            continue
+        if (d / TEXTURE_PNG).is_file():
+            shutil.copyfile(d / TEXTURE_PNG, dst / "textures" / f"{_slug(r['key'])}.png")
+        if (d / CONFIG_RECORD).is_file():
+            shutil.copyfile(d / CONFIG_RECORD, dst / "attack_configs" / f"{_slug(r['key'])}.json")
+    record_path = dst / RECORD_NAME
+    record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
+    record.update(
+        episodes_rows=n_rows,
+        rows_ok=len(ok),
+        rows_failed=sorted(r["key"] for r in latest if r.get("status") != "ok"),
+        rows_wall_s=round(sum(r.get("row_wall_s") or 0.0 for r in ok), 1),
+        rows_cpu_s=round(sum(r.get("row_cpu_s") or 0.0 for r in ok), 1),
+        row_commits=sorted({str(r.get("git_commit")) for r in ok}),
+        eval_sets=sets,
+    )
+    _write_json(record_path, record)
+    return dst
+
+
+def _evidence_machine() -> dict:
+    """The machine as ``tools/evidence.py`` records it in an attempt."""
+    model = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpus": os.cpu_count(),
+        "cpu_model": model,
+        "machine": platform.machine(),
+        "system": platform.system(),
+        "python": platform.python_version(),
+        "load_avg_start": list(os.getloadavg()),
+    }
+
+
+#: What the committed evidence must have (issue 28): paired episodes per row and attack seeds.
+EVIDENCE_MIN_EPISODES, EVIDENCE_MIN_SEEDS = 300, 3
+
+
+def evidence(argv: list[str], results: str | Path = RESULTS, log=print) -> int:
+    """Run ``python -m trials.experiments.tradeoff sweep <argv>`` for the committed evidence, record
+    the attempt in ``results/run.json`` (the format of ``tools/evidence.py``: command, commit,
+    machine, start, wall and CPU time of the sweep and all its row processes, exit code, end) and,
+    when it succeeds, :func:`collect` it. Refused (exit 2): a checkout with uncommitted changes,
+    ``--quick-check``, fewer than 300 episodes or 3 attack seeds. A re-run resumes the sweep; its
+    time is added as another attempt."""
+    a = _sweep_parser(argparse.ArgumentParser(prog="evidence", add_help=False)).parse_args(argv)
+    episodes = a.episodes or TradeoffConfig.model_fields["episodes"].default
+    problems = []
+    if a.quick_check:
+        problems.append("--quick-check measures nothing")
+    if episodes < EVIDENCE_MIN_EPISODES:
+        problems.append(f"--episodes {episodes} < {EVIDENCE_MIN_EPISODES}")
+    if a.attack_seeds is None or len(a.attack_seeds) < EVIDENCE_MIN_SEEDS:
+        problems.append(f"--attack-seeds needs at least {EVIDENCE_MIN_SEEDS} seeds (e.g. 0,1,2)")
+    commit = git_commit()
+    if commit.endswith("+dirty"):
+        # A committed result must name the code that made it: commit first (or run from a clean clone).
+        problems.append(f"the checkout has uncommitted changes ({commit}); commit them first")
+    if problems:
+        print("evidence: " + "; ".join(problems), file=sys.stderr)
+        return 2
+    results = Path(results)
+    record_path = results / RECORD_NAME
+    record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
+    attempt = {
+        "command": "python -m trials.experiments.tradeoff sweep " + shlex.join(argv),
+        "commit": commit,
+        "machine": _evidence_machine(),
+        "start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    rc = subprocess.call([sys.executable, "-m", "trials.experiments.tradeoff", "sweep", *argv], cwd=ROOT, env=env)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    attempt.update(
+        wall_s=round(time.perf_counter() - t0, 1),
+        # the sweep process and every row process it waited for (their CPU time is its children's)
+        cpu_s=round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1),
+        exit_code=rc,
+        end_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        load_avg_end=list(os.getloadavg()),
+    )
+    record["attempts"].append(attempt)
+    results.mkdir(parents=True, exist_ok=True)
+    _write_json(record_path, record)
+    if rc == 0:
+        out = Path(a.out) if Path(a.out).is_absolute() else ROOT / a.out
+        log(f"collected into {collect(out, results)}")
+    return rc
+
+
+# ----------------------------------------------------------------------------- command line
+def _int_list(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 0,1,2, got {text!r}") from None
+
+
+def _sweep_parser(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The sweep's options: those of ``advobj bench tradeoff`` plus ``--attack-seeds``."""
+    ap.add_argument("--policy", required=True, help="baseline policy checkpoint directory")
+    ap.add_argument("--out", required=True, help="sweep directory (resumable)")
+    ap.add_argument("--res-policy", action="append", default=[], metavar="SIZE=DIR", help="policy_resolution policy")
+    ap.add_argument("--train-missing", action="store_true", help="train missing policy_resolution policies")
+    ap.add_argument("--train-iterations", type=int, default=None, help="DAgger iterations for --train-missing")
+    ap.add_argument("--rows", action="append", default=[], help="knob, setting or row key to run (repeatable)")
+    ap.add_argument("--episodes", type=int, default=None, help="paired episodes per row (default 300)")
+    ap.add_argument(
+        "--big-episodes", type=int, default=None, help="episodes of the eval_episodes row (default: episodes / 3)"
+    )
+    ap.add_argument(
+        "--attack-seeds",
+        type=_int_list,
+        default=None,
+        help="comma-separated attack seeds: the rows that change the attack run once per seed (default: 0)",
+    )
+    ap.add_argument("--pool", default=None, help="task-feasible pool of the baseline policy (default: its own)")
+    ap.add_argument("--scene", default=None)
+    ap.add_argument("--max-steps", type=int, default=None, help="steps per episode (default 60)")
+    ap.add_argument("--quick-check", action="store_true", help="tiny settings: checks the machinery")
+    ap.add_argument("--plot", default=None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)")
+    ap.add_argument("--redo", action="store_true", help="measure the selected --rows again even if done")
+    ap.add_argument("--report-only", action="store_true", help="only rebuild the report from OUT/rows.jsonl")
+    return ap
+
+
+def _job(a: argparse.Namespace) -> TradeoffJob:
+    res = {}
+    for item in a.res_policy:
+        size, sep, d = item.partition("=")
+        if not sep or not d:
+            raise TradeoffError(f"--res-policy: expected SIZE=DIR, got {item!r}")
+        res[size] = d
+    return TradeoffJob.build(
+        a.policy,
+        a.out,
+        res,
+        a.quick_check,
+        episodes=a.episodes,
+        big_episodes=a.big_episodes,
+        attack_seeds=a.attack_seeds,
+        pool=a.pool,
+        scene=a.scene,
+        max_steps=a.max_steps,
+        rows=tuple(a.rows),
+        train_missing=a.train_missing,
+        train_iterations=a.train_iterations,
+        plot=a.plot,
+        report_only=a.report_only,
+        redo=a.redo,
+    )
+
+
+def _without(argv: list[str], flag: str) -> list[str]:
+    """``argv`` without ``flag VALUE`` / ``flag=VALUE``."""
+    out, skip = [], False
+    for tok in argv:
+        if skip:
+            skip = False
+        elif tok == flag:
+            skip = True
+        elif not tok.startswith(flag + "="):
+            out.append(tok)
+    return out
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="python -m trials.experiments.tradeoff",
+        description="The speed-vs-accuracy sweep, and its committed evidence under results/tradeoff/.",
+    )
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    _sweep_parser(sub.add_parser("sweep", help="run the sweep (advobj bench tradeoff's options, + --attack-seeds)"))
+    ev = _sweep_parser(
+        sub.add_parser("evidence", help="run the sweep from a clean checkout, record the attempt, collect the results")
+    )
+    ev.add_argument("--results", type=Path, default=RESULTS, help="where the evidence goes (default results/tradeoff)")
+    c = sub.add_parser("collect", help="copy a finished sweep into results/tradeoff/ (what gets committed)")
+    c.add_argument("--out", type=Path, required=True, help="the sweep directory")
+    c.add_argument("--results", type=Path, default=RESULTS, help="default results/tradeoff")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["row"]:  # a row's child process (_run_isolated)
+        return _child(argv[1], argv[2])
+    a = parser().parse_args(argv)
+    try:
+        if a.cmd == "sweep":
+            _job(a).run()
+        elif a.cmd == "evidence":
+            return evidence(_without(argv[1:], "--results"), a.results)
+        else:
+            print(collect(a.out, a.results))
+    except AdvobjError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return getattr(err, "exit_code", None) or 2
+    return 0
 
 
 # ----------------------------------------------------------------------------- child entry point
@@ -1089,4 +1523,4 @@ def _child(job_path: str, result_path: str) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(_child(sys.argv[1], sys.argv[2]))
+    sys.exit(main())

@@ -1,6 +1,7 @@
 """The speed-vs-accuracy sweep: rows as data, one real row end to end, resume, report and CLI."""
 
 import json
+from dataclasses import asdict
 
 import pytest
 
@@ -9,12 +10,14 @@ from trials.experiments.tradeoff import (
     BASELINE_KEY,
     DEPLOYMENTS,
     KNOBS,
+    Row,
     TradeoffError,
     build_rows,
     load_tradeoff_config,
     read_results,
     run_sweep,
     select_rows,
+    set_size,
     write_tradeoff_report,
 )
 from trials.experiments.tradeoff_report import pareto_front
@@ -36,6 +39,7 @@ def _tiny(policy, pool, **kw):
         attack_overrides=TINY_ATTACK,
         snapshots=(1,),
         episodes=4,
+        big_episodes=2,
         max_steps=MAX_STEPS,
         eval_num_envs=2,
         deploy_episodes=2,
@@ -68,7 +72,9 @@ def test_every_knob_of_the_issue_has_rows_with_the_issue_values():
         ("30", "snapshot", BASELINE_KEY),
         ("60", "snapshot", BASELINE_KEY),
     ]
-    assert [(r.value, r.depends) for r in by["eval_episodes"]] == [("500", BASELINE_KEY)]
+    # the baseline texture again on the first third of the same fixed set (300 configurations by default)
+    assert cfg.episodes == 300 and cfg.attack_seeds == (0,)
+    assert [(r.value, r.depends) for r in by["eval_episodes"]] == [("100", BASELINE_KEY)]
     assert [r.value for r in by["deployment"]] == list(DEPLOYMENTS)
     assert len({r.key for r in rows}) == len(rows)
 
@@ -90,6 +96,39 @@ def test_unknown_knobs_rows_and_bad_settings_are_clear_errors():
         load_tradeoff_config(policy="ref", episodes=0)
     # a dependent row brings its dependency along
     assert [r.key for r in select_rows(rows, ["iterations=30"])] == [BASELINE_KEY, "iterations=30"]
+
+
+ATTACK_KNOBS = ("baseline", "iterations", "eot_envs", "rollout_steps", "sampler", "texture_size", "saliency", "pcgrad")
+
+
+def test_attack_seeds_run_the_rows_that_change_the_attack_once_per_seed():
+    cfg = load_tradeoff_config(policy="ref", attack_seeds=(0, 1, 2))
+    rows = build_rows(cfg)
+    seeds = {}
+    for r in rows:
+        seeds.setdefault(r.name, []).append(r.attack_seed)
+    for name, got in seeds.items():
+        knob = name.split("=")[0]
+        want = [0, 1, 2] if knob in ATTACK_KNOBS else ([None] if knob == "deployment" else [0])
+        assert got == want, name
+    by = {r.key: r for r in rows}
+    assert by["iterations=30@seed1"].depends == "baseline=quick@seed1" and by["eot_envs=1@seed2"].depends is None
+    assert by["eval_episodes=100"].depends == BASELINE_KEY  # the first seed's baseline texture, once
+    assert [r.key for r in select_rows(rows, ["eot_envs=1"])] == ["eot_envs=1", "eot_envs=1@seed1", "eot_envs=1@seed2"]
+    assert [r.key for r in select_rows(rows, ["iterations=30@seed2"])] == [
+        "baseline=quick@seed2",
+        "iterations=30@seed2",
+    ]
+    r = by["pcgrad=off@seed1"]
+    assert Row(**json.loads(json.dumps(asdict(r)))) == r  # what a row's child process reads back
+    with pytest.raises(TradeoffError, match="distinct"):
+        load_tradeoff_config(policy="ref", attack_seeds=(0, 0))
+    with pytest.raises(TradeoffError, match="attack_seeds"):
+        load_tradeoff_config(policy="ref", attack_overrides={"seed": 3})
+    # one fixed set per policy: episodes configurations, more when an eval_episodes row asks for more
+    assert set_size(cfg, "ref") == set_size(cfg, "px96") == 300
+    big = load_tradeoff_config(policy="ref", big_episodes=600)
+    assert (set_size(big, "ref"), set_size(big, "px96")) == (600, 300)
 
 
 def test_rows_of_other_settings_without_a_settings_file_are_refused(tmp_path):
@@ -177,21 +216,18 @@ def test_pareto_front_on_a_hand_made_set():
     assert pareto_front([]) == []
 
 
-def _synthetic(key, knob, value, kind, wall, rate, policy="ref", **kw):
-    p = {
-        "k": round(rate * 100),
-        "n": 100,
-        "rate": rate,
-        "lo": max(0, rate - 0.1),
-        "hi": min(1, rate + 0.1),
-        "confidence": 0.95,
-    }
-    m = {"mean": 0.2, "lo": 0.15, "hi": 0.25, "n": 100, "confidence": 0.95}
+def _synthetic(key, knob, value, kind, wall, rate, policy="ref", n=100, **kw):
+    k = round(rate * n)
+    p = {"k": k, "n": n, "rate": k / n, "lo": max(0, rate - 0.1), "hi": min(1, rate + 0.1), "confidence": 0.95}
+    m = {"mean": 0.2, "lo": 0.15, "hi": 0.25, "n": n, "confidence": 0.95}
+    seed = kw.pop("attack_seed", 0 if kind != "deployment" else None)
     rec = {
         "key": key,
+        "name": key.split("@")[0],
         "knob": knob,
         "value": value,
         "kind": kind,
+        "attack_seed": seed,
         "policy": policy,
         "status": "ok",
         "note": "",
@@ -200,8 +236,11 @@ def _synthetic(key, knob, value, kind, wall, rate, policy="ref", **kw):
         "attack_cpu_s": wall / 2,
         "eval_wall_s": 60.0,
         "eval_cpu_s": 30.0,
+        "row_wall_s": wall + 60.0,
+        "row_cpu_s": wall / 2 + 30.0,
         "peak_rss_mb": 700.0,
-        "episodes": 100,
+        "episodes": n,
+        "eval_name": key.replace("=", "_").replace("@", "_"),
         "tasr": p,
         "asr": p,
         "e_trans": m,
@@ -213,29 +252,25 @@ def _synthetic(key, knob, value, kind, wall, rate, policy="ref", **kw):
     return rec
 
 
+def _write_outcomes(out, name, targeted_seeds, n=10):
+    """A row's evaluation folder with only what the paired tests read: condition, seed, targeted."""
+    d = out / "evals" / name
+    d.mkdir(parents=True)
+    lines = ["condition,seed,targeted"] + [f"attack,{s},{int(s in targeted_seeds)}" for s in range(n)]
+    lines += [f"clean,{s},0" for s in range(n)]
+    (d / "episodes.csv").write_text("\n".join(lines) + "\n")
+
+
 def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
     lat = {"b1": {"median": 1.5, "p90": 2.0, "cpu_mean": 1.25}, "b8": {"median": 0.5, "p90": 0.6}}
     rows = [
-        _synthetic(BASELINE_KEY, "baseline", "quick", "attack", 100.0, 0.6),
-        _synthetic("iterations=30", "iterations", "30", "snapshot", 25.0, 0.2),
-        _synthetic("eot_envs=1", "eot_envs", "1", "attack", 30.0, 0.1),
+        _synthetic(BASELINE_KEY, "baseline", "quick", "attack", 100.0, 0.6, n=10),
+        _synthetic("baseline=quick@seed1", "baseline", "quick", "attack", 90.0, 0.5, n=10, attack_seed=1),
+        _synthetic("iterations=30", "iterations", "30", "snapshot", 25.0, 0.2, n=10),
+        _synthetic("eot_envs=1", "eot_envs", "1", "attack", 30.0, 0.2, n=10),
+        _synthetic("eot_envs=1@seed1", "eot_envs", "1", "attack", 32.0, 0.5, n=10, attack_seed=1),
         _synthetic("policy_resolution=96", "policy_resolution", "96", "attack", 300.0, 0.7, policy="px96"),
-        _synthetic(
-            "eval_episodes=500",
-            "eval_episodes",
-            "500",
-            "episodes",
-            100.0,
-            0.55,
-            episodes=500,
-            subset={
-                "episodes": 100,
-                "tasr": {"k": 60, "n": 100, "rate": 0.6, "lo": 0.5, "hi": 0.7},
-                "asr": {"k": 60, "n": 100, "rate": 0.6, "lo": 0.5, "hi": 0.7},
-                "e_trans": {"mean": 0.2, "lo": 0.1, "hi": 0.3, "n": 100},
-                "e_rot": {"mean": 0.2, "lo": 0.1, "hi": 0.3, "n": 100},
-            },
-        ),
+        _synthetic("eval_episodes=5", "eval_episodes", "5", "episodes", 100.0, 1.0, n=5),
         {
             "key": "deployment=onnx-int8",
             "knob": "deployment",
@@ -258,11 +293,21 @@ def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
             "knob": "sampler",
             "value": "bilinear",
             "kind": "attack",
+            "attack_seed": 0,
             "policy": "ref",
             "status": "error",
             "error": "RuntimeError: boom",
         },
     ]
+    # the paired outcomes on configurations 0..9: baseline seed 0 targeted on 0-5, eot_envs=1 on 0-1
+    # (4 discordant pairs, all the baseline's: p = 2 / 2^4 = 0.125), seed 1's baseline on 0-4 and
+    # its eot_envs=1 on 5-9 (10 discordant, 5 each way: p = 1)
+    _write_outcomes(tmp_path, "baseline_quick", range(6))
+    _write_outcomes(tmp_path, "baseline_quick_seed1", range(5))
+    _write_outcomes(tmp_path, "iterations_30", range(2))
+    _write_outcomes(tmp_path, "eot_envs_1", range(2))
+    _write_outcomes(tmp_path, "eot_envs_1_seed1", range(5, 10))
+    _write_outcomes(tmp_path, "eval_episodes_5", range(5), n=5)  # the baseline texture again: the same outcomes
     (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"torn')
     (tmp_path / "machine.json").write_text(
         json.dumps(
@@ -290,10 +335,18 @@ def test_report_tables_and_plot_from_synthetic_rows(tmp_path):
     assert len(read_results(tmp_path)) == len(rows)  # the torn last line is ignored
     text = write_tradeoff_report(tmp_path).read_text()
     assert "Test CPU; 2 logical cores" in text and "torch 2.x with 1 intra-op thread" in text
-    assert "| baseline | quick | 64 | 100 | 50 | 60 | 30 | 700 | 100 | 60 [50, 70] |" in text
-    assert "| sampler | bilinear |" in text and "failed: RuntimeError: boom" in text
-    assert "| eval_episodes=500, first 100 configs | 100 | 60 [50, 70] | 20.0 |" in text
+    assert "| baseline | quick | 0 | 64 | 100 | 50 | 60 | 30 | 700 | 10 | 60 [50, 70] |" in text
+    assert "| sampler | bilinear | 0 |" in text and "failed: RuntimeError: boom" in text
     assert "| onnx-int8 | 1.50 (2.00) | 1.25 | 0.50 | n/a | 2.00e-02 | 3.00e-03 | 49/50 = 98 [90, 100] | 2 |" in text
+    # every run, paired with the baseline of its own attack seed (pairs, baseline only, row only, diff, p)
+    assert "| eot_envs=1 | 0 | 64 | 10 | 2/10 | 20.0 [10.0, 30.0] | 10 | 4 | 0 | -40.0 | 0.125 |" in text
+    assert "| eot_envs=1@seed1 | 1 | 64 | 10 | 5/10 | 50.0 [40.0, 60.0] | 10 | 5 | 5 | +0.0 | 1 |" in text
+    assert "| eval_episodes=5 | 0 | 64 | 5 | 5/5 | 100.0 [90.0, 100.0] | 5 | 0 | 0 | +0.0 | 1 |" in text
+    assert "| baseline=quick | 0 | 64 | 10 | 6/10 | 60.0 [50.0, 70.0] | baseline | | | | |" in text
+    assert "| policy_resolution=96 | 0 | 64 | 100 | 70/100 | 70.0 [60.0, 80.0] | not paired | | | | |" in text
+    # per setting over attack seeds: mean, min, max, mean paired difference, McNemar rejections
+    assert "| eot_envs=1 | 0, 1 | 10 | 35.0 | 20.0 | 50.0 | -20.0 | 0 / 0 / 2 | 31 | 16 | 60 | 30 |" in text
+    assert "| baseline=quick | 0, 1 | 10 | 55.0 | 50.0 | 60.0 | baseline |" in text
     # table order follows the knob order of the issue
     assert (
         text.index("| baseline | quick")
