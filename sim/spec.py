@@ -223,7 +223,8 @@ class LookAt(_Strict):
     """A camera pose given by where the camera stands and the point it looks at (table frame, m).
 
     The optical axis runs from ``eye_m`` to ``target_m``; the image's up is as close to ``up`` as
-    the view allows (looking straight along ``up``, the image's up is +y of the table)."""
+    the view allows, so ``up`` must not lie along the view (a camera looking straight down needs
+    another ``up`` than the default, e.g. ``[0, 1, 0]``: the image's top then faces the table's +y)."""
 
     # Where the camera stands (m, each coordinate within +-100).
     eye_m: Position
@@ -245,6 +246,12 @@ class LookAt(_Strict):
     def _apart(self):
         if math.dist(self.eye_m, self.target_m) < 1e-3:
             raise ValueError("eye_m and target_m must be at least 1 mm apart")
+        view = np.subtract(self.target_m, self.eye_m)
+        if np.linalg.norm(np.cross(view / np.linalg.norm(view), np.asarray(self.up) / math.hypot(*self.up))) < 1e-6:
+            raise ValueError(
+                "up lies along the view (eye_m to target_m), which leaves the image's up undefined; "
+                "give an up across the view (e.g. [0, 1, 0] for a camera looking straight down)"
+            )
         return self
 
 
@@ -303,7 +310,12 @@ class SceneCameraSpec(_Intrinsics):
         """(4, 4) the camera's pose in the table (world) frame, OpenCV camera axes."""
         if self.look_at is not None:
             a = self.look_at
-            return look_at(np.asarray(a.eye_m), np.asarray(a.target_m), np.asarray(a.up))
+            T = look_at(np.asarray(a.eye_m), np.asarray(a.target_m), np.asarray(a.up))
+            # The nearest rotation: with ``up`` nearly along the view, look_at's cross products
+            # leave its axes orthogonal to ~1e-7 only.
+            U, _, Vt = np.linalg.svd(T[:3, :3])
+            T[:3, :3] = U @ Vt
+            return T
         return make_T(so3_exp(np.asarray(self.rotvec_table_cam, dtype=np.float64)), np.asarray(self.t_table_cam_m))
 
 
