@@ -17,8 +17,9 @@ from sim.errors import AdvobjError
 from sim.expert import expert_actions
 from sim.outcome import NONE, object_distances, reach_outcome
 from sim.render import SceneRenderer
+from sim.spec import WRIST
 from sim.variations import Randomization
-from sim.world import SimWorld, _image_size
+from sim.world import SimWorld, _image_size, camera_renderer
 
 __all__ = ["ReachEnv", "EnvError"]
 
@@ -28,7 +29,7 @@ class EnvError(AdvobjError, ValueError):
 
 
 class ReachEnv:
-    """``N`` reach environments rendered from the wrist camera.
+    """``N`` reach environments rendered from the wrist camera and any of the scene's cameras.
 
     Args:
         spec: the :class:`sim.spec.SceneSpec`.
@@ -60,9 +61,19 @@ class ReachEnv:
         stereo: bool = False,
         render_obs: bool = True,
         policy_image_size: int | None = None,
+        cameras: tuple[str, ...] = (WRIST,),
     ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        cameras = (cameras,) if isinstance(cameras, str) else tuple(cameras)
+        if not cameras or len(set(cameras)) != len(cameras):
+            raise EnvError(f"cameras: name each camera to render once (at least one), got {list(cameras)}")
+        for name in cameras:
+            spec.camera_spec(name)  # an unknown name: one line listing the scene's cameras
+        if stereo and WRIST not in cameras:
+            raise EnvError("stereo=True renders the wrist camera's pair: add 'wrist' to cameras")
+        self.cameras = cameras
+        self.obs_camera = WRIST if WRIST in cameras else cameras[0]
         self.spec = spec
         self.num_envs = int(num_envs)
         if policy_image_size is not None:
@@ -82,8 +93,22 @@ class ReachEnv:
         if stereo and spec.camera.stereo_baseline_m <= 0:
             raise ValueError("stereo=True needs camera.stereo_baseline_m > 0 in the scene spec")
         self.renderer = SceneRenderer(spec, self.width, self.height)
+        # One renderer per camera (a renderer's size and intrinsics are fixed), shared by the worlds.
+        # The wrist camera's is always built: the attack and the evaluation render through it.
+        self.renderers: dict[str, SceneRenderer] = {WRIST: self.renderer}
+        for name in cameras:
+            if name != WRIST:
+                self.renderers[name] = camera_renderer(spec, name)
+        scene_renderers = {k: r for k, r in self.renderers.items() if k != WRIST}
         self.worlds = [
-            SimWorld(spec, (self.height, self.width), seed + i, renderer=self.renderer, randomization=randomization)
+            SimWorld(
+                spec,
+                (self.height, self.width),
+                seed + i,
+                renderer=self.renderer,
+                randomization=randomization,
+                camera_renderers=scene_renderers,
+            )
             for i in range(self.num_envs)
         ]
         self.goal_index = spec.object_index("goal")
@@ -92,9 +117,11 @@ class ReachEnv:
         self.max_steps, self.radius_m = ep.max_steps, ep.success_radius_m
         self.max_step_m, self.max_step_rad = ep.max_step_m, ep.max_step_rad
         self._seed = int(seed)
-        self._obs = np.zeros((self.num_envs, self.height, self.width, 3), np.uint8)
-        self._right = np.zeros_like(self._obs) if stereo else None
-        self._masks: list = [None] * self.num_envs
+        self._images = {name: np.zeros((self.num_envs, *self.image_shape(name)), np.uint8) for name in cameras}
+        self._obs = self._images[self.obs_camera]
+        self._right = np.zeros((self.num_envs, self.height, self.width, 3), np.uint8) if stereo else None
+        self._camera_masks: dict[str, list] = {name: [None] * self.num_envs for name in cameras}
+        self._masks: list = self._camera_masks[self.obs_camera]
         self.steps = np.zeros(self.num_envs, np.int64)
         self.done = np.zeros(self.num_envs, bool)
         self.policy_error = np.zeros(self.num_envs, bool)  # ended by a non-finite action (sim.action.POLICY_ERROR)
@@ -116,15 +143,25 @@ class ReachEnv:
     def configs(self) -> list[InitialConfig]:
         return [w.config for w in self.worlds]
 
+    def image_shape(self, name: str) -> tuple[int, int, int]:
+        """``(H, W, 3)`` of camera ``name``'s images in this env."""
+        if name == WRIST:
+            return self.height, self.width, 3
+        cam = self.spec.camera_spec(name)
+        return cam.height, cam.width, 3
+
     def _render(self, i: int) -> None:
         if not self.render_obs:
             return
         w = self.worlds[i]
-        out = w.render(with_ids=self.render_masks)
-        self._obs[i] = out.rgb
-        self._masks[i] = out.masks if self.render_masks else None
-        if self.stereo:
-            self._right[i] = w.render(w.camera_pose(right=True), with_ids=False).rgb
+        # The wrist camera first, its stereo partner next: their noise draws come in the order they
+        # always did; each scene camera draws from a stream of its own.
+        for name in sorted(self.cameras, key=lambda n: n != WRIST):
+            out = w.render(with_ids=self.render_masks, camera=name)
+            self._images[name][i] = out.rgb
+            self._camera_masks[name][i] = out.masks if self.render_masks else None
+            if name == WRIST and self.stereo:
+                self._right[i] = w.render(w.camera_pose(right=True), with_ids=False).rgb
 
     def _info(self) -> dict:
         tcp = self.T_world_tcp
@@ -141,8 +178,10 @@ class ReachEnv:
             "policy_error": self.policy_error.copy(),
             "seeds": np.array([w.config.seed for w in self.worlds]),
         }
+        info["images"] = self.images()
         if self.render_masks:
             info["masks"] = list(self._masks)
+            info["camera_masks"] = {name: list(m) for name, m in self._camera_masks.items()}
         if self.stereo:
             info["rgb_right"] = self._right.copy()
         return info
@@ -178,6 +217,10 @@ class ReachEnv:
 
     def observe(self) -> np.ndarray:
         return self._obs.copy()
+
+    def images(self) -> dict[str, np.ndarray]:
+        """``{camera name: (N, H_c, W_c, 3) uint8}``: the current images of every requested camera."""
+        return {name: im.copy() for name, im in self._images.items()}
 
     def step(self, actions):
         """Apply ``actions: (N, 6)`` in [-1, 1] -> ``(obs, reward, terminated, truncated, info)``.
@@ -230,7 +273,10 @@ class ReachEnv:
         )
 
     def close(self) -> None:
-        self.renderer.close()
+        for w in self.worlds:
+            w.close()  # closes only the renderers a world built itself
+        for r in self.renderers.values():
+            r.close()
 
     def __enter__(self):
         return self

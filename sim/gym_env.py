@@ -9,7 +9,9 @@ code use it without a wrapper, and ``gymnasium.make_vec`` batches it::
     env = gym.make("advobj/Reach-v0", image_size=64)
     envs = gym.make_vec("advobj/Reach-v0", num_envs=4, vectorization_mode="sync")
 
-* observation: the wrist camera's ``(S, S, 3)`` uint8 image (``Box(0, 255)``);
+* observation: the wrist camera's ``(S, S, 3)`` uint8 image (``Box(0, 255)``); with
+  ``cameras=("wrist", "front")`` (names of the scene's cameras), a ``Dict`` of each camera's
+  ``(H, W, 3)`` uint8 image (a scene camera at its own size; one camera alone stays a ``Box``);
 * action: the normalised TCP delta ``(6,)`` float32 in ``[-1, 1]`` (``Box(-1, 1)``, see
   :mod:`sim.action`), clipped into the box before it is applied (gymnasium's contract);
 * reward, termination and truncation: :meth:`sim.env.ReachEnv.step`'s (reaching an object
@@ -25,7 +27,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sim.env import ReachEnv
-from sim.spec import SceneSpec, default_scene, load_scene
+from sim.spec import WRIST, SceneSpec, default_scene, load_scene
 
 __all__ = ["ReachGymEnv", "ENV_ID"]
 
@@ -37,39 +39,64 @@ class ReachGymEnv(gym.Env):
 
     Args:
         scene: a :class:`sim.spec.SceneSpec`, a scene YAML path, or None (the built-in scene).
-        image_size: the square observation size in px (default: the scene camera's width).
-        render_mode: None or ``"rgb_array"`` (the current observation).
+        image_size: the wrist camera's square image size in px (default: the spec camera's width).
+        render_mode: None or ``"rgb_array"`` (the current observation; with several cameras, the
+            wrist camera's image, or the first camera's).
+        cameras: the scene's cameras observed (:attr:`sim.spec.SceneSpec.camera_names`).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, scene=None, image_size: int | None = None, render_mode: str | None = None):
+    def __init__(
+        self,
+        scene=None,
+        image_size: int | None = None,
+        render_mode: str | None = None,
+        cameras: tuple[str, ...] = (WRIST,),
+    ):
         spec = scene if isinstance(scene, SceneSpec) else (default_scene() if scene is None else load_scene(scene))
         size = int(image_size or spec.camera.width)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
-        self._env = ReachEnv(spec, num_envs=1, image_size=size)
-        self.observation_space = spaces.Box(0, 255, (size, size, 3), np.uint8)
+        self._env = ReachEnv(spec, num_envs=1, image_size=size, cameras=cameras)
+        boxes = {name: spaces.Box(0, 255, self._env.image_shape(name), np.uint8) for name in self._env.cameras}
+        self._several = len(boxes) > 1
+        self.observation_space = spaces.Dict(boxes) if self._several else next(iter(boxes.values()))
         self.action_space = spaces.Box(-1.0, 1.0, (6,), np.float32)
-        self._obs = np.zeros((size, size, 3), np.uint8)
+        self._obs = np.zeros(self._env.image_shape(self._env.obs_camera), np.uint8)
+        self._images: dict[str, np.ndarray] = {}
 
     @staticmethod
     def _one(info: dict) -> dict:
-        return {k: (v[0] if isinstance(v, (np.ndarray, list)) and len(v) == 1 else v) for k, v in info.items()}
+        # The images are the observation; the rest loses its batch axis of one.
+        return {
+            k: (v[0] if isinstance(v, (np.ndarray, list)) and len(v) == 1 else v)
+            for k, v in info.items()
+            if k != "images"
+        }
+
+    def _observation(self, obs: np.ndarray, info: dict):
+        self._obs = obs[0]
+        self._images = {name: im[0] for name, im in info["images"].items()}
+        return {k: v.copy() for k, v in self._images.items()} if self._several else self._obs.copy()
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         episode_seed = int(seed) if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
         obs, info = self._env.reset(seed=episode_seed)
-        self._obs = obs[0]
-        return self._obs.copy(), self._one(info)
+        return self._observation(obs, info), self._one(info)
 
     def step(self, action):
         a = np.clip(np.asarray(action, dtype=np.float64).reshape(1, 6), -1.0, 1.0)
         obs, reward, terminated, truncated, info = self._env.step(a)
-        self._obs = obs[0]
-        return self._obs.copy(), float(reward[0]), bool(terminated[0]), bool(truncated[0]), self._one(info)
+        return (
+            self._observation(obs, info),
+            float(reward[0]),
+            bool(terminated[0]),
+            bool(truncated[0]),
+            self._one(info),
+        )
 
     def render(self):
         return self._obs.copy() if self.render_mode == "rgb_array" else None

@@ -1,20 +1,42 @@
-"""One simulated scene: object placement, the floating gripper's pose, and its wrist-camera view.
+"""One simulated scene: object placement, the floating gripper's pose, and its cameras' views.
 
 A :class:`SimWorld` is the unit the batched :class:`sim.env.ReachEnv` is made of, and what the
 simulated hardware (``robot_io``'s sim camera and sim arm) shares. Several worlds can share one
 :class:`sim.render.SceneRenderer` (one GL context): each world applies its own state and look
 before rendering.
+
+Cameras are named as in the scene (:attr:`sim.spec.SceneSpec.camera_names`): ``"wrist"`` is the
+wrist camera on the TCP (rendered by :attr:`SimWorld.renderer`, at the world's image size), every
+other name a fixed scene camera, rendered at its own size and intrinsics by a renderer of its own
+(:func:`camera_renderer`; a renderer's size and intrinsics are fixed when it is built).
 """
 
 from __future__ import annotations
+
+import zlib
+from collections.abc import Mapping
 
 import numpy as np
 
 from sim.configs import InitialConfig, object_local_centers, object_poses_world, sample_config
 from sim.render import RenderOutput, SceneRenderer
+from sim.spec import WRIST
 from sim.variations import Appearance, Randomization, add_sensor_noise, sample_appearance
 
-__all__ = ["SimWorld"]
+__all__ = ["SimWorld", "camera_renderer"]
+
+
+def camera_renderer(spec, name: str) -> SceneRenderer:
+    """A renderer of scene camera ``name`` of ``spec``, at that camera's size and intrinsics."""
+    view = spec.for_camera(name)
+    return SceneRenderer(view, view.camera.width, view.camera.height)
+
+
+def _noise_rng(seed: int, camera: str) -> np.random.Generator:
+    """A camera's per-episode sensor-noise stream: the wrist camera's as it always was; each scene
+    camera its own, so rendering one more camera never changes another camera's frames."""
+    key = [int(seed), 0x0015E] + ([] if camera == WRIST else [zlib.crc32(camera.encode())])
+    return np.random.default_rng(np.random.SeedSequence(key))
 
 
 def _image_size(spec, image_size) -> tuple[int, int]:
@@ -35,6 +57,9 @@ class SimWorld:
         seed: seed of the first :meth:`reset` when none is given there.
         renderer: share an existing renderer (same spec and size) instead of creating one.
         randomization: per-episode appearance variation (default: none).
+        camera_renderers: ``{scene camera name: renderer}`` to share (built by
+            :func:`camera_renderer` for this spec); a scene camera without one gets its own,
+            built when it is first rendered.
     """
 
     def __init__(
@@ -44,6 +69,7 @@ class SimWorld:
         seed: int = 0,
         renderer: SceneRenderer | None = None,
         randomization: Randomization | None = None,
+        camera_renderers: Mapping[str, SceneRenderer] | None = None,
     ):
         self.spec = spec
         self.height, self.width = _image_size(spec, image_size)
@@ -52,6 +78,12 @@ class SimWorld:
         if (self.renderer.height, self.renderer.width) != (self.height, self.width):
             raise ValueError("shared renderer has a different image size")
         self.randomization = randomization or Randomization()
+        self._camera_renderers: dict[str, SceneRenderer] = {}
+        self._owned_camera_renderers: set[str] = set()
+        for name, r in (camera_renderers or {}).items():
+            self._check_camera_renderer(name, r)
+            self._camera_renderers[name] = r
+        self._scene_noise: dict[str, np.random.Generator] = {}
         self._centers_local = object_local_centers(spec)
         self._next_seed = int(seed)
         self.config: InitialConfig | None = None
@@ -71,7 +103,8 @@ class SimWorld:
         self._T_world_tcp = config.T_world_tcp_array.copy()
         look_rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0x100C]))
         self.appearance = sample_appearance(self.spec, self.randomization, look_rng)
-        self._noise_rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0x0015E]))
+        self._noise_rng = _noise_rng(config.seed, WRIST)
+        self._scene_noise = {}
         return config
 
     def place_objects(self, object_xy_yaw) -> None:
@@ -103,6 +136,7 @@ class SimWorld:
             self.renderer.close()
         self._owns_renderer = renderer is None
         self.renderer = new
+        self._drop_camera_renderers()  # built for the old scene: rebuilt for the new one when rendered
         self.spec = spec
         self._centers_local = object_local_centers(spec)
         self.appearance = Appearance(spec.lighting)
@@ -136,8 +170,21 @@ class SimWorld:
     def T_tcp_cam(self) -> np.ndarray:
         return self.spec.camera.T_tcp_cam
 
-    def camera_pose(self, T_world_tcp: np.ndarray | None = None, right: bool = False) -> np.ndarray:
-        """``T_world_cam`` of the wrist camera (or of the stereo pair's right camera)."""
+    def camera_pose(
+        self, name: str = WRIST, *, T_world_tcp: np.ndarray | None = None, right: bool = False
+    ) -> np.ndarray:
+        """``(4, 4) T_world_cam`` of camera ``name`` (OpenCV axes): the wrist camera at the TCP pose
+        (``T_world_tcp``, default the current one) or the stereo pair's right camera (``right``);
+        a scene camera at its fixed pose (the table frame is the world frame)."""
+        if not isinstance(name, str):
+            raise TypeError("camera_pose(name): the first argument is a camera name; give a TCP pose as T_world_tcp=")
+        cam = self.spec.camera_spec(name)
+        if name != WRIST:
+            if right or T_world_tcp is not None:
+                raise ValueError(
+                    f"camera_pose: {name!r} is a fixed scene camera (right= and T_world_tcp= are the wrist's)"
+                )
+            return cam.T_table_cam
         T = (self._T_world_tcp if T_world_tcp is None else T_world_tcp) @ self.T_tcp_cam
         if right:
             offset = np.eye(4)
@@ -145,24 +192,64 @@ class SimWorld:
             T = T @ offset
         return T
 
-    # ------------------------------------------------------------------ rendering
-    def prepare(self) -> None:
-        """Load this world's state and look into the (possibly shared) renderer."""
-        self.renderer.apply_appearance(self.appearance)
-        self.renderer.set_state(self.T_world_objects, self._T_world_tcp)
+    def camera_renderer(self, name: str = WRIST) -> SceneRenderer:
+        """The renderer of camera ``name`` (built now for a scene camera this world has none of)."""
+        if name == WRIST:
+            return self.renderer
+        self.spec.camera_spec(name)  # an unknown name: one line listing the scene's cameras
+        if name not in self._camera_renderers:
+            self._camera_renderers[name] = camera_renderer(self.spec, name)
+            self._owned_camera_renderers.add(name)
+        return self._camera_renderers[name]
 
-    def render(self, T_world_cam: np.ndarray | None = None, with_ids: bool = True, variants=None) -> RenderOutput:
-        """Render the current state; default camera = the wrist camera at the current TCP pose."""
-        self.prepare()
-        out = self.renderer.render(
-            self.camera_pose() if T_world_cam is None else T_world_cam, with_ids=with_ids, variants=variants
+    def intrinsics(self, name: str = WRIST) -> np.ndarray:
+        """``(3, 3) K`` of camera ``name`` as rendered (the wrist camera's at this world's size)."""
+        return self.K if name == WRIST else self.camera_renderer(name).K
+
+    def _check_camera_renderer(self, name: str, r: SceneRenderer) -> None:
+        cam = self.spec.camera_spec(name)
+        if name == WRIST:
+            raise ValueError("camera_renderers: the wrist camera's renderer is renderer=")
+        if (r.width, r.height) != (cam.width, cam.height) or not np.allclose(r.K, cam.K()):
+            raise ValueError(f"camera_renderers: the renderer of {name!r} was not built for that camera")
+
+    def _drop_camera_renderers(self) -> None:
+        for name in self._owned_camera_renderers:
+            self._camera_renderers[name].close()
+        self._camera_renderers, self._owned_camera_renderers = {}, set()
+
+    # ------------------------------------------------------------------ rendering
+    def prepare(self, renderer: SceneRenderer | None = None) -> None:
+        """Load this world's state and look into ``renderer`` (default: the wrist camera's; renderers
+        may be shared between worlds)."""
+        r = self.renderer if renderer is None else renderer
+        r.apply_appearance(self.appearance)
+        r.set_state(self.T_world_objects, self._T_world_tcp)
+
+    def render(
+        self, T_world_cam: np.ndarray | None = None, with_ids: bool = True, variants=None, camera: str = WRIST
+    ) -> RenderOutput:
+        """Render the current state through ``camera`` (its renderer, size and intrinsics) at
+        ``T_world_cam`` (default: the camera's own pose; the wrist camera's at the current TCP pose).
+        Sensor noise is drawn from the camera's own per-episode stream."""
+        r = self.camera_renderer(camera)
+        self.prepare(r)
+        out = r.render(
+            self.camera_pose(camera) if T_world_cam is None else T_world_cam, with_ids=with_ids, variants=variants
         )
-        out.rgb = add_sensor_noise(out.rgb, self.appearance.noise_std, self._noise_rng)
+        if camera == WRIST:
+            rng = self._noise_rng
+        else:
+            rng = self._scene_noise.get(camera)
+            if rng is None:
+                rng = self._scene_noise[camera] = _noise_rng(self.config.seed, camera)
+        out.rgb = add_sensor_noise(out.rgb, self.appearance.noise_std, rng)
         return out
 
     def close(self) -> None:
         if self._owns_renderer:
             self.renderer.close()
+        self._drop_camera_renderers()
 
     def __enter__(self):
         return self
