@@ -221,6 +221,17 @@ def test_a_scene_camera_projects_each_object_centre_into_its_mask(two):
         assert checked >= 12
 
 
+def test_the_two_camera_scenes_front_camera_sees_both_objects_in_the_first_200_configurations(two):
+    # What scenes/two-cameras.yaml and the docs say of it.
+    with SimWorld(two, image_size=16, seed=0) as w:
+        unseen = []
+        for seed in range(200):
+            w.reset(seed)
+            masks = w.render(camera="front").masks
+            unseen += [(seed, name) for name, m in masks.items() if not m.any()]
+    assert unseen == []
+
+
 def test_a_camera_looking_straight_down_sees_the_table_centre_at_the_principal_point():
     # Camera 1 m above the table, rotated pi about +x: +z (optical axis) down, +y (image down) along -y.
     spec = _scene({"name": "top", "width": 64, "height": 48, "fov_deg": 60, "t_table_cam_m": [0.1, 0.0, 1.0],
