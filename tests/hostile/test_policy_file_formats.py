@@ -70,3 +70,20 @@ def test_policy_eval_of_a_bad_pt2_is_one_line_exit_2(name, tmp_path, monkeypatch
 def test_policy_export_without_a_target_file_is_one_line(tmp_path, monkeypatch, capsys):
     code, lines = _run(["policy", "export", str(tmp_path)], tmp_path, monkeypatch, capsys)
     assert code == 2 and len(lines) == 1 and "--pt2" in lines[0], lines
+
+
+@pytest.mark.parametrize("name", ["unsupported_op.onnx", "mismatch.onnx"])
+def test_a_bad_onnx_with_a_short_pool_is_refused_before_the_pool_is_topped_up(name, tmp_path, monkeypatch, capsys):
+    """With a --pool too small for the attack, the job would build more configurations into its output
+    folder; the conversion is checked first, so nothing is written."""
+    from sim.configs import sample_pool, save_pool
+    from sim.spec import default_scene
+
+    build, expected = BAD[name]
+    path = build(tmp_path / name)
+    save_pool(tmp_path / "short_pool.json", default_scene(), sample_pool(default_scene(), 2, part="attack"))
+    before = _snapshot(tmp_path)
+    argv = ["attack", "run", "--policy", str(path), "--pool", "short_pool.json", "--out", "atk"]
+    code, lines = _run(argv, tmp_path, monkeypatch, capsys)
+    assert code == 2 and len(lines) == 1 and expected in lines[0], lines
+    assert _snapshot(tmp_path) == before and not (tmp_path / "atk").exists()

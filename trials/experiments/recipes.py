@@ -985,7 +985,7 @@ def _check_inputs(ctx: Context) -> None:
         if path is None:
             continue
         try:
-            load_policy(path) if str(path).lower().endswith(".onnx") else load_card(path)
+            load_policy(path) if str(path).lower().endswith((".onnx", ".pt2")) else load_card(path)
         except AdvobjError as err:
             raise ExperimentError(f"{flag}: {err}") from None
 

@@ -86,7 +86,8 @@ def attack_job(
             raise AttackError(f"{config_path}: an attack config must be a mapping of fields")
     cfg = resolve_config(preset, overrides, source=str(config_path or "<preset>"))
     spec = load_spec(scene_path)
-    policy = load_policy(policy_dir, cfg.device)
+    # White-box now: an ONNX file's conversion is checked here, before a pool is built or anything written.
+    policy = load_policy(policy_dir, cfg.device, white_box=True, spec=spec)
     if pool_path is not None and not Path(pool_path).is_file():
         raise AttackError(f"--pool: {pool_path}: no such pool file")
     pool_file = Path(pool_path) if pool_path is not None else feasible_pool_path(policy_dir)
@@ -141,7 +142,9 @@ def attack_job(
 class AttackJob(StrictModel):
     """What ``advobj attack run`` runs (its options, validated): :meth:`run` is :func:`attack_job`."""
 
-    policy: Path = Field(description="white-box policy checkpoint directory")
+    policy: Path = Field(
+        description="white-box policy: a checkpoint directory, a .pt2 file or an .onnx file (converted to torch)"
+    )
     preset: str = "quick"
     config: Path | None = Field(None, description="YAML whose fields override the preset's")
     scene: Path | None = Field(None, description="scene YAML (default: the built-in paper scene)")
