@@ -97,6 +97,7 @@ from sim.stats import proportion
 from trials.eval.conditions import Condition
 from trials.eval.episodes import collect_evals, read_rows
 from trials.eval.evaluate import load_eval_config, resolve_pool, rollout_condition, run_eval
+from trials.experiments.record import read_record, write_record
 from trials.experiments.tradeoff_report import KNOBS, attack_outcomes, latest_records, write_report
 from trials.jobs.dag import Grid, GridError, SerialExecutor, clear_finished, is_finished, usable_cpus
 
@@ -126,7 +127,6 @@ DEPLOYMENTS = ("torch-fp32", "onnx-fp32", "onnx-int8", "onnx-fp16")
 BASELINE_KEY = "baseline=quick"  # the baseline row of attack seed 0 with the default preset
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "results" / "tradeoff"  # the committed evidence (:func:`collect`)
-RECORD_NAME = "run.json"  # the evidence record in RESULTS: attempts (command, commit, machine, wall, CPU)
 SETTINGS_NAME = "sweep.json"  # the sweep's settings and their hash; a re-run must match them
 ROW_SPEC_NAME = "row.json"  # what a row's child process measures (settings, row, sweep folder)
 MIN_ATTACK_POOL = 20
@@ -1305,8 +1305,7 @@ def collect(out: str | Path, results: str | Path = RESULTS) -> Path:
             shutil.copyfile(d / TEXTURE_PNG, dst / "textures" / f"{_slug(r['key'])}.png")
         if (d / CONFIG_RECORD).is_file():
             shutil.copyfile(d / CONFIG_RECORD, dst / "attack_configs" / f"{_slug(r['key'])}.json")
-    record_path = dst / RECORD_NAME
-    record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
+    record = read_record(dst)
     record.update(
         episodes_rows=n_rows,
         rows_ok=len(ok),
@@ -1316,7 +1315,7 @@ def collect(out: str | Path, results: str | Path = RESULTS) -> Path:
         row_commits=sorted({str(r.get("git_commit")) for r in ok}),
         eval_sets=sets,
     )
-    _write_json(record_path, record)
+    write_record(dst, record)
     return dst
 
 
@@ -1368,8 +1367,7 @@ def evidence(argv: list[str], results: str | Path = RESULTS, log=print) -> int:
         print("evidence: " + "; ".join(problems), file=sys.stderr)
         return 2
     results = Path(results)
-    record_path = results / RECORD_NAME
-    record = json.loads(record_path.read_text()) if record_path.is_file() else {"attempts": []}
+    record = read_record(results)
     attempt = {
         "command": "python -m trials.experiments.tradeoff sweep " + shlex.join(argv),
         "commit": commit,
@@ -1390,8 +1388,7 @@ def evidence(argv: list[str], results: str | Path = RESULTS, log=print) -> int:
         load_avg_end=list(os.getloadavg()),
     )
     record["attempts"].append(attempt)
-    results.mkdir(parents=True, exist_ok=True)
-    _write_json(record_path, record)
+    write_record(results, record)
     if rc == 0:
         out = Path(a.out) if Path(a.out).is_absolute() else ROOT / a.out
         log(f"collected into {collect(out, results)}")

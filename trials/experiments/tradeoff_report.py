@@ -24,8 +24,9 @@ from pathlib import Path
 import matplotlib
 import matplotlib.pyplot as plt
 
-from trials.eval.episodes import read_rows
+from trials.eval.episodes import has_rows, read_rows
 from trials.eval.metrics import mcnemar_exact
+from trials.experiments.record import RECORD_NAME, read_record, record_path
 
 __all__ = [
     "START",
@@ -474,10 +475,9 @@ def write_report(
 
 # ----------------------------------------------------------------------------- the doc, from results/tradeoff
 def _provenance(results: Path) -> str:
-    path = results / "run.json"
-    if not path.is_file():
-        return "No `run.json`: these rows were committed without the evidence record.\n"
-    rec = json.loads(path.read_text())
+    if not record_path(results).is_file():
+        return f"No `{RECORD_NAME}`: these rows were committed without the evidence record.\n"
+    rec = read_record(results)
     lines = [
         "| attempt | command | commit | machine | start (UTC) | wall s | CPU s | exit code |",
         "|---|---|---|---|---|---|---|---|",
@@ -519,7 +519,7 @@ def _eval_sets(results: Path) -> str:
 
 def _committed(results: Path) -> tuple[list[dict], dict[str, dict[int, bool]]]:
     lines = (results / "rows.jsonl").read_text().splitlines()
-    episodes = read_rows(results / "episodes.csv") if (results / "episodes.csv").is_file() else []
+    episodes = read_rows(results) if has_rows(results) else []
     return latest_records(lines), attack_outcomes(episodes)
 
 
