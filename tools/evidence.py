@@ -127,7 +127,7 @@ def collect(name: str, work: Path, results: Path) -> Path:
     src, dst = work / name, results / name
     dst.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src / "table.md", dst / "table.md")
-    n_rows = collect_evals(dst, sorted((src / "evals").iterdir()))
+    n_rows = collect_evals(dst, sorted((src / "evals").iterdir()), relative_to=ROOT)
     attacks = {}
     (dst / "textures").mkdir(exist_ok=True)
     for at in sorted((src / "attacks").iterdir()):

@@ -128,11 +128,13 @@ def read_manifest(eval_dir: str | Path) -> dict:
     return doc
 
 
-def collect_evals(dst: str | Path, eval_dirs) -> int:
+def collect_evals(dst: str | Path, eval_dirs, relative_to: str | Path | None = None) -> int:
     """Several evaluations in one folder (the committed evidence's form): ``dst/episodes.csv`` with
     every row of ``eval_dirs`` (those with rows, in order) as stored, after a first column ``eval``
     naming the directory (:func:`read_rows` reads it), and ``dst/summary.json`` mapping each
-    directory's name to its summary plus its manifest's ``overlap``. Returns the number of rows."""
+    directory's name to its summary plus its manifest's ``overlap``; with ``relative_to``, the
+    summaries' paths under that folder are written relative to it (no machine path is committed).
+    Returns the number of rows."""
     dst = Path(dst)
     dst.mkdir(parents=True, exist_ok=True)
     rows, header, summaries = [], None, {}
@@ -149,7 +151,11 @@ def collect_evals(dst: str | Path, eval_dirs) -> int:
         w = csv.DictWriter(f, fieldnames=header)
         w.writeheader()
         w.writerows(rows)
-    (dst / SUMMARY_NAME).write_text(json.dumps(summaries, indent=1))
+    text = json.dumps(summaries, indent=1)
+    if relative_to is not None:
+        root = str(Path(relative_to).resolve()).rstrip("/") + "/"
+        text = text.replace(json.dumps(root)[1:-1], "")
+    (dst / SUMMARY_NAME).write_text(text)
     return len(rows)
 
 

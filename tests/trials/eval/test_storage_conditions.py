@@ -155,3 +155,13 @@ def test_condition_spec_swaps_the_adversarial_mesh_and_adds_a_stereo_baseline(tm
     s = condition_spec(short_spec, dog)
     assert s.adversarial.mesh == "dog" and s.goal.mesh == short_spec.goal.mesh
     assert condition_spec(short_spec, stereo).camera.stereo_baseline_m > 0
+
+
+def test_collected_summaries_name_paths_relative_to_the_checkout(tmp_path):
+    d = tmp_path / "evals" / "e"
+    EpisodeStore(d, {"overlap": {"attack": 0}, "name": "e"}, ["a", "b"]).append([_row("clean", 1)])
+    inside = str(tmp_path.resolve() / "runs" / "policy")
+    write_summary(d, {"conditions": {"clean": {"n": 1}}, "policy": inside, "other": "/elsewhere/policy"})
+    collect_evals(tmp_path / "out", [d], relative_to=tmp_path)
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())["e"]
+    assert s["policy"] == "runs/policy" and s["other"] == "/elsewhere/policy"
