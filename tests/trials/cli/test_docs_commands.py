@@ -547,8 +547,9 @@ TINY: dict[str, Tiny] = {
         ("{policy_copy}/eval/feasible_pool.json",),
         expect="clean success",
     ),
-    "advobj policy export runs/policy-quick --onnx policy.onnx": Tiny(
-        "policy export {policy} --onnx {tmp}/policy.onnx", ("{tmp}/policy.onnx",)
+    "advobj policy export runs/policy-quick --onnx policy.onnx --pt2 policy.pt2": Tiny(
+        "policy export {policy} --onnx {tmp}/policy.onnx --pt2 {tmp}/policy.pt2",
+        ("{tmp}/policy.onnx", "{tmp}/policy.pt2"),
     ),
     "advobj policy export runs/policy-quick --onnx runs/policy-quick.onnx --pt2 runs/policy-quick.pt2": Tiny(
         "policy export {policy} --onnx {tmp}/policy.onnx --pt2 {tmp}/policy.pt2",
@@ -836,11 +837,28 @@ def test_workflow_python_block_attacks_a_wrapped_torch_model(art):
 
 def _workflow_block(marker: str) -> str:
     blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "workflow.md").read_text(), re.S)
-    assert len(blocks) == 2, (
-        "docs/workflow.md should hold two python blocks (the white-box wrapper, the two-input export)"
-    )
-    (code,) = [b for b in blocks if marker in b]
-    return code
+    found = [b for b in blocks if marker in b]
+    assert len(found) == 1, f"docs/workflow.md should hold one python block with {marker!r}"
+    return found[0]
+
+
+def test_every_python_block_of_the_workflow_doc_is_run_by_a_test():
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "workflow.md").read_text(), re.S)
+    run_here = ("class WhiteBox", 'load_scene("scenes/two-cameras.yaml")', "class LabPolicy")  # the tests' markers
+    tested = [b for b in blocks if any(m in b for m in run_here)]
+    assert len(tested) == len(blocks), "a python block of docs/workflow.md is run by no test"
+
+
+def test_workflow_scene_cameras_snippet_runs(monkeypatch):
+    code = _workflow_block('load_scene("scenes/two-cameras.yaml")')
+    monkeypatch.chdir(ROOT)
+    ns = {"__name__": "workflow_snippet"}
+    exec(compile(code, "docs/workflow.md", "exec"), ns)
+    env = ns["env"]
+    try:
+        assert set(env.images()) == {"wrist", "front"}
+    finally:
+        env.close()
 
 
 def test_workflow_export_script_writes_a_two_input_chunked_onnx_policy_that_rolls_out(tmp_path):
