@@ -555,7 +555,8 @@ def over_seeds(
     seed: int = BOOTSTRAP_SEED,
 ) -> OverSeeds | None:
     """Part ``part`` over attack seeds (``seed -> config -> row`` per arm, :func:`seed_arms`); None
-    with fewer than two seeds. Both arms must have the same attack seeds, else ValueError.
+    with fewer than two seeds or when the run did not include one of the arms. Both arms must have
+    the same attack seeds, else ValueError.
 
     The statistic is mean over seeds of the arm's rate, A minus B, on the configurations every run
     has (restricted by ``where``). Its interval is a two-level (hierarchical) bootstrap: each of
@@ -564,6 +565,8 @@ def over_seeds(
     replacement. A bootstrap over only 3 seeds understates the seed variance somewhat (a resample
     of 3 has less spread than the population); the per-seed rates are printed so the reader sees it.
     """
+    if not a or not b:
+        return None  # an arm the multi-seed run did not include
     if sorted(a) != sorted(b):
         raise ValueError(f"{part.label}: the arms have different attack seeds, {sorted(a)} vs {sorted(b)}")
     seeds = tuple(sorted(a))

@@ -121,6 +121,11 @@ def _committed(recipe):
 TABLE = _table_rows()
 
 
+def _has_seed_runs(recipe, parts):
+    rows = _rows(recipe)
+    return all(_by_seed(rows, ea, ca) and _by_seed(rows, eb, cb) for ea, ca, eb, cb, _ in parts)
+
+
 @pytest.mark.parametrize("fid", [f for f in ARMS if f in TABLE])
 def test_the_single_texture_figures_recompute_from_the_csvs(fid):
     recipe, _, parts, phi_min = ARMS[fid]
@@ -141,7 +146,7 @@ def test_the_single_texture_figures_recompute_from_the_csvs(fid):
 def test_the_verdict_follows_the_stated_rules(fid):
     recipe, seeds_recipe, parts, phi_min = ARMS[fid]
     cell = TABLE[fid][4]
-    if _committed(seeds_recipe):
+    if _committed(seeds_recipe) and _has_seed_runs(seeds_recipe, parts):
         assert "over 3 attack seeds" in cell or re.search(r"over \d+ attack seeds", cell), cell
         return  # the over-seeds verdict is checked in the next test
     rows = _rows(recipe)
@@ -163,7 +168,9 @@ def test_the_verdict_follows_the_stated_rules(fid):
     assert cell.startswith(f"**{want}**"), (cell, verdicts)
 
 
-@pytest.mark.parametrize("fid", [f for f in ARMS if f in TABLE and _committed(ARMS[f][1])])
+@pytest.mark.parametrize(
+    "fid", [f for f in ARMS if f in TABLE and _committed(ARMS[f][1]) and _has_seed_runs(ARMS[f][1], ARMS[f][2])]
+)
 def test_the_over_seeds_figures_recompute_with_an_independent_bootstrap(fid):
     _, seeds_recipe, parts, phi_min = ARMS[fid]
     rows = _rows(seeds_recipe)
@@ -207,8 +214,8 @@ def test_the_over_seeds_figures_recompute_with_an_independent_bootstrap(fid):
 
 
 def test_every_committed_multi_seed_result_feeds_its_findings():
-    for fid, (_, seeds_recipe, _, _) in ARMS.items():
-        if fid in TABLE and _committed(seeds_recipe):
+    for fid, (_, seeds_recipe, parts, _) in ARMS.items():
+        if fid in TABLE and _committed(seeds_recipe) and _has_seed_runs(seeds_recipe, parts):
             assert "over attack seeds" in TABLE[fid][2], f"{fid}: results/{seeds_recipe}/ is committed but unused"
 
 
@@ -235,6 +242,7 @@ def test_over_seeds_needs_equal_seed_sets_and_widens_with_the_seed_spread():
     assert fd.verdict(one) == "holds" and spread.verdict != "holds"
     assert spread.hi - spread.lo > steady.hi - steady.lo
     assert fd.over_seeds(part, {0: a[0]}, {0: b[0]}) is None  # one seed is not a seed analysis
+    assert fd.over_seeds(part, a, {}) is None  # an arm the multi-seed run did not include
 
 
 def test_over_seeds_interval_matches_the_plain_bootstrap():
