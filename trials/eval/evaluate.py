@@ -25,9 +25,10 @@ import numpy as np
 from pydantic import Field, ValidationError
 from tqdm import tqdm
 
+from attack.artifact import overlap_count
 from sim.action import POLICY_ERROR
 from sim.configio import StrictModel
-from sim.configs import PoolError, config_id, in_part, load_pool, save_pool
+from sim.configs import PoolError, in_part, load_pool, save_pool
 from sim.errors import AdvobjError, format_validation_error
 from sim.imaging import labelled, write_gif
 from sim.policies.checkpoint import load_policy
@@ -234,13 +235,13 @@ def resolve_pool(
 
 def overlap_with_training(configs, conds) -> dict:
     """Per condition with a texture: how many of ``configs`` its texture was optimised or selected
-    on (``None``: the texture directory has no configuration record)."""
-    ids = {config_id(c) for c in configs}
+    on (``None``: the texture directory has no configuration record), by content id or by pose
+    (:func:`attack.artifact.overlap_count`: the same poses under another seed count too)."""
     out = {}
     for cond in conds:
         if cond.source is not None:
             seen = cond.source.trained_on
-            out[cond.name] = None if seen is None else len(ids & seen)
+            out[cond.name] = None if seen is None else overlap_count(configs, seen)
     return out
 
 

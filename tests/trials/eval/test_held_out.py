@@ -189,3 +189,26 @@ def test_the_demo_gives_overlap_0(tmp_path, policy_with_pool, monkeypatch):
     demo.run_demo(tmp_path / "demo", log=lambda m: None)
     overlap = json.loads((tmp_path / "demo" / "evals" / "demo" / "manifest.json").read_text())["config"]["overlap"]
     assert overlap == {"attack": 0, "patch": 0}
+
+
+def test_an_evaluation_finds_a_leak_by_pose_when_the_seeds_differ(tmp_path, tiny_policy_dir, short_spec, pool_file):
+    """The check compares configuration content: the evaluation's poses recorded under other seeds
+    (other content ids) are still an overlap."""
+    import dataclasses
+
+    evaluation = load_pool(pool_file, short_spec)
+    twins = [dataclasses.replace(c, seed=10**7 + i) for i, c in enumerate(evaluation[:2])]
+    leaky = make_attack_dir(tmp_path / "leaky")
+    write_config_record(leaky, twins, [])
+    cfg = load_eval_config(
+        policy=str(tiny_policy_dir),
+        conditions=("attack",),
+        episodes=4,
+        max_steps=MAX_STEPS,
+        num_envs=2,
+        pool=str(pool_file),
+        attack=str(leaky),
+        gifs=0,
+    )
+    with pytest.raises(EvalError, match=r"optimised or selected on 2 of the 4 evaluation configurations"):
+        run_eval(cfg, tmp_path / "refused", progress=False, report=False)
