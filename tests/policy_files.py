@@ -17,7 +17,15 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from sim.policies.pt2 import export_pt2
-from tests.policy_zoo import card_of, contract_of, tiny_policy
+from tests.policy_zoo import (
+    LEROBOT_FRONT,
+    LEROBOT_STATE,
+    LEROBOT_WRIST,
+    LeRobotInputs,
+    card_of,
+    contract_of,
+    tiny_policy,
+)
 
 __all__ = [
     "onnx_graph",
@@ -29,6 +37,8 @@ __all__ = [
     "truncated_pt2",
     "other_torch_pt2",
     "rewrite_archive",
+    "two_camera_onnx",
+    "two_camera_pt2",
 ]
 
 
@@ -123,3 +133,45 @@ def other_torch_pt2(path) -> Path:
     out = rewrite_archive(full, path, change)
     full.unlink()
     return out
+
+
+def two_camera_onnx(path, policy, card, names=(LEROBOT_WRIST, LEROBOT_FRONT, LEROBOT_STATE), output="action"):
+    """``policy`` (:class:`tests.policy_zoo.TwoCameraPolicy` or one taking the same three tensors)
+    exported by torch.onnx with input ``names`` and ``output``, its card in the metadata."""
+    import torch
+
+    from sim.policies.onnx_policy import attach_card
+
+    wrist, front = policy.example_sizes if hasattr(policy, "example_sizes") else (32, 128)
+    args = (torch.rand(2, 3, wrist, wrist), torch.rand(2, 3, front, front), torch.rand(2, 7))
+    torch.onnx.export(
+        policy.eval(),
+        args,
+        str(path),
+        input_names=list(names),
+        output_names=[output],
+        dynamic_axes={**{n: {0: "batch"} for n in names}, output: {0: "batch"}},
+        opset_version=17,
+        dynamo=False,
+    )
+    return attach_card(path, card)
+
+
+def two_camera_pt2(path, policy, card, wrist: int = 32, front: int = 128) -> Path:
+    """``policy`` wrapped to take LeRobot's dict (:class:`tests.policy_zoo.LeRobotInputs`),
+    exported by torch.export with a dynamic batch and its card inside."""
+    import torch
+
+    from sim.policies.pt2 import CARD_ENTRY
+
+    batch = {
+        LEROBOT_WRIST: torch.rand(2, 3, wrist, wrist),
+        LEROBOT_FRONT: torch.rand(2, 3, front, front),
+        LEROBOT_STATE: torch.rand(2, 7),
+    }
+    B = torch.export.Dim("batch", min=1, max=1024)
+    ep = torch.export.export(LeRobotInputs(policy).eval(), (batch,), dynamic_shapes=({k: {0: B} for k in batch},))
+    for node in ep.graph.nodes:
+        node.meta.pop("stack_trace", None)
+    torch.export.save(ep, str(path), extra_files={CARD_ENTRY: card.model_dump_json()})
+    return Path(path)

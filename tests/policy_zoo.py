@@ -54,3 +54,61 @@ def card_of(policy: VisuomotorPolicy) -> PolicyCard:
         action=ActionScaling(max_step_m=0.02, max_step_rad=0.1),
         training={"method": "test"},
     )
+
+
+# --------------------------------------------------------------------------- two cameras
+LEROBOT_WRIST = "observation.images.wrist"
+LEROBOT_FRONT = "observation.images.front"
+LEROBOT_STATE = "observation.state"
+
+
+class TwoCameraPolicy(torch.nn.Module):
+    """A tiny policy reading the wrist camera (``wrist_px`` square) and a scene camera
+    (``front_px`` square), each through a conv stack of its own, plus the 7-value state
+    (tcp_pose + gripper); ``forward(wrist, front, state) -> (B, K, 6)`` tanh deltas (``(B, 6)``
+    for K = 1). Images ``(B, 3, H, W)`` in [0, 1], normalised inside as LeRobot's policies do."""
+
+    def __init__(self, wrist_px: int = 32, front_px: int = 128, chunk: int = 1, seed: int = 0):
+        super().__init__()
+        torch.manual_seed(seed)
+        nn = torch.nn
+        self.chunk = chunk
+        self.example_sizes = (wrist_px, front_px)
+        self.wrist = nn.Sequential(nn.Conv2d(3, 4, 3, stride=2, padding=1), nn.ReLU(), nn.Conv2d(4, 4, 3, 2, 1))
+        self.front = nn.Sequential(nn.Conv2d(3, 4, 5, stride=4, padding=2), nn.ReLU(), nn.Conv2d(4, 4, 3, 2, 1))
+        n = 4 * (wrist_px // 4) ** 2 + 4 * (front_px // 8) ** 2 + 7
+        self.mlp = nn.Sequential(nn.Linear(n, 16), nn.ReLU(), nn.Linear(16, 6 * chunk))
+
+    def forward(self, wrist, front, state):
+        a = torch.relu(self.wrist((wrist - 0.5) / 0.25)).flatten(1)
+        b = torch.relu(self.front((front - 0.5) / 0.25)).flatten(1)
+        out = torch.tanh(self.mlp(torch.cat([a, b, state], 1)))
+        return out.view(-1, self.chunk, 6) if self.chunk > 1 else out
+
+
+class LeRobotInputs(torch.nn.Module):
+    """``forward(batch: {LeRobot name: tensor}) -> {"action": ...}``: how LeRobot's policies take
+    and give their tensors (what torch.export writes into a .pt2's input and output specs)."""
+
+    def __init__(self, inner):
+        super().__init__()
+        self.inner = inner
+
+    def forward(self, batch: dict):
+        return {"action": self.inner(batch[LEROBOT_WRIST], batch[LEROBOT_FRONT], batch[LEROBOT_STATE])}
+
+
+def two_camera_contract(chunk: int = 1) -> PolicyContract:
+    return PolicyContract(
+        state=("tcp_pose", "gripper"), action=ActionContract(kind="delta_tcp", chunk=chunk, execute=1)
+    )
+
+
+def two_camera_card(chunk: int = 1, **fields) -> PolicyCard:
+    """The card of a LeRobot-named two-camera file: no ``arch``, no ``inputs`` (the names bind)."""
+    return PolicyCard(
+        contract=two_camera_contract(chunk),
+        action=ActionScaling(max_step_m=0.02, max_step_rad=0.1),
+        training={"method": "test"},
+        **fields,
+    )

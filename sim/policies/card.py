@@ -11,10 +11,10 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError, model_serializer
 
 from sim.configio import StrictModel
-from sim.policies.contract import PolicyContract
+from sim.policies.contract import InputBinding, PolicyContract
 from sim.policies.interface import PolicyError
 from sim.policies.policy import PolicyArch
 
@@ -51,7 +51,11 @@ class CleanSuccess(_Strict):
 
 class PolicyCard(_Strict):
     format: str = CARD_FORMAT
-    arch: PolicyArch
+    arch: PolicyArch = Field(
+        default_factory=PolicyArch,
+        description="the built-in network (checkpoints); a policy file's card may leave it out (its graph is the "
+        "user's), and when given its image_size must be the wrist input's",
+    )
     action: ActionScaling
     preprocess: Literal["center_crop", "letterbox", "resize"] = Field(
         "center_crop",
@@ -61,11 +65,22 @@ class PolicyCard(_Strict):
     contract: PolicyContract = Field(
         default_factory=PolicyContract, description="state inputs and action semantics (sim.policies.contract)"
     )
-    feature_map: str | None = Field(
+    inputs: dict[str, InputBinding] = Field(
+        default_factory=dict,
+        description="policy files: each model input (by name) -> its source: a camera by name with how its frame "
+        "becomes the input, the state, tcp_pose or gripper (sim.policies.contract.InputBinding); empty: LeRobot's "
+        "names as they come (observation.images.<camera>, observation.state), else the wrist camera (and the state)",
+    )
+    action_output: str | None = Field(
+        None,
+        description="policy files: the output holding the actions; None: 'action' if the model has it, else its first",
+    )
+    feature_map: str | dict[str, str] | None = Field(
         None,
         description="policy files (.onnx, .pt2) attacked white-box: the graph value Grad-CAM and the saliency loss "
         "read (an ONNX tensor name, a .pt2 graph node name); None: the last 4-D map with more than one cell on "
-        "every path from the image to the actions (sim.policies.graph_policy)",
+        "every path from the image to the actions (sim.policies.graph_policy); a policy reading several cameras "
+        "may name one per camera ({camera: name})",
     )
     training: dict[str, Any] = Field(default_factory=dict, description="resolved training config")
     clean_success: CleanSuccess | None = None
@@ -73,6 +88,28 @@ class PolicyCard(_Strict):
     git_commit: str = "unknown"
     created_utc: str = ""
     weights_sha256: str = ""
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # A card without named inputs dumps exactly as before they existed (files, hashes unchanged).
+        d = handler(self)
+        if "arch" not in self.model_fields_set:  # a policy file's card that left the built-in network out
+            d.pop("arch", None)
+        if not self.inputs:
+            d.pop("inputs", None)
+        if self.action_output is None:
+            d.pop("action_output", None)
+        return d
+
+    def image_size_mismatch(self, plan, where: str = "") -> str | None:
+        """One line when the card's explicit ``arch.image_size`` is not the wrist input's size (None: fine)."""
+        if "arch" not in self.model_fields_set:
+            return None
+        wrist = [b for b in plan.images if b.camera == "wrist"]
+        if wrist and tuple(wrist[0].size) != (self.arch.image_size,) * 2:
+            h, w = wrist[0].size
+            return f"{where}card says {self.arch.image_size} px but the model's wrist input takes {h}x{w} px"
+        return None
 
     def arch_mismatch(self) -> str | None:
         """Why the built-in network described by ``arch`` cannot honour ``contract`` (None: it can).

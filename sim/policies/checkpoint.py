@@ -96,6 +96,8 @@ def load_checkpoint(path: str | Path, device="cpu"):
         state = load_file(str(wpath), device="cpu")
     except (SafetensorError, OSError, ValueError) as err:
         raise PolicyError(f"{wpath}: not a safetensors weights file ({err})") from None
+    if "arch" not in card.model_fields_set:
+        raise PolicyError(f"{p / CARD_NAME}: arch: a checkpoint's card names the network its weights are for")
     if (why := card.arch_mismatch()) is not None:
         raise PolicyError(f"{p / CARD_NAME}: {why}")
     policy = VisuomotorPolicy(card.arch, contract=card.contract)

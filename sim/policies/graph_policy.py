@@ -28,7 +28,14 @@ import torch
 from torch import fx, nn
 
 from sim.env import ReachEnv
-from sim.policies.contract import PolicyContract, state_vector
+from sim.policies.contract import (
+    WRIST_CAMERA,
+    InputPlan,
+    PolicyContract,
+    default_plan,
+    state_vector,
+    to_model_image,
+)
 from sim.policies.interface import PolicyError, prepare_images
 from sim.spec import load_spec
 
@@ -39,6 +46,7 @@ __all__ = [
     "pick_feature_node",
     "reference_frames",
     "max_abs_difference",
+    "example_inputs",
 ]
 
 # Frames a converted policy is compared on before its first use (the issue's minimum).
@@ -49,8 +57,10 @@ def _inputs(gm: fx.GraphModule) -> list[fx.Node]:
     return [n for n in gm.graph.nodes if n.op == "placeholder"]
 
 
-def _needed(target: fx.Node, stop: fx.Node | None) -> set[fx.Node]:
-    """Every node ``target`` is computed from (itself included), not looking past ``stop``."""
+def _needed(target: fx.Node, stop) -> set[fx.Node]:
+    """Every node ``target`` is computed from (itself included), not looking past ``stop`` (a node,
+    a set of nodes or None)."""
+    stops = stop if isinstance(stop, (set, frozenset)) else {stop}
     seen: set[fx.Node] = set()
     todo = [target]
     while todo:
@@ -58,7 +68,7 @@ def _needed(target: fx.Node, stop: fx.Node | None) -> set[fx.Node]:
         if n in seen:
             continue
         seen.add(n)
-        if n is stop:
+        if n in stops:
             continue
         todo.extend(n.all_input_nodes)
     return seen
@@ -69,9 +79,10 @@ def _is_cut(node: fx.Node, image: fx.Node, actions: fx.Node) -> bool:
     return image in _needed(node, None) and image not in _needed(actions, node) and node in _needed(actions, node)
 
 
-def _copy(gm: fx.GraphModule, keep: set[fx.Node], inputs: dict[fx.Node, str], out: fx.Node) -> fx.GraphModule:
-    """A GraphModule over ``gm``'s modules and tensors computing ``out`` from new placeholders
-    (``inputs``: the node each one replaces -> its name), with only the nodes in ``keep``."""
+def _copy(gm: fx.GraphModule, keep: set[fx.Node], inputs: dict[fx.Node, str], out) -> fx.GraphModule:
+    """A GraphModule over ``gm``'s modules and tensors computing ``out`` (a node, or a tuple of
+    nodes) from new placeholders (``inputs``: the node each one replaces -> its name), with only the
+    nodes in ``keep``."""
     g = fx.Graph()
     env: dict[fx.Node, fx.Node] = {}
     for old, name in inputs.items():
@@ -80,34 +91,61 @@ def _copy(gm: fx.GraphModule, keep: set[fx.Node], inputs: dict[fx.Node, str], ou
         if n in env or n not in keep or n.op in ("placeholder", "output"):
             continue
         env[n] = g.node_copy(n, lambda a: env[a])
-    g.output(env[out])
+    g.output(tuple(env[o] for o in out) if isinstance(out, tuple) else env[out])
     g.lint()
     return fx.GraphModule(gm, g)
 
 
 def split_graph(
-    gm: fx.GraphModule, image: fx.Node, state: fx.Node | None, actions: fx.Node, feature: fx.Node, where: str
+    gm: fx.GraphModule,
+    images,
+    states,
+    actions: fx.Node,
+    features,
+    where: str,
 ) -> tuple[fx.GraphModule, fx.GraphModule]:
-    """``(features, head)``: ``features(x) -> A`` (``feature``'s value) and ``head(A[, state]) ->``
-    the value of ``actions``. Raises :class:`PolicyError` (prefixed ``where``) when ``feature`` is
-    not on every path from ``image`` to ``actions``, or needs the state."""
-    if not _is_cut(feature, image, actions):
-        raise PolicyError(
-            f"{where}: feature map {feature.name!r} is not on every path from the image to the actions; "
-            "name one that is in the card's feature_map"
-        )
-    before = _needed(feature, None)
-    if state is not None and state in before:
-        raise PolicyError(
-            f"{where}: feature map {feature.name!r} is computed from the state; it must read the image only"
-        )
-    features = _copy(gm, before, {image: "images"}, feature)
-    after = _needed(actions, feature) - {feature}
-    head_inputs = {feature: "A"}
-    if state is not None:
-        head_inputs[state] = "state"
+    """``(features, head)`` cut at one feature node per image input.
+
+    ``images``/``features``: an image placeholder and its feature node, or lists of them in the
+    same order (one per camera); ``states``: the state placeholder(s) (None, a node or a list).
+    ``features(x_1, ..., x_n) -> A`` (one camera) or ``(A_1, ..., A_n)``, and
+    ``head(A_1, ..., A_n[, state_1, ...]) ->`` the value of ``actions``. Raises
+    :class:`PolicyError` (prefixed ``where``) when a feature node is not on every path from its
+    image to the actions, or is computed from another image or the state.
+    """
+    single = isinstance(images, fx.Node)
+    images = [images] if single else list(images)
+    features = [features] if isinstance(features, fx.Node) else list(features)
+    states = [] if states is None else ([states] if isinstance(states, fx.Node) else list(states))
+    before: set[fx.Node] = set()
+    for k, (image, feature) in enumerate(zip(images, features)):
+        if not _is_cut(feature, image, actions):
+            raise PolicyError(
+                f"{where}: feature map {feature.name!r} is not on every path from the image to the actions; "
+                "name one that is in the card's feature_map"
+            )
+        need = _needed(feature, None)
+        if any(s in need for s in states):
+            raise PolicyError(
+                f"{where}: feature map {feature.name!r} is computed from the state; it must read the image only"
+            )
+        others = [im.name for j, im in enumerate(images) if j != k and im in need]
+        if others:
+            raise PolicyError(
+                f"{where}: feature map {feature.name!r} is computed from input {others[0]!r} as well; each camera's "
+                "feature map must read its own image only"
+            )
+        before |= need
+    if len(set(features)) != len(features):
+        raise PolicyError(f"{where}: two cameras share the feature map {features[0].name!r}")
+    names = {image: "images" if single else f"images_{k}" for k, image in enumerate(images)}
+    feats = _copy(gm, before, names, features[0] if single else tuple(features))
+    after = _needed(actions, set(features)) - set(features)
+    head_inputs = {f: "A" if single else f"A_{k}" for k, f in enumerate(features)}
+    for k, s in enumerate(states):
+        head_inputs[s] = "state" if len(states) == 1 else f"state_{k}"
     head = _copy(gm, after, head_inputs, actions)
-    return features, head
+    return feats, head
 
 
 def _shapes(gm: fx.GraphModule, args: tuple) -> dict[fx.Node, tuple]:
@@ -126,32 +164,41 @@ def _shapes(gm: fx.GraphModule, args: tuple) -> dict[fx.Node, tuple]:
     return shapes
 
 
-def pick_feature_node(gm: fx.GraphModule, image: fx.Node, actions: fx.Node, args: tuple, where: str) -> fx.Node:
+def pick_feature_node(
+    gm: fx.GraphModule, image: fx.Node, actions: fx.Node, args: tuple, where: str, exclude=()
+) -> fx.Node:
     """The default feature map: the last 4-D float map ``(B, C, h, w)`` with ``h * w > 1`` through
-    which every path from ``image`` to ``actions`` passes (see the module docstring)."""
+    which every path from ``image`` to ``actions`` passes, computed from none of the nodes in
+    ``exclude`` (the other images and the state; see the module docstring)."""
     batch = args[0].shape[0]
     shapes = _shapes(gm, args)
     nodes = list(gm.graph.nodes)
+    exclude = set(exclude)
     for n in reversed(nodes):
         shape, dtype = shapes.get(n, ((), None))
         if len(shape) != 4 or shape[0] != batch or shape[2] * shape[3] <= 1 or not dtype.is_floating_point:
             continue
-        if n is not image and _is_cut(n, image, actions):
+        if n is not image and _is_cut(n, image, actions) and not (exclude & _needed(n, None)):
             return n
     raise PolicyError(
         f"{where}: no feature map for Grad-CAM: no 4-D (B, C, h, w) tensor with more than one cell lies on every "
-        "path from the image to the actions; name one in the card's feature_map"
+        f"path from the image {image.name!r} to the actions; name one in the card's feature_map"
     )
 
 
 class GraphPolicy(nn.Module):
     """A white-box policy from a file: ``features``/``head`` cut out of one fx graph.
 
-    Behaves as :class:`sim.policies.policy.VisuomotorPolicy` does for the attack: ``features(x)``
-    for images ``(B, 3, S, S)`` in [0, 1], ``head(A[, state])`` giving ``(B, 6)`` or ``(B, K, 6)``
-    as the contract says, ``act`` for rollouts. ``source`` is the file, ``format`` ``onnx`` or
-    ``pt2``, ``feature_map`` the node the graph was cut at, ``check`` what the conversion was
-    checked against (ONNX: onnxruntime on rendered frames).
+    Behaves as :class:`sim.policies.policy.VisuomotorPolicy` does for the attack. For a policy
+    reading one camera: ``features(x)`` for images ``(B, 3, H, W)`` in [0, 1] gives ``A``,
+    ``head(A[, state])`` gives ``(B, 6)`` or ``(B, K, 6)`` as the contract says. For several:
+    ``features({camera: (B, 3, H_c, W_c)})`` gives ``{camera: A_c}`` and ``head`` takes that dict.
+    Each camera's canonical frames (RGB in [0, 1], NCHW) become the model's own tensor inside
+    ``features`` (:func:`sim.policies.contract.to_model_image`), so gradients reach image space.
+    ``inputs`` is the :class:`sim.policies.contract.InputPlan` (which camera each input reads),
+    ``source`` the file, ``format`` ``onnx`` or ``pt2``, ``feature_map`` the node(s) the graph
+    was cut at, ``check`` what the conversion was checked against (ONNX: onnxruntime on rendered
+    frames).
     """
 
     white_box = True
@@ -165,13 +212,15 @@ class GraphPolicy(nn.Module):
         card=None,
         source: str | Path = "",
         format: str = "",
-        feature_map: str = "",
+        feature_map="",
+        inputs: InputPlan | None = None,
     ):
         super().__init__()
         self.features_graph = features
         self.head_graph = head
         self.image_size = int(image_size)
         self.contract = contract
+        self.inputs = inputs if inputs is not None else default_plan(image_size, contract)
         self.card = card
         self.source = Path(source)
         self.format = format
@@ -179,6 +228,10 @@ class GraphPolicy(nn.Module):
         self.check: dict = {}
         for p in self.parameters():
             p.requires_grad_(False)
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        return self.inputs.cameras
 
     @property
     def device(self) -> torch.device:
@@ -192,28 +245,50 @@ class GraphPolicy(nn.Module):
         self.training = bool(mode)
         return self
 
-    def features(self, x: torch.Tensor) -> torch.Tensor:
-        """``x: (B, 3, S, S)`` float in [0, 1] -> the feature map ``A``."""
-        if x.ndim != 4 or x.shape[1] != 3 or tuple(x.shape[2:]) != (self.image_size, self.image_size):
-            raise PolicyError(
-                f"images: policy expects (B, 3, {self.image_size}, {self.image_size}) float in [0, 1], got "
-                f"{tuple(x.shape)}"
-            )
-        return self.features_graph(x)
+    def _views(self, x) -> dict:
+        cams = self.cameras
+        if not isinstance(x, dict):
+            if len(cams) != 1:
+                raise PolicyError(f"images: policy reads cameras {', '.join(cams)}; pass {{camera: images}}")
+            x = {cams[0]: x}
+        for b in self.inputs.images:
+            v = x.get(b.camera)
+            if v is None:
+                raise PolicyError(f"images: policy reads camera {b.camera!r}; no images of it given")
+            if v.ndim != 4 or v.shape[1] != 3 or tuple(v.shape[2:]) != tuple(b.size):
+                which = f" from camera {b.camera!r}" if len(cams) > 1 else ""
+                raise PolicyError(
+                    f"images: policy expects (B, 3, {b.size[0]}, {b.size[1]}) float in [0, 1]{which}, got "
+                    f"{tuple(v.shape)}"
+                )
+        return x
 
-    def head(self, A: torch.Tensor, state: torch.Tensor | None = None) -> torch.Tensor:
-        """Feature map (and state ``(B, D)``) -> actions ``(B, 6)``, or ``(B, K, 6)`` for chunks."""
+    def features(self, x):
+        """``x: (B, 3, H, W)`` float in [0, 1] (or ``{camera: x}``) -> the feature map ``A`` (or
+        ``{camera: A}``)."""
+        views = self._views(x)
+        out = self.features_graph(*(to_model_image(views[b.camera], b.image) for b in self.inputs.images))
+        if isinstance(x, dict) or len(self.inputs.images) > 1:
+            outs = out if isinstance(out, (tuple, list)) else (out,)
+            return {b.camera: a for b, a in zip(self.inputs.images, outs)}
+        return out
+
+    def head(self, A, state: torch.Tensor | None = None) -> torch.Tensor:
+        """Feature map(s) (and state ``(B, D)``) -> actions ``(B, 6)``, or ``(B, K, 6)`` for chunks."""
+        maps = [A[b.camera] for b in self.inputs.images] if isinstance(A, dict) else [A]
+        B = maps[0].shape[0]
         D = self.contract.state_dim
+        states = []
         if D:
-            if state is None or tuple(state.shape) != (A.shape[0], D):
+            if state is None or tuple(state.shape) != (B, D):
                 got = None if state is None else tuple(state.shape)
-                raise PolicyError(f"state: policy expects a ({A.shape[0]}, {D}) state input, got {got}")
-            out = self.head_graph(A, state.to(A.dtype))
-        else:
-            out = self.head_graph(A)
+                raise PolicyError(f"state: policy expects a ({B}, {D}) state input, got {got}")
+            st = state.to(maps[0].dtype)
+            states = [st[:, b.slice[0] : b.slice[1]] for b in self.inputs.states]
+        out = self.head_graph(*maps, *states)
         if isinstance(out, (tuple, list)):
             out = out[0]
-        K, B = self.contract.action.chunk, A.shape[0]
+        K = self.contract.action.chunk
         if K == 1 and tuple(out.shape) in ((B, 1, 6), (B, 6)):
             return out.reshape(B, 6)
         if K > 1 and tuple(out.shape) in ((B, K, 6), (B, 6 * K)):
@@ -224,47 +299,73 @@ class GraphPolicy(nn.Module):
             f"got {tuple(out.shape)}"
         )
 
-    def forward(self, x: torch.Tensor, state: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x, state: torch.Tensor | None = None) -> torch.Tensor:
         return self.head(self.features(x), state)
+
+    def _tensor(self, images, size) -> torch.Tensor:
+        if isinstance(images, torch.Tensor):
+            x = images.to(self.device, torch.float32)
+            return x.permute(0, 3, 1, 2) / 255.0 if images.dtype == torch.uint8 else x
+        return torch.from_numpy(prepare_images(images, size)).to(self.device)
 
     @torch.no_grad()
     def act(self, images, state=None) -> np.ndarray:
-        """Actions ``(B, 6)`` (or ``(B, K, 6)``) float32 for env images ``(B, S, S, 3)`` uint8 or
-        ``(B, 3, S, S)`` floats, and the ``(B, D)`` state when the contract reads one."""
-        if isinstance(images, torch.Tensor):
-            x = images.to(self.device, torch.float32)
-            if images.dtype == torch.uint8:
-                x = x.permute(0, 3, 1, 2) / 255.0
+        """Actions ``(B, 6)`` (or ``(B, K, 6)``) float32 for env images ``(B, H, W, 3)`` uint8 or
+        ``(B, 3, H, W)`` floats (one camera), or ``{camera: images}``, and the ``(B, D)`` state when
+        the contract reads one."""
+        if isinstance(images, dict):
+            x = {b.camera: self._tensor(images[b.camera], b.size) for b in self.inputs.images if b.camera in images}
         else:
-            x = torch.from_numpy(prepare_images(images, self.image_size)).to(self.device)
+            x = self._tensor(images, self.inputs.images[0].size)
         st = None if state is None else torch.as_tensor(np.asarray(state, dtype=np.float32), device=self.device)
         return self(x, st).cpu().numpy().astype(np.float32)
 
     def __repr__(self) -> str:
-        return f"GraphPolicy({str(self.source)!r}, format={self.format!r}, image_size={self.image_size})"
+        cams = "" if self.cameras == (WRIST_CAMERA,) else f", cameras={list(self.cameras)}"
+        return f"GraphPolicy({str(self.source)!r}, format={self.format!r}, image_size={self.image_size}{cams})"
 
 
-def reference_frames(image_size: int, contract: PolicyContract, spec=None, n: int = CHECK_FRAMES):
-    """``(images (n, S, S, 3) uint8, state (n, D) float32 or None)``: wrist-camera frames of
-    ``spec`` (default: the built-in scene) rendered by the env at the policy's size, from fixed
-    initial configurations and the expert's first steps toward the goal (near and far views)."""
+def reference_frames(image_size: int, contract: PolicyContract, spec=None, n: int = CHECK_FRAMES, cameras=None):
+    """``(images, state (n, D) float32 or None)``: frames of ``spec`` (default: the built-in scene)
+    rendered by the env (the wrist camera at the policy's size ``image_size``), from fixed initial
+    configurations and the expert's first steps toward the goal (near and far views). ``images``
+    is the wrist camera's ``(n, S, S, 3)`` uint8 when ``cameras`` is None or ``("wrist",)``, else
+    ``{camera: (n, H_c, W_c, 3) uint8}`` of each camera named (one that ``spec`` lacks is one line)."""
     spec = load_spec(None) if spec is None else spec
+    cams = (WRIST_CAMERA,) if cameras is None else tuple(cameras)
     envs = 8
-    env = ReachEnv(spec, num_envs=envs, policy_image_size=image_size, seed=0)
+    env = ReachEnv(
+        spec,
+        num_envs=envs,
+        policy_image_size=image_size if WRIST_CAMERA in cams else None,
+        seed=0,
+        cameras=cams,
+    )
     try:
         images, poses = [], []
-        obs, _ = env.reset(seed=0)
+        env.reset(seed=0)
         while True:
-            images.append(obs)
+            images.append(env.images())
             poses.append(env.T_world_tcp)
-            if sum(len(i) for i in images) >= n:
+            if sum(len(i[cams[0]]) for i in images) >= n:
                 break
-            obs, *_ = env.step(env.expert_actions())
+            env.step(env.expert_actions())
     finally:
         env.close()
-    images = np.concatenate(images)[:n]
+    frames = {c: np.concatenate([i[c] for i in images])[:n] for c in cams}
     state = state_vector(contract, np.concatenate(poses)[:n], spec.gripper.opening_m)
-    return images, state
+    return (frames[WRIST_CAMERA] if cams == (WRIST_CAMERA,) else frames), state
+
+
+def example_inputs(plan, contract, batch: int = 2) -> tuple:
+    """Random model inputs of ``plan`` (in the model's input order), as the graph takes them."""
+    out = {}
+    for b in plan.images:
+        x = torch.rand(batch, 3, *b.size)
+        out[b.name] = to_model_image(x, b.image)
+    for s in plan.states:
+        out[s.name] = torch.zeros(batch, s.slice[1] - s.slice[0])
+    return tuple(out[n] for n in plan.order) if plan.order else tuple(out.values())
 
 
 def max_abs_difference(a: np.ndarray, b: np.ndarray) -> float:

@@ -49,19 +49,18 @@ class Policy(Protocol):
     def act(self, images, state=None) -> np.ndarray: ...
 
 
-def prepare_images(images, image_size: int) -> np.ndarray:
-    """``(B, 3, S, S)`` float32 in [0, 1] from env images ``(B, S, S, 3)`` uint8 or network input.
+def prepare_images(images, image_size) -> np.ndarray:
+    """``(B, 3, H, W)`` float32 in [0, 1] from env images ``(B, H, W, 3)`` uint8 or network input.
 
-    Raises :class:`PolicyError` naming the expected shape when ``images`` does not match.
+    ``image_size``: ``S`` (square) or ``(H, W)`` px. Raises :class:`PolicyError` naming the
+    expected shape when ``images`` does not match.
     """
+    H, W = (image_size, image_size) if isinstance(image_size, (int, np.integer)) else tuple(image_size)
     a = np.asarray(images)
     if a.ndim == 3:
         a = a[None]
     if a.ndim != 4:
-        raise PolicyError(
-            f"images: expected (B, {image_size}, {image_size}, 3) uint8 or (B, 3, {image_size}, {image_size}) float, "
-            f"got shape {a.shape}"
-        )
+        raise PolicyError(f"images: expected (B, {H}, {W}, 3) uint8 or (B, 3, {H}, {W}) float, got shape {a.shape}")
     if a.dtype == np.uint8:
         if a.shape[-1] != 3:
             raise PolicyError(f"images: uint8 images must be (B, H, W, 3), got shape {a.shape}")
@@ -72,8 +71,9 @@ def prepare_images(images, image_size: int) -> np.ndarray:
         a = np.ascontiguousarray(a, dtype=np.float32)
     else:
         raise PolicyError(f"images: expected uint8 or float, got dtype {a.dtype}")
-    if a.shape[2:] != (image_size, image_size):
-        raise PolicyError(f"images: policy expects {image_size}x{image_size} px, got {a.shape[2]}x{a.shape[3]}")
+    if a.shape[2:] != (H, W):
+        size = f"{H}x{W}" if H != W else f"{H}x{H}"
+        raise PolicyError(f"images: policy expects {size} px, got {a.shape[2]}x{a.shape[3]}")
     return a
 
 

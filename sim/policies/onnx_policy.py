@@ -8,7 +8,10 @@ the batch axis is dynamic. The policy card travels in the model's metadata (key
 names the backbone's last feature map (``feature_map``), where a white-box conversion
 (:mod:`sim.policies.onnx_torch`) cuts the graph for Grad-CAM. A user's ONNX policy with one
 image input and a ``(B, 6)`` delta output needs no card; any other contract is read from the card
-(:func:`attach_card` writes one into an existing file).
+(:func:`attach_card` writes one into an existing file). A file of another lab may have other inputs:
+the card's ``inputs`` bind each to a camera or the state (LeRobot's ``observation.images.<camera>``
+and ``observation.state`` bind by name), and :class:`OnnxPolicy` feeds each as the card says
+(:func:`sim.policies.contract.bind_inputs`).
 """
 
 from __future__ import annotations
@@ -24,8 +27,8 @@ import torch
 from pydantic import ValidationError
 
 from sim.policies.card import PolicyCard
-from sim.policies.contract import decode_actions, policy_contract
-from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError, prepare_images
+from sim.policies.contract import WRIST_CAMERA, bind_inputs, decode_actions, policy_contract
+from sim.policies.interface import PolicyError, prepare_images
 
 __all__ = ["export_onnx", "attach_card", "OnnxPolicy", "CARD_METADATA_KEY", "DEFAULT_OPSET"]
 
@@ -132,22 +135,8 @@ class OnnxPolicy:
         except Exception as err:  # onnxruntime raises its own exception types for bad files
             raise PolicyError(f"{self.path}: not a loadable ONNX model ({str(err).splitlines()[0]})") from None
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
-        if len(inputs) not in (1, 2) or len(outputs) < 1:
-            raise PolicyError(
-                f"{self.path}: a policy needs an image input (and optionally a state input) and an action output, "
-                f"got {len(inputs)} inputs"
-            )
-        shape = inputs[0].shape
-        if len(shape) != 4 or shape[1] != 3 or not isinstance(shape[2], int) or shape[2] != shape[3]:
-            raise PolicyError(f"{self.path}: input {inputs[0].name!r} must be (B, 3, S, S) with fixed S, got {shape}")
-        self.input_name, self.output_name = inputs[0].name, outputs[0].name
-        self.state_name = inputs[1].name if len(inputs) == 2 else None
-        self.image_size = int(shape[2])
-        if not IMAGE_SIZE_MIN_PX <= self.image_size <= IMAGE_SIZE_MAX_PX:
-            raise PolicyError(
-                f"{self.path}: input {inputs[0].name!r} takes {self.image_size} px images; advobj renders "
-                f"{IMAGE_SIZE_MIN_PX}..{IMAGE_SIZE_MAX_PX} px"
-            )
+        if not inputs or not outputs:
+            raise PolicyError(f"{self.path}: a policy needs an image input and an action output")
         meta = self.session.get_modelmeta().custom_metadata_map
         self.card = None
         if CARD_METADATA_KEY in meta:
@@ -157,45 +146,64 @@ class OnnxPolicy:
                 raise PolicyError(
                     f"{self.path}: metadata {CARD_METADATA_KEY}: not a valid policy card ({str(err).splitlines()[0]})"
                 ) from None
-            if self.card.arch.image_size != self.image_size:
-                raise PolicyError(
-                    f"{self.path}: card says {self.card.arch.image_size} px but the graph takes {self.image_size} px"
-                )
-
         self.contract = policy_contract(self)
-        D = self.contract.state_dim
-        if D and self.state_name is None:
-            raise PolicyError(
-                f"{self.path}: the card's contract reads state {list(self.contract.state)} but the graph has no "
-                "state input"
-            )
-        if self.state_name is not None:
-            st = inputs[1].shape
-            if not D:
-                raise PolicyError(
-                    f"{self.path}: the graph has a second input {self.state_name!r} but no card says what it holds; "
-                    f"write a card with contract.state (sim.policies.onnx_policy.attach_card)"
-                )
-            if len(st) != 2 or (isinstance(st[1], int) and st[1] != D):
-                raise PolicyError(
-                    f"{self.path}: input {self.state_name!r} must be (B, {D}) for state "
-                    f"{list(self.contract.state)}, got {st}"
-                )
+        card = self.card
+        self.inputs = bind_inputs(
+            None if card is None else card.inputs,
+            [(i.name, tuple(i.shape)) for i in inputs],
+            [o.name for o in outputs],
+            self.contract,
+            None if card is None else card.action_output,
+            f"{self.path}: ",
+        )
+        if card is not None and (why := card.image_size_mismatch(self.inputs, f"{self.path}: ")):
+            raise PolicyError(why)
+        first = self.inputs.images[0]
+        wrist = [b for b in self.inputs.images if b.camera == WRIST_CAMERA]
+        self.image_size = int((wrist or [first])[0].size[0])
+        # the single-camera names older callers read (the reference check, the CLI's report)
+        self.input_name = first.name
+        self.state_name = self.inputs.states[0].name if self.inputs.states else None
+        self.output_name = self.inputs.output
 
-    def act(self, images, state=None) -> np.ndarray:
-        """Actions ``(B, 6)`` (or ``(B, K, 6)``) float32 for env images ``(B, S, S, 3)`` uint8 or
-        ``(B, 3, S, S)`` floats, and the ``(B, D)`` state when the contract reads one."""
-        x = prepare_images(images, self.image_size)
-        feeds = {self.input_name: x}
-        if self.state_name is not None:
+    def _views(self, images) -> dict:
+        """``{camera: (B, 3, H, W)}`` canonical frames of ``images`` (one array: the sole camera)."""
+        plan = self.inputs
+        if not isinstance(images, dict):
+            if len(plan.cameras) != 1:
+                raise PolicyError(f"{self.path}: images: reads cameras {', '.join(plan.cameras)}; pass a dict")
+            images = {plan.cameras[0]: images}
+        out = {}
+        for b in plan.images:
+            if b.camera not in images:
+                raise PolicyError(f"{self.path}: images: no images of camera {b.camera!r}")
+            try:
+                out[b.camera] = prepare_images(images[b.camera], b.size)
+            except PolicyError as err:
+                raise PolicyError(f"{self.path}: camera {b.camera!r}: {err}") from None
+        return out
+
+    def feeds(self, images, state=None) -> dict:
+        """onnxruntime's feeds for env images (one array or ``{camera: array}``) and the ``(B, D)`` state."""
+        views = self._views(images)
+        B = len(next(iter(views.values())))
+        st = None
+        if self.inputs.states:
             if state is None:
                 raise PolicyError(f"{self.path}: state: this policy reads {list(self.contract.state)}; no state given")
             st = np.ascontiguousarray(state, dtype=np.float32)
-            if st.shape != (len(x), self.contract.state_dim):
-                raise PolicyError(f"{self.path}: state: expected ({len(x)}, {self.contract.state_dim}), got {st.shape}")
-            feeds[self.state_name] = st
+            if st.shape != (B, self.contract.state_dim):
+                raise PolicyError(f"{self.path}: state: expected ({B}, {self.contract.state_dim}), got {st.shape}")
+        return {k: np.ascontiguousarray(v, np.float32) for k, v in self.inputs.feeds(views, st).items()}
+
+    def act(self, images, state=None) -> np.ndarray:
+        """Actions ``(B, 6)`` (or ``(B, K, 6)``) float32 for env images ``(B, H, W, 3)`` uint8 or
+        ``(B, 3, H, W)`` floats (one array for a one-camera policy, else ``{camera: array}``), and
+        the ``(B, D)`` state when the contract reads one."""
+        feeds = self.feeds(images, state)
+        B = len(next(iter(feeds.values())))
         out = self.session.run([self.output_name], feeds)[0]
-        out = decode_actions(np.asarray(out), self.contract, len(x))
+        out = decode_actions(np.asarray(out), self.contract, B)
         if self.contract.action.chunk == 1:
             out = out[:, 0]
         return out.astype(np.float32)

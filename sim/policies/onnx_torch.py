@@ -34,15 +34,17 @@ import onnx
 import torch
 from torch import fx
 
-from sim.policies.contract import decode_actions
+from sim.policies.contract import check_scene, decode_actions
 from sim.policies.graph_policy import (
     GraphPolicy,
+    example_inputs,
     max_abs_difference,
     pick_feature_node,
     reference_frames,
     split_graph,
 )
-from sim.policies.interface import PolicyError, prepare_images
+from sim.policies.interface import PolicyError
+from sim.spec import load_spec
 
 __all__ = [
     "ATOL",
@@ -167,18 +169,60 @@ def _producers(gm: fx.GraphModule) -> dict[str, fx.Node]:
     return out
 
 
-def _run_reference(onnx_policy, images: np.ndarray, state: np.ndarray | None) -> np.ndarray:
-    """onnxruntime's raw first output on the frames, in batches the graph accepts."""
-    x = prepare_images(images, onnx_policy.image_size)
+def _run_reference(onnx_policy, images, state: np.ndarray | None) -> tuple[np.ndarray, int]:
+    """onnxruntime's raw action output on the frames (one array or ``{camera: array}``), in batches
+    the graph accepts; ``(outputs, batch)``."""
+    feeds = onnx_policy.feeds(images, state)
+    n = len(next(iter(feeds.values())))
     b = onnx_policy.session.get_inputs()[0].shape[0]
-    step = b if isinstance(b, int) and b > 0 else len(x)
+    step = b if isinstance(b, int) and b > 0 else n
     outs = []
-    for i in range(0, len(x), step):
-        feeds = {onnx_policy.input_name: x[i : i + step]}
-        if onnx_policy.state_name is not None:
-            feeds[onnx_policy.state_name] = np.ascontiguousarray(state[i : i + step], dtype=np.float32)
-        outs.append(np.asarray(onnx_policy.session.run([onnx_policy.output_name], feeds)[0]))
+    for i in range(0, n, step):
+        part = {k: v[i : i + step] for k, v in feeds.items()}
+        outs.append(np.asarray(onnx_policy.session.run([onnx_policy.output_name], part)[0]))
     return np.concatenate(outs), step
+
+
+def _feature_nodes(card, plan, gm, images, state_nodes, actions, producers, where, example):
+    """One feature node per image input (card ``feature_map``: a name, or ``{camera: name}``; else
+    picked, :func:`sim.policies.graph_policy.pick_feature_node`); ``(nodes, names)``."""
+    wanted = getattr(card, "feature_map", None)
+    if isinstance(wanted, str):
+        wanted = {plan.images[0].camera: wanted} if len(plan.images) == 1 else None
+        if wanted is None:
+            raise PolicyError(
+                f"{where}: card feature_map: this policy reads cameras {', '.join(plan.cameras)}; name one map per "
+                "camera ({camera: name})"
+            )
+    wanted = dict(wanted or {})
+    for cam in wanted:
+        if cam not in plan.cameras:
+            raise PolicyError(f"{where}: card feature_map: {cam!r} is not a camera the policy reads")
+    nodes, names = [], []
+    for b, image in zip(plan.images, images):
+        name = wanted.get(b.camera)
+        if name:
+            if name not in producers:
+                raise PolicyError(f"{where}: card feature_map: {name!r} is not a tensor computed in the graph")
+            node = producers[name]
+        else:
+            others = set(images) - {image} | set(state_nodes)
+            try:
+                node = pick_feature_node(gm, image, actions, example, where, exclude=others)
+            except PolicyError:
+                raise
+            except Exception as err:  # noqa: BLE001 - the converted graph failing on a plain input
+                msg = " ".join(str(err).split())[:200]
+                raise PolicyError(f"{where}: the converted graph fails on a batch of 2 plain inputs ({msg})") from None
+            name = next((k for k, v in producers.items() if v is node), node.name)
+        nodes.append(node)
+        names.append(name)
+    return nodes, names
+
+
+def _rows(views: dict, i: int, step: int, single: bool):
+    part = {c: v[i : i + step] for c, v in views.items()}
+    return next(iter(part.values())) if single else part
 
 
 def convert_onnx(onnx_policy, device="cpu", spec=None) -> GraphPolicy:
@@ -213,42 +257,52 @@ def convert_onnx(onnx_policy, device="cpu", spec=None) -> GraphPolicy:
     initializers = {i.name for i in model.graph.initializer}
     names = [i.name for i in model.graph.input if i.name not in initializers]
     by_name = dict(zip(names, placeholders))
-    image = by_name[onnx_policy.input_name]
-    state = by_name.get(onnx_policy.state_name) if onnx_policy.state_name else None
+    plan = onnx_policy.inputs
+    images = [by_name[b.name] for b in plan.images]
+    state_nodes = [by_name[s.name] for s in plan.states]
     producers = _producers(gm)
     if onnx_policy.output_name not in producers:
         raise PolicyError(f"{path}: output {onnx_policy.output_name!r} is not computed by any node")
     actions = producers[onnx_policy.output_name]
-    S, D = onnx_policy.image_size, onnx_policy.contract.state_dim
+    S = onnx_policy.image_size
     card = onnx_policy.card
-    wanted = getattr(card, "feature_map", None)
-    if wanted:
-        if wanted not in producers:
-            raise PolicyError(f"{path}: card feature_map: {wanted!r} is not a tensor computed in the graph")
-        feature = producers[wanted]
-    else:
-        example = (torch.rand(2, 3, S, S),) + ((torch.zeros(2, D),) if state is not None else ())
-        try:
-            feature = pick_feature_node(gm, image, actions, example, str(path))
-        except PolicyError:
-            raise
-        except Exception as err:  # noqa: BLE001 - the converted graph failing on a plain input
-            msg = " ".join(str(err).split())[:200]
-            raise PolicyError(f"{path}: the converted graph fails on a ({2}, 3, {S}, {S}) input ({msg})") from None
-        wanted = next((k for k, v in producers.items() if v is feature), feature.name)
-    features, head = split_graph(gm, image, state, actions, feature, str(path))
-    policy = GraphPolicy(
-        features, head, S, onnx_policy.contract, card=card, source=path, format="onnx", feature_map=wanted
+    example = example_inputs(plan, onnx_policy.contract)
+    feats, wanted = _feature_nodes(card, plan, gm, images, state_nodes, actions, producers, str(path), example)
+    single = len(images) == 1
+    features, head = split_graph(
+        gm,
+        images[0] if single else images,
+        state_nodes,
+        actions,
+        feats[0] if single else feats,
+        str(path),
     )
-    images, st = reference_frames(S, onnx_policy.contract, spec)
-    ref, step = _run_reference(onnx_policy, images, st)
-    n = len(images)
+    feature_map = wanted[0] if single else dict(zip(plan.cameras, wanted))
+    policy = GraphPolicy(
+        features,
+        head,
+        S,
+        onnx_policy.contract,
+        card=card,
+        source=path,
+        format="onnx",
+        feature_map=feature_map,
+        inputs=plan,
+    )
+    check_scene(policy, load_spec(None) if spec is None else spec)
+    frames, st = reference_frames(S, onnx_policy.contract, spec, cameras=plan.cameras)
+    ref, step = _run_reference(onnx_policy, frames, st)
+    n = len(ref)
     try:
-        x = torch.from_numpy(prepare_images(images, S))
+        views = onnx_policy._views(frames)
+        xs = {c: torch.from_numpy(v) for c, v in views.items()}
         sv = None if st is None else torch.from_numpy(st)
         with torch.no_grad():
             got = np.concatenate(
-                [policy(x[i : i + step], None if sv is None else sv[i : i + step]).numpy() for i in range(0, n, step)]
+                [
+                    policy(_rows(xs, i, step, single), None if sv is None else sv[i : i + step]).numpy()
+                    for i in range(0, n, step)
+                ]
             )
     except PolicyError:
         raise

@@ -42,13 +42,14 @@ import zipfile
 from pathlib import Path
 
 import torch
+import torch.utils._pytree as pytree
 from torch._export.serde.schema import SCHEMA_VERSION
 from torch.export.pt2_archive import constants as pt2c
 
 from sim.policies.card import PolicyCard
-from sim.policies.contract import policy_contract
-from sim.policies.graph_policy import GraphPolicy, pick_feature_node, split_graph
-from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError
+from sim.policies.contract import WRIST_CAMERA, bind_inputs, policy_contract
+from sim.policies.graph_policy import GraphPolicy, example_inputs, pick_feature_node, split_graph
+from sim.policies.interface import PolicyError
 
 __all__ = ["CARD_ENTRY", "MAX_PT2_BYTES", "export_pt2", "check_archive", "load_pt2"]
 
@@ -302,6 +303,22 @@ def _card(text: str | None, where: str):
         raise PolicyError(f"{where}: {CARD_ENTRY}: not a valid policy card ({str(err).splitlines()[0]})") from None
 
 
+def _leaf_names(spec, flat_names: list[str]) -> list[str]:
+    """The name of each flat input (output) of a program: its key when it sits in a dict (LeRobot's
+    ``{"observation.images.wrist": ...}``), else the program's own name for it."""
+    try:
+        tree = pytree.tree_unflatten(list(range(len(flat_names))), spec)
+        leaves = pytree.tree_flatten_with_path(tree)[0]
+    except Exception:  # noqa: BLE001 - a spec that does not describe the flat values: the program's names
+        return list(flat_names)
+    names = list(flat_names)
+    for path, k in leaves:
+        keys = [e.key for e in path if isinstance(e, pytree.MappingKey)]
+        if isinstance(k, int) and 0 <= k < len(names) and keys and isinstance(keys[-1], str):
+            names[k] = keys[-1]
+    return names
+
+
 def load_pt2(path: str | Path, device="cpu") -> GraphPolicy:
     """The white-box :class:`GraphPolicy` of the ``.pt2`` file ``path`` (checked as the module
     docstring says). Raises :class:`PolicyError` in one line naming the file."""
@@ -329,20 +346,10 @@ def load_pt2(path: str | Path, device="cpu") -> GraphPolicy:
         log.setLevel(level)
     users = list(ep.graph_signature.user_inputs)
     metas = {n.name: n.meta.get("val") for n in ep.graph.nodes if n.op == "placeholder"}
-    if len(users) not in (1, 2) or len(ep.graph_signature.user_outputs) < 1:
-        raise PolicyError(
-            f"{where}: a policy takes an image (and optionally a state) and returns actions; this program takes "
-            f"{len(users)} inputs"
-        )
-    shape = tuple(getattr(metas.get(users[0]), "shape", ()))
-    if len(shape) != 4 or shape[1] != 3 or not isinstance(shape[2], int) or shape[2] != shape[3]:
-        raise PolicyError(f"{where}: input {users[0]!r} must be (B, 3, S, S) with a fixed S, got {shape}")
-    S = int(shape[2])
-    if not IMAGE_SIZE_MIN_PX <= S <= IMAGE_SIZE_MAX_PX:
-        raise PolicyError(
-            f"{where}: input {users[0]!r} takes {S} px images; advobj renders "
-            f"{IMAGE_SIZE_MIN_PX}..{IMAGE_SIZE_MAX_PX} px"
-        )
+    if not users or len(ep.graph_signature.user_outputs) < 1:
+        raise PolicyError(f"{where}: a policy takes an image (and optionally a state) and returns actions")
+    in_names = _leaf_names(ep.call_spec.in_spec, users)
+    out_names = _leaf_names(ep.call_spec.out_spec, list(ep.graph_signature.user_outputs))
 
     class _Carrier:  # policy_contract reads a card attribute
         pass
@@ -350,53 +357,73 @@ def load_pt2(path: str | Path, device="cpu") -> GraphPolicy:
     carrier = _Carrier()
     carrier.card = card
     contract = policy_contract(carrier)
-    if card is not None and card.arch.image_size != S:
-        raise PolicyError(f"{where}: card says {card.arch.image_size} px but the program takes {S} px")
-    D = contract.state_dim
-    if D and len(users) != 2:
-        raise PolicyError(
-            f"{where}: the card's contract reads state {list(contract.state)} but the program has no state input"
-        )
-    if len(users) == 2:
-        st = tuple(getattr(metas.get(users[1]), "shape", ()))
-        if not D:
-            raise PolicyError(
-                f"{where}: the program has a second input {users[1]!r} but no card says what it holds; write a card "
-                "with contract.state into the file"
-            )
-        if len(st) != 2 or (isinstance(st[1], int) and st[1] != D):
-            raise PolicyError(
-                f"{where}: input {users[1]!r} must be (B, {D}) for state {list(contract.state)}, got {st}"
-            )
+    plan = bind_inputs(
+        None if card is None else card.inputs,
+        [(name, tuple(getattr(metas.get(u), "shape", ()))) for name, u in zip(in_names, users)],
+        out_names,
+        contract,
+        None if card is None else card.action_output,
+        f"{where}: ",
+    )
+    if card is not None and (why := card.image_size_mismatch(plan, f"{where}: ")):
+        raise PolicyError(why)
+    wrist = [b for b in plan.images if b.camera == WRIST_CAMERA]
+    S = int((wrist or list(plan.images))[0].size[0])
     nodes = {n.name: n for n in gm.graph.nodes}
-    placeholders = [n for n in gm.graph.nodes if n.op == "placeholder"]
-    image = placeholders[0]
-    state = placeholders[1] if len(placeholders) > 1 else None
+    placeholders = dict(zip(in_names, (n for n in gm.graph.nodes if n.op == "placeholder")))
+    images = [placeholders[b.name] for b in plan.images]
+    state_nodes = [placeholders[st.name] for st in plan.states]
     out_node = next(n for n in gm.graph.nodes if n.op == "output")
     flat = out_node.args[0]
+    if isinstance(flat, (tuple, list)) and len(flat) == len(out_names):
+        flat = flat[out_names.index(plan.output)]
     while isinstance(flat, (tuple, list)):
         flat = flat[0]
     if not isinstance(flat, torch.fx.Node):
-        raise PolicyError(f"{where}: the program's first output is not a tensor")
+        raise PolicyError(f"{where}: the program's output {plan.output!r} is not a tensor")
     actions = flat
-    example = (torch.rand(2, 3, S, S),) + ((torch.zeros(2, D),) if state is not None else ())
+    example = example_inputs(plan, contract)
+    single = len(images) == 1
     try:
-        if card is not None and card.feature_map:
-            if card.feature_map not in nodes:
-                raise PolicyError(f"{where}: card feature_map: {card.feature_map!r} is not a node of the program")
-            feature = nodes[card.feature_map]
-        else:
-            feature = pick_feature_node(gm, image, actions, example, where)
-        features, head = split_graph(gm, image, state, actions, feature, where)
-        policy = GraphPolicy(features, head, S, contract, card=card, source=p, format="pt2", feature_map=feature.name)
+        wanted = card.feature_map if card is not None else None
+        if isinstance(wanted, str):
+            if not single:
+                raise PolicyError(
+                    f"{where}: card feature_map: this policy reads cameras {', '.join(plan.cameras)}; name one map "
+                    "per camera ({camera: name})"
+                )
+            wanted = {plan.cameras[0]: wanted}
+        wanted = dict(wanted or {})
+        for cam in wanted:
+            if cam not in plan.cameras:
+                raise PolicyError(f"{where}: card feature_map: {cam!r} is not a camera the policy reads")
+        feats = []
+        for b, image in zip(plan.images, images):
+            name = wanted.get(b.camera)
+            if name:
+                if name not in nodes:
+                    raise PolicyError(f"{where}: card feature_map: {name!r} is not a node of the program")
+                feats.append(nodes[name])
+            else:
+                others = set(images) - {image} | set(state_nodes)
+                feats.append(pick_feature_node(gm, image, actions, example, where, exclude=others))
+        features, head = split_graph(
+            gm, images[0] if single else images, state_nodes, actions, feats[0] if single else feats, where
+        )
+        feature_map = feats[0].name if single else {b.camera: f.name for b, f in zip(plan.images, feats)}
+        policy = GraphPolicy(
+            features, head, S, contract, card=card, source=p, format="pt2", feature_map=feature_map, inputs=plan
+        )
+        views = {b.camera: torch.rand(2, 3, *b.size) for b in plan.images}
+        st = torch.zeros(2, contract.state_dim) if contract.state_dim else None
         with torch.no_grad():
-            policy(*example)
+            policy(views if not single else views[plan.cameras[0]], st)
     except PolicyError:
         raise
     except Exception as err:  # noqa: BLE001 - the program failing on a plain input
         msg = " ".join(str(err).split())[:200]
         raise PolicyError(
-            f"{where}: the program fails on a (2, 3, {S}, {S}) input ({type(err).__name__}: {msg})"
+            f"{where}: the program fails on a batch of 2 plain inputs ({type(err).__name__}: {msg})"
         ) from None
     policy.check = {"reference": "none (the exported program is the policy)", "format": "pt2"}
     return policy.to(torch.device(device))
