@@ -16,8 +16,17 @@ from tqdm.auto import tqdm
 from sim.action import nonfinite_rows
 from sim.configio import StrictModel
 from sim.env import ReachEnv
-from sim.policies.contract import ActionQueue, call_policy, decode_actions, policy_contract, state_vector, to_delta
-from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX
+from sim.policies.contract import (
+    WRIST_CAMERA,
+    ActionQueue,
+    call_policy,
+    decode_actions,
+    policy_cameras,
+    policy_contract,
+    state_vector,
+    to_delta,
+)
+from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError
 from sim.stats import Proportion, proportion
 from sim.variations import Randomization
 
@@ -123,7 +132,8 @@ def rollout(
         query: ``query(slots, state) -> raw outputs (len(slots), ...)`` for the slots that need a
             new chunk, ``state`` their ``(len(slots), D)`` state or None; default: the policy on
             the env's observations (all ``N`` rows when ``fixed_batch``, so an image's action never
-            depends on how many episodes share its step).
+            depends on how many episodes share its step); a policy reading several cameras gets
+            ``env.images()`` (the env must render them: ``ReachEnv(cameras=...)``).
         on_fill: ``on_fill(slot, j)`` after a slot is reset to start ``j`` (per-episode state).
     """
     starts = list(starts)
@@ -133,13 +143,23 @@ def rollout(
     N = env.num_envs
     gripper_m = float(env.spec.gripper.opening_m)
     if query is None:
+        cameras = policy_cameras(policy)
+        if cameras != (WRIST_CAMERA,):
+            missing = [c for c in cameras if c not in env.cameras]
+            if missing:
+                raise PolicyError(
+                    f"cameras: the policy reads {', '.join(cameras)} but the env renders {', '.join(env.cameras)}; "
+                    f"make it with cameras={cameras}"
+                )
 
         def query(slots, state):
-            obs = env.observe()
+            # one camera: the observation as always; several: every camera's images, by name
+            obs = env.observe() if cameras == (WRIST_CAMERA,) else env.images()
             if fixed_batch:
                 full = state_vector(contract, env.T_world_tcp, gripper_m)
                 return np.asarray(call_policy(policy, obs, full))[slots]
-            return np.asarray(call_policy(policy, obs[slots], state))
+            part = {k: v[slots] for k, v in obs.items()} if isinstance(obs, dict) else obs[slots]
+            return np.asarray(call_policy(policy, part, state))
 
     queue = ActionQueue(contract, N)
     todo = list(range(len(starts)))[::-1]

@@ -23,7 +23,8 @@ def eval_command(
         "-c",
         help="condition name (repeatable); 'clean' always runs. "
         "Names: clean attack patch light_bright light_dim light_random noise bkg_varied stereo shape_dog shape_duck "
-        "shape_cube shape_cylinder",
+        "shape_cube shape_cylinder; for a policy reading several cameras, attack_wrist_only and "
+        "attack_<camera>_only show the texture to that camera alone (attack: to all)",
     ),
     attack: Optional[Path] = typer.Option(
         None, help="attack run directory (texture for attack/variation/stereo conditions)"

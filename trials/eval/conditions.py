@@ -1,7 +1,9 @@
 """Evaluation conditions: one CLI name each, built from an explicit name -> builder table.
 
 A :class:`Condition` says how the adversarial object looks (benign, or an attack texture on a
-given mesh) and how the scene is observed (appearance randomisation, stereo). Every condition is
+given mesh), how the scene is observed (appearance randomisation, stereo) and, for a policy
+reading several cameras, which of them show the texture (``attack``: all; ``attack_wrist_only``,
+``attack_<camera>_only``: one, the others seeing the benign look). Every condition is
 evaluated on the same task-feasible initial configurations (paired design), with the standard
 pyrender renderer; the differentiable composite is never used.
 
@@ -12,6 +14,7 @@ texture was optimised on (``None`` = the scene's own adversarial mesh).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -28,6 +31,7 @@ __all__ = [
     "AttackSource",
     "Sources",
     "CONDITIONS",
+    "CAMERA_ONLY",
     "SHAPES",
     "NOISE_STD",
     "STEREO_BASELINE_M",
@@ -80,6 +84,9 @@ class Condition:
     source: AttackSource | None = None
     randomization: Randomization = Randomization()
     stereo: bool = False
+    # Which cameras show the attack texture (None: every camera the policy reads); the others show
+    # the benign look. "attack_wrist_only" and "attack_<camera>_only" say which camera carries it.
+    attacked_cameras: tuple[str, ...] | None = None
 
     @property
     def texture(self) -> np.ndarray | None:
@@ -96,6 +103,8 @@ class Condition:
             "source": None if self.source is None else self.source.to_dict(),
             "randomization": {"light": r.light, "background": r.background, "noise_std": r.noise_std},
             "stereo": self.stereo,
+            # only when set: the conditions before it dump (and hash) as they did
+            **({} if self.attacked_cameras is None else {"attacked_cameras": list(self.attacked_cameras)}),
         }
 
 
@@ -148,6 +157,19 @@ def _stereo(s: Sources) -> Condition:
     return Condition("stereo", _need(s.attack, "--attack DIR", "stereo"), stereo=True)
 
 
+def _camera_only(camera: str) -> Callable[[Sources], Condition]:
+    """The attack texture in camera ``camera``'s view only (the other cameras see the benign look)."""
+    name = f"attack_{camera}_only"
+
+    def build(s: Sources) -> Condition:
+        return Condition(name, _need(s.attack, "--attack DIR", name), attacked_cameras=(camera,))
+
+    return build
+
+
+CAMERA_ONLY = re.compile(r"^attack_([A-Za-z0-9][A-Za-z0-9_-]*)_only$")
+
+
 def _shape(shape: str) -> Callable[[Sources], Condition]:
     def build(s: Sources) -> Condition:
         src = _need(s.shapes.get(shape), f"--shape {shape}=DIR", f"shape_{shape}")
@@ -174,6 +196,9 @@ CONDITIONS: dict[str, Callable[[Sources], Condition]] = {
     "bkg_varied": _variation("bkg_varied", background="varied"),
     "stereo": _stereo,
     **{f"shape_{s}": _shape(s) for s in SHAPES},
+    # Which camera carries the attack (policies reading several cameras): "attack" shows the texture
+    # to every camera; these to the wrist camera only, and attack_<camera>_only to one scene camera.
+    "attack_wrist_only": _camera_only("wrist"),
 }
 
 
@@ -184,10 +209,13 @@ def build_conditions(names, sources: Sources) -> list[Condition]:
     for n in ordered:
         if n in seen:
             continue
-        if n not in CONDITIONS:
-            raise ConditionError(f"conditions: unknown condition {n!r}; choose from {', '.join(CONDITIONS)}")
+        m = CAMERA_ONLY.match(n)
+        if n not in CONDITIONS and m is None:
+            raise ConditionError(
+                f"conditions: unknown condition {n!r}; choose from {', '.join(CONDITIONS)}, attack_<camera>_only"
+            )
         seen.add(n)
-        out.append(CONDITIONS[n](sources))
+        out.append(CONDITIONS[n](sources) if n in CONDITIONS else _camera_only(m.group(1))(sources))
     return out
 
 

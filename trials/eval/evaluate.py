@@ -163,6 +163,7 @@ def rollout_condition(
         randomization=cond.randomization,
         on_fill=fill,
         on_actions=measure,
+        attacked_cameras=cond.attacked_cameras,
     )
 
 
