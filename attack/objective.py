@@ -67,8 +67,11 @@ def constant_schedule(iteration: int, iterations: int) -> float:
 class FrameBatch:
     """B image-action pairs under one texture, with each input a term may need computed once.
 
-    ``images (B, 3, H, W)`` rendered with the texture (carrying its graph); ``T_world_tcp
-    (B, 4, 4)``; ``p_adv (B, 3)`` m; ``adv_mask``/``goal_mask`` ``(B, H, W)`` bool numpy;
+    ``images (B, 3, H, W)`` rendered with the texture (carrying its graph), or ``{camera: (B, 3,
+    H_c, W_c)}`` for a policy reading several cameras; ``T_world_tcp (B, 4, 4)``; ``p_adv (B, 3)``
+    m; ``adv_mask``/``goal_mask`` ``(B, H, W)`` bool numpy (of ``saliency_camera``'s images when
+    there are several: Grad-CAM and the saliency terms read that camera's feature map, the wrist
+    camera's when the policy reads it);
     ``policy``: the run's differentiable policy adapter (``features``, ``head``, ``state``,
     ``next_delta``, ``act``); ``clean_images`` a callable giving ``(B, 3, H, W)`` without the
     adversarial texture (only when a term needs ``clean_actions``).
@@ -81,6 +84,7 @@ class FrameBatch:
     goal_mask: np.ndarray
     policy: object
     clean_images: Callable[[], torch.Tensor] | None = None
+    saliency_camera: str | None = None
     _cache: dict = field(default_factory=dict, repr=False)
 
     def _get(self, key, make):
@@ -94,7 +98,7 @@ class FrameBatch:
 
     @property
     def features(self) -> torch.Tensor:
-        """``A: (B, C, h, w)`` the policy's feature maps of ``images``."""
+        """``A: (B, C, h, w)`` the policy's feature maps of ``images`` (``{camera: A}`` for several)."""
         return self._get("features", lambda: self.policy.policy.features(self.images))
 
     @property
@@ -110,13 +114,19 @@ class FrameBatch:
 
     @property
     def cam(self) -> torch.Tensor:
-        """``S: (B, h, w)`` differentiable Grad-CAM of the executed-next motion."""
-        return self._get("cam", lambda: grad_cam(self.features, self.actions))
+        """``S: (B, h, w)`` differentiable Grad-CAM of the executed-next motion (for several
+        cameras, on the ``saliency_camera``'s feature map, the camera the masks are of)."""
+
+        def make():
+            A = self.features
+            return grad_cam(A[self.saliency_camera] if isinstance(A, dict) else A, self.actions)
+
+        return self._get("cam", make)
 
     @property
     def masks(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(adv_mask, goal_mask)`` as ``(B, H, W)`` bool tensors on the images' device."""
-        dev = self.images.device
+        dev = self.images[self.saliency_camera].device if isinstance(self.images, dict) else self.images.device
         return self._get(
             "masks",
             lambda: (torch.from_numpy(self.adv_mask).to(dev), torch.from_numpy(self.goal_mask).to(dev)),

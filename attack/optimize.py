@@ -52,7 +52,15 @@ from sim.env import ReachEnv
 from sim.errors import AdvobjError, format_validation_error
 from sim.outcome import object_distances
 from sim.policies.checkpoint import as_white_box
-from sim.policies.contract import first_action, policy_contract, state_vector, to_delta
+from sim.policies.contract import (
+    WRIST_CAMERA,
+    check_scene,
+    first_action,
+    policy_cameras,
+    policy_contract,
+    state_vector,
+    to_delta,
+)
 from sim.policies.interface import require_white_box
 from sim.policies.rollout import rollout
 from sim.variations import Randomization
@@ -243,18 +251,25 @@ class AttackRun:
                 )
             self.val_pool = val_pool[: cfg.validation_episodes]
         randomization = Randomization(light="random") if cfg.light_randomization else None
+        # Every camera the policy reads, and only those; one hybrid renderer each. The saliency
+        # term reads the wrist camera's feature map (the first camera's if the policy has no wrist).
+        check_scene(policy, spec)
+        self.cameras = policy_cameras(policy)
+        self.saliency_camera = WRIST_CAMERA if WRIST_CAMERA in self.cameras else self.cameras[0]
         self.env = ReachEnv(
             spec,
             num_envs=cfg.num_envs,
             seed=cfg.seed,
             randomization=randomization,
             render_obs=False,
-            policy_image_size=self.image_size,
+            policy_image_size=self.image_size if WRIST_CAMERA in self.cameras else None,
+            cameras=self.cameras,
         )
-        self.hybrid = HybridRenderer(self.env.renderer)
+        self.hybrids = {name: HybridRenderer(self.env.renderers[name], camera=name) for name in self.cameras}
+        self.hybrid = self.hybrids[self.saliency_camera]
         self.adv = self.hybrid.adv
         self.objective = build_objective(cfg, spec.episode)
-        self.source = SimRollouts(self.env, self.hybrid, spec, self.pool, cfg, self.device)
+        self.source = SimRollouts(self.env, self.hybrid, spec, self.pool, cfg, self.device, self.hybrids)
         self.state = AttackState.start(initial_texture(cfg, self.env.renderer.object_mesh(self.adv)), cfg.seed)
         self.out_dir = None if out_dir is None else Path(out_dir)
         self._val_env = None
@@ -284,9 +299,16 @@ class AttackRun:
                 )
             # Batches of equal size (the largest divisor of the pool size up to 8): no idle slots.
             n = max(d for d in range(1, min(8, len(configs)) + 1) if len(configs) % d == 0)
-            self._val_env = ReachEnv(spec, num_envs=n, seed=self.cfg.seed, policy_image_size=self.image_size)
+            self._val_env = ReachEnv(
+                spec,
+                num_envs=n,
+                seed=self.cfg.seed,
+                policy_image_size=self.image_size if WRIST_CAMERA in self.cameras else None,
+                cameras=self.cameras,
+            )
         env = self._val_env
-        env.renderer.set_object_texture(self.adv, texture_to_uint8(self.state.texture))
+        for name in self.cameras:  # every camera the policy reads shows the texture
+            env.renderers[name].set_object_texture(self.adv, texture_to_uint8(self.state.texture))
         targeted = np.zeros(len(configs), bool)
         dist = np.zeros(len(configs))
 
@@ -316,8 +338,7 @@ class AttackRun:
             for start in range(0, len(self.val_pool), cfg.num_envs):
                 chunk = self.val_pool[start : start + cfg.num_envs]
                 env.reset_envs(range(len(chunk)), configs=chunk)
-                caps = [self.hybrid.capture(env.worlds[i]) for i in range(len(chunk))]
-                imgs = render_adversarial_batch(caps, self.state.texture, cfg.sampler)
+                imgs = self.render_views(self.capture_views(range(len(chunk))), self.state.texture)
                 T = torch.from_numpy(env.T_world_tcp[: len(chunk)]).to(self.device, torch.float32)
                 a = self.next_delta(self.call_policy(imgs, self.policy_state(T)), T)
                 p_adv = torch.from_numpy(env.object_centers[: len(chunk), self.adv]).to(self.device, torch.float32)
@@ -369,6 +390,20 @@ class AttackRun:
         config = {"job": "attack", "attack": self.cfg.model_dump(), **extra}
         AttackArtifact.from_tensor(texture, config, self.cfg.seed).save(d, run="plain")
 
+    # ------------------------------------------------------------------ the cameras
+    def capture_views(self, slots) -> dict:
+        """``{camera: [Capture]}`` of the env's worlds ``slots`` through every camera the policy reads."""
+        return {name: [h.capture(self.env.worlds[i]) for i in slots] for name, h in self.hybrids.items()}
+
+    def render_views(self, views: dict, texture: torch.Tensor, color_transform=None):
+        """The policy's differentiable input under ``texture``: ``(B, 3, H, W)`` for a one-camera
+        policy, else ``{camera: (B, 3, H_c, W_c)}`` (one color transform for all cameras)."""
+        imgs = {
+            name: render_adversarial_batch(caps, texture, self.cfg.sampler, color_transform)
+            for name, caps in views.items()
+        }
+        return imgs[self.cameras[0]] if len(self.cameras) == 1 else imgs
+
     # ------------------------------------------------------------------ the policy's contract
     def policy_state(self, T_world_tcp: torch.Tensor) -> torch.Tensor | None:
         """The policy's state input for TCP poses ``(B, 4, 4)`` (None when it reads none)."""
@@ -397,18 +432,23 @@ class AttackRun:
         Returns ``grads`` (term name -> ``(3, S, S)``, the sum over the batch; zeros where a term
         has no path to the texture, e.g. the object is not visible in any image), ``values`` (term
         name -> its scalar, and ``<term>.<part>`` -> the sum of each logged part), ``actions
-        (B, 6)`` (detached) and the rendered ``images (B, 3, H, W)`` (detached). Draws the print
-        colour transform from ``state``'s torch RNG.
+        (B, 6)`` (detached) and the rendered ``images (B, 3, H, W)`` (detached; ``{camera: ...}``
+        for a policy reading several cameras: the texture is rendered into each, and the loss flows
+        through all of them). Draws the print colour transform from ``state``'s torch RNG.
         """
-        cfg = self.cfg
         tex = state.texture.detach().clone().requires_grad_(True)
         ct = self._color_transform(state)
-        imgs = render_adversarial_batch(frames.captures, tex, cfg.sampler, ct)
+        views = frames.views if frames.views is not None else {self.cameras[0]: frames.captures}
+        imgs = self.render_views(views, tex, ct)
+        several = isinstance(imgs, dict)
         # No image shows an optimisable pixel of the object (out of view, occluded, too far):
         # nothing reaches the texture. The losses are still logged, and Grad-CAM needs a graph
         # from the images to the feature map (the frozen weights give it none), hence a leaf.
-        reaches = imgs.requires_grad
-        x = imgs if reaches else imgs.detach().requires_grad_(True)
+        reaches = any(v.requires_grad for v in imgs.values()) if several else imgs.requires_grad
+        if several:
+            x = {k: v if v.requires_grad else v.detach().requires_grad_(True) for k, v in imgs.items()}
+        else:
+            x = imgs if reaches else imgs.detach().requires_grad_(True)
         batch = FrameBatch(
             images=x,
             T_world_tcp=frames.T_world_tcp,
@@ -417,8 +457,9 @@ class AttackRun:
             goal_mask=np.stack([c.goal_mask for c in frames.captures]),
             policy=self,
             clean_images=lambda: frames.clean_images(self.device),
+            saliency_camera=self.saliency_camera if several else None,
         )
-        losses = self.objective.losses(batch, state.iteration, cfg.iterations)
+        losses = self.objective.losses(batch, state.iteration, self.cfg.iterations)
         grads, values = {}, {}
         for k, (name, loss, parts) in enumerate(losses):
             g = torch.zeros_like(state.texture)
@@ -429,7 +470,8 @@ class AttackRun:
             values[name] = float(loss.detach())
             for part, v in parts.items():
                 values[f"{name}.{part}"] = float(v.sum())
-        return {"grads": grads, "values": values, "actions": batch.actions.detach(), "images": imgs.detach()}
+        detached = {k: v.detach() for k, v in imgs.items()} if several else imgs.detach()
+        return {"grads": grads, "values": values, "actions": batch.actions.detach(), "images": detached}
 
     def apply_update(self, state: AttackState, grads: list[torch.Tensor]) -> tuple[torch.Tensor, bool]:
         """Combine the term gradients (PCGrad over all N, or their sum) and step ``state.texture``.

@@ -17,7 +17,6 @@ from PIL import Image
 
 from attack.artifact import AttackArtifact, texture_to_uint8
 from attack.losses import grad_cam
-from attack.render import render_adversarial
 from sim.imaging import hstack, labelled, upscale
 
 __all__ = [
@@ -147,20 +146,34 @@ def summary_lines(metrics: dict) -> list[str]:
     return lines
 
 
-def gradcam_overlay(policy, image: torch.Tensor, state: torch.Tensor | None = None, to_action=None) -> np.ndarray:
-    """``image (3, H, W)`` (and the policy's ``state (1, D)``) -> (H, W, 3) uint8 with the Grad-CAM
-    map blended in red."""
-    x = image[None].detach().clone().requires_grad_(True)  # gives A a graph (weights are frozen)
+def gradcam_overlay(
+    policy, image, state: torch.Tensor | None = None, to_action=None, camera: str | None = None
+) -> np.ndarray:
+    """``image (3, H, W)`` (or ``{camera: (3, H_c, W_c)}`` for a policy reading several cameras,
+    with ``camera`` the one shown) and the policy's ``state (1, D)`` -> (H, W, 3) uint8 with the
+    Grad-CAM map blended in red."""
+    if isinstance(image, dict):
+        x = {k: v[None].detach().clone().requires_grad_(True) for k, v in image.items()}
+        shown = image[camera]
+    else:
+        x = image[None].detach().clone().requires_grad_(True)  # gives A a graph (weights are frozen)
+        shown = image
     A = policy.features(x)
     out = policy.head(A) if state is None else policy.head(A, state)
     # ``to_action``: the head's output -> the motion executed next (AttackRun.next_delta), as the
     # saliency loss explains it; without it, the whole output
-    S = grad_cam(A, to_action(out) if to_action is not None else out.flatten(1)).detach()[0]
-    S = F.interpolate(S[None, None], size=image.shape[-2:], mode="bilinear", align_corners=False)[0, 0]
+    S = grad_cam(A[camera] if isinstance(A, dict) else A, to_action(out) if to_action is not None else out.flatten(1))
+    S = S.detach()[0]
+    S = F.interpolate(S[None, None], size=shown.shape[-2:], mode="bilinear", align_corners=False)[0, 0]
     S = (S / S.max().clamp_min(1e-12)).cpu().numpy()
-    rgb = image.detach().cpu().permute(1, 2, 0).numpy()
+    rgb = shown.detach().cpu().permute(1, 2, 0).numpy()
     heat = np.stack([S, np.zeros_like(S), np.zeros_like(S)], -1)
     return np.clip(255 * (0.55 * rgb + 0.45 * heat * 1.0 + 0.0), 0, 255).astype(np.uint8)
+
+
+def _first(images, camera: str):
+    """Frame 0 of the policy's input: ``(3, H, W)``, or ``{camera: (3, H_c, W_c)}``."""
+    return {k: v[0] for k, v in images.items()} if isinstance(images, dict) else images[0]
 
 
 def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dict:
@@ -176,9 +189,10 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
     # Grad-CAM before/after and a rollout strip from the same configuration (the pool's first).
     env = run.env
     env.reset_envs([0], configs=[run.pool[0]])
-    cap = run.hybrid.capture(env.worlds[0])
-    before = render_adversarial(cap, texture_before.to(run.device), run.cfg.sampler)
-    after = render_adversarial(cap, run.state.texture, run.cfg.sampler)
+    views = run.capture_views([0])
+    before = _first(run.render_views(views, texture_before.to(run.device)), run.saliency_camera)
+    after = _first(run.render_views(views, run.state.texture), run.saliency_camera)
+    cam = run.saliency_camera
     seed = run.pool[0].seed
     T0 = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32)
     st = run.policy_state(T0)
@@ -191,9 +205,11 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         hstack(
             [
                 labelled(
-                    gradcam_overlay(run.policy, before, st, motion), f"Grad-CAM, starting texture (config {seed})"
+                    gradcam_overlay(run.policy, before, st, motion, cam), f"Grad-CAM, starting texture (config {seed})"
                 ),
-                labelled(gradcam_overlay(run.policy, after, st, motion), f"Grad-CAM, final texture (config {seed})"),
+                labelled(
+                    gradcam_overlay(run.policy, after, st, motion, cam), f"Grad-CAM, final texture (config {seed})"
+                ),
             ]
         ),
     )
@@ -201,12 +217,12 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
     for _ in range(8):
         if env.done[0]:
             break
-        cap = run.hybrid.capture(env.worlds[0])
-        img = render_adversarial(cap, run.state.texture, run.cfg.sampler)
+        imgs = run.render_views(run.capture_views([0]), run.state.texture)
+        img = imgs[cam][0] if isinstance(imgs, dict) else imgs[0]
         frames.append(labelled(texture_to_uint8(img), f"attack, step {len(frames)}", min_side=128))
         with torch.no_grad():
             T = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32)
-            a = run.next_delta(run.call_policy(img[None], run.policy_state(T)), T).cpu().numpy()
+            a = run.next_delta(run.call_policy(imgs, run.policy_state(T)), T).cpu().numpy()
         actions = np.zeros((env.num_envs, 6))
         actions[0] = a[0]
         env.step(actions)

@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from sim.geometry import invert_T
+from sim.spec import WRIST
 
 __all__ = [
     "Fragments",
@@ -393,6 +394,8 @@ class HybridRenderer:
     :meth:`sim.render.SceneRenderer.render`). The deferred path falls back to the passes for a
     frame whose lighting or material it does not model (``lighting`` returns ``None``).
     ``device``: where the deferred shading runs (the fragments are stored as numpy arrays).
+    ``camera``: the camera ``renderer`` renders (the wrist camera, or a scene camera whose renderer
+    is ``env.renderers[camera]``); a policy reading several cameras has one HybridRenderer each.
     """
 
     def __init__(
@@ -402,10 +405,12 @@ class HybridRenderer:
         isolate_shading: bool = True,
         shading: str = "deferred",
         device: torch.device | str = "cpu",
+        camera: str = WRIST,
     ):
         if shading not in ("deferred", "passes"):
             raise ValueError(f"HybridRenderer: shading must be 'deferred' or 'passes', not {shading!r}")
         self.renderer = renderer
+        self.camera = camera
         self.isolate_shading = bool(isolate_shading)
         self.shading = shading
         self.device = device
@@ -434,10 +439,11 @@ class HybridRenderer:
             self._variants = True
 
     def capture(self, world, T_world_cam: np.ndarray | None = None) -> Capture:
-        """Render ``world`` (a :class:`sim.world.SimWorld` sharing this renderer)."""
+        """Render ``world`` (a :class:`sim.world.SimWorld` sharing this renderer) through this
+        renderer's camera, at ``T_world_cam`` (default: the camera's pose in ``world``)."""
 
-        world.prepare()
-        T_world_cam = world.camera_pose() if T_world_cam is None else T_world_cam
+        world.prepare(self.renderer)  # a scene camera's renderer is not the world's own
+        T_world_cam = world.camera_pose(self.camera) if T_world_cam is None else T_world_cam
         r = self.renderer
         out = r.render(T_world_cam, with_ids=True, with_depth=False)  # nothing here reads depth
         adv_mask = out.object_mask(self.adv)

@@ -34,23 +34,33 @@ __all__ = ["Frames", "FrameSource", "SimRollouts"]
 class Frames:
     """One batch of B frames the attack renders its texture into.
 
-    ``captures``: B :class:`attack.render.Capture`; ``T_world_tcp (B, 4, 4)`` and ``p_adv (B, 3)``
-    (m, world frame) as float32 tensors on the run's device.
+    ``captures``: B :class:`attack.render.Capture` (of the saliency camera: the wrist camera, or the
+    first the policy reads); ``T_world_tcp (B, 4, 4)`` and ``p_adv (B, 3)`` (m, world frame) as
+    float32 tensors on the run's device; ``views``: ``{camera: B captures}`` of every camera the
+    policy reads when it reads several (``captures`` is one of them), else None.
     """
 
     captures: list
     T_world_tcp: torch.Tensor
     p_adv: torch.Tensor
+    views: dict | None = None
 
     def __len__(self) -> int:
         return len(self.captures)
 
-    def clean_images(self, device) -> torch.Tensor:
-        """``(B, 3, H, W)`` float in [0, 1]: the frames as captured, without the attack's texture."""
+    @staticmethod
+    def _stack(captures, device) -> torch.Tensor:
         return (
-            torch.stack([torch.from_numpy(c.i_sim).permute(2, 0, 1) for c in self.captures]).to(device, torch.float32)
+            torch.stack([torch.from_numpy(c.i_sim).permute(2, 0, 1) for c in captures]).to(device, torch.float32)
             / 255.0
         )
+
+    def clean_images(self, device):
+        """``(B, 3, H, W)`` float in [0, 1]: the frames as captured, without the attack's texture
+        (``{camera: (B, 3, H_c, W_c)}`` when the frames hold several cameras' views)."""
+        if self.views is not None:
+            return {name: self._stack(caps, device) for name, caps in self.views.items()}
+        return self._stack(self.captures, device)
 
 
 class FrameSource(Protocol):
@@ -68,7 +78,8 @@ class SimRollouts:
 
     Args:
         env: the run's env (``render_obs=False``; frames come from ``hybrid``).
-        hybrid: the :class:`attack.render.HybridRenderer` over ``env``'s renderer.
+        hybrid: the :class:`attack.render.HybridRenderer` of the saliency camera.
+        hybrids: ``{camera: HybridRenderer}`` of every camera the policy reads (None or one: ``hybrid`` alone).
         spec: the scene (its ``init.r_range_m`` bounds the distance schedule).
         pool: the attack part's initial configurations.
         cfg: the attack config (``schedule``, ``iterations``, ``num_envs``, ``rollout_steps``,
@@ -76,8 +87,10 @@ class SimRollouts:
         device: where the pose tensors go.
     """
 
-    def __init__(self, env, hybrid, spec, pool: list, cfg, device):
+    def __init__(self, env, hybrid, spec, pool: list, cfg, device, hybrids: dict | None = None):
         self.env, self.hybrid, self.spec, self.pool, self.cfg = env, hybrid, spec, list(pool), cfg
+        # several cameras: {camera: HybridRenderer}, hybrid among them
+        self.hybrids = hybrids if hybrids is not None and len(hybrids) > 1 else None
         self.device = torch.device(device)
         self.pool_r = np.array([c.r_m for c in self.pool])
         self._step = 0
@@ -101,10 +114,15 @@ class SimRollouts:
         if active.size == 0:
             return None
         self._active = active
-        caps = [self.hybrid.capture(env.worlds[i]) for i in active]
+        if self.hybrids is None:
+            views = None
+            caps = [self.hybrid.capture(env.worlds[i]) for i in active]
+        else:
+            views = {name: [h.capture(env.worlds[i]) for i in active] for name, h in self.hybrids.items()}
+            caps = views[self.hybrid.camera]
         T = torch.from_numpy(env.T_world_tcp[active]).to(self.device, torch.float32)
         p_adv = torch.from_numpy(env.object_centers[active, self.hybrid.adv]).to(self.device, torch.float32)
-        return Frames(caps, T, p_adv)
+        return Frames(caps, T, p_adv, views)
 
     def advance(self, actions: np.ndarray) -> None:
         full = np.zeros((self.cfg.num_envs, 6))
