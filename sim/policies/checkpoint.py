@@ -23,6 +23,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from sim.policies.card import CARD_FORMAT, CARD_NAME, PolicyCard, load_card
+from sim.policies.contract import check_scene
 from sim.policies.interface import PolicyError
 from sim.policies.onnx_policy import OnnxPolicy
 from sim.policies.onnx_torch import convert_onnx
@@ -118,17 +119,24 @@ def load_policy(path: str | Path, device="cpu", white_box: bool = False, spec=No
     ``.onnx`` file the black-box :class:`sim.policies.onnx_policy.OnnxPolicy` (onnxruntime), or
     with ``white_box`` its torch conversion, checked against onnxruntime on frames of ``spec``
     (default: the built-in scene) before it is returned (:mod:`sim.policies.onnx_torch`).
-    Anything else is refused.
+    With ``spec``, a policy reading a camera the scene lacks (or one of another size) is refused
+    here (:func:`sim.policies.contract.check_scene`). Anything else is refused.
     """
     p = Path(path)
     suffix = p.suffix.lower()
     if p.is_file() and suffix == ".onnx":
         onnx_policy = OnnxPolicy(p)
-        return convert_onnx(onnx_policy, device, spec) if white_box else onnx_policy
-    if p.is_file() and suffix == ".pt2":
-        return load_pt2(p, device)
-    if p.is_dir() or p.name == CARD_NAME:
-        return load_checkpoint(p if p.is_dir() else p.parent, device)[0]
+        policy = convert_onnx(onnx_policy, device, spec) if white_box else onnx_policy
+    elif p.is_file() and suffix == ".pt2":
+        policy = load_pt2(p, device)
+    elif p.is_dir() or p.name == CARD_NAME:
+        policy = load_checkpoint(p if p.is_dir() else p.parent, device)[0]
+    else:
+        policy = None
+    if policy is not None:
+        if spec is not None:
+            check_scene(policy, spec)  # a camera the scene lacks, or of another size: one line, now
+        return policy
     if p.exists():
         raise PolicyError(
             f"{p}: not a policy; expected a checkpoint directory (with {CARD_NAME}), an .onnx or a .pt2 file"

@@ -77,19 +77,22 @@ def test_attack_run_from_the_cli_on_the_two_camera_scene_gives_the_same_texture_
     np.testing.assert_allclose(textures[0], textures[1], atol=1e-4)
 
 
+@pytest.mark.parametrize("fmt", ["onnx", "pt2"])
 def test_a_two_camera_attack_on_a_scene_without_the_front_camera_is_one_line_with_exit_2(
-    files, tmp_path, monkeypatch, capsys
+    files, tmp_path, monkeypatch, capsys, fmt
 ):
     cfg = tmp_path / "attack.yaml"
     cfg.write_text(yaml.safe_dump(TINY))
     out = tmp_path / "out"
-    args = ["advobj", "attack", "run", "--policy", str(files[0]), "--config", str(cfg), "--out", str(out)]
-    monkeypatch.setattr(sys, "argv", args)
+    policy = files[0] if fmt == "onnx" else files[1]
+    monkeypatch.setattr(
+        sys, "argv", ["advobj", "attack", "run", "--policy", str(policy), "--config", str(cfg), "--out", str(out)]
+    )
     with pytest.raises(SystemExit) as exit_:
         main()
     err = capsys.readouterr().err.strip()
     assert exit_.value.code == 2 and len(err.splitlines()) == 1
-    assert "unknown camera 'front'; this scene has: wrist" in err and not (out / "texture.npy").exists()
+    assert "unknown camera 'front'; this scene has: wrist" in err and not out.exists()
 
 
 @pytest.fixture(scope="module")
