@@ -112,3 +112,43 @@ def two_camera_card(chunk: int = 1, **fields) -> PolicyCard:
         training={"method": "test"},
         **fields,
     )
+
+
+class TinyACT(torch.nn.Module):
+    """An ACT-shaped policy (LeRobot's ACT in miniature): one conv backbone run on each camera
+    (wrist ``wrist_px``, front ``front_px``), a 1x1 input projection to ``d`` channels, the two
+    cameras' feature maps flattened into tokens beside a state token, learned position
+    embeddings, a transformer encoder over the tokens and a decoder whose ``chunk`` queries
+    attend to them, and a linear head: ``forward(wrist, front, state) -> (B, chunk, 6)`` tanh
+    deltas. Images ``(B, 3, H, W)`` in [0, 1], normalised inside; no dropout."""
+
+    def __init__(self, wrist_px: int = 32, front_px: int = 128, chunk: int = 4, d: int = 16, seed: int = 0):
+        super().__init__()
+        torch.manual_seed(seed)
+        nn = torch.nn
+        self.example_sizes = (wrist_px, front_px)
+        self.chunk = chunk
+        self.backbone = nn.Sequential(
+            nn.Conv2d(3, 8, 3, stride=2, padding=1), nn.ReLU(), nn.Conv2d(8, 8, 3, stride=2, padding=1), nn.ReLU()
+        )
+        self.pool_front = nn.AvgPool2d(4)  # the front camera's larger frame to a few tokens
+        self.input_proj = nn.Conv2d(8, d, 1)
+        n_tokens = 1 + (wrist_px // 4) ** 2 + (front_px // 16) ** 2
+        self.pos = nn.Parameter(torch.randn(1, n_tokens, d) * 0.1)
+        self.state_proj = nn.Linear(7, d)
+        enc = nn.TransformerEncoderLayer(d, 2, 32, dropout=0.0, batch_first=True)
+        dec = nn.TransformerDecoderLayer(d, 2, 32, dropout=0.0, batch_first=True)
+        self.encoder = nn.TransformerEncoder(enc, 1, enable_nested_tensor=False)
+        self.decoder = nn.TransformerDecoder(dec, 1)
+        self.queries = nn.Parameter(torch.randn(1, chunk, d) * 0.1)
+        self.action_head = nn.Linear(d, 6)
+
+    def forward(self, wrist, front, state):
+        fw = self.input_proj(self.backbone((wrist - 0.5) / 0.25))
+        ff = self.input_proj(self.pool_front(self.backbone((front - 0.5) / 0.25)))
+        tokens = torch.cat(
+            [self.state_proj(state)[:, None], fw.flatten(2).transpose(1, 2), ff.flatten(2).transpose(1, 2)], 1
+        )
+        memory = self.encoder(tokens + self.pos)
+        q = self.queries.expand(state.shape[0], -1, -1)
+        return torch.tanh(self.action_head(self.decoder(q, memory)))

@@ -21,6 +21,7 @@ converted policy is checked on before its first use.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -57,9 +58,20 @@ def _inputs(gm: fx.GraphModule) -> list[fx.Node]:
     return [n for n in gm.graph.nodes if n.op == "placeholder"]
 
 
-def _needed(target: fx.Node, stop) -> set[fx.Node]:
+_SIZE_TARGETS = ("aten.sym_size.int", "aten.sym_size")
+
+
+def _batch_size_of(n: fx.Node) -> fx.Node | None:
+    """The tensor whose batch size (dim 0) node ``n`` reads (torch.export writes ``sym_size.int(x,
+    0)`` for a dynamic batch), else None. Such a node carries no data (and no gradient) from ``x``."""
+    if n.op == "call_function" and str(n.target) in _SIZE_TARGETS and len(n.args) == 2 and n.args[1] == 0:
+        return n.args[0] if isinstance(n.args[0], fx.Node) else None
+    return None
+
+
+def _needed(target: fx.Node, stop, data_only: bool = False) -> set[fx.Node]:
     """Every node ``target`` is computed from (itself included), not looking past ``stop`` (a node,
-    a set of nodes or None)."""
+    a set of nodes or None); with ``data_only``, not past a node reading only a batch size."""
     stops = stop if isinstance(stop, (set, frozenset)) else {stop}
     seen: set[fx.Node] = set()
     todo = [target]
@@ -68,15 +80,20 @@ def _needed(target: fx.Node, stop) -> set[fx.Node]:
         if n in seen:
             continue
         seen.add(n)
-        if n in stops:
+        if n in stops or (data_only and _batch_size_of(n) is not None):
             continue
         todo.extend(n.all_input_nodes)
     return seen
 
 
 def _is_cut(node: fx.Node, image: fx.Node, actions: fx.Node) -> bool:
-    """Whether every path from ``image`` to ``actions`` passes through ``node`` (and one does)."""
-    return image in _needed(node, None) and image not in _needed(actions, node) and node in _needed(actions, node)
+    """Whether every data path from ``image`` to ``actions`` passes through ``node`` (and one does);
+    reading the image's batch size is not a data path."""
+    return (
+        image in _needed(node, None, True)
+        and image not in _needed(actions, node, True)
+        and node in _needed(actions, node, True)
+    )
 
 
 def _copy(gm: fx.GraphModule, keep: set[fx.Node], inputs: dict[fx.Node, str], out) -> fx.GraphModule:
@@ -87,8 +104,14 @@ def _copy(gm: fx.GraphModule, keep: set[fx.Node], inputs: dict[fx.Node, str], ou
     env: dict[fx.Node, fx.Node] = {}
     for old, name in inputs.items():
         env[old] = g.placeholder(name)
+    first = next(iter(env.values()), None)
     for n in gm.graph.nodes:
         if n in env or n not in keep or n.op in ("placeholder", "output"):
+            continue
+        src = _batch_size_of(n)
+        if src is not None and src not in env and first is not None:
+            # the batch size of an input this part does not take: its first input's (dim 0 is the batch)
+            env[n] = g.call_function(n.target, (first, 0))
             continue
         env[n] = g.node_copy(n, lambda a: env[a])
     g.output(tuple(env[o] for o in out) if isinstance(out, tuple) else env[out])
@@ -124,7 +147,7 @@ def split_graph(
                 f"{where}: feature map {feature.name!r} is not on every path from the image to the actions; "
                 "name one that is in the card's feature_map"
             )
-        need = _needed(feature, None)
+        need = _needed(feature, None, True)
         if any(s in need for s in states):
             raise PolicyError(
                 f"{where}: feature map {feature.name!r} is computed from the state; it must read the image only"
@@ -135,7 +158,7 @@ def split_graph(
                 f"{where}: feature map {feature.name!r} is computed from input {others[0]!r} as well; each camera's "
                 "feature map must read its own image only"
             )
-        before |= need
+        before |= _needed(feature, None)
     if len(set(features)) != len(features):
         raise PolicyError(f"{where}: two cameras share the feature map {features[0].name!r}")
     names = {image: "images" if single else f"images_{k}" for k, image in enumerate(images)}
@@ -178,7 +201,7 @@ def pick_feature_node(
         shape, dtype = shapes.get(n, ((), None))
         if len(shape) != 4 or shape[0] != batch or shape[2] * shape[3] <= 1 or not dtype.is_floating_point:
             continue
-        if n is not image and _is_cut(n, image, actions) and not (exclude & _needed(n, None)):
+        if n is not image and _is_cut(n, image, actions) and not (exclude & _needed(n, None, True)):
             return n
     raise PolicyError(
         f"{where}: no feature map for Grad-CAM: no 4-D (B, C, h, w) tensor with more than one cell lies on every "
@@ -228,6 +251,19 @@ class GraphPolicy(nn.Module):
         self.check: dict = {}
         for p in self.parameters():
             p.requires_grad_(False)
+        # A .pt2 keeps attention as one op (aten.scaled_dot_product_attention), which on the CPU
+        # runs a fused kernel without second derivatives; Grad-CAM in the saliency term needs them,
+        # so such graphs run attention through the math kernel (the same function, matmul + softmax).
+        self.math_attention = any(
+            "scaled_dot_product" in str(n.target) for gm in (features, head) for n in gm.graph.nodes
+        )
+
+    def _kernels(self):
+        if not self.math_attention:
+            return contextlib.nullcontext()
+        from torch.nn.attention import SDPBackend, sdpa_kernel  # lazy: only graphs with attention
+
+        return sdpa_kernel([SDPBackend.MATH])
 
     @property
     def cameras(self) -> tuple[str, ...]:
@@ -267,7 +303,8 @@ class GraphPolicy(nn.Module):
         """``x: (B, 3, H, W)`` float in [0, 1] (or ``{camera: x}``) -> the feature map ``A`` (or
         ``{camera: A}``)."""
         views = self._views(x)
-        out = self.features_graph(*(to_model_image(views[b.camera], b.image) for b in self.inputs.images))
+        with self._kernels():
+            out = self.features_graph(*(to_model_image(views[b.camera], b.image) for b in self.inputs.images))
         if isinstance(x, dict) or len(self.inputs.images) > 1:
             outs = out if isinstance(out, (tuple, list)) else (out,)
             return {b.camera: a for b, a in zip(self.inputs.images, outs)}
@@ -285,7 +322,8 @@ class GraphPolicy(nn.Module):
                 raise PolicyError(f"state: policy expects a ({B}, {D}) state input, got {got}")
             st = state.to(maps[0].dtype)
             states = [st[:, b.slice[0] : b.slice[1]] for b in self.inputs.states]
-        out = self.head_graph(*maps, *states)
+        with self._kernels():
+            out = self.head_graph(*maps, *states)
         if isinstance(out, (tuple, list)):
             out = out[0]
         K = self.contract.action.chunk
