@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import fx, nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from sim.env import ReachEnv
 from sim.policies.contract import (
@@ -261,8 +262,6 @@ class GraphPolicy(nn.Module):
     def _kernels(self):
         if not self.math_attention:
             return contextlib.nullcontext()
-        from torch.nn.attention import SDPBackend, sdpa_kernel  # lazy: only graphs with attention
-
         return sdpa_kernel([SDPBackend.MATH])
 
     @property

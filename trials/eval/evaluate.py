@@ -32,7 +32,7 @@ from sim.configs import PoolError, in_part, load_pool, save_pool
 from sim.errors import AdvobjError, format_validation_error
 from sim.imaging import labelled, write_gif
 from sim.policies.checkpoint import load_policy
-from sim.policies.contract import policy_contract, to_delta
+from sim.policies.contract import check_scene, policy_cameras, policy_contract, to_delta
 from sim.policies.paired import rollout_paired
 from sim.policies.pool import build_feasible, built_pool_path, feasible_pool_path
 from sim.runinfo import write_run_info
@@ -281,6 +281,14 @@ def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: boo
     conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes)))
     base = load_spec(cfg.scene)
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
+    check_scene(policy, spec)  # a camera the scene lacks (or of another size): one line, before anything is written
+    for c in conds:
+        for name in c.attacked_cameras or ():
+            if name not in policy_cameras(policy):
+                raise EvalError(
+                    f"condition {c.name!r}: the policy reads {', '.join(policy_cameras(policy))}; it does not read "
+                    f"camera {name!r}"
+                )
     out.mkdir(parents=True, exist_ok=True)
     configs, pool_src = resolve_pool(cfg, policy, spec, out, progress, final=final_pool)
     configs = configs[: cfg.episodes]

@@ -263,3 +263,34 @@ def test_the_contract_state_must_be_bound_field_by_field_once():
     b = {"w": InputBinding(source="camera", camera="wrist"), "p": InputBinding(source="tcp_pose")}
     with pytest.raises(PolicyError, match=r"reads state \['tcp_pose', 'gripper'\] but the model's inputs read"):
         bind_inputs(b, shapes, ["a"], c)
+
+
+def test_the_workflow_docs_lerobot_act_card_validates_and_binds_a_lerobot_named_model():
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[3] / "docs" / "workflow.md").read_text()
+    blocks = [b for b in re.findall(r"```json\n(.*?)```", text, re.S) if "observation.images.front" in b]
+    assert len(blocks) == 1
+    card = PolicyCard.model_validate(json.loads(blocks[0]))
+    assert "arch" not in json.loads(card.model_dump_json())
+    plan = bind_inputs(
+        card.inputs,
+        [
+            ("observation.images.wrist", ("B", 3, 128, 128)),
+            ("observation.images.front", ("B", 3, 128, 128)),
+            ("observation.state", ("B", 7)),
+        ],
+        ["action"],
+        card.contract,
+        card.action_output,
+    )
+    assert plan.cameras == ("wrist", "front") and plan.output == "action"
+    same = bind_inputs(
+        None,
+        [(b.name, ("B", 3, 128, 128)) for b in plan.images] + [("observation.state", ("B", 7))],
+        ["action"],
+        card.contract,
+    )
+    assert same == plan  # LeRobot's names bind to the same plan without the card's inputs
+    check_scene(type("P", (), {"inputs": plan})(), load_spec(TWO_CAMERAS))
