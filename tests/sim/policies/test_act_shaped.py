@@ -104,7 +104,7 @@ def test_texture_gradients_are_finite_and_agree_between_the_onnx_and_pt2_paths(a
         finally:
             run.close()
     assert set(grads["onnx"]) == {"pose", "saliency"}
-    assert float(grads["onnx"]["pose"].abs().max()) > 0
+    assert all(float(g.abs().max()) > 0 for g in grads["onnx"].values())  # both terms reach the texture
     for term, g in grads["onnx"].items():
         other = grads["pt2"][term]
         assert torch.isfinite(g).all() and torch.isfinite(other).all(), term
