@@ -96,9 +96,7 @@ def test_the_texture_is_shown_to_the_attacked_cameras_only(scene, configs, attac
         assert differs == (cam in shows), cam
 
 
-def test_each_camera_keeps_its_own_noise_stream_so_the_wrist_frames_do_not_change_beside_a_scene_camera(
-    scene, configs
-):
+def test_each_camera_keeps_its_own_noise_stream_so_the_wrist_frames_do_not_change_beside_a_scene_camera(scene, configs):
     noisy = Randomization(noise_std=0.03)
     both = _run(scene, configs, _Recording(), texture=TEXTURE, randomization=noisy)
     wrist = _run(scene, configs, _Recording(cameras=("wrist",)), texture=TEXTURE, randomization=noisy)
