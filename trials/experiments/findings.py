@@ -1178,6 +1178,24 @@ def untargeted_note(rows_of: Rows, results: Path) -> list[str]:
         "two objects, so a policy pushed off the goal mostly reaches the other one. The paper's near-zero "
         "untargeted "
         "T-ASR needs a scene where leaving the goal does not mean reaching the adversarial object.",
+    ] + _three_object_lines(rows_of("table2-f3"))
+
+
+def _three_object_lines(rows: list[dict] | None) -> list[str]:
+    """Where the untargeted attack's diverted episodes end in the three-object scene (all seeds)."""
+    unt = [r for r in rows or [] if r["condition"] == "attack" and r["eval"].startswith("table2_c2f_untargeted")]
+    diverted = [r for r in unt if not r["success"]]
+    if not diverted:
+        return []
+    to_adv = sum(r["targeted"] for r in diverted)
+    return [
+        "",
+        f"With somewhere else to go (results/table2-f3/: a cube beside the goal and the adversarial object, every "
+        f"attack seed) the untargeted attack diverts {len(diverted)} of {len(unt)} episodes and {to_adv} of those "
+        f"({100 * to_adv / len(diverted):.0f}%) still end at the adversarial object, {len(diverted) - to_adv} "
+        "elsewhere. So the paper's near-zero untargeted T-ASR does not reproduce here even with a third object. "
+        "A likely reason, not tested one by one: an unfamiliar look alone draws this policy to the object that has "
+        "it (the unoptimised random and grey textures of results/table2-40/ do), whatever the loss asks.",
     ]
 
 
