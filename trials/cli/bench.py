@@ -9,7 +9,7 @@ from typing import List, Optional
 import typer
 
 from trials.cli import grid as cli_grid
-from trials.cli.options import key_values
+from trials.cli.options import int_list, key_values
 
 app = typer.Typer(no_args_is_help=True, help="Benchmarks that answer 'what does this knob buy and what does it cost'.")
 
@@ -34,8 +34,16 @@ def tradeoff(
     rows: List[str] = typer.Option(
         [], "--rows", help="knob or row key to run, e.g. eot_envs or eot_envs=1 (repeatable; default: all)"
     ),
-    episodes: Optional[int] = typer.Option(None, min=1, help="paired episodes per row (default 100)"),
-    big_episodes: Optional[int] = typer.Option(None, min=1, help="episodes of the eval_episodes row (default 500)"),
+    episodes: Optional[int] = typer.Option(None, min=1, help="paired episodes per row (default 300)"),
+    big_episodes: Optional[int] = typer.Option(
+        None, min=1, help="episodes of the eval_episodes row (default: a third of --episodes)"
+    ),
+    attack_seeds: Optional[str] = typer.Option(
+        None,
+        "--attack-seeds",
+        help="comma-separated attack seeds: the rows that change the attack run once per seed, each evaluated on "
+        "the same configurations (default: 0)",
+    ),
     pool: Optional[Path] = typer.Option(None, help="task-feasible pool of the baseline policy (default: its own)"),
     scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in paper scene)"),
     max_steps: Optional[int] = typer.Option(
@@ -64,6 +72,7 @@ def tradeoff(
         quick_check,
         episodes=episodes,
         big_episodes=big_episodes,
+        attack_seeds=int_list(attack_seeds, "--attack-seeds"),
         pool=pool,
         scene=scene,
         max_steps=max_steps,

@@ -9,7 +9,7 @@ import typer
 
 from sim.runtime import set_torch_threads
 from trials.cli.grid import ADDRESS, SHARDS, WORKERS, executor
-from trials.cli.options import key_values
+from trials.cli.options import int_list, key_values
 from trials.experiments.recipes import RECIPES, resolve_experiment, run_experiment
 
 app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
@@ -41,7 +41,7 @@ def _run(
         device=device,
         attack_overrides=None if iterations is None else {"iterations": iterations},
         transfer_targets=None if archs is None else tuple(a.strip() for a in archs.split(",") if a.strip()),
-        attack_seeds=_int_list(attack_seeds, "--attack-seeds"),
+        attack_seeds=int_list(attack_seeds, "--attack-seeds"),
         rows=None if rows is None else tuple(r.strip() for r in rows.split(",") if r.strip()),
     )
     path = run_experiment(
@@ -57,16 +57,6 @@ def _run(
     )
     typer.echo(path.read_text())
     typer.echo(f"table: {path}")
-
-
-def _int_list(text: Optional[str], flag: str) -> Optional[tuple]:
-    """``"0,1,2"`` as a tuple of ints (None when not given); anything else is a bad ``flag``."""
-    if text is None:
-        return None
-    try:
-        return tuple(int(x) for x in text.split(","))
-    except ValueError:
-        raise typer.BadParameter(f"expected comma-separated integers, got {text!r}", param_hint=flag) from None
 
 
 _PRESET = typer.Option("quick", help="quick (2 CPU cores) or paper (the paper's budget)")

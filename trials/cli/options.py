@@ -1,10 +1,11 @@
-"""Option types shared by the commands: one KEY=VALUE parser for every repeatable mapping flag."""
+"""Option types shared by the commands: one KEY=VALUE parser for every repeatable mapping flag, and one
+parser of comma-separated integers (``--attack-seeds 0,1,2``)."""
 
 from __future__ import annotations
 
 from sim.errors import AdvobjError
 
-__all__ = ["OptionError", "key_values"]
+__all__ = ["OptionError", "int_list", "key_values"]
 
 
 class OptionError(AdvobjError, ValueError):
@@ -25,3 +26,13 @@ def key_values(items, option: str, key: str = "KEY", value: str = "VALUE") -> di
             raise OptionError(f"{option}: {k!r} given twice")
         out[k] = v
     return out
+
+
+def int_list(text: str | None, option: str) -> tuple[int, ...] | None:
+    """``"0,1,2"`` -> ``(0, 1, 2)`` (None when not given); anything else is one error naming ``option``."""
+    if text is None:
+        return None
+    try:
+        return tuple(int(x) for x in str(text).split(","))
+    except ValueError:
+        raise OptionError(f"{option}: expected comma-separated integers such as 0,1,2, got {text!r}") from None

@@ -397,3 +397,45 @@ def test_cli_help_and_a_tiny_deployment_run(tmp_path, tiny_policy_dir, mixed_poo
         and rec["frames"] > 0
     )
     assert "| onnx-fp32 |" in (out / "report.md").read_text() and (tmp_path / "p.png").is_file()
+
+
+def test_cli_attack_seeds_reach_the_sweep_settings_and_a_malformed_list_is_one_line(
+    tmp_path, tiny_policy_dir, mixed_pool_file, monkeypatch, capsys
+):
+    import sys
+
+    from typer.testing import CliRunner
+
+    from trials.cli.main import app, main
+
+    argv = ["bench", "tradeoff", "--policy", str(tiny_policy_dir), "--out", str(tmp_path / "bad")]
+    monkeypatch.setattr(sys, "argv", ["advobj", *argv, "--attack-seeds", "0,x"])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert exc.value.code == 2 and len(err) == 1 and "--attack-seeds" in err[0], err
+    assert not (tmp_path / "bad").exists()
+    runner = CliRunner()
+    out = tmp_path / "sweep"
+    res = runner.invoke(
+        app,
+        [
+            "bench",
+            "tradeoff",
+            "--quick-check",
+            "--policy",
+            str(tiny_policy_dir),
+            "--pool",
+            str(mixed_pool_file),
+            "--out",
+            str(out),
+            "--max-steps",
+            str(MAX_STEPS),
+            "--attack-seeds",
+            "1,2",
+            "--rows",
+            "deployment=onnx-fp32",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    assert json.loads((out / "sweep.json").read_text())["settings"]["attack_seeds"] == [1, 2]
