@@ -1350,7 +1350,7 @@ def evidence(argv: list[str], results: str | Path = RESULTS, log=print) -> int:
     when it succeeds, :func:`collect` it. Refused (exit 2): a checkout with uncommitted changes,
     ``--quick-check``, fewer than 300 episodes or 3 attack seeds. A re-run resumes the sweep; its
     time is added as another attempt."""
-    a = _sweep_parser(argparse.ArgumentParser(prog="evidence", add_help=False)).parse_args(argv)
+    a = sweep_parser(argparse.ArgumentParser(prog="evidence", add_help=False)).parse_args(argv)
     episodes = a.episodes or TradeoffConfig.model_fields["episodes"].default
     problems = []
     if a.quick_check:
@@ -1403,7 +1403,7 @@ def _int_list(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 0,1,2, got {text!r}") from None
 
 
-def _sweep_parser(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+def sweep_parser(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The sweep's options: those of ``advobj bench tradeoff`` plus ``--attack-seeds``."""
     ap.add_argument("--policy", required=True, help="baseline policy checkpoint directory")
     ap.add_argument("--out", required=True, help="sweep directory (resumable)")
@@ -1431,7 +1431,7 @@ def _sweep_parser(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return ap
 
 
-def _job(a: argparse.Namespace) -> TradeoffJob:
+def job_from_args(a: argparse.Namespace) -> TradeoffJob:
     res = {}
     for item in a.res_policy:
         size, sep, d = item.partition("=")
@@ -1477,8 +1477,8 @@ def parser() -> argparse.ArgumentParser:
         description="The speed-vs-accuracy sweep, and its committed evidence under results/tradeoff/.",
     )
     sub = ap.add_subparsers(dest="cmd", required=True)
-    _sweep_parser(sub.add_parser("sweep", help="run the sweep (advobj bench tradeoff's options, + --attack-seeds)"))
-    ev = _sweep_parser(
+    sweep_parser(sub.add_parser("sweep", help="run the sweep (advobj bench tradeoff's options, + --attack-seeds)"))
+    ev = sweep_parser(
         sub.add_parser("evidence", help="run the sweep from a clean checkout, record the attempt, collect the results")
     )
     ev.add_argument("--results", type=Path, default=RESULTS, help="where the evidence goes (default results/tradeoff)")
@@ -1495,7 +1495,7 @@ def main(argv: list[str] | None = None) -> int:
     a = parser().parse_args(argv)
     try:
         if a.cmd == "sweep":
-            _job(a).run()
+            job_from_args(a).run()
         elif a.cmd == "evidence":
             return evidence(_without(argv[1:], "--results"), a.results)
         else:
