@@ -39,6 +39,9 @@ __all__ = [
     "nesting_depth",
     "MAX_YAML_BYTES",
     "MAX_IMAGE_BYTES",
+    "SceneCameraPoseFile",
+    "save_scene_camera_pose",
+    "load_scene_camera_pose",
 ]
 
 M = TypeVar("M", bound=BaseModel)
@@ -295,3 +298,64 @@ def read_image(path) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] in (3, 4):
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
     return img
+
+
+# ---------------------------------------------------------------------- scene camera pose
+MAX_POSE_IMAGE_PX = 16384  # per side: calibration.intrinsics.MAX_IMAGE_PX (that module imports this one, not back)
+
+
+class SceneCameraPoseFile(Strict):
+    """``T_table_cam.yaml`` of a fixed scene camera, written by ``advobj calibrate scene-camera``.
+
+    ``T_table_cam`` is the camera (OpenCV frame: +x right, +y down, +z along the optical axis) in
+    the table frame; ``width`` x ``height`` the frames it was estimated from (the camera file's
+    size): a session refuses frames of another size from that camera. The rest records the fit.
+    """
+
+    T_table_cam: PoseModel = Field(description="the camera's pose in the table frame")
+    width: Annotated[int, Field(ge=1, le=MAX_POSE_IMAGE_PX, description="frame width the pose holds for, px")]
+    height: Annotated[int, Field(ge=1, le=MAX_POSE_IMAGE_PX, description="frame height the pose holds for, px")]
+    reprojection_rms_px: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = Field(
+        None, description="RMS reprojection error of every table-tag corner used, px"
+    )
+    tag_ids: list[Annotated[int, Field(ge=0)]] = Field([], description="the table tags the pose was fit to")
+    n_images: Annotated[int, Field(ge=1)] | None = Field(None, description="images that saw a table tag")
+
+    @property
+    def T(self) -> np.ndarray:
+        """(4, 4) ``T_table_cam``."""
+        return self.T_table_cam.T
+
+
+def save_scene_camera_pose(
+    path,
+    T_table_cam: np.ndarray,
+    width: int,
+    height: int,
+    reprojection_rms_px: float | None = None,
+    tag_ids=(),
+    n_images: int | None = None,
+) -> Path:
+    """Write a :class:`SceneCameraPoseFile` (validated first: nothing is written for a bad value)."""
+    p = T_to_pose(T_table_cam)
+    model = SceneCameraPoseFile(
+        T_table_cam=p,
+        width=int(width),
+        height=int(height),
+        reprojection_rms_px=None if reprojection_rms_px is None else round(float(reprojection_rms_px), 4),
+        tag_ids=sorted(int(i) for i in tag_ids),
+        n_images=None if n_images is None else int(n_images),
+    )
+    data = model.model_dump(mode="json")
+    data["T_table_cam"] = {"translation_m": list(p.translation_m), "rotvec_rad": list(p.rotvec_rad)}
+    return write_yaml(
+        path,
+        data,
+        header="Fixed scene camera: its pose (OpenCV camera frame) in the table frame, from the table's AprilTags\n"
+        "(advobj calibrate scene-camera); width x height: the frames it holds for",
+    )
+
+
+def load_scene_camera_pose(path) -> SceneCameraPoseFile:
+    """The :class:`SceneCameraPoseFile` in ``path``; a :class:`CalibrationFileError` names the file and field."""
+    return load_model(path, SceneCameraPoseFile)

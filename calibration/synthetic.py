@@ -30,6 +30,7 @@ from sim.geometry import compose, invert_T, look_at, make_T, se3_exp, so3_exp, t
 __all__ = [
     "TexturedPlane",
     "tag_plane",
+    "object_tag_planes",
     "board_plane",
     "render_planes",
     "distort_image",
@@ -102,6 +103,22 @@ def tag_plane(
     h = 0.5 * tag_size_m * img.shape[0] / side
     corners = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
     return TexturedPlane(img, corners, np.asarray(T_cam_tag, dtype=np.float64))
+
+
+def object_tag_planes(registry, T_cam_object: np.ndarray, obj: str = "table", px_per_cell: int = 24) -> list:
+    """The printed tags of object ``obj`` of a :class:`calibration.registry.ObjectRegistry` as seen by a
+    camera at ``T_cam_object`` (4, 4): each where the registry puts it (``T_tag_object``), its side the
+    registry's ``size_m``. For ``table``, the tags lying on the table seen from ``inv(T_table_cam)``."""
+    T_cam_object = np.asarray(T_cam_object, dtype=np.float64)
+    return [
+        tag_plane(
+            i,
+            registry.tags[i].size_m,
+            T_cam_object @ invert_T(registry.tags[i].T_tag_object.T),
+            px_per_cell=px_per_cell,
+        )
+        for i in registry.tag_ids(obj)
+    ]
 
 
 def board_plane(board, T_cam_board: np.ndarray, px_per_square: int = 80, margin_squares: float = 0.5) -> TexturedPlane:

@@ -319,6 +319,43 @@ def detect(
         typer.echo(f"  object {name}: not detected")
 
 
+@app.command("scene-camera")
+def scene_camera(
+    images: List[Path] = typer.Argument(..., help="photos of the fixed camera that see the table's tags"),
+    camera: Path = typer.Option(..., help="the fixed camera's intrinsics YAML (from 'calibrate intrinsics')"),
+    registry: Path = typer.Option(..., help="tag registry YAML: its 'table' tags define the table frame"),
+    out: Path = typer.Option(Path("T_table_cam.yaml"), help="output YAML (the hardware config's T_table_cam)"),
+    min_tags: int = typer.Option(2, "--min-tags", min=1, help="refuse with fewer distinct table tags seen"),
+    max_rms_px: float = typer.Option(2.0, "--max-rms-px", min=0.0, help="refuse a fit worse than this (RMS, px)"),
+) -> None:
+    """Locate a fixed scene camera against the table's AprilTags: T_table_cam by PnP over every table-tag corner
+    of every photo; prints the reprojection RMS and refuses too few tags or a poor fit."""
+    from calibration.intrinsics import load_camera_yaml  # lazy: CLI start-up (+51 ms)
+    from calibration.io import save_scene_camera_pose  # lazy: CLI start-up (+11 ms)
+    from calibration.registry import load_registry  # lazy: CLI start-up (cv2, pupil_apriltags)
+    from calibration.scene_camera import MAX_IMAGES, locate_scene_camera  # lazy: CLI start-up (cv2)
+
+    if out.is_dir():
+        raise CalibrationError(f"--out: {out} is a directory; give the pose file's name (front_pose.yaml)")
+    if len(images) > MAX_IMAGES:  # before any photo is read
+        raise typer.BadParameter(f"at most {MAX_IMAGES} photos, got {len(images)}", param_hint="IMAGES")
+    cam = load_camera_yaml(camera)
+    reg = load_registry(registry)
+    photos = [_read_image(p) for p in images]
+    fit = locate_scene_camera(photos, cam, reg, min_tags, max_rms_px, names=[str(p) for p in images])
+    for p, rms in zip(images, fit.per_image_rms_px):
+        typer.echo(f"  {p}: " + ("no table tag" if rms is None else f"{rms:.3f} px"))
+    save_scene_camera_pose(
+        out, fit.T_table_cam, fit.width, fit.height, fit.reprojection_rms_px, fit.tag_ids, fit.n_images
+    )
+    t = fit.T_table_cam[:3, 3]
+    typer.echo(
+        f"RMS {fit.reprojection_rms_px:.3f} px over {fit.n_corners} corners of table tags "
+        f"{', '.join(map(str, fit.tag_ids))} in {fit.n_images} image(s); camera at "
+        f"[{t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}] m in the table frame; wrote {out}"
+    )
+
+
 @app.command()
 def handeye(
     samples: Path = typer.Argument(
