@@ -1,24 +1,31 @@
-"""The hardware config YAML: which camera, which arm, the safety limits, the calibration files.
+"""The hardware config YAML: which cameras, which arm, the safety limits, the calibration files.
 
 Validated with pydantic (unknown keys are errors; every error names the file and field), and
-turned into devices by :func:`build_camera` / :func:`build_arm` through explicit type -> class
-tables. ``build_arm`` returns the arm wrapped in :class:`robot_io.safety.SafeArm`: callers never
-hold a raw driver. Relative paths in the YAML are relative to the YAML file.
+turned into devices by :func:`build_camera` / :func:`build_scene_camera` / :func:`build_arm`
+through explicit type -> class tables. ``build_arm`` returns the arm wrapped in
+:class:`robot_io.safety.SafeArm`: callers never hold a raw driver. Relative paths in the YAML are
+relative to the YAML file.
 
-A ``sim`` camera and a ``sim`` arm share one :class:`sim.world.SimWorld` (``build_world``), so a
-whole trial session runs without hardware.
+Cameras: ``camera`` is the wrist camera (named ``wrist``); ``scene_cameras`` the fixed ones, by
+name (``front: {type: opencv, ..., T_table_cam: front_pose.yaml}``). A real fixed camera needs its
+pose in the table frame, the file ``advobj calibrate scene-camera`` writes, and delivers frames of
+the size that pose was estimated at; a ``sim`` one is the sim scene's camera of the same name.
+
+A ``sim`` camera (wrist or fixed) and a ``sim`` arm share one :class:`sim.world.SimWorld`
+(``build_world``), so a whole trial session runs without hardware.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from calibration.intrinsics import load_camera_yaml
-from calibration.io import PoseModel, Vec3, load_model, not_a_regular_file
+from calibration.io import PoseModel, Vec3, load_model, load_scene_camera_pose, not_a_regular_file
 from calibration.io import read_yaml as read_calibration_yaml
 from robot_io.arms.serial import SerialArm
 from robot_io.arms.sim import SimArm
@@ -26,12 +33,12 @@ from robot_io.arms.ur_rtde import URArm
 from robot_io.cameras.depthai import DepthAICamera
 from robot_io.cameras.opencv import OpenCVCamera
 from robot_io.cameras.replay import ReplayCamera
-from robot_io.cameras.sim import SimCamera
+from robot_io.cameras.sim import SimCamera, SimSceneCamera
 from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
 from sim.configio import StrictModel, file_error, merged, read_yaml
 from sim.errors import format_validation_error
-from sim.spec import default_scene, load_scene
+from sim.spec import CAMERA_NAME, WRIST, default_scene, load_scene
 from sim.world import SimWorld
 
 __all__ = [
@@ -40,6 +47,10 @@ __all__ = [
     "OpenCVCameraConfig",
     "DepthAICameraConfig",
     "ReplayCameraConfig",
+    "SimSceneCameraConfig",
+    "OpenCVSceneCameraConfig",
+    "DepthAISceneCameraConfig",
+    "ReplaySceneCameraConfig",
     "SimArmConfig",
     "URArmConfig",
     "SerialArmConfig",
@@ -49,6 +60,8 @@ __all__ = [
     "load_T_tcp_cam",
     "build_world",
     "build_camera",
+    "build_scene_camera",
+    "scene_camera_pose",
     "build_arm",
     "CAMERA_TYPES",
     "ARM_TYPES",
@@ -109,6 +122,53 @@ CameraConfig = Annotated[
 ]
 
 
+# ---------------------------------------------------------------------- fixed scene cameras
+_T_TABLE_CAM = "the camera's pose in the table frame: the file 'advobj calibrate scene-camera' writes"
+
+
+class SimSceneCameraConfig(_Strict):
+    """A fixed camera of the sim world: the sim scene's camera of the same name (``scene_cameras`` of
+    the scene YAML), rendered at that camera's size and intrinsics (needs ``arm.type: sim``)."""
+
+    type: Literal["sim"]
+    T_table_cam: Path | None = Field(None, description=f"{_T_TABLE_CAM}; default: the pose the scene declares")
+
+
+class _RealSceneCamera(_Strict):
+    """A real fixed camera: its device fields, and its calibrated pose (required)."""
+
+    T_table_cam: Path | None = Field(
+        None, description=f"{_T_TABLE_CAM} (required: a fixed camera without it is refused)"
+    )
+
+    @model_validator(mode="after")
+    def _extrinsics(self):
+        if self.T_table_cam is None:
+            raise ValueError(
+                "T_table_cam missing: a fixed scene camera with no extrinsics is refused; locate it against the "
+                "table's tags with 'advobj calibrate scene-camera' and name the pose file it writes"
+            )
+        return self
+
+
+class OpenCVSceneCameraConfig(_RealSceneCamera, OpenCVCameraConfig):
+    """A fixed V4L2 / OpenCV camera and its pose file."""
+
+
+class DepthAISceneCameraConfig(_RealSceneCamera, DepthAICameraConfig):
+    """A fixed Luxonis OAK camera and its pose file."""
+
+
+class ReplaySceneCameraConfig(_RealSceneCamera, ReplayCameraConfig):
+    """Recorded frames of a fixed camera (a folder of images or a video file) and its pose file."""
+
+
+SceneCameraConfig = Annotated[
+    Union[SimSceneCameraConfig, OpenCVSceneCameraConfig, DepthAISceneCameraConfig, ReplaySceneCameraConfig],
+    Field(discriminator="type"),
+]
+
+
 # ---------------------------------------------------------------------- arms
 class SimArmConfig(_Strict):
     type: Literal["sim"]
@@ -158,11 +218,34 @@ class HardwareConfig(_Strict):
     safety: SafetyLimits
     T_tcp_cam: Path | None = Field(None, description="YAML with the camera pose in the TCP frame (hand-eye result)")
     sim: SimConfig = SimConfig()
+    scene_cameras: dict[str, SceneCameraConfig] = Field(
+        default_factory=dict,
+        description="fixed cameras besides the wrist camera (named 'wrist'), by name as a policy's card reads "
+        "them: a lower case letter, then lower case letters, digits or _ (at most 32)",
+    )
+
+    @field_validator("scene_cameras")
+    @classmethod
+    def _camera_names(cls, cams):
+        for name in cams:
+            if name == WRIST:
+                raise ValueError("'wrist' names the wrist camera (the camera field); call this one otherwise")
+            if not re.fullmatch(CAMERA_NAME, name):
+                raise ValueError(
+                    f"{name[:40]!r}: a camera name is a lower case letter, then lower case letters, digits or _ (<= 32)"
+                )
+        return cams
 
     @model_validator(mode="after")
     def _sim_pairing(self):
         if self.camera.type == "sim" and self.arm.type != "sim":
             raise ValueError("camera.type 'sim' renders from the sim arm's pose: it needs arm.type 'sim'")
+        for name, c in self.scene_cameras.items():
+            if c.type == "sim" and self.arm.type != "sim":
+                raise ValueError(
+                    f"scene_cameras.{name}: type 'sim' renders the sim world, which only a sim arm moves in: it needs "
+                    "arm.type 'sim'"
+                )
         return self
 
 
@@ -182,12 +265,15 @@ def _resolve(cfg: HardwareConfig, base: Path | None) -> HardwareConfig:
     def fix(p: Path | None) -> Path | None:
         return p if p is None or p.is_absolute() else base / p
 
-    cam_updates = {k: fix(getattr(cfg.camera, k)) for k in ("intrinsics", "path") if hasattr(cfg.camera, k)}
-    camera = {**cfg.camera.model_dump(), **cam_updates}
+    def fixed(c) -> dict:
+        keys = ("intrinsics", "path", "T_table_cam")
+        return {**c.model_dump(), **{k: fix(getattr(c, k)) for k in keys if hasattr(c, k)}}
+
     sim = {**cfg.sim.model_dump(), "scene": fix(cfg.sim.scene)}
+    scene_cameras = {name: fixed(c) for name, c in cfg.scene_cameras.items()}
     return merged(
         cfg,
-        {"camera": camera, "T_tcp_cam": fix(cfg.T_tcp_cam), "sim": sim},
+        {"camera": fixed(cfg.camera), "T_tcp_cam": fix(cfg.T_tcp_cam), "sim": sim, "scene_cameras": scene_cameras},
         what="hardware config",
         source=str(base),
         error=HardwareConfigError,
@@ -247,22 +333,32 @@ def build_world(cfg: HardwareConfig):
     return SimWorld(spec, image_size=cfg.sim.image_size, seed=cfg.sim.seed)
 
 
-def _sim_camera(cfg: HardwareConfig, world):
-    return SimCamera(world, None if cfg.T_tcp_cam is None else load_T_tcp_cam(cfg.T_tcp_cam))
+def scene_camera_pose(cfg: HardwareConfig, name: str) -> np.ndarray | None:
+    """``T_table_cam`` (4, 4) of scene camera ``name`` from its pose file; ``None`` for a sim camera
+    without one (it stands where its scene puts it). A bad file: one line naming it and the field."""
+    c = cfg.scene_cameras[name]
+    if c.T_table_cam is None:
+        return None
+    _regular(c.T_table_cam, f"scene_cameras.{name}.T_table_cam")
+    return load_scene_camera_pose(c.T_table_cam).T
 
 
-def _opencv_camera(cfg: HardwareConfig, world):
-    c = cfg.camera
+# Each factory builds camera ``name`` (``wrist`` or a scene camera's) from its config ``c``.
+def _sim_camera(c, name: str, cfg: HardwareConfig, world):
+    if name == WRIST:
+        return SimCamera(world, None if cfg.T_tcp_cam is None else load_T_tcp_cam(cfg.T_tcp_cam))
+    return SimSceneCamera(world, name, scene_camera_pose(cfg, name))
+
+
+def _opencv_camera(c, name: str, cfg: HardwareConfig, world):
     return OpenCVCamera(c.device, c.width, c.height, c.fps, c.fourcc, _intrinsics(c.intrinsics), c.timeout_ms)
 
 
-def _depthai_camera(cfg: HardwareConfig, world):
-    c = cfg.camera
+def _depthai_camera(c, name: str, cfg: HardwareConfig, world):
     return DepthAICamera(c.socket, c.width, c.height, c.fps, _intrinsics(c.intrinsics), c.timeout_ms)
 
 
-def _replay_camera(cfg: HardwareConfig, world):
-    c = cfg.camera
+def _replay_camera(c, name: str, cfg: HardwareConfig, world):
     return ReplayCamera(c.path, c.loop, c.fps, _intrinsics(c.intrinsics))
 
 
@@ -291,10 +387,35 @@ def _needs_world(kind: str, world) -> None:
 
 
 def build_camera(cfg: HardwareConfig, world=None):
-    """The configured camera (not connected). ``sim`` cameras render ``world``."""
+    """The configured wrist camera (not connected). ``sim`` cameras render ``world``."""
     if cfg.camera.type == "sim":
         _needs_world("sim camera", world)
-    return CAMERA_TYPES[cfg.camera.type](cfg, world)
+    camera = CAMERA_TYPES[cfg.camera.type](cfg.camera, WRIST, cfg, world)
+    camera.label = WRIST
+    return camera
+
+
+def build_scene_camera(cfg: HardwareConfig, name: str, world=None):
+    """Fixed camera ``name`` of ``scene_cameras`` (not connected), refusing frames of any other size
+    than its pose holds for: a real camera's pose file's size, a sim camera's render size."""
+    if name not in cfg.scene_cameras:
+        have = ", ".join(cfg.scene_cameras) or "none"
+        raise HardwareConfigError(
+            f"scene_cameras: no camera {name!r} in the hardware config (its scene cameras: {have})"
+        )
+    c = cfg.scene_cameras[name]
+    if c.type == "sim":
+        _needs_world("sim scene camera", world)
+    camera = CAMERA_TYPES[c.type](c, name, cfg, world)
+    camera.label = name
+    if c.type == "sim":
+        spec = world.spec.camera_spec(name)
+        camera.expect_frame_size(spec.width, spec.height, "the sim scene renders it at")
+    else:
+        _regular(c.T_table_cam, f"scene_cameras.{name}.T_table_cam")
+        pose = load_scene_camera_pose(c.T_table_cam)
+        camera.expect_frame_size(pose.width, pose.height, f"its pose file {c.T_table_cam} holds for")
+    return camera
 
 
 def build_arm(cfg: HardwareConfig, world=None) -> SafeArm:

@@ -4,7 +4,8 @@ Every command passes, in this order:
 
 1. the arm's watchdog is kicked (so a hung process stops the arm, not a slow step);
 2. the maximum trial duration (exceeded: stop and raise :class:`SafetyStop`);
-3. the frame-age watchdog (the camera frame the command was computed from is too old: stop);
+3. the frame-age watchdog (a camera frame the command was computed from is too old: stop; with
+   several cameras the oldest of their frames counts, and the refusal names its camera);
 4. NaN / Inf / non-rigid targets (refused: stop);
 5. the arm's fault state (protective stop, e-stop, lost link: :class:`ArmFaultError`);
 6. :func:`limit_command`: the target is clipped into the workspace box, the per-step translation
@@ -30,6 +31,7 @@ from __future__ import annotations
 import collections
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Callable, Literal
 
@@ -199,6 +201,13 @@ def _frame_time(frame) -> float | None:
     return float(getattr(frame, "timestamp_s"))
 
 
+def _frame_times(frames) -> list[tuple[str, float | None]]:
+    """``[(what, timestamp)]`` of one frame (``what`` = "camera frame") or of ``{camera: frame}``."""
+    if isinstance(frames, Mapping):
+        return [(f"camera {name!r} frame", _frame_time(f)) for name, f in frames.items()] or [("camera frame", None)]
+    return [("camera frame", _frame_time(frames))]
+
+
 class SafeArm:
     """Wraps an :class:`Arm`; the driver itself stays private to this object.
 
@@ -352,7 +361,8 @@ class SafeArm:
         """One policy-loop command toward ``T_base_tcp``, computed from camera ``frame``.
 
         ``frame`` is the :class:`~robot_io.cameras.base.Frame` (or its ``timestamp_s``) the
-        policy saw; too old a frame stops the arm instead of moving it.
+        policy saw, or ``{camera: frame}`` of every camera it read; too old a frame (the oldest of
+        them) stops the arm instead of moving it.
         """
         return self._guarded(lambda T_now: T_base_tcp, frame)
 
@@ -397,17 +407,18 @@ class SafeArm:
             reason = f"maximum trial duration {lim.max_trial_s:.1f} s exceeded"
             self._stop(reason)
             raise SafetyStop(reason)
-        ts = _frame_time(frame)
-        if ts is None or not np.isfinite(ts):
-            raise _Refuse("no camera frame timestamp given")
-        age_ms = (now - ts) * 1000.0
-        if age_ms < -_FUTURE_TOLERANCE_MS:
-            # Usually a wall-clock (time.time) stamp: it would defeat the age check, so refuse.
-            raise _Refuse(
-                f"camera frame timestamp is {-age_ms:.0f} ms in the future: stamp frames with time.monotonic()"
-            )
+        ages = []
+        for what, ts in _frame_times(frame):
+            if ts is None or not np.isfinite(ts):
+                raise _Refuse(f"no {what} timestamp given")
+            age_ms = (now - ts) * 1000.0
+            if age_ms < -_FUTURE_TOLERANCE_MS:
+                # Usually a wall-clock (time.time) stamp: it would defeat the age check, so refuse.
+                raise _Refuse(f"{what} timestamp is {-age_ms:.0f} ms in the future: stamp frames with time.monotonic()")
+            ages.append((age_ms, what))
+        age_ms, what = max(ages)  # the oldest frame the command was computed from counts
         if age_ms > lim.max_frame_age_ms:
-            raise _Refuse(f"camera frame is {age_ms:.0f} ms old (limit {lim.max_frame_age_ms:.0f} ms)")
+            raise _Refuse(f"{what} is {age_ms:.0f} ms old (limit {lim.max_frame_age_ms:.0f} ms)")
         self._require_no_fault()
         T_now = self.__arm.tcp_pose()
         T_target = target_fn(T_now)

@@ -1,9 +1,10 @@
-"""Wrist cameras: one interface (:class:`~robot_io.cameras.base.Camera`), four implementations.
+"""Cameras (the wrist camera, fixed scene cameras): one interface (:class:`~robot_io.cameras.base.Camera`),
+four implementations.
 
 The implementations live in their own modules and are imported by the factory in
 :mod:`robot_io.config` only when a config names them.
 """
 
-from robot_io.cameras.base import Camera, CameraIntrinsics, Frame
+from robot_io.cameras.base import Camera, CameraIntrinsics, Frame, FrameSizeError
 
-__all__ = ["Camera", "CameraIntrinsics", "Frame"]
+__all__ = ["Camera", "CameraIntrinsics", "Frame", "FrameSizeError"]

@@ -1,4 +1,5 @@
-"""The camera interface every wrist camera implements, and the frame it returns."""
+"""The camera interface every camera of a cell implements (the wrist camera and the fixed scene
+cameras), and the frame it returns."""
 
 from __future__ import annotations
 
@@ -11,9 +12,13 @@ import numpy as np
 # The calibration package owns the intrinsics type and its YAML file; cameras only carry it.
 from calibration.intrinsics import CameraIntrinsics
 from robot_io.device import Device
-from robot_io.errors import MissingIntrinsicsError
+from robot_io.errors import MissingIntrinsicsError, RobotIOError
 
-__all__ = ["Frame", "CameraIntrinsics", "Camera", "scale_intrinsics"]
+__all__ = ["Frame", "CameraIntrinsics", "Camera", "FrameSizeError", "scale_intrinsics"]
+
+
+class FrameSizeError(RobotIOError, ValueError):
+    """A camera delivered a frame of another size than the one it is calibrated (or rendered) at."""
 
 
 @dataclass(frozen=True)
@@ -55,15 +60,37 @@ def scale_intrinsics(intr: CameraIntrinsics, width: int, height: int, what: str 
 
 
 class Camera(Device):
-    """A wrist camera: ``connect()``/``disconnect()`` (or ``with camera:``), ``read()``, ``intrinsics``."""
+    """A camera: ``connect()``/``disconnect()`` (or ``with camera:``), ``read()``, ``intrinsics``.
+
+    ``label`` is the cell's name for it (``wrist`` or a scene camera's name). After
+    :meth:`expect_frame_size`, ``read()`` refuses a frame of any other size in one line naming the
+    camera (:class:`FrameSizeError`): a fixed camera's pose and intrinsics hold for one size.
+    """
 
     name: str = "camera"
+    label: str = "camera"
+    frame_size: tuple[int, int] | None = None  # (W, H) px every frame must have; None: any
+    _frame_size_source: str = ""
+
+    def expect_frame_size(self, width: int, height: int, source: str) -> None:
+        """Refuse frames other than ``width`` x ``height`` px; ``source`` says where that size comes
+        from, for the message (``"its pose file front.yaml holds for"``)."""
+        self.frame_size, self._frame_size_source = (int(width), int(height)), str(source)
 
     def read(self) -> Frame:
         """The newest frame; never one older than the previous ``read()``'s."""
         if not self._connected:
             raise RuntimeError(f"{self.name}: read() before connect()")
-        return self._read()
+        frame = self._read()
+        if self.frame_size is not None:
+            h, w = frame.rgb.shape[:2]
+            if (w, h) != self.frame_size:
+                W, H = self.frame_size
+                raise FrameSizeError(
+                    f"camera {self.label!r}: a {w}x{h} px frame, but {self._frame_size_source} {W}x{H} px: set the "
+                    "camera to deliver that size, or calibrate it again at this one"
+                )
+        return frame
 
     @property
     @abc.abstractmethod

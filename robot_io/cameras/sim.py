@@ -1,7 +1,10 @@
-"""The simulated wrist camera: renders the shared :class:`sim.world.SimWorld` from the sim arm's pose.
+"""The simulated cameras: render the shared :class:`sim.world.SimWorld` from the sim arm's pose
+(:class:`SimCamera`, the wrist camera) or from a fixed pose in the table frame (:class:`SimSceneCamera`).
 
-Hardware-in-the-loop simulation: the camera looks through ``T_world_tcp @ T_tcp_cam`` of the
-world the :class:`robot_io.arms.sim.SimArm` moves, so a full trial session runs without hardware.
+Hardware-in-the-loop simulation: the wrist camera looks through ``T_world_tcp @ T_tcp_cam`` of the
+world the :class:`robot_io.arms.sim.SimArm` moves, a scene camera through one of the scene's
+``scene_cameras`` (its size, intrinsics and declared pose, :meth:`sim.world.SimWorld.render`), so a
+full trial session runs without hardware.
 
 With ``tags`` (from an object registry, :func:`sim_tags`), the camera also draws each tag36h11 tag
 where the registry says it sits on its object (or on the table), at the object's current pose in
@@ -23,7 +26,7 @@ from calibration.io import T_to_pose
 from robot_io.cameras.base import Camera, CameraIntrinsics, Frame
 from sim.geometry import invert_T, make_T, rot_z, so3_exp
 
-__all__ = ["SimCamera", "SimTag", "sim_tags", "draw_tags", "sim_registry"]
+__all__ = ["SimCamera", "SimSceneCamera", "SimTag", "sim_tags", "draw_tags", "sim_registry"]
 
 
 class SimTag:
@@ -191,3 +194,42 @@ class SimCamera(Camera):
     @property
     def intrinsics(self) -> CameraIntrinsics:
         return CameraIntrinsics(self.world.K, np.zeros(5), self.world.width, self.world.height)
+
+
+class SimSceneCamera(Camera):
+    """A fixed camera of ``world``: scene camera ``camera`` of its scene (``scene_cameras``), rendered
+    at that camera's size and intrinsics through the world's renderer of it.
+
+    Args:
+        T_table_cam: the camera's pose in the table (world) frame; ``None``: the pose the scene
+            declares (read at every frame, so a staged scene's own pose counts).
+    """
+
+    name = "sim"
+
+    def __init__(self, world, camera: str, T_table_cam: np.ndarray | None = None):
+        super().__init__()
+        world.spec.camera_spec(camera)  # an unknown name: one line listing the scene's cameras
+        self.world = world
+        self.camera = self.label = str(camera)
+        self.T_table_cam = None if T_table_cam is None else np.asarray(T_table_cam, dtype=np.float64)
+        self._seq = itertools.count()
+
+    def _open(self) -> None:
+        self._seq = itertools.count()
+
+    def _close(self) -> None:
+        pass  # the world (and its renderers) belongs to whoever created it
+
+    def _read(self) -> Frame:
+        t_capture = time.monotonic()  # stamped at the start, like an exposure
+        out = self.world.render(self.T_table_cam, with_ids=False, camera=self.camera)
+        return Frame(np.ascontiguousarray(out.rgb), t_capture, next(self._seq))
+
+    def identity(self) -> dict[str, str]:
+        return {"serial": "sim", "camera": self.camera}
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        cam = self.world.spec.camera_spec(self.camera)
+        return CameraIntrinsics(self.world.intrinsics(self.camera), np.zeros(5), cam.width, cam.height)

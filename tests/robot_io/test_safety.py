@@ -6,6 +6,8 @@ import logging
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from robot_io.arms.base import Arm, Fault
@@ -272,3 +274,53 @@ def test_limits_reject_an_inverted_box_naming_the_fields():
         SafetyLimits(workspace_min_m=(0, 0, 1), workspace_max_m=(1, 1, 0))
     with pytest.raises(ValidationError, match="max_step_m"):
         SafetyLimits(workspace_min_m=(0, 0, 0), workspace_max_m=(1, 1, 1), max_step_m=float("nan"))
+
+
+# ----------------------------------------------------------------------------- several cameras
+def test_with_several_cameras_a_stale_scene_camera_frame_stops_the_arm_naming_it(rig, limits):
+    safe, arm, clock = rig
+    fresh, stale = clock.t - 0.01, clock.t - (limits.max_frame_age_ms + 5) / 1000.0
+    res = safe.step_delta([0.01, 0, 0, 0, 0, 0], {"wrist": fresh, "front": stale})
+    assert res.status == "refused" and res.reasons == ("camera 'front' frame is 105 ms old (limit 100 ms)",)
+    assert arm.servos == [] and arm.stops == 1
+    assert safe.events[-1].action == "stopped" and "'front'" in safe.events[-1].reason
+    assert safe.step_delta([0.01, 0, 0, 0, 0, 0], {"wrist": fresh, "front": fresh}).status == "ok"
+    assert len(arm.servos) == 1
+
+
+def test_with_several_cameras_a_missing_or_future_stamp_of_any_is_refused_naming_it(rig):
+    safe, arm, clock = rig
+    res = safe.step_delta(np.zeros(6), {"wrist": clock.t, "front": None})
+    assert res.status == "refused" and res.reasons == ("no camera 'front' frame timestamp given",)
+    res = safe.step_delta(np.zeros(6), {"wrist": clock.t, "top": clock.t + 1.0})
+    assert res.status == "refused" and "camera 'top' frame timestamp is 1000 ms in the future" in res.reasons[0]
+    assert safe.step_delta(np.zeros(6), {}).status == "refused"  # no frame at all
+    assert arm.servos == []
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    ages_ms=st.dictionaries(
+        st.sampled_from(["wrist", "front", "top", "side"]),
+        st.floats(0.0, 1e9, allow_nan=False, allow_infinity=False),
+        min_size=1,
+        max_size=4,
+    )
+)
+def test_the_oldest_frame_decides_for_any_set_of_frame_ages(ages_ms):
+    limits = SafetyLimits(workspace_min_m=(-1, -1, 0), workspace_max_m=(1, 1, 1), max_frame_age_ms=100.0)
+    clock = Clock()
+    clock.t = 1e7  # frames up to 1e9 ms (11.6 days) old still have a positive monotonic stamp
+    arm = RecordingArm(make_pose(0.4, 0.0, 0.3))
+    safe = SafeArm(arm, limits, clock=clock)
+    safe.connect()
+    res = safe.step_delta(np.zeros(6), {cam: clock.t - age / 1000.0 for cam, age in ages_ms.items()})
+    oldest = max(ages_ms, key=ages_ms.get)
+    # the stamps are rounded to float64 seconds: ages within a microsecond of the limit may go either way
+    if abs(ages_ms[oldest] - 100.0) > 1e-3:
+        assert (res.status == "refused") == (ages_ms[oldest] > 100.0), res
+    if res.status == "refused":
+        named = res.reasons[0].split("'")[1]  # the camera the refusal names: one of the oldest (ties)
+        assert ages_ms[named] >= ages_ms[oldest] - 1e-3 and arm.servos == []
+    else:
+        assert len(arm.servos) == 1
