@@ -95,6 +95,7 @@ __all__ = [
     "read_recording",
     "write_recording",
     "is_recording",
+    "check_target",
 ]
 
 FORMAT = "advobj-recording"
@@ -109,7 +110,7 @@ GRIPPER_KINDS = ("opening_m", "state")
 MAX_SIDE_PX = 8192  # a frame's width and height
 MAX_STEPS = 1_000_000  # steps of one episode
 MAX_EPISODES = 100_000
-MAX_SYNC_TOLERANCE_S = 1.0
+MAX_SYNC_TOLERANCE_S = 2.0  # one period of the slowest trial loop a plan accepts (0.5 Hz)
 MAX_MANIFEST_BYTES = 16 * 2**20
 MAX_STEPS_BYTES = 256 * 2**20
 MAX_FRAME_BYTES = 256 * 2**20
@@ -726,9 +727,11 @@ def _write_episode(
     return len(t_s)
 
 
-def _empty_target(root: Path) -> bool:
-    """Whether ``root`` must be created (True) or is an empty folder to write into (False);
-    anything else is refused before anything is written."""
+def check_target(path: str | Path) -> bool:
+    """Whether ``path`` must be created (True) or is an empty folder to write a recording into (False);
+    anything else (a file, a symlink, a folder with something in it) is one :class:`RecordingError`.
+    :func:`write_recording` asks first; an importer may ask before its reading starts."""
+    root = Path(path)
     if root.is_symlink():
         raise RecordingError(f"{root}: a symlink; a recording is written into a new or empty folder")
     if not root.exists():
@@ -779,7 +782,7 @@ def write_recording(
         "cameras": [_camera_entry(c).model_dump() for c in cams],
     }
     _validate_manifest({**head, "episodes": [{"id": "episode", "n_frames": 1}]}, "recording")  # before any write
-    created = _empty_target(root)
+    created = check_target(root)
     root.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=root))
     published: list[Path] = []

@@ -102,7 +102,7 @@ def test_there_are_no_import_loops_not_even_through_lazy_imports():
 
 def test_trials_is_split_into_its_rooms_and_the_docs_generator_is_a_dev_tool():
     rooms = {p.name for p in (ROOT / "trials").iterdir() if p.is_dir() and (p / "__init__.py").is_file()}
-    assert rooms == {"cli", "eval", "experiments", "fabrication", "jobs", "real"}
+    assert rooms == {"cli", "eval", "experiments", "fabrication", "jobs", "real", "recordings"}
     loose = sorted(p.name for p in (ROOT / "trials").glob("*.py") if p.name != "__init__.py")
     assert not loose, f"modules outside the rooms of trials/: {loose}"
     assert (ROOT / "tools" / "docgen.py").is_file()

@@ -23,6 +23,7 @@ from trials.cli import fabricate as cli_fabricate
 from trials.cli import grid as cli_grid
 from trials.cli import hw as cli_hw
 from trials.cli import policy as cli_policy
+from trials.cli import record as cli_record
 from trials.cli import scene as cli_scene
 from trials.cli import trial as cli_trial
 from trials.cli.eval import format_summary
@@ -87,6 +88,8 @@ app.add_typer(cli_policy.app, name="policy")
 app.add_typer(cli_bench.app, name="bench")
 
 app.add_typer(cli_trial.app, name="trial")
+
+app.add_typer(cli_record.app, name="record")
 
 
 def _one_line(text: str) -> str:

@@ -1,0 +1,120 @@
+"""A trial session run on the project's own sim cell (SimCamera + SimArm, a real ONNX policy on
+onnxruntime, a real SQLite store), imported into a recording: every frame the session stored, at
+the pose the sim camera really rendered it from, with the cell's calibration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from robot_io.cameras.sim import SimCamera
+from sim.geometry import make_T, so3_exp
+from sim.recording import RecordingError, read_recording
+from sim.spec import default_scene
+from tests.trials.real.trial_session_helpers import sim_hardware, small_plan, straight_ahead_onnx
+from trials.real.operator import AutoOperator
+from trials.real.session import SessionOptions, run_session
+from trials.real.store import TrialStore
+from trials.recordings.calib import RecordImportError
+from trials.recordings.importer import ImportJob, run_import
+
+MOUNT = {"translation_m": [0.0, -0.04, -0.06], "rotvec_rad": [0.0, 0.0, 0.05]}  # not the scene's own mount
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    """A two-trial session on a sim cell whose hardware YAML names a hand-eye file, as a real cell's
+    does; ``rendered`` holds, per frame the sim camera delivered, the TCP pose it rendered from."""
+    d = tmp_path_factory.mktemp("session")
+    hand_eye = d / "T_tcp_cam.yaml"
+    hand_eye.write_text(yaml.safe_dump({"T_tcp_cam": MOUNT}))
+    hw = sim_hardware(d / "hw.yaml")
+    data = yaml.safe_load(hw.read_text())
+    data["T_tcp_cam"] = hand_eye.name  # resolved beside the hardware YAML
+    hw.write_text(yaml.safe_dump(data))
+    rendered = {}
+    original = SimCamera._read
+
+    def read(self):
+        frame = original(self)
+        rendered[frame.seq] = self.world.T_world_tcp.copy()
+        return frame
+
+    SimCamera._read = read
+    try:
+        opts = SessionOptions(
+            hardware=hw,
+            policy=straight_ahead_onnx(d / "p.onnx"),
+            plan=small_plan(d / "plan.yaml", d, n_tcp=2, n_layouts=1, max_steps=5, conditions=("clean",)),
+            session="day1",
+            db=d / "trials.sqlite",
+            rate_limit=False,
+        )
+        run_session(opts, operator=AutoOperator(log=None), log=None)
+    finally:
+        SimCamera._read = original
+    return {"dir": d, "db": d / "trials.sqlite", "hand_eye": hand_eye, "rendered": rendered}
+
+
+def test_a_session_imports_every_frame_at_the_pose_it_was_taken_from(cell, tmp_path):
+    rec = run_import(ImportJob(source="session", src=cell["db"], out=tmp_path / "rec"))
+    with TrialStore(cell["db"], create=False) as store:
+        trials = store.trial_rows(["day1"])
+        steps = {t["trial_id"]: store.steps("day1", t["trial_id"]) for t in trials}
+    assert [e.id for e in rec.episodes] == [t["trial_id"] for t in trials]
+    assert [e.n_frames for e in rec.episodes] == [t["n_steps"] for t in trials]
+    assert rec.source["kind"] == "session" and rec.source["session"] == "day1"
+    cam = rec.cameras["wrist"]
+    assert (cam.width, cam.height, cam.mount) == (32, 32, "tcp")
+    np.testing.assert_allclose(cam.K, default_scene().camera.K(32, 32), atol=1e-12)
+    np.testing.assert_allclose(
+        cam.T_tcp_cam, make_T(so3_exp(np.array(MOUNT["rotvec_rad"])), MOUNT["translation_m"]), atol=1e-12
+    )
+    np.testing.assert_allclose(rec.T_table_base, np.eye(4), atol=1e-12)  # the sim's base is the table frame
+    n = 0
+    for t in trials:
+        for k, step in enumerate(rec.frames(t["trial_id"])):
+            row = steps[t["trial_id"]][k]
+            stored = np.asarray(Image.open(cell["db"].parent / row["frame_ref"]).convert("RGB"))
+            np.testing.assert_array_equal(step.images["wrist"], stored)
+            # the pose the sim camera really rendered this frame from (the world is the base frame)
+            np.testing.assert_allclose(step.T_base_tcp, cell["rendered"][row["frame_seq"]], rtol=0, atol=1e-9)
+            assert step.frame_t_s["wrist"] == row["t_frame_s"]
+            n += 1
+    assert n == sum(t["n_steps"] for t in trials) > 2
+
+
+def test_the_session_is_named_and_its_calibration_checked(cell, tmp_path):
+    with pytest.raises(RecordImportError, match="--session: no session 'day2'"):
+        run_import(ImportJob(source="session", src=cell["db"], session="day2", out=tmp_path / "a"))
+    other = tmp_path / "other_hand_eye.yaml"
+    other.write_text(yaml.safe_dump({"T_tcp_cam": {"translation_m": [0.0, 0.0, 0.0], "rotvec_rad": [0.0, 0.0, 0.0]}}))
+    with pytest.raises(RecordImportError, match="not the hand-eye file the session was recorded with") as err:
+        run_import(ImportJob(source="session", src=cell["db"], extrinsics={"wrist": other}, out=tmp_path / "b"))
+    assert "\n" not in str(err.value)
+    # the recorded file itself, named on the command line (it could have moved): accepted
+    rec = run_import(
+        ImportJob(source="session", src=cell["db"], extrinsics={"wrist": cell["hand_eye"]}, out=tmp_path / "c")
+    )
+    assert len(rec.episodes) == 2
+    with pytest.raises(RecordImportError, match="--intrinsics front=...: no camera 'front' is imported"):
+        run_import(ImportJob(source="session", src=cell["db"], intrinsics={"front": other}, out=tmp_path / "d"))
+    assert not any((tmp_path / x).exists() for x in "abd")
+
+
+def test_a_session_whose_frame_is_gone_leaves_no_recording(cell, tmp_path):
+    import shutil
+
+    db = tmp_path / "copy" / "trials.sqlite"
+    shutil.copytree(cell["dir"], db.parent)
+    with TrialStore(db, create=False) as store:
+        trial = store.trial_rows(["day1"])[-1]
+        last = store.steps("day1", trial["trial_id"])[-1]
+    (db.parent / last["frame_ref"]).unlink()
+    with pytest.raises(RecordImportError, match="a frame of the session is missing"):
+        run_import(ImportJob(source="session", src=db, out=tmp_path / "rec"))
+    assert not (tmp_path / "rec").exists()  # the first trial was written, then all of it removed
+    with pytest.raises(RecordingError, match="not a recording"):
+        read_recording(tmp_path / "rec")
