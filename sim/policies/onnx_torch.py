@@ -7,7 +7,9 @@ differentiable :class:`sim.policies.graph_policy.GraphPolicy`:
    without is refused by name (the file stays usable black-box);
 2. onnx2torch builds a ``torch.fx.GraphModule`` (one torch module per ONNX node, initializers as
    buffers), cut into ``features`` and ``head`` at the card's ``feature_map``
-   (:mod:`sim.policies.graph_policy`);
+   (:mod:`sim.policies.graph_policy`). Before, shapes are inferred with data propagation and
+   ``CumSum``'s default direction is written out (onnx2torch misreads both in LeRobot's ACT export);
+   after, an image's batch-size read becomes the node a ``.pt2`` has for it, which is no data path;
 3. before the module is used, onnxruntime (the reference: what a lab deploys) and the cut torch
    module run on :data:`~sim.policies.graph_policy.CHECK_FRAMES` frames rendered from the scene;
    an output further from onnxruntime's than ``ATOL + RTOL * |value|`` is refused, naming the
@@ -150,6 +152,17 @@ def fold_constant_nodes(model: onnx.ModelProto) -> onnx.ModelProto:
     return out
 
 
+def _explicit_cumsum_direction(model: onnx.ModelProto) -> onnx.ModelProto:
+    """``model`` with ONNX's default ``reverse=0`` written into every ``CumSum`` that leaves it out
+    (torch.onnx's exporter does): onnx2torch (1.5.15) reads a missing ``reverse`` as 1 and converts
+    such a node to a reversed cumulative sum (LeRobot's ACT sums its 2-D position embedding so)."""
+    for node in model.graph.node:
+        if node.op_type == "CumSum" and node.domain in ("", "ai.onnx"):
+            if not any(a.name == "reverse" for a in node.attribute):
+                node.attribute.append(onnx.helper.make_attribute("reverse", 0))
+    return model
+
+
 def _producers(gm: fx.GraphModule) -> dict[str, fx.Node]:
     """ONNX value name -> the fx node holding it (onnx2torch's ``onnx_mapping`` of each module)."""
     out: dict[str, fx.Node] = {}
@@ -167,6 +180,43 @@ def _producers(gm: fx.GraphModule) -> dict[str, fx.Node]:
             if user.op == "call_function" and len(user.args) == 2 and isinstance(user.args[1], int):
                 out[names[user.args[1]]] = user
     return out
+
+
+def _read_batch_sizes(gm: fx.GraphModule, images: list[fx.Node]) -> None:
+    """Rewrite each ``Gather(Shape(image), 0)`` of ``gm`` (the batch size read off an image: LeRobot's
+    ACT sizes its latent and its decoder's queries so) as ``index + aten.sym_size.int(image, 0)``, the
+    node a .pt2 has for it, which the feature-map cut knows carries no data from the image; same value,
+    dtype, shape and device as the Gather's."""
+    from onnx2torch.node_converters.gather import OnnxGather  # lazy: optional dependency (onnx2torch)
+    from onnx2torch.node_converters.shape import OnnxShape  # lazy: optional dependency (onnx2torch)
+
+    def module(n: fx.Node):
+        return gm.get_submodule(n.target) if n.op == "call_module" else None
+
+    changed = False
+    for image in images:
+        for shape in list(image.users):
+            if not isinstance(module(shape), OnnxShape) or module(shape)._start != 0:
+                continue
+            for gather in list(shape.users):
+                index = gather.args[1] if len(gather.args) == 2 else None
+                if not isinstance(module(gather), OnnxGather) or module(gather)._axis != 0:
+                    continue
+                if not isinstance(index, fx.Node) or index.op != "get_attr" or gather.args[0] is not shape:
+                    continue
+                value = gm.get_buffer(index.target) if "." in index.target else getattr(gm, index.target)
+                if value.dtype.is_floating_point or value.numel() != 1 or int(value.reshape(-1)[0]) != 0:
+                    continue
+                with gm.graph.inserting_before(gather):
+                    batch = gm.graph.call_function(torch.ops.aten.sym_size.int, (image, 0))
+                    gather.replace_all_uses_with(gm.graph.call_function(torch.add, (index, batch)))
+                gm.graph.erase_node(gather)
+                changed = True
+            if not shape.users:
+                gm.graph.erase_node(shape)
+    if changed:
+        gm.graph.lint()
+        gm.recompile()
 
 
 def _run_reference(onnx_policy, images, state: np.ndarray | None) -> tuple[np.ndarray, int]:
@@ -235,7 +285,7 @@ def convert_onnx(onnx_policy, device="cpu", spec=None) -> GraphPolicy:
         model = onnx.load(str(path))
     except Exception as err:  # noqa: BLE001 - protobuf and onnx raise their own types
         raise PolicyError(f"{path}: not a loadable ONNX model ({str(err).splitlines()[0]})") from None
-    model = fold_constant_nodes(model)
+    model = _explicit_cumsum_direction(fold_constant_nodes(model))
     bad = unsupported_operators(model)
     if bad:
         op, node, version = bad[0]
@@ -245,6 +295,13 @@ def convert_onnx(onnx_policy, device="cpu", spec=None) -> GraphPolicy:
             "be evaluated black-box (advobj policy eval) but not attacked white-box"
         )
     o2t = onnx2torch_module()
+    try:
+        # Shapes computed in the graph (LeRobot's ACT builds its decoder input with ConstantOfShape of a
+        # Concat of the batch size) are known only with data propagation; onnx2torch's own inference runs
+        # without it and would size a LayerNormalization from an unknown axis (0).
+        model = onnx.shape_inference.infer_shapes(model, data_prop=True)
+    except Exception:  # noqa: BLE001, S110 - inference is a hint: onnx2torch infers again, the check decides
+        pass
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # shape inference and the converters' caveats: the check decides
@@ -260,6 +317,7 @@ def convert_onnx(onnx_policy, device="cpu", spec=None) -> GraphPolicy:
     plan = onnx_policy.inputs
     images = [by_name[b.name] for b in plan.images]
     state_nodes = [by_name[s.name] for s in plan.states]
+    _read_batch_sizes(gm, images)
     producers = _producers(gm)
     if onnx_policy.output_name not in producers:
         raise PolicyError(f"{path}: output {onnx_policy.output_name!r} is not computed by any node")
