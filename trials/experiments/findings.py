@@ -362,7 +362,7 @@ FINDINGS: tuple[Finding, ...] = (
         "table2",
         (SALIENCY,),
         bins="r",
-        seeds="table2-seeds",
+        seeds="table2-f4",
     ),
     Finding(
         "F5",
@@ -1055,10 +1055,18 @@ class FollowUp:
     recipe: str
     parts: tuple[Part, ...]
     event: str = "targeted"
+    #: The recipe ran every arm under several attack seeds: each comparison is tested over the seeds
+    #: (:func:`over_seeds`) instead of on the first seed's textures alone.
+    seeds: bool = False
 
     def __call__(self, rows_of: Rows, results: Path) -> list[str]:
         rows, lines = rows_of(self.recipe), []
         for p in self.parts:
+            if self.seeds:
+                o = over_seeds(p, seed_arms(rows, p.a), seed_arms(rows, p.b), self.event)
+                if o is not None:
+                    lines.append(f"- {_seeds_text(o)}: **{o.verdict}** (each seed alone: {', '.join(o.per_seed)})")
+                continue
             a, b = arm(rows, p.a.eval, p.a.condition), arm(rows, p.b.eval, p.b.condition)
             if a and b:
                 pr = paired(a, b, self.event)
