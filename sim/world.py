@@ -118,12 +118,15 @@ class SimWorld:
             raise ValueError(f"object_xy_yaw must be finite ({len(self.spec.objects)}, 3), got {a.shape}")
         self.T_world_objects = object_poses_world(a)
 
-    def set_scene(self, spec, renderer: SceneRenderer | None = None) -> None:
+    def set_scene(
+        self, spec, renderer: SceneRenderer | None = None, camera_renderers: Mapping[str, SceneRenderer] | None = None
+    ) -> None:
         """Swap the scene (e.g. another adversarial mesh) keeping the TCP pose and the object poses.
 
         ``renderer``: a renderer already built for ``spec`` at this world's image size (callers
         switching between a few scenes cache them: building one costs a GL context and mesh
         uploads); ``None`` builds one that this world owns. A renderer this world owned is closed.
+        ``camera_renderers``: as the constructor's, scene cameras' renderers built for ``spec`` to share.
         """
         if len(spec.objects) != len(self.spec.objects):
             raise ValueError(
@@ -138,6 +141,9 @@ class SimWorld:
         self.renderer = new
         self._drop_camera_renderers()  # built for the old scene: rebuilt for the new one when rendered
         self.spec = spec
+        for name, r in (camera_renderers or {}).items():
+            self._check_camera_renderer(name, r)
+            self._camera_renderers[name] = r
         self._centers_local = object_local_centers(spec)
         self.appearance = Appearance(spec.lighting)
 

@@ -21,7 +21,9 @@ configurations; TCP poses from further configurations, keeping a TCP pose only i
 start for *every* layout (the sampler's own rules: at least ``min_tcp_height_m + 0.04`` high and
 1.5 success radii from every object) and sees both objects' centres in the wrist image - a crossed
 design reuses one TCP pose with layouts it was not drawn for, and a start with an object out of
-view wastes a real trial.
+view wastes a real trial. A scene with fixed cameras (``scene_cameras``) keeps only layouts whose
+object centres every one of them sees: a policy reading such a camera is shown both objects from
+the start (scenes without them draw the same plans as before).
 
 The trial order is drawn from ``seed`` and keeps each environment together (an environment is a
 physical setup): the environments come in a random order, and within each environment's block
@@ -298,14 +300,24 @@ def _check_names(what: str, names: Sequence[str]) -> list[str]:
     return names
 
 
+def _in_image(cam, T_world_cam: np.ndarray, points_world: np.ndarray) -> bool:
+    """Whether every point ``(N, 3)`` lies in front of camera ``cam`` (a scene's camera spec) at
+    ``T_world_cam`` and inside its image."""
+    p = transform_points(invert_T(T_world_cam), points_world)
+    if np.any(p[:, 2] <= cam.znear_m):
+        return False
+    uv = (cam.K() @ (p / p[:, 2:3]).T).T[:, :2]
+    return bool(np.all((uv >= -0.5) & (uv <= [cam.width - 0.5, cam.height - 0.5])))
+
+
 def _in_view(spec, T_world_tcp: np.ndarray, points_world: np.ndarray) -> bool:
     """Whether every point ``(N, 3)`` lies in front of the wrist camera and inside its image."""
-    T_cam_world = invert_T(T_world_tcp @ spec.camera.T_tcp_cam)
-    p = transform_points(T_cam_world, points_world)
-    if np.any(p[:, 2] <= spec.camera.znear_m):
-        return False
-    uv = (spec.camera.K() @ (p / p[:, 2:3]).T).T[:, :2]
-    return bool(np.all((uv >= -0.5) & (uv <= [spec.camera.width - 0.5, spec.camera.height - 0.5])))
+    return _in_image(spec.camera, T_world_tcp @ spec.camera.T_tcp_cam, points_world)
+
+
+def _seen_by_scene_cameras(spec, points_world: np.ndarray) -> bool:
+    """Whether every fixed camera of the scene sees every point ``(N, 3)``."""
+    return all(_in_image(cam, cam.T_table_cam, points_world) for cam in spec.scene_cameras)
 
 
 def _valid_start(spec, T_world_tcp: np.ndarray, centers_world: np.ndarray) -> bool:
@@ -344,7 +356,10 @@ def _poses(
             break
         xyy = np.asarray(cfg.object_xy_yaw, dtype=np.float64)
         T_objs = object_poses_world(xyy)
-        centers.append(np.einsum("kij,kj->ki", T_objs[:, :3, :3], centers_local) + T_objs[:, :3, 3])
+        c = np.einsum("kij,kj->ki", T_objs[:, :3, :3], centers_local) + T_objs[:, :3, 3]
+        if not _seen_by_scene_cameras(spec, c[[goal, adv]]):
+            continue
+        centers.append(c)
         objects = {
             role: ObjectPlacement(xy_m=(float(xyy[k, 0]), float(xyy[k, 1])), yaw_rad=float(xyy[k, 2]))
             for role, k in (("goal", goal), ("adversarial", adv))

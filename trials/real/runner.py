@@ -11,9 +11,15 @@ Per trial, in this order:
    layout within the plan's tolerances, the operator is told what to move, and re-checks until
    the placement is within tolerance (or skips the check: logged in the trial's events).
 4. Policy loop at ``plan.control_hz`` (no sleeping with ``rate_limit=False``, for sim arms) for
-   at most ``plan.max_steps`` steps: camera -> policy -> ``SafeArm.step_delta`` (the scene's action
-   scaling) -> record. The objects are tracked in the same frames: every step, the locator looks
-   at the policy's frame, and an object it sees is taken where it is seen from then on (an
+   at most ``plan.max_steps`` steps: cameras -> policy -> ``SafeArm.step_delta`` (the scene's action
+   scaling) -> record. Every step reads one frame of the wrist camera and of each fixed scene
+   camera the policy reads (and of no other), and hands the policy ``{camera: image}``
+   (:func:`sim.policies.contract.call_policy`); the safety layer checks the age of every frame the
+   command was computed from (the oldest counts), and each camera's frame is written beside the
+   wrist camera's in the trial's frame directory. A frame of another size than its camera's
+   calibration ends the session in one line naming the camera (:class:`robot_io.cameras.base.FrameSizeError`).
+   The objects are tracked in the wrist camera's frames: every step, the locator looks
+   at its frame, and an object it sees is taken where it is seen from then on (an
    object moved by more than the placement tolerance is logged as a ``track`` event: the paper's
    dynamic-object scenario). Like the simulator's episodes, the loop ends early when the criterion
    says an object is reached (TCP against the tracked poses; the placement pose of an object not
@@ -57,17 +63,29 @@ import numpy as np
 from calibration.outcome import measure_reach
 from robot_io.errors import ArmFaultError, RobotIOError, SafetyStop
 from sim.errors import AdvobjError
-from sim.policies.contract import ActionQueue, call_policy, decode_actions, policy_contract, state_vector, to_delta
+from sim.policies.contract import (
+    WRIST_CAMERA,
+    ActionQueue,
+    InputPlan,
+    call_policy,
+    decode_actions,
+    policy_cameras,
+    policy_contract,
+    state_vector,
+    to_delta,
+)
 from sim.policyview import policy_view
 from trials.real.locate import placement_issues
 from trials.real.operator import Decision
 from trials.real.store import (
+    CameraFrameRecord,
     EventRecord,
     ObjectPoseRecord,
     SessionInfo,
     StepRecord,
     StoreError,
     TrialRecord,
+    camera_frame_name,
     clear_frames,
     frames_dir,
     frames_ref,
@@ -85,6 +103,32 @@ def policy_preprocess(policy) -> str:
     """The card's ``preprocess`` (``center_crop`` for a policy without a card)."""
     card = getattr(policy, "card", None)
     return getattr(card, "preprocess", None) or "center_crop"
+
+
+def camera_input(policy, camera: str) -> tuple[tuple[int, int], str]:
+    """``((H, W), preprocess)`` of the image ``policy`` takes from ``camera``: the wrist camera's is
+    ``image_size`` square through the card's ``preprocess``; a scene camera's is its input's own."""
+    plan = getattr(policy, "inputs", None)
+    if camera == WRIST_CAMERA or not isinstance(plan, InputPlan):
+        S = int(policy.image_size)
+        return (S, S), policy_preprocess(policy)
+    b = plan.image_for(camera)
+    return (int(b.size[0]), int(b.size[1])), b.image.preprocess
+
+
+def camera_view(rgb: np.ndarray, size_hw: tuple[int, int], preprocess: str, camera: str) -> np.ndarray:
+    """A camera's ``(H, W, 3)`` frame as the policy takes it: as it is at the input's size, else
+    through ``preprocess`` to a square input (:func:`sim.policyview.policy_view`). A frame for a
+    non-square input must have its size (a session checks that before any device connects)."""
+    h, w = size_hw
+    if rgb.shape[:2] == (h, w):
+        return rgb
+    if h != w:
+        raise RobotIOError(
+            f"camera {camera!r}: a {rgb.shape[1]}x{rgb.shape[0]} px frame for an input of {h}x{w} px: a non-square "
+            "input takes frames of its own size"
+        )
+    return policy_view(rgb, h, preprocess)
 
 
 class PlanOutsideWorkspace(AdvobjError, ValueError):
@@ -152,7 +196,7 @@ class TrialRunner:
 
     Args:
         plan: :class:`trials.real.plan.TrialPlan`.
-        camera: a connected camera (``read() -> Frame``).
+        camera: the connected wrist camera (``read() -> Frame``); the locator reads it.
         arm: a connected :class:`robot_io.safety.SafeArm`.
         policy: behind the policy interface, with ``image_size`` S; its contract
             (:mod:`sim.policies.contract`) says whether it reads the TCP pose and gripper, and
@@ -171,6 +215,8 @@ class TrialRunner:
             sim's ground truth there).
         on_step: called with the planned trial and the step index before each step's frame is
             read (a sim scenario moves or hides an object there).
+        scene_cameras: ``{name: connected camera}`` of the fixed cameras; each one the policy reads
+            (:func:`sim.policies.contract.policy_cameras`) must be here.
     """
 
     def __init__(
@@ -193,9 +239,17 @@ class TrialRunner:
         stop_on_reach: bool = True,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable = time.sleep,
+        scene_cameras=None,
     ):
         self.plan = plan
         self.camera = camera
+        self.scene_cameras = dict(scene_cameras or {})
+        self.cameras = policy_cameras(policy)  # what the policy reads, in its input order
+        missing = [c for c in self.cameras if c != WRIST_CAMERA and c not in self.scene_cameras]
+        if missing:
+            have = ", ".join([WRIST_CAMERA, *self.scene_cameras])
+            raise RobotIOError(f"the policy reads camera {missing[0]!r}; the cell has {have}")
+        self._inputs = {c: camera_input(policy, c) for c in self.cameras}
         self.arm = arm
         self.policy = policy
         self.store = store
@@ -458,8 +512,15 @@ class TrialRunner:
                 events.append(EventRecord(self.clock() - t0, "operator", "skip_placement", text))
                 return located, attempt, True
 
-    def _policy_image(self, rgb: np.ndarray) -> np.ndarray:
-        return policy_view(rgb, int(self.policy.image_size), policy_preprocess(self.policy))
+    def _read_frames(self):
+        """The wrist camera's frame (the locator's, read first) and ``{camera: frame}`` of each camera
+        the policy reads, in its input order: one frame of each, and of no other camera."""
+        wrist = self.camera.read()
+        return wrist, {c: wrist if c == WRIST_CAMERA else self.scene_cameras[c].read() for c in self.cameras}
+
+    def _policy_images(self, frames) -> dict:
+        """``{camera: (1, H, W, 3)}`` of the policy's frames, each as its input takes it."""
+        return {c: camera_view(frames[c].rgb, *self._inputs[c], c)[None] for c in self.cameras}
 
     def _reached_now(self, T_base_tcp, tracked) -> bool:
         if not self.stop_on_reach or any(r not in tracked for r in ROLES):
@@ -521,17 +582,17 @@ class TrialRunner:
                 raise _Restart()
             if self.on_step is not None:
                 self.on_step(trial, k)
-            frame = self.camera.read()
+            frame, frames = self._read_frames()
             if light is None:  # what the camera saw at the start: the lighting scenarios' measure
                 light = float(np.asarray(frame.rgb, dtype=np.float32).mean() / 255.0)
             if queue.needs([0]):
-                # A new chunk from this frame; its later actions keep this frame as the one the
-                # policy saw (the safety layer's frame-age check is on it).
+                # A new chunk from these frames; its later actions keep them as the ones the policy
+                # saw (the safety layer's frame-age check is on every one of them: the oldest counts).
                 # Poses in the contract are in the task's frame: the table frame, the sim's world frame.
                 state = state_vector(contract, self.T_table_base @ T_frame, self.gripper_m)
-                raw = np.asarray(call_policy(self.policy, self._policy_image(frame.rgb)[None], state), dtype=np.float64)
+                raw = np.asarray(call_policy(self.policy, self._policy_images(frames), state), dtype=np.float64)
                 queue.push([0], decode_actions(raw, contract, 1))
-                seen = frame
+                seen = frames
             action = queue.pop([0])[0]
             if not np.isfinite(action).all():
                 # never sent to the arm (the safety layer would refuse it too) and not a step record:
@@ -564,8 +625,14 @@ class TrialRunner:
             # detection must not age the frame the safety layer checks.
             self._track(frame, T_frame, k, placed, tracked, moved, events, t0)
             T_meas = T_frame = self.arm.tcp_pose()
-            name = f"step_{k:03d}.png"
+            name = camera_frame_name(k)
             cv2.imwrite(str(fdir / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+            extra = {}
+            for cam, f in frames.items():
+                if cam != WRIST_CAMERA:  # each fixed camera's frame beside the wrist camera's
+                    cam_name = camera_frame_name(k, cam)
+                    cv2.imwrite(str(fdir / cam_name), cv2.cvtColor(f.rgb, cv2.COLOR_RGB2BGR))
+                    extra[cam] = CameraFrameRecord(f"{rel_dir}/{cam_name}", int(f.seq), f.timestamp_s - t_start)
             steps.append(
                 StepRecord(
                     k,
@@ -578,6 +645,7 @@ class TrialRunner:
                     res.status,
                     "; ".join(res.reasons),
                     f"{rel_dir}/{name}",
+                    extra,
                 )
             )
             if res.status == "refused":

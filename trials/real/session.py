@@ -18,6 +18,15 @@ registry's ``table`` tags seen from the arm's current pose). The table frame is 
 session: a resume without ``--table-frame`` reuses the stored one, never re-estimates it (the arm
 may now stand where no table tag is in view, and trials of one session must share one frame).
 
+Cameras: the policy's card says which cameras it reads (:func:`sim.policies.contract.policy_cameras`);
+the wrist camera is the hardware YAML's ``camera``, every other one must be one of its
+``scene_cameras``, and only those the policy reads are opened. Checked before anything is written
+or any device opens, each in one line: a camera the cell does not have; a sim scene camera its
+scene lacks, or rendering another size than the policy's input; a real one whose pose file is
+missing or bad, or whose frames (the pose file's size) cannot become a non-square input. Once the
+cameras are connected, one frame of each fixed camera is read before the session is recorded: a
+frame of another size than its calibration ends the session there, in one line naming the camera.
+
 Resuming checks the inputs against the stored session before any device connects
 (:meth:`trials.real.store.TrialStore.check_resume`): another plan, policy or calibration file is
 refused; a changed advobj version, git commit, hardware YAML or device is logged as a warning and
@@ -39,24 +48,40 @@ import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from calibration.errors import CalibrationFileError
-from calibration.io import PoseModel, load_model, read_yaml
+from calibration.io import PoseModel, load_model, load_scene_camera_pose, read_yaml
 from calibration.registry import load_registry, save_registry
 from robot_io.cameras.sim import sim_registry, sim_tags
-from robot_io.config import build_arm, build_camera, build_world, load_hardware_config, load_T_tcp_cam
+from robot_io.config import (
+    build_arm,
+    build_camera,
+    build_scene_camera,
+    build_world,
+    load_hardware_config,
+    load_T_tcp_cam,
+    scene_camera_pose,
+)
 from robot_io.errors import MissingIntrinsicsError
 from sim.configio import StrictModel, merged
 from sim.errors import AdvobjError
+from sim.geometry import rotation_angle
 from sim.policies.checkpoint import is_checkpoint, load_checkpoint, load_policy
-from sim.policies.contract import call_policy, decode_actions, policy_contract, state_vector
+from sim.policies.contract import (
+    WRIST_CAMERA,
+    call_policy,
+    decode_actions,
+    policy_cameras,
+    policy_contract,
+    state_vector,
+)
 from sim.policies.onnx_policy import OnnxPolicy
 from sim.policyview import policy_view_K, view_mismatch
 from sim.runinfo import git_commit, write_run_info
-from sim.spec import load_spec
+from sim.spec import UnknownCameraError, load_spec
 from trials.real.locate import SimLocator, TagLocator
 from trials.real.locks import arm_lock
 from trials.real.operator import AutoOperator, ScriptedOperator, TerminalOperator
 from trials.real.plan import load_plan, plan_sha256
-from trials.real.runner import TrialRunner, policy_preprocess
+from trials.real.runner import TrialRunner, camera_input, policy_preprocess
 from trials.real.stage import SimStage
 from trials.real.store import (
     DEFAULT_DB,
@@ -233,6 +258,7 @@ class PreparedSession:
     rate_limit: bool  # opts.rate_limit, or its default for these devices
     info: object  # trials.real.store.SessionInfo (devices filled in when they connect)
     action_scale: tuple
+    scene_cameras: tuple[str, ...] = ()  # the fixed cameras the policy reads (the wrist camera aside)
 
     @property
     def sim(self) -> bool:
@@ -294,6 +320,7 @@ def prepare_session(opts: SessionOptions, *, operator=None, log=print) -> Prepar
         )
         hw = merged(hw, {"sim": sim_cfg}, what="hardware config", error=SessionSetupError)
     spec = _scene_spec(plan, hw)
+    scene_cameras = _check_cameras(policy, policy_path, hw, hardware, spec)
     ep = spec.episode
     action_scale = (ep.max_step_m,) * 3 + (ep.max_step_rad,) * 3
     hw = _safety_at_plan_rate(hw, plan, ep, log)
@@ -308,6 +335,10 @@ def prepare_session(opts: SessionOptions, *, operator=None, log=print) -> Prepar
         "registry": registry,
         "table_frame": table_frame,
     }
+    for name in scene_cameras:  # keys only for the fixed cameras read: a wrist-only session's stay as they were
+        c = hw.scene_cameras[name]
+        calibration_files[f"T_table_cam.{name}"] = c.T_table_cam
+        calibration_files[f"intrinsics.{name}"] = getattr(c, "intrinsics", None)
     info = SessionInfo(
         name=session,
         plan_sha256=plan_sha256(plan_path),
@@ -332,9 +363,12 @@ def prepare_session(opts: SessionOptions, *, operator=None, log=print) -> Prepar
             "action_scale": list(action_scale),
             "seed": plan.seed,
             "calibration_files": {k: None if v is None else str(v) for k, v in calibration_files.items()},
+            **({"cameras": list(policy_cameras(policy))} if scene_cameras else {}),
         },
     )
-    return PreparedSession(opts, hw, plan, policy, spec, session_dir, operator, rate_limit, info, action_scale)
+    return PreparedSession(
+        opts, hw, plan, policy, spec, session_dir, operator, rate_limit, info, action_scale, scene_cameras
+    )
 
 
 def run_prepared(
@@ -375,23 +409,35 @@ def run_prepared(
         if world is not None and plan.scene is not None:
             world.set_scene(prep.spec)
         camera, arm = build_camera(hw, world), build_arm(hw, world)
+        fixed = {name: build_scene_camera(hw, name, world) for name in prep.scene_cameras}
         for warning in store.check_resume(info):  # a refused resume raises here, before any device connects
             log(warning)
         stored_T_base_table = store.stored_T_base_table(info.name)
-        write_run_info(prep.session_dir, info.config, plan.seed)
         stack.enter_context(camera)
         stack.enter_context(arm)
+        for cam in fixed.values():
+            stack.enter_context(cam)
+            cam.read()  # a frame of another size than its calibration: one line naming it, nothing recorded
+        write_run_info(prep.session_dir, info.config, plan.seed)
         # Identities after connecting: drivers read serial numbers from the devices.
-        info = dataclasses.replace(info, devices={"camera": device_identity(camera), "arm": device_identity(arm)})
+        devices = {"camera": device_identity(camera), "arm": device_identity(arm)}
+        if fixed:  # only then: a wrist-only session's device record stays as it was
+            devices["scene_cameras"] = {name: device_identity(cam) for name, cam in fixed.items()}
+        info = dataclasses.replace(info, devices=devices)
         if not sim:
             for warning in camera_view_warnings(camera, prep.policy, prep.spec, hw):
                 log(f"warning: {warning}")
+        for name, cam in fixed.items():
+            if hw.scene_cameras[name].type != "sim":
+                for warning in scene_camera_warnings(name, cam, prep.policy, prep.spec, hw):
+                    log(f"warning: {warning}")
         for warning in store.device_changes(info):
             log(warning)
         T_base_table, stage = np.eye(4), None
         if sim:
             locator = SimLocator(world)
-            stage = SimStage(world, plan, opts.plan.parent)
+            sim_fixed = [name for name in fixed if hw.scene_cameras[name].type == "sim"]
+            stage = SimStage(world, plan, opts.plan.parent, cameras=sim_fixed)
             stages.append(stage)
             if hw.camera.tags:
                 locator = _sim_tag_locator(camera, world, opts.registry, prep.session_dir, log)
@@ -415,6 +461,7 @@ def run_prepared(
             rate_limit=prep.rate_limit,
             on_trial_end=on_trial_end,
             gripper_m=prep.spec.gripper.opening_m,
+            scene_cameras=fixed,
         )
         if on_ready is not None:
             on_ready(runner, world)
@@ -458,16 +505,96 @@ def camera_view_warnings(camera, policy, spec, hw) -> list[str]:
     ]
 
 
+def _check_cameras(policy, policy_path, hw, hardware, spec) -> tuple[str, ...]:
+    """The fixed cameras ``policy`` reads (the wrist camera aside), each checked against the cell
+    (``hw``, read from ``hardware``) and the scene, before anything is written or any device opens:
+    one :class:`SessionSetupError` line for a camera the cell lacks, a sim camera its scene lacks
+    or rendering another size than the policy's input, a real camera's missing or bad pose file,
+    or frames of a size that cannot become a non-square input."""
+    fixed = tuple(c for c in policy_cameras(policy) if c != WRIST_CAMERA)
+    for name in fixed:
+        if name not in hw.scene_cameras:
+            have = ", ".join([WRIST_CAMERA, *hw.scene_cameras])
+            raise SessionSetupError(
+                f"--policy: {policy_path} reads camera {name!r}, which the hardware config {hardware} does not have "
+                f"(its cameras: {have}); add it under scene_cameras"
+            )
+        c = hw.scene_cameras[name]
+        (h, w), _ = camera_input(policy, name)
+        if c.type == "sim":
+            try:
+                cam = spec.camera_spec(name)
+            except UnknownCameraError as err:
+                raise SessionSetupError(
+                    f"--hardware: {hardware}: scene_cameras.{name} renders the sim scene's camera {name!r}: {err}"
+                ) from None
+            size, source = (cam.width, cam.height), f"the sim scene renders camera {name!r} at"
+        else:
+            try:
+                pose = load_scene_camera_pose(c.T_table_cam)
+            except CalibrationFileError as err:
+                raise SessionSetupError(f"--hardware: scene_cameras.{name}.T_table_cam: {err}") from None
+            size, source = (pose.width, pose.height), f"camera {name!r} delivers (its pose file's size)"
+        if size != (w, h) and (c.type == "sim" or h != w):
+            fix = (
+                "give the scene camera that size"
+                if c.type == "sim"
+                else "set the camera to that size and calibrate it there"
+            )
+            raise SessionSetupError(
+                f"--policy: {policy_path} takes {h}x{w} px images of camera {name!r}, but {source} "
+                f"{size[1]}x{size[0]} px: {fix}"
+            )
+    return fixed
+
+
+def scene_camera_warnings(name: str, camera, policy, spec, hw) -> list[str]:
+    """How fixed camera ``name`` of the cell, as the policy sees it, differs from the scene's camera of
+    that name the policy was trained with: field of view, pixel aspect, principal point (at the
+    input's size) and where it stands (its calibrated ``T_table_cam`` against the scene's pose)."""
+    try:
+        trained = spec.camera_spec(name)
+    except UnknownCameraError:
+        return [f"camera {name!r}: the scene has no camera of that name, so its view cannot be compared"]
+    (h, w), mode = camera_input(policy, name)
+    out = []
+    try:
+        intr = camera.intrinsics
+    except MissingIntrinsicsError:
+        out.append(f"camera {name!r}: no intrinsics, so its field of view cannot be compared with the scene's")
+    else:
+        if h == w:
+            K_view = policy_view_K(intr.K, intr.width, intr.height, h, mode)
+            same = np.eye(4)  # where it stands is compared below, in the table frame
+            out += [
+                f"camera {name!r} ({intr.width}x{intr.height}, preprocess {mode} to {h}x{w}): {m}"
+                for m in view_mismatch(K_view, trained.K(w, h), h, same, same)
+            ]
+    T, U = scene_camera_pose(hw, name), trained.T_table_cam
+    dt = float(np.linalg.norm(T[:3, 3] - U[:3, 3]))
+    da = float(np.degrees(rotation_angle(T[:3, :3], U[:3, :3])))
+    if dt > SCENE_CAMERA_TOL_M or da > SCENE_CAMERA_TOL_DEG:
+        out.append(
+            f"camera {name!r} stands {100 * dt:.1f} cm and {da:.1f} deg from the scene's camera of that name "
+            f"(tolerance {100 * SCENE_CAMERA_TOL_M:g} cm, {SCENE_CAMERA_TOL_DEG:g} deg): the policy sees the table "
+            "from elsewhere than in training"
+        )
+    return out
+
+
+SCENE_CAMERA_TOL_M, SCENE_CAMERA_TOL_DEG = 0.02, 5.0  # as the wrist camera's mount (sim.policyview.view_mismatch)
+
+
 def _check_policy_outputs(policy, spec, policy_path) -> float:
     """Ask the policy twice, on a grey frame from the start of a reach, before any device exists: an
     output its contract cannot read (shape, a missing state input) or a runtime error of the model
     fails the session here, in one line, instead of in the middle of the first trial. Returns the
     second (warm) call's time in seconds, the inference latency a chunk's frame age includes."""
     c = policy_contract(policy)
-    S = int(policy.image_size)
     T = np.eye(4)
     T[2, 3] = 0.3
-    image, state = np.full((1, S, S, 3), 128, np.uint8), state_vector(c, T[None], spec.gripper.opening_m)
+    image = {cam: np.full((1, *camera_input(policy, cam)[0], 3), 128, np.uint8) for cam in policy_cameras(policy)}
+    state = state_vector(c, T[None], spec.gripper.opening_m)
     elapsed = 0.0
     for _ in range(2):
         t0 = time.perf_counter()

@@ -13,7 +13,11 @@ On a real cell a person places the printed objects. With ``sim`` camera and arm 
   asked for, as a person would.
 
 Renderers are cached per (mesh, texture): a session has a handful of combinations, and building a
-renderer (GL context, mesh and texture upload) costs far more than a trial's render.
+renderer (GL context, mesh and texture upload) costs far more than a trial's render. The fixed
+scene cameras a session reads (``cameras``) get renderers of their own per (mesh, texture) too
+(:func:`sim.world.camera_renderer`), handed to the world with the scene, with the trial's texture
+on them, so every camera sees the same object; each is drawn once when built, so its first frame
+in a policy loop is not aged by the uploads of a first draw.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import numpy as np
 from sim.configs import object_poses_world
 from sim.errors import AdvobjError
 from sim.render import SceneRenderer
+from sim.world import camera_renderer
 from trials.eval.conditions import load_attack_source
 
 __all__ = ["StageError", "SimStage", "load_texture"]
@@ -60,12 +65,13 @@ class SimStage:
         plan_dir: where relative texture paths are looked up.
     """
 
-    def __init__(self, world, plan, plan_dir: Path | None = None):
+    def __init__(self, world, plan, plan_dir: Path | None = None, cameras=()):
         self.world = world
         self.plan = plan
         self.plan_dir = plan_dir
+        self.cameras = tuple(cameras)  # fixed scene cameras that must show the trial's texture too
         self.base_spec = world.spec
-        self._renderers: dict[tuple, object] = {}
+        self._renderers: dict[tuple, object] = {}  # (mesh, texture) -> (spec, wrist renderer, {camera: renderer})
         self._textures: dict[str, np.ndarray] = {}
         self._offsets: dict[str, np.ndarray] = {}
         self.builds = 0  # renderers built (the cache's effect is measurable)
@@ -97,13 +103,17 @@ class SimStage:
         if key not in self._renderers:
             spec = self._scene(mesh)
             r = SceneRenderer(spec, self.world.width, self.world.height)
+            cams = {name: camera_renderer(spec, name) for name in self.cameras}
             if tex is not None:
-                r.set_object_texture(spec.object_index("adversarial"), tex)
-            self._renderers[key] = (spec, r)
+                for each in (r, *cams.values()):
+                    each.set_object_texture(spec.object_index("adversarial"), tex)
+            for name, each in cams.items():
+                each.render(spec.camera_spec(name).T_table_cam, with_ids=False)  # the first draw's uploads
+            self._renderers[key] = (spec, r, cams)
             self.builds += 1
-        spec, r = self._renderers[key]
+        spec, r, cams = self._renderers[key]
         if self.world.spec is not spec:
-            self.world.set_scene(spec, renderer=r)
+            self.world.set_scene(spec, renderer=r, camera_renderers=cams)
         layout = self.plan.object_layout(trial.object_layout)
         xyy = np.zeros((len(spec.objects), 3))
         for k, o in enumerate(spec.objects):
@@ -129,8 +139,9 @@ class SimStage:
 
     def close(self) -> None:
         """Give the world an own renderer back and free the cached ones."""
-        if any(self.world.renderer is r for _, r in self._renderers.values()):
+        if any(self.world.renderer is r for _, r, _ in self._renderers.values()):
             self.world.set_scene(self.base_spec)
-        for _, r in self._renderers.values():
-            r.close()
+        for _, r, cams in self._renderers.values():
+            for each in (r, *cams.values()):
+                each.close()
         self._renderers.clear()

@@ -3,7 +3,8 @@
 Layout::
 
     trials.sqlite                      sessions, runs, trials, steps, object_poses, events, amendments
-    frames/<session>/<trial_id>/       step_000.png ... (the images the policy acted on)
+    frames/<session>/<trial_id>/       step_000.png ... (the wrist camera's images, the locator's)
+                                       step_000_<camera>.png ... (each fixed camera the policy reads)
 
 Durability rules (issue 8, "atomic trials"):
 
@@ -67,6 +68,7 @@ __all__ = [
     "SessionMismatch",
     "SessionInfo",
     "StepRecord",
+    "CameraFrameRecord",
     "ObjectPoseRecord",
     "EventRecord",
     "TrialRecord",
@@ -76,6 +78,7 @@ __all__ = [
     "session_frames_dir",
     "frames_dir",
     "frames_ref",
+    "camera_frame_name",
     "clear_frames",
     "check_database",
     "check_session_name",
@@ -83,7 +86,7 @@ __all__ = [
     "EXPORT_TABLES",
 ]
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 #: The trial database's file name when the operator names none (the ``--db`` default).
 DEFAULT_DB = "trials.sqlite"
 #: A trial's outcome. ``policy_error``: the policy gave a non-finite action; the trial stopped there
@@ -245,6 +248,11 @@ CREATE TABLE session_locks (
     since TEXT NOT NULL
 );
 """,
+    # Version 7: the frames of the fixed scene cameras a policy reads beside the wrist camera (issue
+    # 27): per step, {camera: {frame_ref, frame_seq, t_frame_s}}; NULL when the policy reads none.
+    7: """
+ALTER TABLE steps ADD COLUMN camera_frames_json TEXT;
+""",
 }
 _OLD_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown')"
 _NEW_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown', 'policy_error')"
@@ -299,6 +307,15 @@ class SessionInfo:
 
 
 @dataclass(frozen=True)
+class CameraFrameRecord:
+    """One fixed scene camera's frame of a step (the wrist camera's is the step's own columns)."""
+
+    frame_ref: str  # path relative to the database's directory, in the trial's frame directory
+    frame_seq: int
+    t_frame_s: float  # capture, s since the trial's policy loop started
+
+
+@dataclass(frozen=True)
 class StepRecord:
     step: int
     t_frame_s: float  # frame capture, s since the trial's policy loop started
@@ -309,7 +326,8 @@ class StepRecord:
     T_base_tcp_meas: np.ndarray  # measured after the command
     safety_status: str
     safety_reason: str
-    frame_ref: str  # path relative to the database's directory
+    frame_ref: str  # the wrist camera's frame, path relative to the database's directory
+    camera_frames: dict[str, CameraFrameRecord] = field(default_factory=dict)  # scene camera -> its frame
 
 
 @dataclass(frozen=True)
@@ -368,6 +386,18 @@ class TrialRecord:
         return self.operator_outcome or self.auto_outcome
 
 
+def _camera_frames_json(frames: dict) -> str | None:
+    if not frames:
+        return None
+    return json.dumps(
+        {
+            str(cam): {"frame_ref": f.frame_ref, "frame_seq": int(f.frame_seq), "t_frame_s": float(f.t_frame_s)}
+            for cam, f in frames.items()
+        },
+        sort_keys=True,
+    )
+
+
 def _sha(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -417,6 +447,14 @@ def frames_dir(db_path: str | Path, session: str, trial_id: str) -> Path:
 def frames_ref(session: str, trial_id: str) -> str:
     """The trial's frame directory relative to the database's directory, as stored (``frames/<session>/<trial_id>``)."""
     return f"frames/{check_session_name(session, 'session')}/{check_name(trial_id, 'trial_id')}"
+
+
+def camera_frame_name(step: int, camera: str | None = None) -> str:
+    """The file name of step ``step``'s frame in the trial's frame directory: ``step_007.png`` for the
+    wrist camera (``camera`` None), ``step_007_<camera>.png`` for a fixed scene camera beside it."""
+    if camera is None:
+        return f"step_{int(step):03d}.png"
+    return f"step_{int(step):03d}_{check_name(camera, 'camera')}.png"
 
 
 def _now_iso() -> str:
@@ -909,7 +947,7 @@ class TrialStore:
             )
             row = int(cur.lastrowid)
             c.executemany(
-                "INSERT INTO steps VALUES (" + ",".join("?" * 26) + ")",
+                "INSERT INTO steps VALUES (" + ",".join("?" * 27) + ")",
                 [
                     (
                         row,
@@ -923,6 +961,7 @@ class TrialStore:
                         s.safety_status,
                         s.safety_reason,
                         s.frame_ref,
+                        _camera_frames_json(s.camera_frames),
                     )
                     for s in rec.steps
                 ],
@@ -1070,11 +1109,18 @@ class TrialStore:
         return out
 
     def steps(self, session: str, trial_id: str) -> list[dict]:
+        """The trial's steps in order; ``camera_frames`` holds each scene camera's frame
+        (``{camera: {frame_ref, frame_seq, t_frame_s}}``, empty for a wrist-only policy)."""
         q = (
             "SELECT st.* FROM steps st JOIN trials t ON t.id = st.trial_row JOIN sessions s ON s.id = t.session_id "
             "WHERE s.name = ? AND t.trial_id = ? ORDER BY st.step"
         )
-        return [dict(r) for r in self.con.execute(q, (session, trial_id))]
+        out = []
+        for r in self.con.execute(q, (session, trial_id)):
+            d = dict(r)
+            d["camera_frames"] = json.loads(d.pop("camera_frames_json") or "{}")
+            out.append(d)
+        return out
 
     def table(self, name: str) -> tuple[list[str], list[tuple]]:
         """Column names and rows of one exportable table, with session name and trial id joined in."""

@@ -44,15 +44,27 @@ def test_a_camera_whose_view_differs_from_training_is_warned_about(tmp_path, fx,
 
 
 def test_the_runner_crops_a_wide_frame_instead_of_squashing_it(tmp_path):
-    from trials.real.runner import TrialRunner
+    from trials.real.runner import camera_input, camera_view
 
     policy = load_trial_policy(tiny_onnx(tmp_path / "p.onnx"))
-    runner = TrialRunner.__new__(TrialRunner)
-    runner.policy = policy
     img = np.zeros((480, 640, 3), np.uint8)
     img[:, :80] = 255
-    view = runner._policy_image(img)
+    assert camera_input(policy, "wrist") == ((32, 32), "center_crop")
+    view = camera_view(img, *camera_input(policy, "wrist"), "wrist")
     assert view.shape == (32, 32, 3) and view.max() == 0  # the band outside the centred square is gone
+
+
+def test_a_scene_camera_frame_becomes_its_own_input_and_a_non_square_input_takes_only_its_size():
+    from robot_io.errors import RobotIOError
+    from trials.real.runner import camera_view
+
+    img = np.zeros((480, 640, 3), np.uint8)
+    img[:, :80] = 255
+    assert camera_view(img, (480, 640), "center_crop", "front") is img  # its own size: as it is
+    view = camera_view(img, (96, 96), "letterbox", "front")
+    assert view.shape == (96, 96, 3) and view[48, 8].tolist() == [255, 255, 255]  # letterboxed: the band stays
+    with pytest.raises(RobotIOError, match=r"camera 'front': a 640x480 px frame for an input of 96x128 px"):
+        camera_view(img, (96, 128), "center_crop", "front")
 
 
 def test_a_checkpoint_policy_carries_its_card_into_the_session(tmp_path):

@@ -60,12 +60,14 @@ def small_plan(
     max_steps: int = 6,
     seed: int = 0,
     conditions=("clean", "adv3d", "patch"),
+    scene: Path | None = None,
 ) -> Path:
-    """A cube plan (clean/adv3d/patch x poses x layouts) with short trials, written to ``out``."""
-    from sim.spec import default_scene
+    """A cube plan (clean/adv3d/patch x poses x layouts) with short trials, written to ``out``
+    (on ``scene``, recorded in the plan; default: the built-in scene)."""
+    from sim.spec import load_spec
     from trials.real.plan import make_plan, save_plan, texture_ref
 
-    spec = default_scene()
+    spec = load_spec(scene)
     textures = {}
     if "adv3d" in conditions:
         textures["cube/adv3d"] = texture_ref(attack_dir(textures_dir / "adv_cube", "cube"), "cube/adv3d", spec)
@@ -81,14 +83,36 @@ def small_plan(
         n_tcp_poses=n_tcp,
         n_object_layouts=n_layouts,
         max_steps=max_steps,
+        scene=None if scene is None else str(scene),
     )
     save_plan(plan, out)
     return out
 
 
-def sim_hardware(out: Path, image_size: int = 32) -> Path:
-    """The example sim hardware YAML with a small camera image (speed)."""
+def sim_hardware(out: Path, image_size: int = 32, **fields) -> Path:
+    """The example sim hardware YAML with a small camera image (speed); ``fields`` are set at its top
+    level (``scene_cameras={...}``)."""
     data = yaml.safe_load(SIM_HW.read_text())
     data["sim"]["image_size"] = [image_size, image_size]
+    data.update(fields)
     out.write_text(yaml.safe_dump(data))
     return out
+
+
+def two_camera_onnx(path: Path, front_px: int = 128, forward: float = 3.0) -> Path:
+    """A LeRobot-named ONNX policy reading the wrist camera (32 px) and the ``front`` scene camera
+    (``front_px``) plus the state (:class:`tests.policy_zoo.TwoCameraPolicy`), whose deltas lean
+    "straight ahead" (TCP +z: a head bias of ``forward`` on action 2) so trials reach objects; its
+    small head weights still carry both cameras' features."""
+    import torch
+
+    from tests.policy_files import two_camera_onnx as export
+    from tests.policy_zoo import TwoCameraPolicy, two_camera_card
+
+    policy = TwoCameraPolicy(wrist_px=32, front_px=front_px)
+    last = policy.mlp[-1]
+    with torch.no_grad():
+        last.weight.mul_(0.1)
+        last.bias.zero_()
+        last.bias[2] = forward
+    return export(path, policy, two_camera_card())
