@@ -169,7 +169,8 @@ def _read(store, db, session, intrinsics, extrinsics, table_frame_path, toleranc
     if not trials:
         raise RecordImportError(f"--session: {where} has no committed trial with a frame")
     first = store.steps(session, trials[0]["trial_id"])[0]
-    size = Image.open(_frame_path(db, first["frame_ref"], trials[0]["trial_id"])).size
+    h, w = _frame(_frame_path(db, first["frame_ref"], trials[0]["trial_id"])).shape[:2]
+    size = (w, h)
     sim = hw.camera.type == "sim"
 
     spec = load_spec(plan.scene if plan.scene is not None else hw.sim.scene) if sim else None

@@ -4,6 +4,8 @@ the pose the sim camera really rendered it from, with the cell's calibration."""
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import pytest
 import yaml
@@ -58,8 +60,16 @@ def cell(tmp_path_factory):
     return {"dir": d, "db": d / "trials.sqlite", "hand_eye": hand_eye, "rendered": rendered}
 
 
+def _files(folder):
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.rglob("*") if p.is_file()
+    }
+
+
 def test_a_session_imports_every_frame_at_the_pose_it_was_taken_from(cell, tmp_path):
+    before = _files(cell["dir"])
     rec = run_import(ImportJob(source="session", src=cell["db"], out=tmp_path / "rec"))
+    assert _files(cell["dir"]) == before  # read through the store: the database and its frames unchanged
     with TrialStore(cell["db"], create=False) as store:
         trials = store.trial_rows(["day1"])
         steps = {t["trial_id"]: store.steps("day1", t["trial_id"]) for t in trials}
