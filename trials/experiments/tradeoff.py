@@ -97,7 +97,7 @@ from sim.stats import proportion
 from trials.eval.conditions import Condition
 from trials.eval.episodes import collect_evals, read_rows
 from trials.eval.evaluate import load_eval_config, resolve_pool, rollout_condition, run_eval
-from trials.experiments.record import read_record, write_record
+from trials.experiments.record import read_record, run_attempt, write_record
 from trials.experiments.tradeoff_report import KNOBS, attack_outcomes, latest_records, write_report
 from trials.jobs.dag import Grid, GridError, SerialExecutor, clear_finished, is_finished, usable_cpus
 
@@ -1133,6 +1133,7 @@ class TradeoffJob(StrictModel):
                     load_checkpoint(d)
                 except AdvobjError as err:
                     raise TradeoffError(f"{flag}: {err}") from None
+            load_spec(scene)  # and the scene (a SpecError names its file and field) before OUT is written
             wanted = [r for item in rows for r in item.split(",") if r] or None
             selected = select_rows(build_rows(cfg), wanted)
             missing = sorted({int(r.value) for r in selected if r.knob == "policy_resolution"} - set(res))
@@ -1319,26 +1320,6 @@ def collect(out: str | Path, results: str | Path = RESULTS) -> Path:
     return dst
 
 
-def _evidence_machine() -> dict:
-    """The machine as ``tools/evidence.py`` records it in an attempt."""
-    model = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "cpus": os.cpu_count(),
-        "cpu_model": model,
-        "machine": platform.machine(),
-        "system": platform.system(),
-        "python": platform.python_version(),
-        "load_avg_start": list(os.getloadavg()),
-    }
-
-
 #: What the committed evidence must have (issue 28): paired episodes per row and attack seeds.
 EVIDENCE_MIN_EPISODES, EVIDENCE_MIN_SEEDS = 300, 3
 
@@ -1366,29 +1347,16 @@ def evidence(argv: list[str], results: str | Path = RESULTS, log=print) -> int:
     if problems:
         print("evidence: " + "; ".join(problems), file=sys.stderr)
         return 2
-    results = Path(results)
-    record = read_record(results)
-    attempt = {
-        "command": "python -m trials.experiments.tradeoff sweep " + shlex.join(argv),
-        "commit": commit,
-        "machine": _evidence_machine(),
-        "start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    rc = subprocess.call([sys.executable, "-m", "trials.experiments.tradeoff", "sweep", *argv], cwd=ROOT, env=env)
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    attempt.update(
-        wall_s=round(time.perf_counter() - t0, 1),
-        # the sweep process and every row process it waited for (their CPU time is its children's)
-        cpu_s=round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1),
-        exit_code=rc,
-        end_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        load_avg_end=list(os.getloadavg()),
-    )
-    record["attempts"].append(attempt)
-    write_record(results, record)
+    # its CPU time: the sweep process and every row process it waited for (its children's)
+    rc = run_attempt(
+        results,
+        [sys.executable, "-m", "trials.experiments.tradeoff", "sweep", *argv],
+        "python -m trials.experiments.tradeoff sweep " + shlex.join(argv),
+        commit,
+        cwd=ROOT,
+        env=env,
+    )["exit_code"]
     if rc == 0:
         out = Path(a.out) if Path(a.out).is_absolute() else ROOT / a.out
         log(f"collected into {collect(out, results)}")
