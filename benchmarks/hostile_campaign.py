@@ -6,6 +6,11 @@ input kind, in one process, a per-case timeout) with ``ADVOBJ_CAMPAIGN_OUT`` set
 writes ``cases.csv`` (one row per case: command, parameter, kind, exit code, stderr lines, the
 first line, problems, files touched outside, seconds, the process's peak RSS so far) and
 ``figures.json``; this script adds ``run.json`` (command, commit, machine, wall and CPU time).
+The record is always the whole campaign: ``ADVOBJ_CAMPAIGN_KINDS`` (which runs some kinds of input
+alone) is dropped from the environment. ``tests/hostile/binding_files.py`` builds the well-formed
+inputs that do not fit together (a card binding an input the model lacks, a camera no scene has or
+another image size; a scene camera of another size than the policy's input; a scene camera
+without a pose), ``tests/policy_files.py`` the policy files the white-box path refuses.
 ``docs/safety.md`` quotes the figures; ``tests/hostile/test_campaign_record.py`` recomputes them
 from ``cases.csv``.
 """
@@ -38,7 +43,7 @@ def main() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-s", "-m", "slow", "tests/hostile/test_cli_campaign.py"],
         cwd=ROOT,
-        env={**os.environ, "ADVOBJ_CAMPAIGN_OUT": str(out)},
+        env={**{k: v for k, v in os.environ.items() if k != "ADVOBJ_CAMPAIGN_KINDS"}, "ADVOBJ_CAMPAIGN_OUT": str(out)},
     )
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)

@@ -56,6 +56,7 @@ from sim.configio import StrictModel
 from sim.geometry import _is_torch, so3_exp, so3_log
 from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError
 from sim.spec import WRIST as WRIST_CAMERA
+from sim.spec import UnknownCameraError
 
 __all__ = [
     "StateField",
@@ -455,21 +456,28 @@ def policy_cameras(policy) -> tuple[str, ...]:
 
 def check_scene(policy, spec) -> None:
     """Refuse, in one line, a policy reading a camera ``spec`` does not have, or a scene camera
-    rendering another size than its input takes (the wrist camera renders at the policy's size)."""
+    rendering another size than its input takes (the wrist camera renders at the policy's size).
+    The line names the policy's file when it has one (``.onnx``: ``path``, ``.pt2``: ``source``)."""
     plan = getattr(policy, "inputs", None)
     if not isinstance(plan, InputPlan):
         return
+    src = getattr(policy, "source", None) or getattr(policy, "path", None)
+    where = f"{src}: " if src else ""
     for b in plan.images:
-        cam = spec.camera_spec(b.camera)  # an unknown name: one line listing the scene's cameras
+        try:
+            cam = spec.camera_spec(b.camera)  # an unknown name: one line listing the scene's cameras
+        except UnknownCameraError as err:
+            raise UnknownCameraError(f"{where}input {b.name!r}: {err}") from None
         if b.camera == WRIST_CAMERA:
             if b.size[0] != b.size[1]:
                 raise PolicyError(
-                    f"input {b.name!r}: the wrist camera renders square images; the model takes {b.size[0]}x{b.size[1]}"
+                    f"{where}input {b.name!r}: the wrist camera renders square images; the model takes "
+                    f"{b.size[0]}x{b.size[1]}"
                 )
             continue
         if (cam.height, cam.width) != tuple(b.size):
             raise PolicyError(
-                f"input {b.name!r}: camera {b.camera!r} renders {cam.height}x{cam.width} px but the model takes "
+                f"{where}input {b.name!r}: camera {b.camera!r} renders {cam.height}x{cam.width} px but the model takes "
                 f"{b.size[0]}x{b.size[1]} px; give the scene camera that size"
             )
 

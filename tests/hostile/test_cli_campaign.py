@@ -8,8 +8,17 @@ Each case runs in-process (``trials.cli.main.main`` with ``sys.argv`` patched) i
 directory, and must end with exit code 2, exactly one non-empty line on stderr (naming a flag,
 field or file), no traceback, and no file created or changed outside the given output folders.
 
+Well-formed files built by real exporters (``BUILT_KINDS``: policy files the white-box path cannot
+take, and inputs that do not fit together: a policy file's card and its model, a policy and the
+scene's cameras, a scene camera without a pose) are given where they are read; their line must also
+say what is wrong (``EXPECT``), so that another refusal firing first (a placeholder input, a missing
+``--attack``) does not pass for theirs, and with the optional output folders left at their defaults
+they must write nothing at all.
+
 The figures (commands covered, cases, tracebacks, files touched outside) are printed and written
 to ``campaign.json`` in the pytest temp directory; run with ``-s`` to see them.
+``ADVOBJ_CAMPAIGN_KINDS=kind,kind`` runs only the cases of those kinds (new cases, alone); such a
+run writes no record.
 """
 
 from __future__ import annotations
@@ -54,18 +63,49 @@ SUFFIX = {
 # Not files at all: a FIFO with no writer and a device that never ends (each would block a reader).
 SPECIAL_KINDS = ("fifo", "dev_zero")
 PATH_KINDS = tuple(BLOBS) + ("missing", "directory", "traversal") + SPECIAL_KINDS
-# Well-formed policy files the white-box path must refuse (tests/policy_files.py builds each), given
-# only where a policy is attacked or, for a .pt2, loaded at all: an ONNX file with an operator
-# onnx2torch lacks or a conversion that differs from onnxruntime is still a valid black-box policy.
-POLICY_FILE_KINDS = {
-    "onnx_unsupported_op": ("unsupported_op_onnx", ".onnx"),
-    "onnx_mismatch": ("mismatched_onnx", ".onnx"),
-    "pt2_truncated": ("truncated_pt2", ".pt2"),
-    "pt2_other_torch": ("other_torch_pt2", ".pt2"),
+# Well-formed files that must be refused where they are read, each built by a function of
+# tests/policy_files.py or tests/hostile/binding_files.py (module, builder, suffix). The white-box
+# path refuses an ONNX file with an operator onnx2torch lacks or a conversion that differs from
+# onnxruntime (still a valid black-box policy), and a .pt2 torch cannot load; every path refuses a
+# card that binds an input the model lacks, a camera no scene has or an image size the model does
+# not take, a policy whose scene camera renders another size than its input, and a scene whose
+# scene camera has no pose.
+BUILT_KINDS = {
+    "onnx_unsupported_op": ("tests.policy_files", "unsupported_op_onnx", ".onnx"),
+    "onnx_mismatch": ("tests.policy_files", "mismatched_onnx", ".onnx"),
+    "pt2_truncated": ("tests.policy_files", "truncated_pt2", ".pt2"),
+    "pt2_other_torch": ("tests.policy_files", "other_torch_pt2", ".pt2"),
+    "card_missing_input": ("tests.hostile.binding_files", "card_missing_input_onnx", ".onnx"),
+    "card_unknown_camera": ("tests.hostile.binding_files", "card_unknown_camera_onnx", ".onnx"),
+    "card_unknown_camera_pt2": ("tests.hostile.binding_files", "card_unknown_camera_pt2", ".pt2"),
+    "card_image_size": ("tests.hostile.binding_files", "card_image_size_onnx", ".onnx"),
+    "camera_wrong_size": ("tests.hostile.binding_files", "front_64px_onnx", ".onnx"),
+    "scene_camera_no_pose": ("tests.hostile.binding_files", "scene_camera_without_pose", ".yaml"),
 }
+# What the one line must say for each of those kinds (besides naming the file).
+EXPECT = {
+    "onnx_unsupported_op": "operator 'Shrink'",
+    "onnx_mismatch": "differs from onnxruntime",
+    "pt2_truncated": "not a torch.export archive",
+    "pt2_other_torch": "exported by an incompatible torch",
+    "card_missing_input": "card inputs: 'observation.images.side' is not an input of the model",
+    "card_unknown_camera": "unknown camera 'side'",
+    "card_unknown_camera_pt2": "unknown camera 'side'",
+    "card_image_size": "image.size is 64x64 px but the model takes 32x32 px",
+    "camera_wrong_size": "camera 'front' renders 128x128 px but the model takes 64x64 px",
+    "scene_camera_no_pose": "has no extrinsics",
+}
+# Kinds that need more of the command line to reach their refusal: the scene whose camera the
+# policy does not fit. An evaluation is given the clean condition alone (its default, attack, asks
+# for --attack before it reads the policy).
+SCENE_OF = {"camera_wrong_size": str(Path(__file__).resolve().parents[2] / "scenes" / "two-cameras.yaml")}
+CARD_KINDS = ("card_missing_input", "card_unknown_camera", "card_unknown_camera_pt2", "card_image_size")
 TARGETED = {
-    (("attack", "run"), "policy"): tuple(POLICY_FILE_KINDS),
-    (("policy", "eval"), "policy"): ("pt2_truncated", "pt2_other_torch"),
+    (("attack", "run"), "policy"): ("onnx_unsupported_op", "onnx_mismatch", "pt2_truncated", "pt2_other_torch")
+    + CARD_KINDS
+    + ("camera_wrong_size",),
+    (("policy", "eval"), "policy"): ("pt2_truncated", "pt2_other_torch") + CARD_KINDS + ("camera_wrong_size",),
+    (("eval",), "policy"): CARD_KINDS + ("camera_wrong_size",),
 }
 # Peak resident memory of the whole campaign process (every case runs in it): a bound on each case's.
 RSS_CAP_MB = 4096
@@ -118,6 +158,8 @@ def _cases():
                 cases += [(path, p.name, k) for k in ("binary", "corrupt_sqlite", "directory", "malformed_yaml")]
             elif kind == "path" and p.name not in OUTPUT_NAMES:
                 cases += [(path, p.name, k) for k in PATH_KINDS]
+                if p.name == "scene":
+                    cases.append((path, p.name, "scene_camera_no_pose"))
             elif kind == "number":
                 cases += [(path, p.name, n) for n in NUMBERS]
             elif kind == "str" and p.name in ("session", "name", "trial_id"):
@@ -127,6 +169,8 @@ def _cases():
 
 
 CASES = _cases()
+if os.environ.get("ADVOBJ_CAMPAIGN_KINDS"):  # only these kinds' cases (see the module's docstring)
+    CASES = [c for c in CASES if c[2] in os.environ["ADVOBJ_CAMPAIGN_KINDS"].split(",")]
 
 
 def _snapshot(root: Path, skip: Path) -> dict:
@@ -160,11 +204,11 @@ def _value(kind: str, inputs: Path, name: str) -> str:
         if not p.exists():
             os.mkfifo(p)
         return str(p)
-    if kind in POLICY_FILE_KINDS:
-        from tests import policy_files
+    if kind in BUILT_KINDS:
+        import importlib
 
-        builder, suffix = POLICY_FILE_KINDS[kind]
-        return str(getattr(policy_files, builder)(inputs / f"{kind}_{name}{suffix}"))
+        module, builder, suffix = BUILT_KINDS[kind]
+        return str(getattr(importlib.import_module(module), builder)(inputs / f"{kind}_{name}{suffix}"))
     p = inputs / f"{kind}_{name}{SUFFIX.get(kind, '.yaml')}"
     p.write_bytes(BLOBS[kind])
     return str(p)
@@ -178,7 +222,14 @@ def _argv(path, cmd, target: str, kind: str, work: Path) -> list[str]:
         if p.name == target:
             value = _value(kind, inputs, p.name)
         elif p.name in OUTPUT_NAMES and pkind == "path":
+            if kind in EXPECT and not p.required:
+                continue  # its default then: a well-formed input is refused before anything is written anywhere
             value = str(outs / f"{p.name}{'.sqlite' if p.name == 'db' else ''}")
+        elif p.required and kind in EXPECT and p.name == "policy":
+            # a real policy, so that the input under test is what the command refuses
+            from tests.hostile.binding_files import tiny_checkpoint
+
+            value = str(tiny_checkpoint(inputs / "required_policy"))
         elif p.required:
             value = str(inputs / f"required_{p.name}.yaml") if pkind == "path" else "1"
             if pkind == "path":
@@ -189,6 +240,10 @@ def _argv(path, cmd, target: str, kind: str, work: Path) -> list[str]:
             argv.append(value)
         else:
             argv += [flag, value]
+    if kind in SCENE_OF and target != "scene":
+        argv += ["--scene", SCENE_OF[kind]]
+    if list(path) == ["eval"] and kind in BUILT_KINDS:
+        argv += ["--condition", "clean"]
     return argv
 
 
@@ -270,7 +325,7 @@ def _run_case(path, target, kind, work: Path, monkeypatch, capsys):
 
 def test_the_campaign_covers_every_command():
     commands = _commands()
-    covered = {tuple(p) for p, _, _ in CASES}
+    covered = {tuple(p) for p, _, _ in _cases()}  # all of them, whatever ADVOBJ_CAMPAIGN_KINDS runs
     assert len(commands) >= 25
     # a command without a file or numeric parameter has no hostile input of these kinds
     uncovered = [
@@ -286,58 +341,83 @@ def test_the_campaign_covers_every_command():
 KNOWN: dict[tuple[str, str, str], str] = {}
 
 
-@pytest.mark.slow  # ~2-3 min on 2 cores: over the default suite's budget, so .ci/run runs it after make test
+def _measure_case(path, target, kind, work: Path, monkeypatch, capsys) -> dict:
+    """Run one case in its own folder under ``work``; its record, with every problem found."""
+    case_dir = work / f"{'_'.join(path)}-{target}-{kind}"
+    (case_dir / "inputs").mkdir(parents=True)
+    (case_dir / "outs").mkdir()
+    before = _snapshot(work, case_dir / "outs")
+    monkeypatch.chdir(case_dir)
+    t_case = time.perf_counter()
+    argv, code, crash, lines = _run_case(path, target, kind, case_dir, monkeypatch, capsys)
+    seconds = time.perf_counter() - t_case
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+    monkeypatch.chdir(work)
+    after = _snapshot(work, case_dir / "outs")
+    touched = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k) and "/inputs/" not in k)
+    problems = []
+    if crash:
+        problems.append(crash)
+    elif code != 2:
+        problems.append(f"exit {code}")
+    if not crash and len(lines) != 1:
+        problems.append(f"{len(lines)} stderr lines")
+    if any("Traceback" in line for line in lines):
+        problems.append("traceback on stderr")
+    if not crash and len(lines) == 1 and not _names_an_input(lines[0], target, argv):
+        problems.append("the line names no flag, field or file")
+    if not crash and len(lines) == 1 and kind in EXPECT and EXPECT[kind] not in lines[0]:
+        problems.append(f"the line does not say {EXPECT[kind]!r}")
+    if touched:
+        problems.append(f"touched outside: {touched[:3]}")
+    if peak_mb > RSS_CAP_MB:
+        problems.append(f"peak RSS {peak_mb:.0f} MB over the {RSS_CAP_MB} MB cap")
+    return {
+        "command": " ".join(path),
+        "param": target,
+        "kind": kind,
+        "exit": code,
+        "stderr": lines[:2],
+        "stderr_count": len(lines),
+        "problems": problems,
+        "touched": touched,
+        "seconds": round(seconds, 3),
+        "peak_rss_mb": round(peak_mb, 1),
+        "argv": argv,
+    }
+
+
+# The cases of inputs that do not fit together, on the commands users attack and evaluate with: also
+# in the default suite (a few seconds), where the whole campaign is not.
+FIT_KINDS = CARD_KINDS + ("camera_wrong_size", "scene_camera_no_pose")
+FIT_CASES = [c for c in _cases() if c[2] in FIT_KINDS and c[0] in (["attack", "run"], ["policy", "eval"])]
+
+
+@pytest.mark.parametrize("path, target, kind", FIT_CASES, ids=[f"{' '.join(p)}-{t}-{k}" for p, t, k in FIT_CASES])
+def test_an_input_that_does_not_fit_is_one_line_saying_why_exit_2_and_nothing_written(
+    path, target, kind, tmp_path, monkeypatch, capsys
+):
+    r = _measure_case(path, target, kind, tmp_path, monkeypatch, capsys)
+    assert r["problems"] == [], (r["argv"], r["stderr"])
+    assert r["exit"] == 2 and r["stderr_count"] == 1 and EXPECT[kind] in r["stderr"][0]
+
+
+@pytest.mark.slow  # ~9 min on 2 shared cores: over the default suite's budget, so .ci/run runs it after make test
 def test_hostile_cli_campaign(tmp_path_factory, monkeypatch, capsys):
+    if os.environ.get("ADVOBJ_CAMPAIGN_OUT") and os.environ.get("ADVOBJ_CAMPAIGN_KINDS"):
+        pytest.fail("ADVOBJ_CAMPAIGN_KINDS runs part of the campaign, which is no record: unset one of the two")
     work = tmp_path_factory.mktemp("campaign")
     monkeypatch.chdir(work)
     results, failures = [], []
     for path, target, kind in CASES:
-        if (" ".join(path), target, kind) in KNOWN:
-            continue  # open, with its reason; not run (some would run for minutes)
-        case_dir = work / f"{'_'.join(path)}-{target}-{kind}"
-        (case_dir / "inputs").mkdir(parents=True)
-        (case_dir / "outs").mkdir()
-        before = _snapshot(work, case_dir / "outs")
-        monkeypatch.chdir(case_dir)
-        t_case = time.perf_counter()
-        argv, code, crash, lines = _run_case(path, target, kind, case_dir, monkeypatch, capsys)
-        seconds = time.perf_counter() - t_case
-        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
-        monkeypatch.chdir(work)
-        after = _snapshot(work, case_dir / "outs")
-        touched = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k) and "/inputs/" not in k)
-        problems = []
-        if crash:
-            problems.append(crash)
-        elif code != 2:
-            problems.append(f"exit {code}")
-        if not crash and len(lines) != 1:
-            problems.append(f"{len(lines)} stderr lines")
-        if any("Traceback" in line for line in lines):
-            problems.append("traceback on stderr")
-        if not crash and len(lines) == 1 and not _names_an_input(lines[0], target, argv):
-            problems.append("the line names no flag, field or file")
-        if touched:
-            problems.append(f"touched outside: {touched[:3]}")
-        if peak_mb > RSS_CAP_MB:
-            problems.append(f"peak RSS {peak_mb:.0f} MB over the {RSS_CAP_MB} MB cap")
         key = (" ".join(path), target, kind)
-        results.append(
-            {
-                "command": key[0],
-                "param": target,
-                "kind": kind,
-                "exit": code,
-                "stderr": lines[:2],
-                "stderr_count": len(lines),
-                "problems": problems,
-                "touched": touched,
-                "seconds": round(seconds, 3),
-                "peak_rss_mb": round(peak_mb, 1),
-            }
-        )
-        if problems and key not in KNOWN:
-            failures.append(f"{' '.join(argv)} -> {'; '.join(problems)} | {lines[:1]}")
+        if key in KNOWN:
+            continue  # open, with its reason; not run (some would run for minutes)
+        r = _measure_case(path, target, kind, work, monkeypatch, capsys)
+        argv = r.pop("argv")
+        results.append(r)
+        if r["problems"] and key not in KNOWN:
+            failures.append(f"{' '.join(argv)} -> {'; '.join(r['problems'])} | {r['stderr'][:1]}")
     figures = {
         "commands_covered": len({r["command"] for r in results}),
         "commands_total": len(_commands()),

@@ -104,12 +104,13 @@ def evaluate(
     from sim.spec import load_spec  # lazy: CLI start-up (+22 ms)
 
     _set_threads(threads)
-    pol = load_policy(policy, device=device)
+    spec = load_spec(scene)
+    # With the scene: a camera the scene lacks (or of another size) is one line before OUT is made.
+    pol = load_policy(policy, device=device, spec=spec)
     try:
         env_cfg = EnvConfig(image_size=pol.image_size, light=light, background=background, noise_std=noise)
     except ValueError as err:  # pydantic names the offending field
         raise typer.BadParameter(str(err)) from None
-    spec = load_spec(scene)
     out = out or (policy / "eval" if policy.is_dir() else policy.with_name(policy.stem + "-eval"))
     resolved = {
         "policy": str(policy),
