@@ -408,6 +408,30 @@ class Artifacts:
 
         return self._once("photo", build)
 
+    @property
+    def front_photos(self) -> list[Path]:
+        """Two photos of the table's tags (examples/calibration/objects.yaml: tags 0 and 1) from a fixed
+        camera, the example camera 0.5 m from them: the docs' front_*.png."""
+
+        def build():
+            import imageio.v3 as iio
+            import numpy as np
+
+            from calibration import synthetic as S
+            from calibration.registry import load_registry
+            from sim.geometry import invert_T, look_at
+
+            reg = load_registry(ROOT / "examples" / "calibration" / "objects.yaml")
+            T_table_cam = look_at(np.array([0.1, -0.35, 0.35]), np.array([0.1, 0.0, 0.0]))
+            K = S.default_K(640, 480)  # the camera of examples/calibration/cam.yaml
+            img = S.render_planes(S.object_tag_planes(reg, invert_T(T_table_cam)), K, 640, 480)
+            paths = [self.calib / f"front_{i}.png" for i in range(2)]
+            for i, path in enumerate(paths):
+                iio.imwrite(path, S.degrade(img, 0.5, 1.0, seed=i))
+            return paths
+
+        return self._once("front_photos", build)
+
 
 def _tiny_demo(monkeypatch, art: Artifacts):
     import trials.experiments.demo as demo
@@ -433,6 +457,15 @@ def _tiny_demo(monkeypatch, art: Artifacts):
     )
     for mod in (ex, demo):  # demo binds ensure_policy at import
         monkeypatch.setattr(mod, "ensure_policy", lambda ctx, name="reference", **kw: art.policy)
+
+
+def _tiny_lerobot(monkeypatch, art: Artifacts):
+    """A tiny LeRobot v2.1 dataset and the calibration files of its two cameras (tests/trials/recordings)."""
+    from tests.trials.recordings.lerobot_datasets import build_v21, calibration_files
+
+    if not (art.tmp / "lerobot").exists():
+        build_v21(art.tmp / "lerobot")
+        calibration_files(art.tmp / "lerobot-cal")
 
 
 def _tiny_experiments(monkeypatch, art: Artifacts):
@@ -483,6 +516,13 @@ CALIB = {
         ("{calib}/T_tcp_cam.yaml",),
     ),
     "advobj calibrate selfcheck": Tiny("calibrate selfcheck", expect="hand-eye"),
+    "advobj calibrate scene-camera front_*.png --camera front_cam.yaml --registry objects.yaml --out "
+    "front_pose.yaml": Tiny(
+        "calibrate scene-camera {front_photos} --camera {root}/examples/calibration/cam.yaml --registry "
+        "{root}/examples/calibration/objects.yaml --out {calib}/front_pose.yaml",
+        ("{calib}/front_pose.yaml",),
+        expect="table tags 0, 1 in 2 image(s)",
+    ),
     "advobj calibrate intrinsics left*.jpg --out cam.yaml": Tiny(
         "calibrate intrinsics {chess} --out {calib}/cam_chess.yaml",
         ("{calib}/cam_chess.yaml",),
@@ -706,6 +746,23 @@ TINY: dict[str, Tiny] = {
     "advobj trial export --db runs/trials.sqlite --out runs/trial-tables --format csv": Tiny(
         "trial export --db {trial_db} --out {tmp}/trials/tables --format csv",
         ("{tmp}/trials/tables/trials.csv", "{tmp}/trials/tables/steps.csv"),
+    ),
+    # ---- recordings as input (workflow: "attack it on your recordings")
+    "advobj record import --from session runs/trials.sqlite --session day1 --out runs/rec-day1": Tiny(
+        "record import --from session {trial_db} --session day1 --out {tmp}/rec-day1",
+        ("{tmp}/rec-day1/recording.json",),
+        expect="recording:",
+    ),
+    "advobj record import --from lerobot datasets/my_so100 --pose-key observation.state --pose-layout xyz_rotvec "
+    "--intrinsics wrist=wrist_cam.yaml --extrinsics wrist=T_tcp_cam.yaml --intrinsics front=front_cam.yaml "
+    "--extrinsics front=T_table_cam.yaml --table-frame T_base_table.yaml --out runs/rec-so100": Tiny(
+        "record import --from lerobot {tmp}/lerobot --pose-key observation.state --pose-layout xyz_rotvec "
+        "--intrinsics wrist={tmp}/lerobot-cal/wrist_cam.yaml --extrinsics wrist={tmp}/lerobot-cal/T_tcp_cam.yaml "
+        "--intrinsics front={tmp}/lerobot-cal/front_cam.yaml --extrinsics front={tmp}/lerobot-cal/T_table_cam.yaml "
+        "--table-frame {tmp}/lerobot-cal/T_base_table.yaml --out {tmp}/rec-so100",
+        ("{tmp}/rec-so100/recording.json",),
+        expect="recording:",
+        setup=_tiny_lerobot,
     ),
     # ---- hardware
     "advobj hw check --config examples/hardware/sim.yaml": Tiny(

@@ -282,3 +282,26 @@ def test_a_plan_on_a_scene_with_a_fixed_camera_keeps_only_layouts_that_camera_se
 
     kept, drawn = layouts(narrow), layouts(narrow.with_updates(scene_cameras=[]))
     assert all(seen(x) for x in kept) and not all(seen(x) for x in drawn)  # the narrow view drops some draws
+
+
+def test_the_docs_cell_snippet_is_a_valid_hardware_config():
+    import yaml
+
+    from robot_io.config import hardware_config_from_dict
+
+    text = (REPO / "docs" / "real-trials.md").read_text()
+    section = text[text.index("## A cell with a fixed scene camera") :]
+    snippet = section[section.index("```yaml") + len("```yaml") : section.index("```", section.index("```yaml") + 7)]
+    data = yaml.safe_load(snippet)
+    cell = {"camera": {"type": "opencv", "device": 0}, "arm": {"type": "ur_rtde", "host": "ur"}, **data}
+    cfg = hardware_config_from_dict({**cell, "safety": {"workspace_min_m": [0, 0, 0], "workspace_max_m": [1, 1, 1]}})
+    front = cfg.scene_cameras["front"]
+    assert (
+        front.type == "opencv"
+        and str(front.T_table_cam) == "front_pose.yaml"
+        and (front.width, front.height)
+        == (
+            640,
+            480,
+        )
+    )
