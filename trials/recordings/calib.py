@@ -5,8 +5,8 @@ recording holds (``K``, distortion, a mount and its pose), each problem one line
   :func:`calibration.intrinsics.load_camera_yaml`. Calibrated at another resolution of the same
   aspect ratio, it is scaled to the frames' (:meth:`CameraIntrinsics.scaled`); another aspect is refused.
 * ``--extrinsics CAMERA=FILE``: the hand-eye result (``T_tcp_cam``, ``advobj calibrate handeye``'s
-  file): a wrist camera; or ``{T_table_cam: {translation_m, rotvec_rad}}``: a fixed camera's pose in
-  the table frame.
+  file): a wrist camera; or the pose file of ``advobj calibrate scene-camera`` (``T_table_cam``): a
+  fixed camera's pose in the table frame.
 * ``--table-frame FILE``: ``T_base_table``, as ``advobj trial run`` takes it.
 """
 
@@ -19,7 +19,7 @@ import numpy as np
 from calibration.errors import CalibrationFileError
 from calibration.handeye import load_hand_eye_yaml
 from calibration.intrinsics import CameraIntrinsics, load_camera_yaml
-from calibration.io import PoseModel, Strict, load_model, read_yaml
+from calibration.io import load_scene_camera_pose, read_yaml
 from robot_io.config import load_T_tcp_cam
 from sim.errors import AdvobjError
 from sim.geometry import invert_T
@@ -38,10 +38,6 @@ __all__ = [
 
 class RecordImportError(AdvobjError, ValueError):
     """An input of ``advobj record import`` is missing or inconsistent; the one-line message names the flag."""
-
-
-class _TableCamFile(Strict):
-    T_table_cam: PoseModel
 
 
 def camera_intrinsics(path: Path, camera: str, size: tuple[int, int], flag: str = "--intrinsics"):
@@ -68,19 +64,20 @@ def intrinsics_at_size(intr: CameraIntrinsics, camera: str, size: tuple[int, int
 
 
 def camera_extrinsics(path: Path, camera: str, flag: str = "--extrinsics") -> tuple[str, np.ndarray]:
-    """``(mount, T)`` from ``path``: the hand-eye result (``tcp``, ``T_tcp_cam``) or ``T_table_cam`` (``table``)."""
+    """``(mount, T)`` from ``path``: the hand-eye result (``tcp``, ``T_tcp_cam``) or a fixed camera's pose
+    file (``table``, ``T_table_cam``: :func:`calibration.io.load_scene_camera_pose`)."""
     where = f"{flag} {camera}={path}"
     try:
         data = read_yaml(path)
         if isinstance(data, dict) and "T_table_cam" in data:
-            return "table", load_model(path, _TableCamFile, data=data).T_table_cam.T
+            return "table", load_scene_camera_pose(path).T
         if isinstance(data, dict) and "T_tcp_cam" in data:
             return "tcp", load_hand_eye_yaml(path)
     except CalibrationFileError as err:
         raise RecordImportError(f"{where}: {err}") from None
     raise RecordImportError(
-        f"{where}: expected T_tcp_cam (a wrist camera: the hand-eye result) or T_table_cam (a fixed camera's pose in "
-        "the table frame), each {translation_m: [x, y, z], rotvec_rad: [rx, ry, rz]}"
+        f"{where}: expected T_tcp_cam (a wrist camera: the hand-eye result of 'advobj calibrate handeye') or "
+        "T_table_cam (a fixed camera's pose in the table frame, from 'advobj calibrate scene-camera')"
     )
 
 

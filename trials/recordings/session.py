@@ -2,26 +2,28 @@
 
 Everything comes through the session store (:class:`trials.real.store.TrialStore`): the session's
 recorded hardware YAML and plan, its table frame, its committed trials in plan order and their
-steps. Each trial with at least one step is an episode (its id is the trial id), with one camera,
-``wrist`` (the session's camera, on the TCP).
+steps. Each trial with at least one step is an episode (its id is the trial id). Its cameras are
+the ones the session's policy read: ``wrist`` (the session's camera, on the TCP) and each fixed
+scene camera whose frames the steps reference (``step_XXX_<camera>.png``).
 
-What the runner recorded, step by step (``trials.real.runner``): the frame the policy acted on
-(``frames/<session>/<trial>/step_XXX.png`` beside the database, the camera's full image) and when
-it was taken, then the pose measured after the step's command. The pose at which frame k was
-taken is therefore the one measured after step k-1, which is also the pose the policy was given
-with that frame; for frame 0 it is the trial's start pose, the target of the positioning move
+What the runner recorded, step by step (``trials.real.runner``): the frames the policy acted on
+(``frames/<session>/<trial>/`` beside the database, each camera's full image) and when each was
+taken, then the pose measured after the step's command. The pose at which the frames of step k
+were taken is therefore the one measured after step k-1, which is also the pose the policy was
+given with them; for step 0 it is the trial's start pose, the target of the positioning move
 before the policy loop (``T_base_table @ T_table_tcp`` of the plan). A pose's time is when its
 command was accepted (0 for the start pose), and a frame must lie within one control period of
 the plan (``1 / control_hz``) of it, unless ``--tolerance-s`` says otherwise.
 
-The cell's calibration is the session's: the intrinsics file and hand-eye result its hardware
-YAML named (paths resolved as ``advobj trial run`` resolved them, beside that YAML), checked
-against the sha256 the session recorded, so the recording carries the calibration the trials
-were run with. ``--intrinsics wrist=FILE`` / ``--extrinsics wrist=FILE`` name the files when
-they have moved (a file other than the recorded one is refused). A sim camera's intrinsics are
-its scene camera's at the frames' size, its mount the scene's unless the hardware YAML named a
-``T_tcp_cam``. The table frame is the one stored with the session (``--table-frame`` for a
-session that has none).
+The cell's calibration is the session's: the intrinsics files, the hand-eye result and the fixed
+cameras' pose files its hardware YAML named (paths resolved as ``advobj trial run`` resolved
+them, beside that YAML), checked against the sha256 the session recorded, so the recording
+carries the calibration the trials were run with. ``--intrinsics CAMERA=FILE`` /
+``--extrinsics CAMERA=FILE`` name the files when they have moved (a file other than the recorded
+one is refused). A sim camera's intrinsics are its scene camera's at the frames' size, and it
+stands where the scene puts it (the wrist camera: unless the hardware YAML named a ``T_tcp_cam``;
+a fixed one: unless it named a pose file). The table frame is the one stored with the session
+(``--table-frame`` for a session that has none).
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ from trials.real.session import file_sha256
 from trials.real.store import TrialStore, check_database
 from trials.recordings.calib import (
     RecordImportError,
+    camera_extrinsics,
     camera_intrinsics,
     check_cameras_named,
     table_frame,
@@ -83,35 +86,54 @@ def _frame(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
         raise RecordImportError(f"{path}: not a readable frame ({' '.join(str(err).split())})") from None
 
 
-def _recorded_file(flag: str, given: Path | None, configured: Path | None, sha: str | None, what: str) -> Path | None:
-    """The calibration file to read: the flag's, else the one the session's hardware YAML named;
-    refused when it is not the file the session recorded (sha256), or is gone."""
+def _recorded_file(flag: str, camera: str, given, configured, sha: str | None, what: str) -> Path | None:
+    """The calibration file of ``camera`` to read: the flag's, else the one the session's hardware
+    YAML named; refused when it is gone or is not the file the session recorded (sha256)."""
     path = given if given is not None else configured
     if path is None:
         return None
     if not Path(path).is_file():
         raise RecordImportError(
             f"{flag}: the session's {what} file {path} is not there any more (paths resolve as when the session ran); "
-            f"give {flag} {WRIST}=FILE"
+            f"give {flag} {camera}=FILE"
         )
     if sha is not None and file_sha256(path) != sha:
         raise RecordImportError(
-            f"{flag} {WRIST}={path}: not the {what} file the session was recorded with (sha256 "
+            f"{flag} {camera}={path}: not the {what} file the session was recorded with (sha256 "
             f"{file_sha256(path)[:12]}..., the session's {sha[:12]}...)"
         )
     return Path(path)
 
 
-def _episode(store: TrialStore, db: Path, session: str, trial: dict, T_base_tcp0, size) -> Iterator[RecordedStep]:
+def _frames_of(step: dict, camera: str) -> tuple[str, float]:
+    """``(frame_ref, t_frame_s)`` of ``camera``'s frame in a stored step."""
+    if camera == WRIST:
+        return step["frame_ref"], float(step["t_frame_s"])
+    f = step["camera_frames"][camera]
+    return f["frame_ref"], float(f["t_frame_s"])
+
+
+def _episode(
+    store: TrialStore, db: Path, session: str, trial: dict, T_base_tcp0, sizes: dict
+) -> Iterator[RecordedStep]:
     steps = store.steps(session, trial["trial_id"])
     for k, s in enumerate(steps):
         prev = steps[k - 1] if k else None
+        missing = [c for c in sizes if c != WRIST and c not in s["camera_frames"]]
+        if missing:
+            raise RecordImportError(
+                f"session {session!r}: trial {trial['trial_id']} step {k}: no frame of {missing[0]}"
+            )
+        images, times = {}, {}
+        for cam, size in sizes.items():
+            ref, times[cam] = _frames_of(s, cam)
+            images[cam] = _frame(_frame_path(db, ref, trial["trial_id"]), size)
         yield RecordedStep(
             0.0 if prev is None else float(prev["t_command_s"]),
-            {WRIST: _frame(_frame_path(db, s["frame_ref"], trial["trial_id"]), size)},
+            images,
             T_base_tcp0 if prev is None else _pose(prev),
             None,
-            {WRIST: float(s["t_frame_s"])},
+            times,
         )
 
 
@@ -128,8 +150,6 @@ def session_recording(
     database ``db`` (None: its only session), and the open store its episodes read from (the
     caller closes it). Every input is checked before this returns; the frames are read as the
     episodes are written."""
-    check_cameras_named(intrinsics, [WRIST], "--intrinsics")
-    check_cameras_named(extrinsics, [WRIST], "--extrinsics")
     if not db.is_file():
         raise RecordImportError(f"SRC: {db}: no trial database here (--from session reads a trials.sqlite)")
     check_database(db)
@@ -139,6 +159,58 @@ def session_recording(
     except BaseException:
         store.close()
         raise
+
+
+def _camera(name, hw, spec, recorded, size, intrinsics, extrinsics, where) -> RecordingCamera:
+    """Camera ``name`` of the session's cell, calibrated as the session ran it (see the module's docstring)."""
+    c = hw.camera if name == WRIST else hw.scene_cameras.get(name)
+    if c is None:
+        raise RecordImportError(f"{where}: its frames of camera {name!r} come from no camera of its hardware YAML")
+    key = "" if name == WRIST else f".{name}"
+    sim = c.type == "sim"
+    path = _recorded_file(
+        "--intrinsics", name, intrinsics.get(name), getattr(c, "intrinsics", None), recorded.get(f"intrinsics{key}"),
+        "intrinsics",
+    )  # fmt: skip
+    if path is not None:
+        K, dist = camera_intrinsics(path, name, size)
+    elif sim:
+        K, dist = (spec.camera if name == WRIST else spec.camera_spec(name)).K(*size), np.zeros(5)
+    else:
+        raise RecordImportError(
+            f"--intrinsics: camera {name} of {where} ({c.type}) named no intrinsics file (its device's own "
+            f"calibration was used and not recorded); give --intrinsics {name}=FILE"
+        )
+    if name == WRIST:
+        path = _recorded_file(
+            "--extrinsics", name, extrinsics.get(name), hw.T_tcp_cam, recorded.get("T_tcp_cam"), "hand-eye"
+        )
+        if path is not None:
+            T = wrist_T_tcp_cam(path, name, "--extrinsics")
+        elif sim:
+            T = spec.camera.T_tcp_cam
+        else:
+            raise RecordImportError(
+                f"--extrinsics: the hardware YAML of {where} named no T_tcp_cam (hand-eye result); give --extrinsics "
+                f"{name}=FILE"
+            )
+        return RecordingCamera(name, K, dist, size[0], size[1], "tcp", T)
+    path = _recorded_file(
+        "--extrinsics", name, extrinsics.get(name), c.T_table_cam, recorded.get(f"T_table_cam.{name}"), "pose"
+    )
+    if path is not None:
+        mount, T = camera_extrinsics(path, name)
+        if mount != "table":
+            raise RecordImportError(
+                f"--extrinsics {name}={path}: camera {name} of the session is fixed; expected T_table_cam"
+            )
+    elif sim:
+        T = spec.camera_spec(name).T_table_cam
+    else:
+        raise RecordImportError(
+            f"--extrinsics: camera {name} of {where} has no pose file; give --extrinsics {name}=FILE"
+        )
+    return RecordingCamera(name, K, dist, size[0], size[1], "table", None, T)
 
 
 def _read(store, db, session, intrinsics, extrinsics, table_frame_path, tolerance_s, log) -> dict:
@@ -169,32 +241,16 @@ def _read(store, db, session, intrinsics, extrinsics, table_frame_path, toleranc
     if not trials:
         raise RecordImportError(f"--session: {where} has no committed trial with a frame")
     first = store.steps(session, trials[0]["trial_id"])[0]
-    h, w = _frame(_frame_path(db, first["frame_ref"], trials[0]["trial_id"])).shape[:2]
-    size = (w, h)
-    sim = hw.camera.type == "sim"
-
+    cameras = [WRIST, *sorted(first["camera_frames"])]  # the cameras the session's policy read
+    check_cameras_named(intrinsics, cameras, "--intrinsics")
+    check_cameras_named(extrinsics, cameras, "--extrinsics")
+    sizes = {}
+    for cam in cameras:
+        h, w = _frame(_frame_path(db, _frames_of(first, cam)[0], trials[0]["trial_id"])).shape[:2]
+        sizes[cam] = (w, h)
+    sim = hw.camera.type == "sim" or any(c.type == "sim" for c in hw.scene_cameras.values())
     spec = load_spec(plan.scene if plan.scene is not None else hw.sim.scene) if sim else None
-    configured = getattr(hw.camera, "intrinsics", None)
-    path = _recorded_file("--intrinsics", intrinsics.get(WRIST), configured, recorded.get("intrinsics"), "intrinsics")
-    if path is not None:
-        K, dist = camera_intrinsics(path, WRIST, size)
-    elif sim:
-        K, dist = spec.camera.K(*size), np.zeros(5)
-    else:
-        raise RecordImportError(
-            f"--intrinsics: the camera of {where} ({hw.camera.type}) named no intrinsics file (its device's own "
-            f"calibration was used and not recorded); give --intrinsics {WRIST}=FILE"
-        )
-    path = _recorded_file("--extrinsics", extrinsics.get(WRIST), hw.T_tcp_cam, recorded.get("T_tcp_cam"), "hand-eye")
-    if path is not None:
-        T_tcp_cam = wrist_T_tcp_cam(path, WRIST, "--extrinsics")
-    elif sim:
-        T_tcp_cam = spec.camera.T_tcp_cam
-    else:
-        raise RecordImportError(
-            f"--extrinsics: the hardware YAML of {where} named no T_tcp_cam (hand-eye result); give --extrinsics "
-            f"{WRIST}=FILE"
-        )
+    cams = [_camera(c, hw, spec, recorded, sizes[c], intrinsics, extrinsics, where) for c in cameras]
     if table_frame_path is not None:
         T_table_base = table_frame(table_frame_path)
     else:
@@ -203,19 +259,15 @@ def _read(store, db, session, intrinsics, extrinsics, table_frame_path, toleranc
             raise RecordImportError(f"--table-frame: {where} stored no table frame; give the YAML with T_base_table")
         T_table_base = invert_T(T_base_table)
     T_base_table = invert_T(T_table_base)
-    camera = RecordingCamera(WRIST, K, dist, size[0], size[1], "tcp", T_tcp_cam)
     tolerance = 1.0 / float(plan.control_hz) if tolerance_s is None else float(tolerance_s)
-    log(f"session {session!r} of {db}: {len(trials)} trials with frames, camera {WRIST} {size[0]}x{size[1]} px")
-
-    episodes = (
-        (
-            t["trial_id"],
-            _episode(store, db, session, t, T_base_table @ plan.tcp_pose(t["tcp_pose"]).T_table_tcp.T(), size),
-        )
-        for t in trials
+    log(
+        f"session {session!r} of {db}: {len(trials)} trials with frames, cameras "
+        + ", ".join(f"{c} {w}x{h} px" for c, (w, h) in sizes.items())
     )
+    starts = {t["trial_id"]: T_base_table @ plan.tcp_pose(t["tcp_pose"]).T_table_tcp.T() for t in trials}
+    episodes = ((t["trial_id"], _episode(store, db, session, t, starts[t["trial_id"]], sizes)) for t in trials)
     return dict(
-        cameras=[camera],
+        cameras=cams,
         episodes=episodes,
         T_table_base=T_table_base,
         sync_tolerance_s=min(tolerance, MAX_SYNC_TOLERANCE_S),

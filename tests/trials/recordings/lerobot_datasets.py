@@ -13,6 +13,8 @@ import pyarrow.parquet as pq
 import yaml
 
 from calibration.intrinsics import CameraIntrinsics, save_camera_yaml
+from calibration.io import save_scene_camera_pose
+from sim.geometry import make_T, so3_exp
 
 FPS = 10
 CAMERAS = {"wrist": (24, 32), "front": (32, 48)}  # (H, W): even sides for yuv420p
@@ -205,10 +207,14 @@ T_TABLE_CAM = {"translation_m": [0.6, 0.0, 0.5], "rotvec_rad": [2.0, 0.0, 0.0]}
 T_BASE_TABLE = {"translation_m": [0.1, -0.2, 0.0], "rotvec_rad": [0.0, 0.0, 0.3]}
 
 
+def _T(pose: dict) -> np.ndarray:
+    return make_T(so3_exp(np.asarray(pose["rotvec_rad"], dtype=np.float64)), np.asarray(pose["translation_m"]))
+
+
 def calibration_files(folder: Path) -> dict[str, Path]:
     """The files an import of these datasets needs: intrinsics of both cameras (the front camera's
     at twice the video's resolution), the wrist camera's hand-eye result, the front camera's pose
-    in the table frame and the table frame."""
+    in the table frame (``advobj calibrate scene-camera``'s file) and the table frame."""
     folder.mkdir(parents=True, exist_ok=True)
     files = {
         "wrist_intrinsics": save_camera_yaml(
@@ -216,9 +222,9 @@ def calibration_files(folder: Path) -> dict[str, Path]:
         ),
         "front_intrinsics": save_camera_yaml(folder / "front_cam.yaml", CameraIntrinsics(K_FRONT, np.zeros(5), 96, 64)),
     }
+    files["T_table_cam"] = save_scene_camera_pose(folder / "T_table_cam.yaml", _T(T_TABLE_CAM), 96, 64, 0.4, [0, 1])
     for name, data in (
         ("T_tcp_cam", {"T_tcp_cam": T_TCP_CAM, "method": "park", "n_samples": 12}),
-        ("T_table_cam", {"T_table_cam": T_TABLE_CAM}),
         ("T_base_table", {"T_base_table": T_BASE_TABLE}),
     ):
         files[name] = folder / f"{name}.yaml"

@@ -128,3 +128,44 @@ def test_a_session_whose_frame_is_gone_leaves_no_recording(cell, tmp_path):
     assert not (tmp_path / "rec").exists()  # the first trial was written, then all of it removed
     with pytest.raises(RecordingError, match="not a recording"):
         read_recording(tmp_path / "rec")
+
+
+def test_a_session_with_a_fixed_scene_camera_imports_both_cameras(tmp_path):
+    """A two-camera policy's session on the sim cell (the wrist camera and the scene's fixed 'front'
+    camera): both cameras' frames, the front camera fixed in the table frame where the scene puts it."""
+    from sim.spec import load_spec
+    from tests.trials.real.trial_session_helpers import REPO, two_camera_onnx
+
+    scene = REPO / "scenes" / "two-cameras.yaml"
+    opts = SessionOptions(
+        hardware=sim_hardware(tmp_path / "cell.yaml", scene_cameras={"front": {"type": "sim"}}),
+        policy=two_camera_onnx(tmp_path / "two.onnx"),
+        plan=small_plan(tmp_path / "plan.yaml", tmp_path, n_tcp=1, max_steps=3, conditions=("clean",), scene=scene),
+        session="s",
+        db=tmp_path / "t.sqlite",
+        rate_limit=False,
+    )
+    run_session(opts, operator=AutoOperator(log=None), log=None)
+    rec = run_import(ImportJob(source="session", src=tmp_path / "t.sqlite", out=tmp_path / "rec"))
+    assert list(rec.cameras) == ["wrist", "front"]
+    front, spec = rec.cameras["front"], load_spec(scene).camera_spec("front")
+    assert front.mount == "table" and front.T_tcp_cam is None
+    np.testing.assert_allclose(front.T_table_cam, spec.T_table_cam, atol=1e-12)
+    np.testing.assert_allclose(front.K, spec.K(front.width, front.height), atol=1e-12)
+    with TrialStore(tmp_path / "t.sqlite", create=False) as store:
+        (trial,) = store.trial_rows(["s"])
+        steps = store.steps("s", trial["trial_id"])
+    got = list(rec.frames(trial["trial_id"]))
+    assert len(got) == len(steps) > 0
+    for step, row in zip(got, steps):
+        for cam, ref, t in (
+            ("wrist", row["frame_ref"], row["t_frame_s"]),
+            ("front", row["camera_frames"]["front"]["frame_ref"], row["camera_frames"]["front"]["t_frame_s"]),
+        ):
+            stored = np.asarray(Image.open(tmp_path / ref).convert("RGB"))
+            np.testing.assert_array_equal(step.images[cam], stored)
+            assert step.frame_t_s[cam] == t
+    # the fixed camera stands still while the wrist camera moves with the arm
+    a, b = got[0].T_base_tcp, got[-1].T_base_tcp
+    np.testing.assert_array_equal(rec.T_table_cam("front", a), rec.T_table_cam("front", b))
+    assert not np.allclose(rec.T_table_cam("wrist", a), rec.T_table_cam("wrist", b))
