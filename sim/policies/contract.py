@@ -440,12 +440,20 @@ def bind_inputs(
     return InputPlan(tuple(images), tuple(states), output, tuple(names))
 
 
-def default_plan(image_size: int, contract: PolicyContract) -> InputPlan:
-    """The plan of a built-in network: the wrist camera at ``image_size`` (and the state)."""
+def default_plan(
+    image_size: int, contract: PolicyContract, cameras: dict[str, tuple[int, int]] | None = None
+) -> InputPlan:
+    """The plan of a built-in network: the wrist camera at ``image_size`` (input ``images``) and the
+    state (input ``state``); with ``cameras`` (``{camera: (H, W) px}`` in input order, as
+    :class:`sim.policies.policy.PolicyArch` lists them), one image input per camera, named by the
+    camera, then ``state``."""
     states = (BoundState("state", "state", (0, contract.state_dim)),) if contract.state else ()
-    return InputPlan(
-        (BoundImage("images", WRIST_CAMERA, (int(image_size), int(image_size)), ImageInput()),), states, "actions"
-    )
+    if cameras is None:
+        return InputPlan(
+            (BoundImage("images", WRIST_CAMERA, (int(image_size), int(image_size)), ImageInput()),), states, "actions"
+        )
+    images = tuple(BoundImage(name, name, (int(h), int(w)), ImageInput()) for name, (h, w) in cameras.items())
+    return InputPlan(images, states, "actions", (*cameras, *(s.name for s in states)))
 
 
 def policy_cameras(policy) -> tuple[str, ...]:

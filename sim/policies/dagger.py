@@ -12,8 +12,14 @@ Each iteration ``i``:
 4. optionally evaluate ``eval_episodes`` clean episodes (no randomisation) for the learning curve;
 5. save the state (weights, optimizer, data set, history) so an interrupted run resumes here.
 
-The state directory holds only safetensors, ``.npz`` arrays (loaded with ``allow_pickle=False``)
-and the optimizer state (``torch.load(weights_only=True)``): nothing executable.
+A policy reading several cameras (``PolicyArch.cameras``, rendered by ``ReachEnv(cameras=...)``)
+is trained by the same loop: every visited state keeps one frame per camera (``{camera: (T, H_c,
+W_c, 3)}``, from ``info["images"]``), labelled with the same expert action, and each minibatch hands
+the policy ``{camera: images}``.
+
+The state directory holds only safetensors, ``.npz`` arrays (loaded with ``allow_pickle=False``;
+the wrist camera's frames under ``images`` as they always were, a scene camera's under
+``images.<camera>``) and the optimizer state (``torch.load(weights_only=True)``): nothing executable.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from safetensors.torch import load_file, save_file
 from tqdm.auto import tqdm
 
 from sim.configio import StrictModel
+from sim.policies.contract import WRIST_CAMERA, call_policy, policy_cameras
 from sim.policies.interface import PolicyError
 from sim.policies.rollout import EnvConfig, run_episodes, set_randomization
 
@@ -58,25 +65,42 @@ class DaggerConfig(StrictModel):
 
 
 def collect(env, policy, expert_mask: np.ndarray, seeds: list[int]):
-    """One batch of episodes; returns ``(images (T, H, W, 3) uint8, actions (T, 6) f32, success, driven)``.
+    """One batch of episodes; returns ``(frames, actions (T, 6) f32, success, driven)`` with
+    ``frames = {camera: (T, H_c, W_c, 3) uint8}`` for every camera the policy reads.
 
     ``expert_mask[j]`` says env ``j`` executes expert actions; the others execute the policy's.
     Every visited state (of every env) is labelled with the expert's action.
     """
+    cams = policy_cameras(policy)
+    missing = [c for c in cams if c not in env.cameras]
+    if missing:
+        raise PolicyError(
+            f"cameras: the policy reads {', '.join(cams)} but the env renders {', '.join(env.cameras)}; make it "
+            f"with cameras={cams}"
+        )
     env.reset_envs(range(env.num_envs), seeds=seeds)
-    obs = env.observe()
-    frames, labels = [], []
+    views = env.images()
+    frames: dict[str, list] = {c: [] for c in cams}
+    labels = []
     while not env.done.all():
         active = ~env.done
         expert = env.expert_actions()
-        frames.append(obs[active])
+        for c in cams:
+            frames[c].append(views[c][active])
         labels.append(expert[active].astype(np.float32))
         act = expert.copy()
         if not expert_mask.all():
-            act[~expert_mask] = policy.act(obs[~expert_mask])
-        obs, *_ = env.step(act)
+            act[~expert_mask] = call_policy(policy, {c: views[c][~expert_mask] for c in cams}, None)
+        *_, info = env.step(act)
+        views = info["images"]
     success = env.reached == env.goal_index
-    return np.concatenate(frames), np.concatenate(labels), success, ~expert_mask
+    return {c: np.concatenate(f) for c, f in frames.items()}, np.concatenate(labels), success, ~expert_mask
+
+
+def _npz_key(camera: str) -> str:
+    """The ``data.npz`` array of camera ``camera``'s frames: ``images`` for the wrist camera (as
+    before several cameras), ``images.<camera>`` for a scene camera."""
+    return "images" if camera == WRIST_CAMERA else f"images.{camera}"
 
 
 class _State:
@@ -89,6 +113,8 @@ class _State:
         return (self.dir / "progress.json").is_file()
 
     def save(self, policy, optimizer, images, actions, progress: dict) -> None:
+        """``images``: ``{camera: (T, H_c, W_c, 3) uint8}`` (one array: the wrist camera's)."""
+        frames = images if isinstance(images, dict) else {WRIST_CAMERA: images}
         self.dir.mkdir(parents=True, exist_ok=True)
         save_file(
             {k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()},
@@ -96,20 +122,29 @@ class _State:
         )
         torch.save(optimizer.state_dict(), self.dir / "optim.pt.tmp")
         with open(self.dir / "data.npz.tmp", "wb") as f:
-            np.savez(f, images=images, actions=actions)
+            np.savez(f, **{_npz_key(c): v for c, v in frames.items()}, actions=actions)
         (self.dir / "progress.json.tmp").write_text(json.dumps(progress, indent=2))
         # progress.json is renamed last: it marks the set as complete.
         for name in ("model.safetensors", "optim.pt", "data.npz", "progress.json"):
             (self.dir / (name + ".tmp")).replace(self.dir / name)
 
-    def load(self, policy, optimizer):
+    def load(self, policy, optimizer, fingerprint: str | None = None):
+        """``(frames {camera: array}, actions, progress)``; with ``fingerprint``, a state of another
+        config is refused before its data are read."""
         try:
             progress = json.loads((self.dir / "progress.json").read_text())
+            if fingerprint is not None and progress.get("fingerprint") != fingerprint:
+                raise PolicyError(
+                    f"{self.dir}: holds a run with a different config; use a new --out or delete that directory"
+                )
             policy.load_state_dict(load_file(str(self.dir / "model.safetensors")))
             # weights_only: a pickle that builds any object is refused, never executed.
             optimizer.load_state_dict(torch.load(self.dir / "optim.pt", weights_only=True))
             with np.load(self.dir / "data.npz", allow_pickle=False) as d:
-                images, actions = d["images"], d["actions"]
+                images = {c: d[_npz_key(c)] for c in policy_cameras(policy)}
+                actions = d["actions"]
+        except PolicyError:
+            raise
         except Exception as err:  # any damaged or foreign file: refuse to resume, in one line
             msg = " ".join(str(err).split())[:300]
             raise PolicyError(
@@ -120,13 +155,18 @@ class _State:
 
 
 def _train_steps(policy, optimizer, images, actions, steps: int, batch: int, rng: np.random.Generator, device) -> float:
-    if steps == 0 or len(images) == 0:
+    """``steps`` Adam steps on minibatches of ``images`` (``{camera: (T, H_c, W_c, 3)}``) and ``actions``."""
+    n = len(actions)
+    if steps == 0 or n == 0:
         return float("nan")
     policy.train()
     losses = []
     for _ in range(steps):
-        idx = rng.integers(0, len(images), size=min(batch, len(images)))
-        x = torch.from_numpy(images[idx]).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+        idx = rng.integers(0, n, size=min(batch, n))
+        views = {
+            c: torch.from_numpy(v[idx]).to(device).permute(0, 3, 1, 2).float().div_(255.0) for c, v in images.items()
+        }
+        x = views[WRIST_CAMERA] if tuple(views) == (WRIST_CAMERA,) else views  # one camera: the tensor, as always
         y = torch.from_numpy(actions[idx]).to(device)
         loss = torch.nn.functional.mse_loss(policy(x), y)
         optimizer.zero_grad(set_to_none=True)
@@ -153,7 +193,8 @@ def train_dagger(
 
     Args:
         policy: a :class:`sim.policies.policy.VisuomotorPolicy` on ``device``.
-        env: a :class:`sim.env.ReachEnv` with ``cfg.num_envs`` envs at the policy's image size.
+        env: a :class:`sim.env.ReachEnv` with ``cfg.num_envs`` envs at the policy's image size,
+            rendering every camera the policy reads (``cameras=policy.cameras``).
         env_cfg: the training randomisation (evaluation switches it off temporarily).
         fingerprint: identifies the run's resolved config; resuming with another one is refused.
 
@@ -164,8 +205,9 @@ def train_dagger(
         raise ValueError(f"env has {env.num_envs} envs, config says num_envs={cfg.num_envs}")
     optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     state = _State(out_dir)
-    h = w = env_cfg.image_size
-    images, actions = np.zeros((0, h, w, 3), np.uint8), np.zeros((0, 6), np.float32)
+    cams = policy_cameras(policy)
+    images = {c: np.zeros((0, *env.image_shape(c)), np.uint8) for c in cams}
+    actions = np.zeros((0, 6), np.float32)
     prog = {
         "fingerprint": fingerprint,
         "iterations_done": 0,
@@ -175,13 +217,9 @@ def train_dagger(
         "stopped_early": False,
     }
     if state.exists():
-        images, actions, prog = state.load(policy, optimizer)
-        if prog.get("fingerprint") != fingerprint:
-            raise PolicyError(
-                f"{state.dir}: holds a run with a different config; use a new --out or delete that directory"
-            )
+        images, actions, prog = state.load(policy, optimizer, fingerprint)
         log(
-            f"resuming after iteration {prog['iterations_done']} ({len(images)} frames, "
+            f"resuming after iteration {prog['iterations_done']} ({len(actions)} frames, "
             f"{prog['elapsed_s']:.0f} s so far)"
         )
     clean = EnvConfig(image_size=env_cfg.image_size)
@@ -219,13 +257,13 @@ def train_dagger(
                     episodes.set_postfix(policy_success=f"{np.mean(driven_success):.2f}")
         finally:
             episodes.close()
-        images = np.concatenate([images, *new_x])[-cfg.max_frames :]
+        images = {c: np.concatenate([images[c], *(x[c] for x in new_x)])[-cfg.max_frames :] for c in cams}
         actions = np.concatenate([actions, *new_y])[-cfg.max_frames :]
         loss = _train_steps(policy, optimizer, images, actions, cfg.grad_steps_per_iter, cfg.batch_size, rng, device)
         record = {
             "iteration": it,
             "beta": beta,
-            "frames": int(len(images)),
+            "frames": int(len(actions)),
             "loss": loss,
             "policy_driven_success": float(np.mean(driven_success)) if driven_success else None,
             "policy_driven_episodes": len(driven_success),
@@ -250,7 +288,7 @@ def train_dagger(
         prog["iterations_done"] = it + 1
         state.save(policy, optimizer, images, actions, prog)
         bar.update(1)
-        bar.set_postfix(loss=f"{loss:.4f}", frames=len(images), clean=record.get("clean_success"))
+        bar.set_postfix(loss=f"{loss:.4f}", frames=len(actions), clean=record.get("clean_success"))
     bar.close()
     set_randomization(env, env_cfg)
     policy.eval()

@@ -3,7 +3,9 @@
 The exported graph has the input ``images: (B, 3, S, S)`` float32 in [0, 1] (normalization is
 inside the graph), a second input ``state: (B, D)`` float32 when the policy reads proprioception,
 and one output ``actions``: ``(B, 6)``, or ``(B, K, 6)`` for chunks (:mod:`sim.policies.contract`);
-the batch axis is dynamic. The policy card travels in the model's metadata (key
+the batch axis is dynamic. A built-in network reading several cameras has one image input per
+camera, named by it (``wrist``, ``front``: ``(B, 3, H_c, W_c)``), then ``state``; its card binds
+them. The policy card travels in the model's metadata (key
 ``advobj_policy_card``), so an exported file is self-describing; for the built-in network it
 names the backbone's last feature map (``feature_map``), where a white-box conversion
 (:mod:`sim.policies.onnx_torch`) cuts the graph for Grad-CAM. A user's ONNX policy with one
@@ -27,8 +29,9 @@ import torch
 from pydantic import ValidationError
 
 from sim.policies.card import PolicyCard
-from sim.policies.contract import WRIST_CAMERA, bind_inputs, decode_actions, policy_contract
+from sim.policies.contract import WRIST_CAMERA, bind_inputs, decode_actions, policy_cameras, policy_contract
 from sim.policies.interface import PolicyError, prepare_images
+from sim.policies.policy import file_inputs
 
 __all__ = ["export_onnx", "attach_card", "OnnxPolicy", "CARD_METADATA_KEY", "DEFAULT_OPSET"]
 
@@ -47,6 +50,9 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
             f"card: a policy with the contract ({policy_contract(policy).describe()}) needs its card in the file"
         )
     path = Path(path)
+    cameras = policy_cameras(policy)
+    if cameras != (WRIST_CAMERA,) and card is None:
+        raise PolicyError(f"card: a policy reading cameras {', '.join(cameras)} needs its card in the file")
     path.parent.mkdir(parents=True, exist_ok=True)
     s = policy.image_size
     D = int(getattr(policy.config, "state_dim", 0))
@@ -57,6 +63,10 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
             (torch.rand(2, D, device=policy.device),) if D else ()
         )
         names = ["images"] + (["state"] if D else [])
+        if cameras != (WRIST_CAMERA,):  # the built-in network on several cameras: one input per camera, by name
+            views = {b.camera: torch.rand(2, 3, *b.size, device=policy.device) for b in policy.inputs.images}
+            dummy = (views, dummy[1] if D else {})  # a trailing {}: the dict is an input, not keyword arguments
+            names = [b.name for b in policy.inputs.images] + (["state"] if D else [])
         # The TorchScript exporter is deprecated in favour of the torch.export one, which needs
         # onnxscript and is slower; it still exports these plain conv nets exactly (parity tests).
         with warnings.catch_warnings():
@@ -75,21 +85,26 @@ def export_onnx(policy, path: str | Path, card=None, opset: int = DEFAULT_OPSET)
         policy.train(was_training)
     if card is not None:
         if card.feature_map is None and isinstance(getattr(policy, "reduce", None), torch.nn.Module):
-            card = card.model_copy(update={"feature_map": _backbone_output(onnx.load(str(path)), path)})
+            card = card.model_copy(update={"feature_map": _backbone_output(onnx.load(str(path)), path, cameras)})
+        if cameras != (WRIST_CAMERA,) and not card.inputs:
+            card = card.model_copy(update={"inputs": file_inputs(policy.inputs)})
         attach_card(path, card)
     else:
         onnx.checker.check_model(onnx.load(str(path)))
     return path
 
 
-def _backbone_output(model, path) -> str:
+def _backbone_output(model, path, cameras=(WRIST_CAMERA,)) -> str | dict[str, str]:
     """The ONNX tensor the built-in network's backbone ends in (the input of its head's first
     convolution, ``reduce``): the feature map its Grad-CAM reads, recorded in the exported card so
-    a white-box conversion cuts the graph where the checkpoint does."""
-    for node in model.graph.node:
-        if node.op_type == "Conv" and node.name.startswith("/reduce/"):
-            return node.input[0]
-    raise PolicyError(f"{path}: the exported graph has no head convolution (/reduce/...) to take the feature map from")
+    a white-box conversion cuts the graph where the checkpoint does. Reading several cameras, the
+    head reduces each camera's map in camera order: ``{camera: tensor}``."""
+    found = [node.input[0] for node in model.graph.node if node.op_type == "Conv" and node.name.startswith("/reduce/")]
+    if len(found) < len(cameras) or not found:
+        raise PolicyError(
+            f"{path}: the exported graph has no head convolution (/reduce/...) to take the feature map from"
+        )
+    return found[0] if len(cameras) == 1 else dict(zip(cameras, found))
 
 
 def attach_card(path: str | Path, card) -> Path:

@@ -20,6 +20,15 @@ other presets and of ``--arch``) keeps 4x more spatial detail and costs ~5x more
 ``quick`` uses the small CNN because ResNet-18 at 64 px costs ~14x more per training image on
 CPU (``benchmarks/bench_policy.py``), which does not fit 10 minutes. Any preset accepts
 ``--arch``; the budget then no longer holds.
+
+**Several cameras.** Any preset trains a policy reading several cameras (``cameras``, e.g.
+``advobj policy train --preset quick --scene scenes/two-cameras.yaml --cameras wrist,front``): the
+same budget, one backbone per camera, each scene camera at its scene's size averaged down to the
+preset's image size (:mod:`sim.policies.policy`). A scene camera costs a render at its own size
+per step and a backbone of its own per training image: with the quick preset and the two-camera
+scene's 128 px ``front`` camera, measured at 2.7x the wrist camera alone's env-step time (16 envs)
+and 2.0x its time per Adam step (batch 64, 1 torch thread), so a run takes at most about 2.7x the
+quick preset's training time (README), inside the ~15 minutes of 2 CPU cores it is meant for.
 """
 
 from __future__ import annotations
@@ -32,7 +41,7 @@ from pydantic import Field, model_validator
 
 from sim.configio import StrictModel
 from sim.policies.dagger import DaggerConfig
-from sim.policies.policy import PolicyArch
+from sim.policies.policy import PolicyArch, scene_camera_px
 from sim.policies.ppo import PPOConfig
 from sim.policies.rollout import EnvConfig
 
@@ -60,7 +69,11 @@ class TrainConfig(StrictModel):
         if (p.state_dim, p.chunk, p.output) != (0, 1, "tanh"):
             raise ValueError(
                 "policy.state_dim, policy.chunk, policy.output: training teaches the one-image delta_tcp contract "
-                "only (the expert labels one action per state); leave them at 0, 1 and tanh"
+                "only (one frame per camera; the expert labels one action per state); leave them at 0, 1 and tanh"
+            )
+        if self.method == "ppo" and not p.is_one_camera:
+            raise ValueError(
+                f"policy.cameras: PPO trains the wrist camera alone; train {', '.join(p.cameras)} with method dagger"
             )
         return self
 
@@ -134,12 +147,20 @@ PRESETS: dict[str, dict] = {
 
 
 def resolve_preset(
-    name: str, arch: str | None = None, method: str | None = None, seed: int = 0, **overrides
+    name: str,
+    arch: str | None = None,
+    method: str | None = None,
+    seed: int = 0,
+    cameras=None,
+    spec=None,
+    **overrides,
 ) -> TrainConfig:
     """The :class:`TrainConfig` of preset ``name`` with ``arch``/``method``/``seed`` and section overrides.
 
     ``overrides`` maps a section (``dagger``, ``ppo``, ``env``, ``policy``) to a dict of fields, or
-    a top-level field to its value; unknown names are errors.
+    a top-level field to its value; unknown names are errors. ``cameras`` (names, in input order)
+    makes the policy read those cameras of scene ``spec``, each scene camera at the size ``spec``
+    renders it (a camera ``spec`` lacks raises :class:`sim.spec.UnknownCameraError`).
     """
     if name not in PRESETS:
         raise ValueError(f"preset: unknown {name!r}; choose one of {sorted(PRESETS)}")
@@ -147,6 +168,12 @@ def resolve_preset(
     doc.update(preset=name, seed=seed)
     if arch is not None:
         doc["policy"]["arch"] = arch
+    if cameras is not None:
+        cameras = list(cameras)
+        if spec is None and any(c != "wrist" for c in cameras):
+            raise ValueError("cameras: a scene camera's size is its scene's; pass the scene (spec) it is read in")
+        doc["policy"]["cameras"] = cameras
+        doc["policy"]["camera_px"] = {k: list(v) for k, v in scene_camera_px(spec, cameras).items()} if spec else {}
     if method is not None:
         doc["method"] = method
     for key, value in overrides.items():

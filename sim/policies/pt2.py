@@ -47,9 +47,10 @@ from torch._export.serde.schema import SCHEMA_VERSION
 from torch.export.pt2_archive import constants as pt2c
 
 from sim.policies.card import PolicyCard
-from sim.policies.contract import WRIST_CAMERA, bind_inputs, policy_contract
+from sim.policies.contract import WRIST_CAMERA, bind_inputs, policy_cameras, policy_contract
 from sim.policies.graph_policy import GraphPolicy, example_inputs, pick_feature_node, split_graph
 from sim.policies.interface import PolicyError
+from sim.policies.policy import file_inputs
 
 __all__ = ["CARD_ENTRY", "MAX_PT2_BYTES", "export_pt2", "check_archive", "load_pt2"]
 
@@ -247,8 +248,10 @@ def export_pt2(policy, path: str | Path, card=None, max_batch: int = 1024) -> Pa
     """Export torch ``policy`` to ``path`` with ``torch.export`` (dynamic batch) and ``card`` inside.
 
     The inputs are those of :func:`sim.policies.onnx_policy.export_onnx`: ``images (B, 3, S, S)``
-    in [0, 1] and, for a policy that reads state, ``state (B, D)``. For the built-in network the
-    card names the backbone's last map as ``feature_map`` (where Grad-CAM reads). Stack traces
+    in [0, 1] and, for a policy that reads state, ``state (B, D)``; the built-in network on several
+    cameras takes ``{camera: (B, 3, H_c, W_c)}`` (each input named by its camera). For the built-in
+    network the card names the backbone's last map as ``feature_map`` (where Grad-CAM reads; one per
+    camera when it reads several) and binds each input to its camera. Stack traces
     (source paths of the exporting machine) are dropped from the graph's metadata.
     """
     if card is None and not policy_contract(policy).is_default:
@@ -256,6 +259,9 @@ def export_pt2(policy, path: str | Path, card=None, max_batch: int = 1024) -> Pa
             f"card: a policy with the contract ({policy_contract(policy).describe()}) needs its card in the file"
         )
     path = Path(path)
+    cameras = policy_cameras(policy)
+    if cameras != (WRIST_CAMERA,) and card is None:
+        raise PolicyError(f"card: a policy reading cameras {', '.join(cameras)} needs its card in the file")
     path.parent.mkdir(parents=True, exist_ok=True)
     s = policy.image_size
     D = policy_contract(policy).state_dim
@@ -267,6 +273,10 @@ def export_pt2(policy, path: str | Path, card=None, max_batch: int = 1024) -> Pa
             (torch.rand(2, D, device=policy.device),) if D else ()
         )
         dyn = tuple({0: batch} for _ in args)
+        if cameras != (WRIST_CAMERA,):  # several cameras: {camera: images}, each input named by its camera
+            views = {b.camera: torch.rand(2, 3, *b.size, device=policy.device) for b in policy.inputs.images}
+            args = (views,) + args[1:]
+            dyn = ({k: {0: batch} for k in views},) + dyn[1:]
         ep = torch.export.export(policy, args, dynamic_shapes=dyn)
     finally:
         policy.train(was_training)
@@ -275,7 +285,9 @@ def export_pt2(policy, path: str | Path, card=None, max_batch: int = 1024) -> Pa
     extra = {}
     if card is not None:
         if card.feature_map is None and isinstance(getattr(policy, "reduce", None), torch.nn.Module):
-            card = card.model_copy(update={"feature_map": _backbone_output(ep, path)})
+            card = card.model_copy(update={"feature_map": _backbone_output(ep, path, cameras)})
+        if cameras != (WRIST_CAMERA,) and not card.inputs:
+            card = card.model_copy(update={"inputs": file_inputs(policy.inputs)})
         extra[CARD_ENTRY] = card.model_dump_json()
     tmp = path.with_name(path.name + ".tmp.pt2")
     torch.export.save(ep, str(tmp), extra_files=extra)
@@ -283,15 +295,19 @@ def export_pt2(policy, path: str | Path, card=None, max_batch: int = 1024) -> Pa
     return path
 
 
-def _backbone_output(ep, path) -> str:
+def _backbone_output(ep, path, cameras=(WRIST_CAMERA,)) -> str | dict[str, str]:
     """The node the built-in network's backbone ends in: the input of its head's first
-    convolution (module ``reduce.0``)."""
+    convolution (module ``reduce.0``); reading several cameras, ``{camera: node}`` (the head
+    reduces each camera's map in camera order)."""
+    found = []
     for node in ep.graph.nodes:
         stack = node.meta.get("nn_module_stack") or {}
         paths = [v[0] for v in stack.values()]
         if node.op == "call_function" and paths and paths[-1] == "reduce.0" and node.args:
-            return node.args[0].name
-    raise PolicyError(f"{path}: the exported graph has no head convolution (reduce.0) to take the feature map from")
+            found.append(node.args[0].name)
+    if not found or len(found) < len(cameras):
+        raise PolicyError(f"{path}: the exported graph has no head convolution (reduce.0) to take the feature map from")
+    return found[0] if len(cameras) == 1 else dict(zip(cameras, found))
 
 
 def _card(text: str | None, where: str):

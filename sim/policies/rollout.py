@@ -54,9 +54,17 @@ class EnvConfig(StrictModel):
         return Randomization(light=self.light, background=self.background, noise_std=self.noise_std)
 
 
-def make_env(spec, cfg: EnvConfig, num_envs: int, seed: int = 0):
-    """A :class:`sim.env.ReachEnv` rendering ``cfg.image_size`` px with ``cfg``'s randomisation."""
-    return ReachEnv(spec, num_envs=num_envs, image_size=cfg.image_size, seed=seed, randomization=cfg.randomization())
+def make_env(spec, cfg: EnvConfig, num_envs: int, seed: int = 0, cameras=(WRIST_CAMERA,)):
+    """A :class:`sim.env.ReachEnv` rendering ``cfg.image_size`` px with ``cfg``'s randomisation
+    (the wrist camera at that size, each other camera in ``cameras`` at its own)."""
+    return ReachEnv(
+        spec,
+        num_envs=num_envs,
+        image_size=cfg.image_size,
+        seed=seed,
+        randomization=cfg.randomization(),
+        cameras=tuple(cameras),
+    )
 
 
 def set_randomization(env, cfg: EnvConfig) -> None:
@@ -271,7 +279,7 @@ def evaluate_policy(
     env_cfg = env_cfg or EnvConfig(image_size=policy.image_size)
     own = env is None
     if own:
-        env = make_env(spec, env_cfg, min(num_envs, max(1, episodes)))
+        env = make_env(spec, env_cfg, min(num_envs, max(1, episodes)), cameras=policy_cameras(policy))
     else:
         set_randomization(env, env_cfg)
     try:

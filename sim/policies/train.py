@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
 from sim.configs import spec_fingerprint
 from sim.policies.card import ActionScaling, CleanSuccess, PolicyCard
 from sim.policies.checkpoint import save_checkpoint
+from sim.policies.contract import check_scene
 from sim.policies.dagger import train_dagger
 from sim.policies.policy import VisuomotorPolicy
 from sim.policies.pool import built_pool_path, write_feasible_pool
@@ -38,16 +40,19 @@ def train_policy(
     """Train per ``cfg`` on scene ``spec``; resumes an interrupted run in the same ``out_dir``.
 
     Once the checkpoint is saved, ``train_state/`` (the resume data: frames, optimizer; hundreds
-    of MB) is deleted unless ``keep_state``; the final weights and card stay.
+    of MB) is deleted unless ``keep_state``; the final weights and card stay. A policy reading a
+    camera ``spec`` lacks, or a scene camera of another size than ``cfg.policy.camera_px``, is
+    refused in one line before anything is written.
     """
     out_dir = Path(out_dir)
+    check_scene(SimpleNamespace(inputs=cfg.policy.input_plan()), spec)  # before the output folder exists
     resolved = cfg.model_dump(mode="json")
     resolved["scene"] = {"name": spec.name, "fingerprint": spec_fingerprint(spec)}
     write_run_info(out_dir, resolved, cfg.seed)
     torch.manual_seed(cfg.seed)
     fp = cfg.fingerprint()
     if cfg.method == "dagger":
-        env = make_env(spec, cfg.env, cfg.dagger.num_envs, seed=cfg.seed)
+        env = make_env(spec, cfg.env, cfg.dagger.num_envs, seed=cfg.seed, cameras=cfg.policy.cameras)
         policy = VisuomotorPolicy(cfg.policy).to(device)
         prog = train_dagger(policy, env, cfg.dagger, cfg.env, out_dir, cfg.seed, fp, device, progress, log)
     else:

@@ -7,7 +7,9 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from pydantic import ValidationError
 
+from sim.errors import AdvobjError, format_validation_error
 from sim.runinfo import write_run_info
 from sim.runtime import set_torch_threads
 
@@ -55,6 +57,11 @@ def train(
         help="ResNet/VGG stem: 'small' (no early downsampling, the default of small presets) "
         "or 'standard' (ImageNet stem: ~3-5x cheaper per image on CPU)",
     ),
+    cameras: Optional[str] = typer.Option(
+        None,
+        help="comma-separated cameras the policy reads, e.g. wrist,front with --scene scenes/two-cameras.yaml "
+        "(one backbone each; DAgger only); default: wrist",
+    ),
 ) -> None:
     """Train a policy (DAgger from the privileged expert, or PPO) and evaluate it."""
     from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
@@ -71,12 +78,19 @@ def train(
     if curve_episodes:
         curve = {"eval_episodes": curve_episodes, "stop_at_success": stop_at}
         extra.update(dagger=curve, ppo=curve)
+    cams = None if cameras is None else tuple(c.strip() for c in cameras.split(",") if c.strip())
+    if cams is not None and not cams:
+        raise typer.BadParameter("name at least one camera, e.g. wrist,front", param_hint="--cameras")
+    spec = load_spec(scene)  # the cameras' sizes are the scene's
     try:
-        cfg = resolve_preset(preset, arch=arch, method=method, seed=seed, **extra)
+        cfg = resolve_preset(preset, arch=arch, method=method, seed=seed, cameras=cams, spec=spec, **extra)
+    except AdvobjError as err:  # a camera the scene lacks: the line lists the scene's cameras
+        raise typer.BadParameter(str(err), param_hint="--cameras") from None
+    except ValidationError as err:
+        raise typer.BadParameter(format_validation_error(err, "training config")) from None
     except ValueError as err:
         raise typer.BadParameter(str(err).splitlines()[0] if "preset" in str(err) else str(err)) from None
     _set_threads(threads)
-    spec = load_spec(scene)
     card = train_policy(cfg, out, spec, device=device, log=typer.echo, keep_state=keep_state)
     t = card.training["train_time_s"]
     typer.echo(f"trained {cfg.policy.arch} ({cfg.method}, preset {preset}) in {t / 60:.1f} min; checkpoint in {out}/")
@@ -175,8 +189,14 @@ def export(
         if path is not None and path.suffix.lower() != suffix:
             raise typer.BadParameter(f"{path}: the file name must end in {suffix}", param_hint=flag)
     pol, card = load_checkpoint(policy)
-    x = np.random.default_rng(0).random((32, 3, pol.image_size, pol.image_size), dtype=np.float32)
-    shape = f"input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1], output actions (B, 6)"
+    rng = np.random.default_rng(0)
+    if pol.config.is_one_camera:
+        x = rng.random((32, 3, pol.image_size, pol.image_size), dtype=np.float32)
+        shape = f"input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1], output actions (B, 6)"
+    else:  # one input per camera, named by it
+        x = {b.camera: rng.random((32, 3, *b.size), dtype=np.float32) for b in pol.inputs.images}
+        sizes = ", ".join(f"{b.name} (B, 3, {b.size[0]}, {b.size[1]})" for b in pol.inputs.images)
+        shape = f"inputs {sizes} in [0, 1], output actions (B, 6)"
     written = []
     if onnx is not None:
         export_onnx(pol, onnx, card=card, opset=opset)
