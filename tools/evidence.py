@@ -87,6 +87,9 @@ def run(
     ]
     if policy:
         cmd += ["--policy", policy]
+    scene = REGISTRY[recipe].scene  # a recipe's own scene goes on the recorded command, unless given there
+    if scene is not None and not any(a == "--scene" or a.startswith("--scene=") for a in extra):
+        cmd += ["--scene", scene]
     cmd += extra
     record = read_record(results / name)
     attempt = {

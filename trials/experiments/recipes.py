@@ -351,8 +351,15 @@ def _scene_input(ctx: Context) -> dict:
     return {} if ctx.scene is None else {"scene": ctx.scene}
 
 
-def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None, preset: str | None = None) -> Path:
-    """A policy checkpoint: the one given, else a ``train-policy`` job into ``out/policies/<name>``."""
+def ensure_policy(
+    ctx: Context,
+    name: str = "reference",
+    arch: str | None = None,
+    preset: str | None = None,
+    cameras: tuple[str, ...] | None = None,
+) -> Path:
+    """A policy checkpoint: the one given, else a ``train-policy`` job into ``out/policies/<name>``
+    (reading ``cameras`` of the recipe's scene when given, else the wrist camera)."""
     if name == "reference" and ctx.policy is not None:
         return ctx.policy
     if name in ctx.targets:
@@ -362,22 +369,35 @@ def ensure_policy(ctx: Context, name: str = "reference", arch: str | None = None
     from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
 
     try:
-        resolve_preset(preset, arch=arch, seed=ctx.cfg.seed)
+        resolve_preset(
+            preset, arch=arch, seed=ctx.cfg.seed, cameras=cameras, spec=None if cameras is None else ctx.spec()
+        )
     except ValueError as err:
         raise ExperimentError(str(err)) from None
+    params = {"preset": preset, "arch": arch, "seed": ctx.cfg.seed, "device": ctx.cfg.device}
+    if cameras is not None:  # only then: the one-camera jobs keep their keys (finished ones are reused)
+        params["cameras"] = list(cameras)
     ctx.grid.add(
         f"policy-{name}",
         "train-policy",
         "trials.experiments.recipes:job_train_policy",
         d,
-        {"preset": preset, "arch": arch, "seed": ctx.cfg.seed, "device": ctx.cfg.device},
+        params,
         _scene_input(ctx),
         **ctx.resources(),
     )
     return d
 
 
-def job_train_policy(out: Path, inputs: dict, preset: str, arch: str | None, seed: int, device: str = "cpu") -> None:
+def job_train_policy(
+    out: Path,
+    inputs: dict,
+    preset: str,
+    arch: str | None,
+    seed: int,
+    device: str = "cpu",
+    cameras: list[str] | None = None,
+) -> None:
     """The ``train-policy`` job: train (or resume, or reuse a finished) policy into ``out``."""
     from sim.policies.checkpoint import is_checkpoint  # lazy: CLI start-up (torch, onnxruntime)
     from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
@@ -389,10 +409,11 @@ def job_train_policy(out: Path, inputs: dict, preset: str, arch: str | None, see
         return
     from trials.jobs.dag import show_progress  # lazy: CLI start-up (+15 ms)
 
+    spec = load_spec(inputs.get("scene"))
     train_policy(
-        resolve_preset(preset, arch=arch, seed=seed),
+        resolve_preset(preset, arch=arch, seed=seed, cameras=cameras, spec=spec),
         out,
-        load_spec(inputs.get("scene")),
+        spec,
         device=device,
         progress=show_progress(),
     )
@@ -932,6 +953,114 @@ def lighting(ctx: Context) -> str:
     return "\n".join(lines) + "\n"
 
 
+# ----------------------------------------------------------------------------- which camera carries the attack
+#: The scene of the ``cameras`` recipe (relative to the checkout): the built-in scene with the fixed ``front`` camera.
+TWO_CAMERA_SCENE = "scenes/two-cameras.yaml"
+#: The cameras of the two-camera reference policy the recipe trains when none is given.
+TWO_CAMERAS = ("wrist", "front")
+
+
+def _cameras_read(ctx: Context) -> tuple[str, ...]:
+    """The cameras the ``cameras`` recipe's policy reads: the given one's (loaded with the recipe's
+    scene, so a camera it lacks or of another size is one line), else :data:`TWO_CAMERAS`."""
+    from sim.policies.checkpoint import load_policy  # lazy: CLI start-up (torch, onnxruntime)
+    from sim.policies.contract import policy_cameras  # lazy: CLI start-up (torch)
+    from sim.policies.policy import scene_camera_px  # lazy: CLI start-up (torch)
+
+    spec = ctx.spec()
+    if ctx.policy is None:
+        try:
+            scene_camera_px(spec, TWO_CAMERAS)
+        except AdvobjError as err:
+            raise ExperimentError(
+                f"--scene: {err}; the cameras recipe trains a policy reading {', '.join(TWO_CAMERAS)}"
+            ) from None
+        return TWO_CAMERAS
+    try:
+        cams = policy_cameras(load_policy(ctx.policy, spec=spec))
+    except AdvobjError as err:
+        raise ExperimentError(f"--policy: {err}") from None
+    if len(cams) < 2:
+        raise ExperimentError(
+            f"--policy: {ctx.policy} reads the {cams[0]} camera only; the cameras recipe compares the cameras of a "
+            "policy reading several (advobj policy train --cameras wrist,front --scene scenes/two-cameras.yaml)"
+        )
+    return cams
+
+
+def camera_conditions(cams: tuple[str, ...]) -> list[str]:
+    """The ``cameras`` recipe's conditions: the texture in every camera, then in each camera alone."""
+    return ["attack"] + [f"attack_{c}_only" for c in cams]
+
+
+def cameras(ctx: Context) -> str:
+    """Which camera carries the attack: the C2F attack against a policy reading several cameras
+    (trained on the two-camera scene when none is given), each attack seed's texture evaluated with
+    the texture in every camera (``attack``) and in one camera alone (``attack_<camera>_only``, the
+    others seeing the benign look), all on the same held-out configurations, with paired McNemar
+    tests between the conditions."""
+    from trials.experiments.findings import paired, paired_markdown  # lazy: CLI start-up (+33 ms)
+
+    cams = _cameras_read(ctx)
+    ref = ensure_policy(ctx, cameras=None if ctx.policy is not None else cams)
+    conds = camera_conditions(cams)
+    evals = {}
+    for seed in ctx.cfg.attack_seeds:
+        att = ensure_seeded_attack(ctx, ref, "c2f", {"schedule": "c2f"}, seed)
+        evals[seed] = ensure_eval(ctx, ref, seeded("cameras", seed), conds, attack=att)
+    first = ctx.cfg.attack_seeds[0]
+    seen = {"attack": ", ".join(cams), **{f"attack_{c}_only": c for c in cams}}
+    lines = _header(
+        f"Which camera carries the attack: a policy reading {', '.join(cams)}",
+        ctx,
+        "The C2F texture is rendered into every camera the policy reads (attack) or into one of them alone "
+        "(attack_<camera>_only; the other cameras see the object's benign look), on the same held-out "
+        "configurations. McNemar p vs clean: the condition against the same configurations' clean episodes.",
+    )
+    if len(ctx.cfg.attack_seeds) > 1:
+        lines[2] += (
+            f" Rows below: attack seed {first}; the paired tests of every seed and the spread over seeds follow."
+        )
+    lines += [
+        "| condition | texture seen by | T-ASR (ours) | ASR (ours) | McNemar p vs clean (T-ASR) |",
+        "|---|---|---|---|---|",
+    ]
+    s = evals[first]
+    for c in conds:
+        cs = s["conditions"][c]
+        p = cs.get("vs_clean", {}).get("tasr", {}).get("p_value")
+        lines.append(
+            f"| {c} | {seen[c]} | {_pct(cs['tasr'])}{_ci(cs['tasr'])} | {_pct(cs['asr'])}{_ci(cs['asr'])} | "
+            f"{'-' if p is None else f'{p:.2g}'} |"
+        )
+    pairs = [(conds[i], conds[j]) for i in range(len(conds)) for j in range(i + 1, len(conds))]
+    lines += [
+        "",
+        "## Paired McNemar tests between the conditions (T-ASR, same configurations)",
+        "",
+        "| attack seed | A | B | n | A % | B % | only A / only B | A - B (pp) [95% CI] | p |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    rows = {seed: eval_rows(ctx, seeded("cameras", seed)) for seed in ctx.cfg.attack_seeds}
+    for seed, rs in rows.items():
+        arm = {c: {r["seed"]: r for r in rs if r["condition"] == c} for c in conds}
+        for a, b in pairs:
+            pr = paired(arm[a], arm[b])
+            lo, hi = pr.diff_ci()
+            if not pr.n:
+                lines.append(f"| {seed} | {a} | {b} | 0 | n/a | n/a | - | n/a | n/a |")
+                continue
+            lines.append(
+                f"| {seed} | {a} | {b} | {pr.n} | {100 * pr.rate_a:.2f} | {100 * pr.rate_b:.2f} | {pr.b} / {pr.c} | "
+                f"{100 * pr.diff:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] | {pr.p:.2g} |"
+            )
+    arm = {c: {r["seed"]: r for r in rows[first] if r["condition"] == c} for c in conds}
+    for a, b in pairs:
+        lines += ["", f"## {a} vs {b} by viewing angle phi (attack seed {first})", ""]
+        lines += paired_markdown(a, b, arm[a], arm[b], "phi")
+    return "\n".join(lines) + "\n" + seeds_markdown(ctx, {c: ("cameras", c) for c in conds})
+
+
 def _arch(pdir: Path) -> str:
     try:
         from sim.policies.card import load_card  # lazy: CLI start-up (torch)
@@ -943,12 +1072,16 @@ def _arch(pdir: Path) -> str:
 
 @dataclass(frozen=True)
 class Recipe:
-    """One experiment: the function that runs it, its one-line help, and whether it attacks other
-    policies (``--target``/``--archs``; such a recipe evaluates each target on its own pool)."""
+    """One experiment: the function that runs it, its one-line help, whether it attacks other
+    policies (``--target``/``--archs``; such a recipe evaluates each target on its own pool), the
+    scene it runs on when no ``--scene`` is given (a path relative to the checkout; None: the
+    built-in scene) and a check of its inputs run before anything is written (``check(ctx)``)."""
 
     run: Callable[[Context], str]
     help: str
     transfer: bool = False
+    scene: str | None = None
+    check: Callable[[Context], object] | None = None
 
 
 # The one list of recipes: the CLI (one generated ``advobj experiment NAME`` each) and
@@ -968,12 +1101,31 @@ RECIPES: dict[str, Recipe] = {
         lighting,
         "Lighting randomisation in the attack: its cost and what it buys under bright, dim and held-out lights.",
     ),
+    "cameras": Recipe(
+        cameras,
+        "Which camera carries the attack: a two-camera policy (wrist + front, trained on scenes/two-cameras.yaml "
+        "unless --policy is given) with the texture in both cameras, the wrist camera only and the front camera only.",
+        scene=TWO_CAMERA_SCENE,
+        check=_cameras_read,
+    ),
 }
 
 
-def _check_inputs(ctx: Context) -> None:
+def recipe_scene(name: str, scene=None) -> str | None:
+    """The scene recipe ``name`` runs on: ``scene`` when given, else the recipe's own (its path
+    relative to the working directory when it is there, else to the checkout), else None (built-in)."""
+    if scene is not None:
+        return str(scene)
+    own = RECIPES[name].scene
+    if own is None or Path(own).exists():
+        return own
+    return str(Path(__file__).resolve().parents[2] / own)
+
+
+def _check_inputs(ctx: Context, recipe: Recipe) -> None:
     """Every input the recipe was given, checked before the first (long) job starts: the scene, the
-    pool, the source policy and every target (a checkpoint's card, or an ONNX file that loads)."""
+    pool, the source policy and every target (a checkpoint's card, or an ONNX file that loads), and
+    the recipe's own check."""
     from sim.configs import load_pool  # lazy: CLI start-up (trimesh, PIL)
     from sim.policies.card import load_card  # lazy: CLI start-up (torch)
     from sim.policies.checkpoint import load_policy  # lazy: CLI start-up (torch, onnxruntime)
@@ -988,6 +1140,8 @@ def _check_inputs(ctx: Context) -> None:
             load_policy(path) if str(path).lower().endswith((".onnx", ".pt2")) else load_card(path)
         except AdvobjError as err:
             raise ExperimentError(f"{flag}: {err}") from None
+    if recipe.check is not None:
+        recipe.check(ctx)
 
 
 def run_experiment(
@@ -1017,13 +1171,13 @@ def run_experiment(
         out,
         None if policy is None else Path(policy),
         dict(targets or {}),
-        None if scene is None else str(scene),
+        recipe_scene(name, scene),
         progress,
         log,
         executor=executor,
         shards=int(shards),
     )
-    _check_inputs(ctx)
+    _check_inputs(ctx, RECIPES[name])
     write_run_info(
         out,
         {
