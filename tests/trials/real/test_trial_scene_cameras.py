@@ -305,3 +305,42 @@ def test_the_docs_cell_snippet_is_a_valid_hardware_config():
             480,
         )
     )
+
+
+def test_a_fixed_camera_off_the_scene_s_pose_or_field_of_view_is_warned_about(cell, tmp_path):
+    from calibration.intrinsics import CameraIntrinsics, save_camera_yaml
+    from robot_io.config import build_scene_camera, hardware_config_from_dict
+    from sim.geometry import make_T
+    from sim.spec import load_spec
+    from trials.real.session import load_trial_policy, scene_camera_warnings
+
+    spec = load_spec(TWO_CAMERAS)
+    trained = spec.camera_spec("front")
+    policy = load_trial_policy(cell["policy"])
+    (tmp_path / "rec").mkdir()
+    iio.imwrite(tmp_path / "rec" / "0.png", np.zeros((256, 256, 3), np.uint8))
+
+    def warnings(T_table_cam, K):
+        save_camera_yaml(tmp_path / "cam.yaml", CameraIntrinsics(K, np.zeros(5), 256, 256))
+        save_scene_camera_pose(tmp_path / "pose.yaml", T_table_cam, 256, 256)
+        front = {"type": "replay", "path": "rec", "intrinsics": "cam.yaml", "T_table_cam": "pose.yaml"}
+        hw = hardware_config_from_dict(
+            {
+                "camera": {"type": "sim"},
+                "arm": {"type": "sim"},
+                "scene_cameras": {"front": front},
+                "safety": {"workspace_min_m": [0, 0, 0], "workspace_max_m": [1, 1, 1]},
+            },
+            base=tmp_path,
+        )
+        return scene_camera_warnings("front", build_scene_camera(hw, "front"), policy, spec, hw)
+
+    K = trained.K(256, 256)  # the scene camera's field of view at twice its size: as trained
+    assert warnings(trained.T_table_cam, K) == []
+    moved = trained.T_table_cam @ make_T(np.eye(3), [0.05, 0.0, 0.0])
+    (w,) = warnings(moved, K)
+    assert w.startswith("camera 'front' stands 5.0 cm and 0.0 deg from the scene's camera of that name")
+    K_wide = K.copy()
+    K_wide[:2, :2] *= 0.6
+    (w,) = warnings(trained.T_table_cam, K_wide)
+    assert w.startswith("camera 'front' (256x256, preprocess center_crop to 128x128): field of view")

@@ -287,3 +287,37 @@ def test_devices_are_compared_once_connected_not_before(tmp_path):
         swapped = {"arm": {**connected["arm"], "serial": "20215300999"}}
         (warning,) = store.device_changes(dataclasses.replace(before, devices=swapped))
         assert "20215300123" in warning and "20215300999" in warning and "runs" in warning
+
+
+def test_fixed_cameras_frames_round_trip_per_step_and_a_version_6_store_gains_the_column(tmp_path):
+    import dataclasses
+
+    from trials.real import store as store_mod
+    from trials.real.store import CameraFrameRecord, camera_frame_name
+
+    assert (camera_frame_name(7), camera_frame_name(7, "front")) == ("step_007.png", "step_007_front.png")
+    with pytest.raises(Exception, match="camera"):
+        camera_frame_name(0, "../up")
+    rec = _trial("t0", n_steps=2)
+    front = {"front": CameraFrameRecord("frames/s1/t0/step_000_front.png", 41, 0.0125)}
+    rec.steps = [dataclasses.replace(rec.steps[0], camera_frames=front), rec.steps[1]]
+    db = tmp_path / "t.sqlite"
+    with TrialStore(db) as store:
+        store.commit_trial(store.open_session(_info()), rec)
+        first, second = store.steps("s1", "t0")
+        assert first["camera_frames"] == {
+            "front": {"frame_ref": "frames/s1/t0/step_000_front.png", "frame_seq": 41, "t_frame_s": 0.0125}
+        }
+        assert second["camera_frames"] == {} and "camera_frames_json" in store.table("steps")[0]
+    # a version-6 store (before fixed cameras) is migrated: its steps keep their rows, with no camera frames
+    old = tmp_path / "v6.sqlite"
+    with TrialStore(old) as store:
+        store.commit_trial(store.open_session(_info()), _trial("t0", n_steps=2))
+    con = sqlite3.connect(old)
+    con.execute("ALTER TABLE steps DROP COLUMN camera_frames_json")
+    con.execute("UPDATE schema_version SET version = 6")
+    con.commit()
+    con.close()
+    with TrialStore(old) as store:
+        assert store.con.execute("SELECT version FROM schema_version").fetchone()[0] == store_mod.SCHEMA_VERSION == 7
+        assert [s["camera_frames"] for s in store.steps("s1", "t0")] == [{}, {}]
