@@ -17,7 +17,9 @@ The rendering and the rollouts are the same for every format, so a second figure
 differs: the policy alone (features, head, the Grad-CAM graph and the backward pass to the images,
 as one frame batch of the attack), median CPU time of ``--reps``. Each iteration's CPU time is
 printed beside its wall time: on a machine shared with other work the wall time swings by tens of
-percent between runs, the CPU time much less. ``--out`` writes the figures as JSON.
+percent between runs, the CPU time much less. ``--out FILE`` writes the figures as JSON with the
+command, the commit (``+dirty`` when the checkout had uncommitted changes), the machine and the
+run's wall and CPU time: the record committed as ``results/bench_policy_formats/bench.json``.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
+import shlex
 import statistics
 import sys
 import tempfile
@@ -46,8 +48,10 @@ from sim.policies.onnx_policy import export_onnx  # noqa: E402
 from sim.policies.policy import VisuomotorPolicy  # noqa: E402
 from sim.policies.presets import resolve_preset  # noqa: E402
 from sim.policies.pt2 import export_pt2  # noqa: E402
+from sim.runinfo import git_commit  # noqa: E402
 from sim.runtime import set_torch_threads  # noqa: E402
 from sim.spec import default_scene  # noqa: E402
+from trials.experiments.tradeoff import machine_info  # noqa: E402
 
 TARGET = 1.2
 
@@ -89,7 +93,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
     args = ap.parse_args()
     set_torch_threads(args.threads)
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), time.process_time()
     native, card = _policy(args)
     spec = default_scene()
     cfg = resolve_config(args.preset, {"validation_every": 0})
@@ -161,18 +165,28 @@ def main() -> None:
         args.out.write_text(
             json.dumps(
                 {
-                    "command": "python benchmarks/bench_policy_formats.py " + " ".join(sys.argv[1:]),
+                    "command": "python benchmarks/bench_policy_formats.py " + shlex.join(sys.argv[1:]),
+                    "commit": git_commit(),
+                    "machine": machine_info(args.threads),
+                    "policy": "untrained quick-preset network" if args.policy is None else str(args.policy),
+                    "preset": args.preset,
+                    "iters": args.iters,
+                    "reps": args.reps,
+                    "frames_per_iteration": batch,
                     "rows": rows,
                     "load_s": load_s,
+                    "worst_ratio": worst,
                     "target_ratio": TARGET,
-                    "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+                    "target_met": verdict == "met",
                     "torch": torch.__version__,
                     "wall_s": round(time.perf_counter() - t_start, 1),
+                    "cpu_s": round(time.process_time() - c_start, 1),  # this process, every thread
                 },
                 indent=1,
             )
             + "\n"
         )
+        print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
