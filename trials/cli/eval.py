@@ -21,9 +21,10 @@ def eval_command(
         ["attack"],
         "--condition",
         "-c",
-        help="condition name (repeatable); 'clean' always runs. "
-        "Names: clean attack patch light_bright light_dim light_random noise bkg_varied stereo shape_dog shape_duck "
-        "shape_cube shape_cylinder; for a policy reading several cameras, attack_wrist_only and "
+        help="condition name (repeatable); 'clean' (the scene as it is) always runs, and 'benign' (the attacked "
+        "object with the attack's unoptimised start texture: the headline's control) runs with 'attack'. "
+        "Names: clean benign attack patch light_bright light_dim light_random noise bkg_varied stereo shape_dog "
+        "shape_duck shape_cube shape_cylinder; for a policy reading several cameras, attack_wrist_only and "
         "attack_<camera>_only show the texture to that camera alone (attack: to all)",
     ),
     attack: Optional[Path] = typer.Option(
@@ -63,13 +64,14 @@ def eval_command(
     shards: Optional[int] = cli_grid.SHARDS,
 ) -> None:
     """Run E episodes per condition on the same task-feasible configurations; write rows, summary and report."""
+    from trials.eval.conditions import with_benign  # lazy: CLI start-up (numpy, trimesh)
     from trials.eval.evaluate import load_eval_config, run_eval  # lazy: CLI start-up (torch, onnxruntime)
 
     set_torch_threads(threads)
     shapes = key_values(shape, "--shape", "SHAPE", "DIR")
     cfg = load_eval_config(
         policy=str(policy),
-        conditions=tuple(condition),
+        conditions=tuple(with_benign(condition)),
         episodes=episodes,
         max_steps=max_steps,
         num_envs=num_envs,
@@ -92,9 +94,10 @@ def eval_command(
 
 
 def format_summary(summary: dict) -> str:
-    from trials.eval.report import fmt_err, fmt_rate  # lazy: CLI start-up (matplotlib, PIL)
+    from trials.eval.report import fmt_err, fmt_rate, format_headline  # lazy: CLI start-up (matplotlib, PIL)
 
-    lines = []
+    headline = format_headline(summary)
+    lines = [] if headline is None else [f"headline: {headline}"]
     for name, s in summary["conditions"].items():
         lines.append(
             f"{name:>14}: T-ASR {fmt_rate(s['tasr'])} %  ASR {fmt_rate(s['asr'])} %  "

@@ -9,20 +9,30 @@ pyrender renderer; the differentiable composite is never used.
 
 Textures come from attack run directories (``advobj attack run``): ``texture.npy`` (H, W, 3)
 float32 in [0, 1] and ``run.json`` whose ``config.attack.adversarial_mesh`` names the mesh the
-texture was optimised on (``None`` = the scene's own adversarial mesh).
+texture was optimised on (``None`` = the scene's own adversarial mesh). Every arm built from
+``--attack`` shows that mesh; only ``clean`` shows the scene's own object.
+
+The controls: ``clean`` is the scene as it is; ``benign`` is the attacked mesh with the attack's
+own unoptimised start texture (:func:`attack.optimize.initial_texture`, what the attack showed at
+iteration 0), so ``attack`` vs ``benign`` isolates what the optimisation added, and ``attack`` vs
+``clean`` also holds any change of shape.
 """
 
 from __future__ import annotations
 
+import hashlib
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from pydantic import ValidationError
 
-from attack.artifact import AttackArtifact
-from sim.errors import AdvobjError
+from attack.artifact import RUN_JSON, AttackArtifact, texture_to_uint8
+from sim.assets import build_mesh
+from sim.errors import AdvobjError, format_validation_error
+from sim.spec import default_scene
 from sim.variations import Randomization
 
 __all__ = [
@@ -36,6 +46,8 @@ __all__ = [
     "NOISE_STD",
     "STEREO_BASELINE_M",
     "load_attack_source",
+    "start_source",
+    "with_benign",
     "build_conditions",
     "condition_spec",
 ]
@@ -62,6 +74,9 @@ class AttackSource:
     # Ids of the configurations the texture was optimised or selected on (attack/outputs.py's
     # configs.json); None when the directory has no record (then no overlap can be proven 0).
     trained_on: frozenset | None = field(default=None, repr=False, compare=False)
+    # Set for the run's unoptimised start texture (the benign arm): the init_texture it was made
+    # with. Dumped only when set, so every other source dumps (and hashes) as before.
+    start: str | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -69,6 +84,7 @@ class AttackSource:
             "mesh": self.mesh,
             "sha256": self.sha256,
             "configs_recorded": self.trained_on is not None,
+            **({} if self.start is None else {"start_texture": self.start}),
         }
 
 
@@ -114,19 +130,53 @@ def load_attack_source(path: str | Path) -> AttackSource:
     return AttackSource(str(art.path), art.texture_u8, art.mesh, art.sha256, art.trained_on)
 
 
+def start_source(path: str | Path, spec) -> AttackSource:
+    """The unoptimised start texture of the attack run in ``path``, on the mesh it was optimised on.
+
+    The texture is :func:`attack.optimize.initial_texture` of the run's recorded ``init_texture``,
+    ``texture_size`` and ``seed`` (run.json's ``config.attack``; a field it lacks takes the
+    AttackConfig default) on the run's mesh in ``spec`` (the scene's adversarial object, its mesh
+    swapped for the run's ``adversarial_mesh`` as :func:`condition_spec` does), rounded to 8 bits
+    as every texture is shown: the look the attack started from and validated at iteration 0. No
+    configuration goes into it, so its overlap with any evaluation is 0.
+    """
+    # Imported here: advobj trial plan and fabricate import this module and need no torch.
+    from attack.optimize import AttackConfig, initial_texture  # lazy: CLI start-up (torch)
+
+    art = AttackArtifact.load(path, error=ConditionError)
+    fields = {k: art.attack_config[k] for k in ("init_texture", "texture_size", "seed") if k in art.attack_config}
+    try:
+        cfg = AttackConfig(**fields)
+    except ValidationError as err:
+        raise ConditionError(format_validation_error(err, "attack config", str(art.path / RUN_JSON))) from None
+    src = AttackSource(str(art.path), art.texture_u8, art.mesh, art.sha256)
+    spec_c = condition_spec(spec, Condition("benign", src))
+    obj = spec_c.objects[spec_c.object_index("adversarial")]
+    texture = texture_to_uint8(initial_texture(cfg, build_mesh(obj.mesh, obj.scale, **obj.mesh_kwargs())))
+    sha = hashlib.sha256(texture.tobytes()).hexdigest()
+    return AttackSource(str(art.path), texture, art.mesh, sha, frozenset(), start=cfg.init_texture)
+
+
 @dataclass(frozen=True)
 class Sources:
-    """Attack run directories available to the builders (CLI: --attack, --patch, --shape NAME=DIR)."""
+    """Attack run directories available to the builders (CLI: --attack, --patch, --shape NAME=DIR),
+    and the scene evaluated (None: the built-in scene), on which the benign arm's start texture is
+    made."""
 
     attack: str | None = None
     patch: str | None = None
     shapes: dict = field(default_factory=dict)
+    scene: object = None
+
+
+def _given(path: str | None, option: str, cond: str) -> str:
+    if path is None:
+        raise ConditionError(f"condition {cond!r} needs an attack run directory: pass {option}")
+    return path
 
 
 def _need(path: str | None, option: str, cond: str) -> AttackSource:
-    if path is None:
-        raise ConditionError(f"condition {cond!r} needs an attack run directory: pass {option}")
-    return load_attack_source(path)
+    return load_attack_source(_given(path, option, cond))
 
 
 def _clean(s: Sources) -> Condition:
@@ -135,6 +185,11 @@ def _clean(s: Sources) -> Condition:
 
 def _attack(s: Sources) -> Condition:
     return Condition("attack", _need(s.attack, "--attack DIR", "attack"))
+
+
+def _benign(s: Sources) -> Condition:
+    path = _given(s.attack, "--attack DIR", "benign")
+    return Condition("benign", start_source(path, s.scene if s.scene is not None else default_scene()))
 
 
 def _patch(s: Sources) -> Condition:
@@ -185,6 +240,8 @@ def _shape(shape: str) -> Callable[[Sources], Condition]:
 
 CONDITIONS: dict[str, Callable[[Sources], Condition]] = {
     "clean": _clean,
+    # The attacked mesh with the attack's unoptimised start texture: the control of "attack".
+    "benign": _benign,
     "attack": _attack,
     "patch": _patch,
     "light_bright": _variation("light_bright", light="bright"),
@@ -200,6 +257,15 @@ CONDITIONS: dict[str, Callable[[Sources], Condition]] = {
     # to every camera; these to the wrist camera only, and attack_<camera>_only to one scene camera.
     "attack_wrist_only": _camera_only("wrist"),
 }
+
+
+def with_benign(names) -> list[str]:
+    """``names`` with ``benign`` put before ``attack`` when ``attack`` is asked for without it:
+    ``advobj eval`` always runs the control its headline compares the attack with."""
+    names = list(names)
+    if "attack" in names and "benign" not in names:
+        names.insert(names.index("attack"), "benign")
+    return names
 
 
 def build_conditions(names, sources: Sources) -> list[Condition]:

@@ -278,9 +278,9 @@ def _row(cond_name: str, config, res: dict, spec) -> dict:
 def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: bool):
     """The conditions, scene, configurations, pool source, overlap and resolved config of an
     evaluation (refusing an in-sample one): what every shard and the merge share."""
-    conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes)))
     base = load_spec(cfg.scene)
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
+    conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes), spec))
     check_scene(policy, spec)  # a camera the scene lacks (or of another size): one line, before anything is written
     for c in conds:
         for name in c.attacked_cameras or ():
@@ -340,7 +340,7 @@ def _finish(cfg: EvalConfig, out: Path, rows: list, spec, conds, configs, pool_s
     )
     write_summary(out, summary, default=_json_default)
     if report:
-        write_report(out, summary, conds)
+        write_report(out, summary, conds, spec)
     return summary
 
 

@@ -1,5 +1,10 @@
 """Summaries and reports of an evaluation: rates with Wilson intervals, errors with bootstrap
-intervals, the paper's bins, McNemar against the clean arm, plots, GIFs and texture thumbnails."""
+intervals, the paper's bins, McNemar against the clean arm, plots, GIFs and texture thumbnails.
+
+The headline compares ``attack`` with its control ``benign`` (the same mesh with the attack's
+unoptimised start texture, :mod:`trials.eval.conditions`), paired by McNemar's exact test as every
+comparison here (:func:`paired_tests`): the difference the optimisation made, which the comparison
+with ``clean`` mixes with any change of the object's look or shape."""
 
 from __future__ import annotations
 
@@ -23,7 +28,20 @@ from trials.eval.metrics import (
     mcnemar_from_outcomes,
 )
 
-__all__ = ["summarize", "summarize_rows", "write_report", "fmt_rate", "fmt_err", "METRIC_DEFINITIONS"]
+__all__ = [
+    "summarize",
+    "summarize_rows",
+    "paired_tests",
+    "HEADLINE",
+    "write_report",
+    "format_headline",
+    "fmt_rate",
+    "fmt_err",
+    "METRIC_DEFINITIONS",
+]
+
+# The headline comparison: (the arm, its control).
+HEADLINE = ("attack", "benign")
 
 METRIC_DEFINITIONS = """\
 - **ASR**: share of episodes that do not reach the goal object within the episode (95% Wilson interval).
@@ -36,6 +54,8 @@ METRIC_DEFINITIONS = """\
   (`exp(a[3:] * max_step_rad)`); aggregated like E_trans.
 - **McNemar p**: exact two-sided McNemar test of the condition against the clean arm on the same
   configurations (b = episodes where only this condition has the event, c = only the clean arm).
+- **benign**: the attacked mesh with the attack's unoptimised start texture (the control of the
+  headline); **clean**: the scene's own object as it is.
 - Bins: initial TCP distance r to the adversarial object (cm) and viewing angle phi (polar angle
   from its up axis, degrees), as in the paper's Tables I-II; bins are [lo, hi), the last [lo, hi].
 """
@@ -64,51 +84,48 @@ def _binned(rows, values, edges, goal, adv) -> dict:
     return out
 
 
+def paired_tests(rows_a: list[dict], rows_b: list[dict]) -> dict:
+    """McNemar's exact test of arm A against arm B on the configurations (seeds) both ran, for the
+    ASR event (goal not reached) and the T-ASR event (adversarial object reached).
+
+    Returns ``{"asr": ..., "tasr": ...}`` (:class:`trials.eval.metrics.McNemar` dicts): ``b`` counts
+    configurations where only A has the event, ``c`` only B, ``n_pairs`` the shared ones.
+    """
+    rb = {r["seed"]: r for r in rows_b}
+    paired = [(x, rb[x["seed"]]) for x in rows_a if x["seed"] in rb]
+    return {
+        "asr": mcnemar_from_outcomes(
+            [not x["success"] for x, _ in paired], [not y["success"] for _, y in paired]
+        ).to_dict(),
+        "tasr": mcnemar_from_outcomes([x["targeted"] for x, _ in paired], [y["targeted"] for _, y in paired]).to_dict(),
+    }
+
+
 def summarize(rows: list[dict], spec, condition_names, meta: dict | None = None) -> dict:
-    """The evaluation summary: per condition overall, by phi, by distance, and vs clean."""
+    """The evaluation summary: per condition overall, by phi, by distance, and vs clean; the
+    headline (``attack`` vs ``benign``) when both ran."""
     goal, adv = spec.object_index("goal"), spec.object_index("adversarial")
     by_cond = {c: sorted((r for r in rows if r["condition"] == c), key=lambda r: r["seed"]) for c in condition_names}
-    clean = {r["seed"]: r for r in by_cond.get("clean", [])}
     out = {"meta": meta or {}, "goal": spec.objects[goal].name, "adversarial": spec.objects[adv].name, "conditions": {}}
     for c, rs in by_cond.items():
         s = summarize_rows(rs, goal, adv)
         s["by_phi"] = _binned(rs, [math.degrees(r["phi_rad"]) for r in rs], PHI_BINS_DEG, goal, adv)
         s["by_distance"] = _binned(rs, [100.0 * r["r_m"] for r in rs], DISTANCE_BINS_CM, goal, adv)
-        if c != "clean" and clean:
-            paired = [(r, clean[r["seed"]]) for r in rs if r["seed"] in clean]
-            s["vs_clean"] = {
-                "asr": mcnemar_from_outcomes(
-                    [not a["success"] for a, _ in paired], [not b["success"] for _, b in paired]
-                ).to_dict(),
-                "tasr": mcnemar_from_outcomes(
-                    [a["targeted"] for a, _ in paired], [b["targeted"] for _, b in paired]
-                ).to_dict(),
-            }
+        if c != "clean" and by_cond.get("clean"):
+            s["vs_clean"] = paired_tests(rs, by_cond["clean"])
         out["conditions"][c] = s
     out["paired"] = _pairwise(by_cond)
+    arm, control = HEADLINE
+    if arm in by_cond and control in by_cond:  # only then: every other summary keeps its keys
+        out["headline"] = {"condition": arm, "control": control, **paired_tests(by_cond[arm], by_cond[control])}
     return out
 
 
 def _pairwise(by_cond: dict) -> dict:
-    """McNemar's exact test for every pair of non-clean conditions, on their shared configs.
-
-    Keys ``"A vs B"``; ``b`` counts configs where only A has the event, ``c`` only B.
-    """
+    """McNemar's exact test (:func:`paired_tests`) for every pair of non-clean conditions, keyed
+    ``"A vs B"``."""
     names = [c for c in by_cond if c != "clean"]
-    out = {}
-    for i, a in enumerate(names):
-        for b in names[i + 1 :]:
-            rb = {r["seed"]: r for r in by_cond[b]}
-            paired = [(r, rb[r["seed"]]) for r in by_cond[a] if r["seed"] in rb]
-            out[f"{a} vs {b}"] = {
-                "asr": mcnemar_from_outcomes(
-                    [not x["success"] for x, _ in paired], [not y["success"] for _, y in paired]
-                ).to_dict(),
-                "tasr": mcnemar_from_outcomes(
-                    [x["targeted"] for x, _ in paired], [y["targeted"] for _, y in paired]
-                ).to_dict(),
-            }
-    return out
+    return {f"{a} vs {b}": paired_tests(by_cond[a], by_cond[b]) for i, a in enumerate(names) for b in names[i + 1 :]}
 
 
 def _overlap_line(overlap: dict | None) -> str:
@@ -119,6 +136,66 @@ def _overlap_line(overlap: dict | None) -> str:
     return (
         f"Overlap with the attacks' training and validation configurations (must be 0 for a held-out score): {cells}."
     )
+
+
+def format_headline(summary: dict) -> str | None:
+    """One line: the headline arm against its control (T-ASR of both, the discordant configurations,
+    McNemar's p); None when the evaluation has no headline (``attack`` or ``benign`` did not run)."""
+    h = summary.get("headline")
+    if not h:
+        return None
+    arm, control, t = h["condition"], h["control"], h["tasr"]
+    a, c = summary["conditions"][arm], summary["conditions"][control]
+    return (
+        f"{arm} vs {control} (the same object with the attack's unoptimised start texture): T-ASR "
+        f"{fmt_rate(a['tasr'])} % vs {fmt_rate(c['tasr'])} %; only {arm} {t['b']}, only {control} {t['c']} of "
+        f"{t['n_pairs']} paired configurations; McNemar p = {_fmt_p(t['p_value'])}"
+    )
+
+
+def _other_meshes(conds, spec) -> dict[str, str]:
+    """Arm -> the mesh it shows, for the arms showing another mesh than the scene's adversarial object."""
+    if spec is None:
+        return {}
+    own = spec.objects[spec.object_index("adversarial")].mesh
+    return {c.name: c.mesh for c in conds if c.mesh is not None and c.mesh != own}
+
+
+def _object_text(summary: dict, conds, spec) -> str:
+    """The header's adversarial object: the attacked mesh where it replaces the scene's object."""
+    name = summary["adversarial"]
+    other = _other_meshes(conds, spec)
+    attacked = other.get(HEADLINE[0])
+    if attacked is None:
+        text = f"adversarial object `{name}`"
+    else:
+        arms = [c.name for c in conds if c.name != "clean"]
+        shown = [n for n in arms if other.get(n) == attacked]
+        where = "every arm but `clean`" if shown == arms else ", ".join(f"`{n}`" for n in shown)
+        text = f"adversarial object `{attacked}` (the attacked mesh, in place of the scene's `{name}` in {where})"
+    rest = {n: m for n, m in other.items() if m != attacked}
+    if rest:
+        text += "; " + ", ".join(f"`{n}` shows `{m}`" for n, m in rest.items())
+    return text
+
+
+def _headline_lines(summary: dict, conds, spec) -> list[str]:
+    """The headline paragraph; without a benign arm, a warning where the attack ran on another mesh."""
+    line = format_headline(summary)
+    if line is not None:
+        return [
+            f"**Headline: {line}.** `benign` is the control: what the optimisation added. `clean` shows the "
+            "scene's own object, so a comparison with it also holds any change of the object's look or shape.",
+            "",
+        ]
+    attacked = _other_meshes(conds, spec).get(HEADLINE[0])
+    if attacked is not None:
+        return [
+            f"No `{HEADLINE[1]}` arm (`{attacked}` with the attack's unoptimised start texture): the comparisons of "
+            f"`{HEADLINE[0]}` with `clean` below hold the change of shape as well as what the optimisation added.",
+            "",
+        ]
+    return []
 
 
 def fmt_rate(p: dict) -> str:
@@ -193,21 +270,25 @@ def _compare_gifs(out: Path, names: list[str]) -> list[Path]:
     return made
 
 
-def write_report(out: str | Path, summary: dict, conds=()) -> Path:
-    """Write ``report.md`` with tables, bar plots, rollout GIFs and texture thumbnails."""
+def write_report(out: str | Path, summary: dict, conds=(), spec=None) -> Path:
+    """Write ``report.md`` with the headline, tables, bar plots, rollout GIFs and texture thumbnails.
+
+    ``conds`` (:class:`trials.eval.conditions.Condition`) and ``spec`` (the scene evaluated) name the
+    mesh each arm shows in the header, and give the texture thumbnails.
+    """
     out = Path(out)
     names = list(summary["conditions"])
     meta = summary.get("meta", {})
     lines = [
         "# Evaluation report",
         "",
-        f"Policy: `{meta.get('policy', '?')}`; goal `{summary['goal']}`, adversarial object "
-        f"`{summary['adversarial']}`; "
+        f"Policy: `{meta.get('policy', '?')}`; goal `{summary['goal']}`, {_object_text(summary, conds, spec)}; "
         f"{meta.get('episodes_available', '?')} task-feasible configurations (of {meta.get('episodes_requested', '?')} "
         "requested) "
         f"from `{meta.get('pool', '?')}`, episodes of at most {meta.get('max_steps', '?')} steps, same configurations "
         "for every condition.",
         "",
+        *_headline_lines(summary, conds, spec),
         _overlap_line(meta.get("overlap")),
         "",
         "| condition | n | T-ASR % [95% CI] | ASR % [95% CI] | E_trans [95% CI] | E_rot rad [95% CI] | McNemar p "
