@@ -35,6 +35,8 @@ __all__ = [
     "has_rows",
     "read_manifest",
     "has_manifest",
+    "has_summary",
+    "read_collected",
     "write_summary",
     "read_summary",
     "collect_evals",
@@ -104,6 +106,26 @@ def has_rows(eval_dir: str | Path) -> bool:
     """Whether ``eval_dir`` holds an ``episodes.csv`` (an evaluation that has run, or a collection
     of :func:`collect_evals`)."""
     return (Path(eval_dir) / EPISODES_NAME).is_file()
+
+
+def has_summary(eval_dir: str | Path) -> bool:
+    """Whether ``eval_dir`` holds a ``summary.json`` (an evaluation that has finished)."""
+    return (Path(eval_dir) / SUMMARY_NAME).is_file()
+
+
+def read_collected(dst: str | Path) -> dict:
+    """The ``summary.json`` of a :func:`collect_evals` folder: evaluation name -> its summary; one
+    :class:`StorageError` naming the file when it is missing or is not such a mapping."""
+    path = Path(dst) / SUMMARY_NAME
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise StorageError(f"{path}: missing; collect the evaluations first") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise StorageError(f"{path}: not a collection of eval summaries ({type(err).__name__})") from None
+    if not isinstance(doc, dict) or not all(isinstance(v, dict) and "conditions" in v for v in doc.values()):
+        raise StorageError(f"{path}: not a collection of eval summaries (name -> summary with 'conditions')")
+    return doc
 
 
 def has_manifest(eval_dir: str | Path) -> bool:

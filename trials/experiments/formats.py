@@ -59,7 +59,7 @@ from sim.policies.pool import feasible_pool_path
 from sim.runinfo import git_commit, read_run_info
 from sim.spec import load_spec
 from sim.stats import proportion
-from trials.eval.episodes import collect_evals, read_rows
+from trials.eval.episodes import collect_evals, has_summary, read_collected, read_rows, write_summary
 from trials.eval.evaluate import load_eval_config, run_eval
 from trials.eval.metrics import mcnemar_exact
 from trials.experiments.record import read_record, run_attempt, write_record
@@ -414,7 +414,7 @@ def collect(out: str | Path, results: str | Path = RESULTS) -> Path:
         raise FormatsError(f"{out}: no run of this module to collect ({SETTINGS_NAME} missing)")
     cfg = json.loads((out / SETTINGS_NAME).read_text())
     evals = [out / "evals" / f for f in FORMATS]
-    missing = [f for f, d in zip(FORMATS, evals) if not (d / "summary.json").is_file()]
+    missing = [f for f, d in zip(FORMATS, evals) if not has_summary(d)]
     if missing:
         raise FormatsError(f"{out}: the evaluation of {', '.join(missing)} is not finished; run it first")
     dst.mkdir(parents=True, exist_ok=True)
@@ -422,7 +422,7 @@ def collect(out: str | Path, results: str | Path = RESULTS) -> Path:
         if (dst / sub).exists():
             shutil.rmtree(dst / sub)
     n_rows = collect_evals(dst, evals)
-    evaluations = _portable(json.loads((dst / "summary.json").read_text()), out, cfg)
+    evaluations = _portable(read_collected(dst), out, cfg)
     timing = {}
     for fmt in FORMATS:
         a = out / "attacks" / fmt
@@ -446,7 +446,7 @@ def collect(out: str | Path, results: str | Path = RESULTS) -> Path:
         "formats": summarize(dst),
         "evaluations": evaluations,
     }
-    _write_json(dst / "summary.json", summary)
+    write_summary(dst, summary)  # the collection's summary.json, now with the comparison
     record = read_record(dst)
     markers = [m for m in read_markers(out) if str(m.get("kind", "")).startswith("formats-")]
     record.update(
