@@ -21,6 +21,11 @@ Built-ins with an exact layout (soup can, mustard bottle, cylinder, cube, patch)
 printing: ``metadata["uv_side_m"]``, the surface length (m) of one UV unit (print the texture as a
 square of that side for true size), and the wrap layouts and the patch
 ``metadata["uv_islands"]``: ``{island: (u0, v0, u1, v1)}`` bounding boxes in UV.
+
+What loading a mesh file changed on the way (degenerate faces dropped, the object rested on the
+table or recentred) is recorded in ``metadata["notes"]``, one line each, and said by the commands
+that check a scene (:func:`scene_mesh_notes`): the file is as the user made it and the scene
+configured, so no other command warns about it.
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ __all__ = [
     "BUILTIN_MESHES",
     "build_mesh",
     "load_mesh_file",
+    "scene_mesh_notes",
     "ensure_uv",
     "default_texture",
     "table_mesh",
@@ -1027,7 +1033,7 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None
     unsupported format, more than :data:`MAX_MESH_FILE_BYTES` or :data:`MAX_MESH_FACES` (both checked
     before parsing), an OBJ reference leaving the file's folder (:func:`_check_obj_references`), a
     vertex without x y z, no faces, non-finite vertices, or zero total area. Individually degenerate faces
-    (area below 1e-12 x bbox diagonal^2) are removed with a warning. The origin is kept unless
+    (area below 1e-12 x bbox diagonal^2) are removed, which ``metadata["notes"]`` records. The origin is kept unless
     ``recenter`` (then: base centre of the bounding box). ``prepare(vertices) -> vertices`` runs on
     the loaded geometry before the UV atlas (units, axes, placement; it may refuse the mesh, and
     then no atlas is built). UVs per :func:`ensure_uv`.
@@ -1109,8 +1115,9 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None
     bad = ~(area > _DEGENERATE_REL_AREA * diag * diag)
     if bad.all():
         raise AssetError(f"{label}: zero total area (all {len(faces)} faces are degenerate)")
+    notes = []
     if bad.any():
-        warnings.warn(f"{label}: removed {int(bad.sum())} degenerate face(s) of {len(faces)}", stacklevel=2)
+        notes.append(f"{label}: removed {int(bad.sum())} degenerate face(s) of {len(faces)}")
         mesh = mesh.copy()
         mesh.update_faces(~bad)
         mesh.remove_unreferenced_vertices()
@@ -1119,6 +1126,7 @@ def load_mesh_file(path: str | os.PathLike, recenter: bool = False, prepare=None
         mesh.vertices = prepare(np.asarray(mesh.vertices, dtype=np.float64))
     out = ensure_uv(mesh, path.stem)
     out.metadata["source"] = label
+    out.metadata["notes"] = notes
     if recenter:
         out.vertices = _to_base_frame(np.asarray(out.vertices, float))
     return out
@@ -1185,8 +1193,8 @@ def build_mesh(
     * ``up_axis`` (z, y; None = by format, :func:`default_up_axis`): which axis points up in the
       file; +Y is turned to +Z.
     * ``placement``: ``auto`` rests the object on its lowest point (z = 0) and centres its
-      bounding box in x/y, saying so through ``warn`` (default: ``warnings.warn``) when that moves
-      it by more than 1 mm; ``keep`` keeps the file's origin (the object frame is the file's).
+      bounding box in x/y, noting it (``metadata["notes"]``, and ``warn(text)`` when given) when
+      that moves it by more than 1 mm; ``keep`` keeps the file's origin (the object frame is the file's).
     * The longest side (after units and scale) must lie within :data:`PLAUSIBLE_SIZE_M`; otherwise
       the mesh is refused in one line suggesting the units that would fit.
     * ``attack_region``: an image in the file's own UV layout whose white texels mark the faces the
@@ -1210,6 +1218,7 @@ def build_mesh(
         return mesh
     if Path(key).suffix.lower() not in _MESH_EXTS and not Path(key).exists():
         raise AssetError(f"{key!r}: not a built-in mesh ({', '.join(BUILTIN_MESHES)}) nor a mesh file path")
+    placed: list[str] = []  # what placement did, said after loading (after the file's own notes)
 
     def prepare(v: np.ndarray) -> np.ndarray:
         v = v * UNITS_M[units]
@@ -1227,7 +1236,7 @@ def build_mesh(
             )
         if placement == "auto":
             shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
-            say = warn or (lambda text: warnings.warn(text, stacklevel=4))
+            say = placed.append
             if lo[2] < -PLACEMENT_WARN_M:
                 say(
                     f"{key}: the mesh reaches {-lo[2] * 100:.1f} cm below its origin (below the table): rested on "
@@ -1245,10 +1254,25 @@ def build_mesh(
         return v
 
     mesh = load_mesh_file(key, prepare=prepare)
+    mesh.metadata["notes"] = [*mesh.metadata.get("notes", []), *placed]
+    for text in mesh.metadata["notes"] if warn is not None else ():
+        warn(text)
     if attack_region is not None:
         mesh.metadata["optimizable_faces"] = attack_region_faces(mesh, attack_region, key)
         mesh.metadata["attack_region"] = os.fspath(attack_region)
     return mesh
+
+
+def scene_mesh_notes(spec) -> list[str]:
+    """What loading the mesh files of scene ``spec`` changed (:func:`build_mesh`'s
+    ``metadata["notes"]``), one line per note naming its object: degenerate faces dropped, an object
+    rested on the table or recentred. Empty for a scene of built-in meshes. ``advobj scene render``
+    and ``scene rollout`` print them, where a user checks a new object."""
+    out = []
+    for o in spec.objects:
+        if o.mesh not in BUILTIN_MESHES:
+            out += [f"{o.name}: {text}" for text in build_mesh(o.mesh, o.scale, **o.mesh_kwargs()).metadata["notes"]]
+    return out
 
 
 def region_texture(mesh: trimesh.Trimesh, texture_u8: np.ndarray) -> np.ndarray:

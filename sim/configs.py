@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import warnings
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -146,9 +145,7 @@ def object_poses_world(object_xy_yaw) -> np.ndarray:
 def _mesh_center(
     mesh: str, scale, units: str = "m", up_axis: str | None = None, placement: str = "auto"
 ) -> tuple[float, float, float]:
-    with warnings.catch_warnings():  # the renderer builds the same mesh and says it once
-        warnings.simplefilter("ignore")
-        m = build_mesh(mesh, scale, units, up_axis, placement)
+    m = build_mesh(mesh, scale, units, up_axis, placement)
     lo, hi = m.bounds
     return tuple(float(v) for v in (lo + hi) / 2.0)
 

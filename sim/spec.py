@@ -119,7 +119,7 @@ class ObjectSpec(_Strict):
     )
     placement: Literal["auto", "keep"] = Field(
         "auto",
-        description="auto: rest on the lowest point and centre in x/y (warned when "
+        description="auto: rest on the lowest point and centre in x/y (noted by advobj scene render when "
         "it moves the mesh); keep: the file's origin is the object frame",
     )
 

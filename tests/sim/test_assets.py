@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
@@ -373,7 +374,7 @@ def test_a_gltf_file_is_y_up_by_its_spec_unless_told_otherwise(tmp_path):
     assert A.default_up_axis("x.gltf") == "y" and A.default_up_axis("x.OBJ") == "z"
 
 
-def test_a_mesh_reaching_below_the_table_rests_on_its_lowest_point_and_is_recentred_with_warnings(tmp_path):
+def test_a_mesh_reaching_below_the_table_rests_on_its_lowest_point_and_is_recentred_with_notes(tmp_path):
     box = trimesh.creation.box((0.06, 0.06, 0.10))
     box.apply_translation([0.028, 0.0, 0.05 - 0.027])  # 2.7 cm below its origin, 2.8 cm off centre (YCB-like)
     box.export(tmp_path / "ycb.ply")
@@ -382,10 +383,35 @@ def test_a_mesh_reaching_below_the_table_rests_on_its_lowest_point_and_is_recent
     np.testing.assert_allclose(m.bounds, [[-0.03, -0.03, 0.0], [0.03, 0.03, 0.10]], atol=1e-9)
     assert any("2.7 cm below its origin (below the table): rested on its lowest point" in t for t in said)
     assert any("2.8 cm from the base centre in x/y: recentred" in t for t in said)
+    assert m.metadata["notes"] == said  # the mesh carries what was said
     kept = A.build_mesh(tmp_path / "ycb.ply", placement="keep", warn=said.append)
     np.testing.assert_allclose(kept.bounds, box.bounds, atol=1e-9)
-    with pytest.warns(UserWarning, match="below the table"):
-        A.build_mesh(tmp_path / "ycb.ply")
+    assert kept.metadata["notes"] == []
+
+
+def test_loading_a_mesh_file_warns_about_nothing_it_was_configured_to_do(tmp_path):
+    """A mesh exported around its centre (Blender's way) is rested on the table by placement auto, the
+    documented default: a note on the mesh, not a UserWarning printed by every command that loads it."""
+    trimesh.creation.box((0.06, 0.06, 0.10)).export(tmp_path / "centred.obj")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any warning fails the test
+        m = A.build_mesh(tmp_path / "centred.obj")
+    assert m.bounds[0][2] == pytest.approx(0.0, abs=1e-9)
+    assert len(m.metadata["notes"]) == 1 and "5.0 cm below its origin" in m.metadata["notes"][0]
+
+
+def test_the_scene_notes_name_each_file_objects_notes_and_skip_built_ins(tmp_path):
+    from sim.spec import default_scene, scene_from_dict
+
+    trimesh.creation.box((0.06, 0.06, 0.10)).export(tmp_path / "centred.obj")
+    assert A.scene_mesh_notes(default_scene()) == []
+    d = default_scene().model_dump(mode="json")
+    adv = next(o for o in d["objects"] if o["role"] == "adversarial")
+    adv["mesh"] = str(tmp_path / "centred.obj")
+    notes = A.scene_mesh_notes(scene_from_dict(d))
+    assert len(notes) == 1 and notes[0].startswith(f"{adv['name']}: {tmp_path / 'centred.obj'}: the mesh reaches")
+    adv["placement"] = "keep"  # the file's frame kept: nothing changed, nothing to say
+    assert A.scene_mesh_notes(scene_from_dict(d)) == []
 
 
 def test_a_scene_object_carries_units_up_axis_and_placement(tmp_path):
@@ -439,12 +465,16 @@ def test_tiled_uv_is_reatlased_and_the_texture_resampled(tmp_path):
     assert white == pytest.approx(0.5, abs=0.08)
 
 
-def test_some_degenerate_faces_are_removed_with_a_warning(tmp_path):
+def test_some_degenerate_faces_are_removed_with_a_note(tmp_path):
     p = tmp_path / "some.obj"
     p.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 4\n")
-    with pytest.warns(UserWarning, match="some.obj.*1 degenerate"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         m = A.load_mesh_file(p)
     assert len(m.faces) == 1 and m.area == pytest.approx(0.5)
+    assert len(m.metadata["notes"]) == 1 and re.search(
+        r"some\.obj: removed 1 degenerate face\(s\) of 2", m.metadata["notes"][0]
+    )
 
 
 def _bad_files(tmp_path):

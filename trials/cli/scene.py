@@ -23,6 +23,15 @@ def _out_file(out: Path, suffixes: tuple[str, ...], flag: str = "--out") -> Path
     return out
 
 
+def _say_mesh_notes(spec) -> None:
+    """What loading the scene's mesh files changed (dropped faces, placement), where a user checks a
+    new object: the other commands load it quietly."""
+    from sim.assets import scene_mesh_notes  # lazy: CLI start-up (trimesh, PIL)
+
+    for line in scene_mesh_notes(spec):
+        typer.echo(f"note: {line}")
+
+
 @app.command()
 def render(
     scene: Optional[Path] = typer.Argument(None, help="scene YAML (default: the built-in paper scene)"),
@@ -38,9 +47,11 @@ def render(
 
     _out_file(out, (".png",))
 
-    rgb = render_still(load_spec(scene), seed, size)
+    spec = load_spec(scene)
+    rgb = render_still(spec, seed, size)
     out.parent.mkdir(parents=True, exist_ok=True)
     iio.imwrite(out, rgb)
+    _say_mesh_notes(spec)
     typer.echo(f"wrote {out} ({rgb.shape[1]}x{rgb.shape[0]})")
 
 
@@ -66,6 +77,7 @@ def rollout(
     write_gif(out, frames)
     reached = int(info["reached"][0])
     name = spec.objects[reached].name if reached >= 0 else "nothing"
+    _say_mesh_notes(spec)
     typer.echo(f"wrote {out}: {len(frames) - 1} steps, reached {name}")
 
 

@@ -57,3 +57,25 @@ def test_bad_scene_file_names_file_and_field(tmp_path):
     r = _run(["scene", "render", str(bad), "--out", str(tmp_path / "x.png")], tmp_path)
     assert r.returncode == 2 and str(bad) in r.stderr and "objects.0.colour" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_an_own_mesh_made_around_its_centre_gets_one_note_from_render_and_no_warning_anywhere(tmp_path):
+    """Placement auto rests a mesh exported around its centre (Blender's way) on the table: `scene render`
+    says so in one `note:` line; neither it nor another command prints a Python warning about it."""
+    import trimesh
+
+    (tmp_path / "meshes").mkdir()
+    trimesh.creation.box(extents=(0.06, 0.06, 0.1)).export(tmp_path / "meshes" / "centred.obj")
+    scene = tmp_path / "my_scene.yaml"
+    scene.write_text(
+        "objects:\n"
+        "  - {name: tomato_soup_can, mesh: tomato_soup_can, role: goal, pose: {x_m: 0.12, y_m: 0.0}}\n"
+        "  - {name: my_object, mesh: meshes/centred.obj, role: adversarial, pose: {x_m: -0.12, y_m: 0.0}}\n"
+    )
+    r = _run(["scene", "render", str(scene), "--size", "32", "--out", str(tmp_path / "a.png")], tmp_path)
+    assert r.returncode == 0, r.stderr
+    notes = [line for line in r.stdout.splitlines() if line.startswith("note:")]
+    assert len(notes) == 1 and "my_object:" in notes[0] and "5.0 cm below its origin" in notes[0], r.stdout
+    assert "Warning" not in r.stderr, r.stderr
+    r = _run(["scene", "pool", str(scene), "--n", "3", "--out", str(tmp_path / "p.json")], tmp_path)
+    assert r.returncode == 0 and "Warning" not in r.stderr and "note:" not in r.stdout, r.stderr
