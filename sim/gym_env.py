@@ -5,9 +5,13 @@
 code use it without a wrapper, and ``gymnasium.make_vec`` batches it::
 
     import gymnasium as gym
-    import sim.gym_env  # registers the id
-    env = gym.make("advobj/Reach-v0", image_size=64)
-    envs = gym.make_vec("advobj/Reach-v0", num_envs=4, vectorization_mode="sync")
+    env = gym.make("sim.gym_env:advobj/Reach-v0", image_size=64)  # gymnasium imports the module first
+    envs = gym.make_vec("advobj/Reach-v0", num_envs=4, vectorization_mode="sync")  # registered from then on
+
+Importing this module registers the id (:func:`register_envs`), the way installed env packages do
+under gymnasium 1.x (``import sim.gym_env; gym.register_envs(sim.gym_env)`` is the same);
+gymnasium 1.0 removed the ``gymnasium.envs`` plugin entry points that registered ids without an
+import.
 
 * observation: the wrist camera's ``(S, S, 3)`` uint8 image (``Box(0, 255)``); with
   ``cameras=("wrist", "front")`` (names of the scene's cameras), a ``Dict`` of each camera's
@@ -29,7 +33,7 @@ from gymnasium import spaces
 from sim.env import ReachEnv
 from sim.spec import WRIST, SceneSpec, default_scene, load_scene
 
-__all__ = ["ReachGymEnv", "ENV_ID"]
+__all__ = ["ReachGymEnv", "ENV_ID", "register_envs"]
 
 ENV_ID = "advobj/Reach-v0"
 
@@ -105,5 +109,11 @@ class ReachGymEnv(gym.Env):
         self._env.close()
 
 
-if ENV_ID not in gym.registry:
-    gym.register(ENV_ID, entry_point=ReachGymEnv)
+def register_envs() -> None:
+    """Register :data:`ENV_ID` with gymnasium (once; calling it again changes nothing). The entry
+    point is named by its import path, so a registry entry never holds a stale class."""
+    if ENV_ID not in gym.registry:
+        gym.register(ENV_ID, entry_point=f"{__name__}:{ReachGymEnv.__name__}")
+
+
+register_envs()

@@ -66,3 +66,41 @@ def test_stable_baselines3_takes_it_without_a_wrapper():
     e = ReachGymEnv(image_size=32)
     sb3_check_env(e, warn=False)
     e.close()
+
+
+def test_registering_twice_changes_nothing_and_the_entry_point_names_the_class():
+    import warnings
+
+    from gymnasium.envs.registration import load_env_creator
+
+    from sim.gym_env import register_envs
+
+    spec = gym.spec(ENV_ID)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # gymnasium warns when an id is registered over
+        register_envs()
+    assert gym.spec(ENV_ID) is spec
+    assert spec.entry_point == "sim.gym_env:ReachGymEnv" and load_env_creator(spec.entry_point) is ReachGymEnv
+
+
+def test_a_fresh_interpreter_makes_the_env_by_its_module_prefixed_id_without_importing_it():
+    """gymnasium 1.x reads no plugin entry points; ``"sim.gym_env:advobj/Reach-v0"`` makes gymnasium
+    import the module that registers the id, and the bare id works from then on."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import sys, gymnasium as gym\n"
+        "assert 'sim.gym_env' not in sys.modules and 'advobj/Reach-v0' not in gym.registry\n"
+        "e = gym.make('sim.gym_env:advobj/Reach-v0', image_size=32)\n"
+        "obs, _ = e.reset(seed=0)\n"
+        "e.close()\n"
+        "v = gym.make_vec('advobj/Reach-v0', num_envs=1, vectorization_mode='sync', image_size=32)\n"
+        "v.close()\n"
+        "print(obs.shape)\n"
+    )
+    root = Path(__file__).resolve().parents[2]
+    r = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "(32, 32, 3)"
