@@ -364,6 +364,27 @@ FINDINGS: tuple[Finding, ...] = (
         bins="r",
         seeds="table2-f4",
     ),
+    # Declared before its data ran (results/cameras/): which camera carries the attack on a policy
+    # reading a wrist and a fixed scene camera (scenes/two-cameras.yaml). Not a finding of the paper.
+    Finding(
+        "F6",
+        "on a policy reading a wrist and a scene camera, the wrist camera carries the attack: the texture shown "
+        "to the wrist camera alone keeps the T-ASR of the texture in both cameras, and beats it shown to the "
+        "scene camera alone",
+        "not in the paper (its policy reads one wrist camera); a new measurement",
+        "cameras",
+        (
+            Part(Arm("cameras", "attack_wrist_only"), Arm("cameras", "attack"), ("wrist only", "both cameras"), ">="),
+            Part(
+                Arm("cameras", "attack_wrist_only"),
+                Arm("cameras", "attack_front_only"),
+                ("wrist only", "scene camera only"),
+            ),
+        ),
+        seeds="cameras",
+        optional=True,
+        title="F6: which camera carries the attack (results/cameras/)",
+    ),
     Finding(
         "F5",
         "black-box transfer keeps more than half of the white-box T-ASR",
