@@ -27,6 +27,7 @@ from sim.policies.graph_policy import GraphPolicy
 from sim.policies.interface import PolicyError
 from sim.policies.onnx_policy import OnnxPolicy, attach_card
 from sim.policies.onnx_torch import ATOL
+from sim.policies.policy import IMAGENET_MEAN, IMAGENET_STD
 from sim.spec import UnknownCameraError, default_scene, load_spec
 from tests.policy_files import two_camera_onnx, two_camera_pt2
 from tests.policy_zoo import TwoCameraPolicy, card_of, contract_of, tiny_policy, two_camera_card, two_camera_contract
@@ -292,5 +293,9 @@ def test_the_workflow_docs_lerobot_act_card_validates_and_binds_a_lerobot_named_
         ["action"],
         card.contract,
     )
-    assert same == plan  # LeRobot's names bind to the same plan without the card's inputs
+    # LeRobot's names bind to the same cameras, state and output without the card's inputs, but then
+    # feed unnormalised frames: LeRobot 0.4 normalises in its processor, so the card states it.
+    assert (same.cameras, same.states, same.output) == (plan.cameras, plan.states, plan.output)
+    assert all(b.image.is_identity for b in same.images)
+    assert all(b.image.mean == IMAGENET_MEAN and b.image.std == IMAGENET_STD for b in plan.images)
     check_scene(type("P", (), {"inputs": plan})(), load_spec(TWO_CAMERAS))
