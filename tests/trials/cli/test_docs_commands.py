@@ -459,6 +459,15 @@ def _tiny_demo(monkeypatch, art: Artifacts):
         monkeypatch.setattr(mod, "ensure_policy", lambda ctx, name="reference", **kw: art.policy)
 
 
+def _tiny_lerobot(monkeypatch, art: Artifacts):
+    """A tiny LeRobot v2.1 dataset and the calibration files of its two cameras (tests/trials/recordings)."""
+    from tests.trials.recordings.lerobot_datasets import build_v21, calibration_files
+
+    if not (art.tmp / "lerobot").exists():
+        build_v21(art.tmp / "lerobot")
+        calibration_files(art.tmp / "lerobot-cal")
+
+
 def _tiny_experiments(monkeypatch, art: Artifacts):
     import trials.experiments.recipes as ex
 
@@ -737,6 +746,23 @@ TINY: dict[str, Tiny] = {
     "advobj trial export --db runs/trials.sqlite --out runs/trial-tables --format csv": Tiny(
         "trial export --db {trial_db} --out {tmp}/trials/tables --format csv",
         ("{tmp}/trials/tables/trials.csv", "{tmp}/trials/tables/steps.csv"),
+    ),
+    # ---- recordings as input (workflow: "attack it on your recordings")
+    "advobj record import --from session runs/trials.sqlite --session day1 --out runs/rec-day1": Tiny(
+        "record import --from session {trial_db} --session day1 --out {tmp}/rec-day1",
+        ("{tmp}/rec-day1/recording.json",),
+        expect="recording:",
+    ),
+    "advobj record import --from lerobot datasets/my_so100 --pose-key observation.state --pose-layout xyz_rotvec "
+    "--intrinsics wrist=wrist_cam.yaml --extrinsics wrist=T_tcp_cam.yaml --intrinsics front=front_cam.yaml "
+    "--extrinsics front=T_table_cam.yaml --table-frame T_base_table.yaml --out runs/rec-so100": Tiny(
+        "record import --from lerobot {tmp}/lerobot --pose-key observation.state --pose-layout xyz_rotvec "
+        "--intrinsics wrist={tmp}/lerobot-cal/wrist_cam.yaml --extrinsics wrist={tmp}/lerobot-cal/T_tcp_cam.yaml "
+        "--intrinsics front={tmp}/lerobot-cal/front_cam.yaml --extrinsics front={tmp}/lerobot-cal/T_table_cam.yaml "
+        "--table-frame {tmp}/lerobot-cal/T_base_table.yaml --out {tmp}/rec-so100",
+        ("{tmp}/rec-so100/recording.json",),
+        expect="recording:",
+        setup=_tiny_lerobot,
     ),
     # ---- hardware
     "advobj hw check --config examples/hardware/sim.yaml": Tiny(
