@@ -40,6 +40,7 @@ from sim.spec import WRIST
 __all__ = [
     "Fragments",
     "rasterize_fragments",
+    "ray_barycentrics",
     "deferred_shading",
     "srgb_to_linear",
     "sample_bilinear",
@@ -66,6 +67,12 @@ class Fragments:
     bary: (P, 3) barycentrics; uv: (P, 2); duv: (P, 2, 2) d(uv)/d(x, y) per pixel (rows: u, v);
     diffuse: (P, 3) linear light multiplying the albedo; specular: (P, 3) linear additive light;
     height, width: image size in px.
+
+    Composited into a frame that is not a render of the scene (a recorded camera frame,
+    :mod:`attack.recorded`), a pixel may be only partly covered and the frame carries sensor noise:
+    ``alpha`` (P,) in (0, 1] is the object's coverage of each pixel (``I = (1 - alpha) * I_frame +
+    alpha * colour``) and ``noise`` (P, 3) is added to the shaded colour before that. None (the
+    simulator's frames): whole pixels, no noise.
     """
 
     pix: np.ndarray
@@ -77,6 +84,8 @@ class Fragments:
     specular: np.ndarray
     height: int
     width: int
+    alpha: np.ndarray | None = None
+    noise: np.ndarray | None = None
 
     @property
     def num_pixels(self) -> int:
@@ -121,6 +130,14 @@ def _barycentric(tri: np.ndarray, d: np.ndarray) -> np.ndarray:
     return bary
 
 
+def ray_barycentrics(tri: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Barycentrics ``(P, 3)`` where rays from the camera's origin along ``d (P, 3)`` meet the planes
+    of triangles ``tri (P, 3, 3)`` (camera frame), unclamped: a ray passes through its triangle
+    where all three are >= 0. For a caller that must pick, among faces seen near a pixel, the one
+    the pixel's own ray meets (:mod:`attack.recorded`)."""
+    return _barycentric(tri, d)
+
+
 def _clamp_bary(bary: np.ndarray) -> np.ndarray:
     # Pixel centres on a silhouette can fall a hair outside their face (rasterisation rules);
     # project back onto the triangle so UVs stay inside the face's chart.
@@ -142,6 +159,7 @@ def rasterize_fragments(
     vertex_normals: np.ndarray | None = None,
     lighting=None,
     device: torch.device | str = "cpu",
+    rays=None,
 ) -> Fragments:
     """Build :class:`Fragments` from an id pass and either two shading passes or the lights.
 
@@ -156,6 +174,10 @@ def rasterize_fragments(
         vertex_normals: (V, 3) object-frame normals as the renderer draws them, and
         lighting: a :class:`sim.render.SceneLighting` in the *camera* frame: without the two
             passes, the shading is computed by :func:`deferred_shading` on ``device``.
+        rays: ``rays(u, v) -> (P, 3)`` camera-frame ray directions through the image points
+            ``(u, v)`` px (pixel centres and their right and lower neighbours); None: the pinhole
+            ``K`` (:func:`_ray_dirs`). A camera with lens distortion, or a frame cropped and resized
+            after capture, passes its own (:class:`attack.recorded.ViewRays`).
     """
     H, W = face_ids.shape
     flat = face_ids.reshape(-1)
@@ -173,7 +195,8 @@ def rasterize_fragments(
     v_img = v_img.astype(np.float64)
 
     def uv_at(du: float, dv: float) -> np.ndarray:
-        b = _barycentric(tri, _ray_dirs(K, u_img + du, v_img + dv))
+        d = _ray_dirs(K, u_img + du, v_img + dv) if rays is None else rays(u_img + du, v_img + dv)
+        b = _barycentric(tri, d)
         return np.einsum("pk,pkc->pc", b, tri_uv), b
 
     # Screen derivatives by intersecting the neighbouring pixels' rays with the same face plane
@@ -510,7 +533,28 @@ def render_adversarial_batch(
         albedo = (albedo * gain + bias).clamp(0.0, 1.0)
     colors = shade(albedo, cat("diffuse").to(dtype), cat("specular").to(dtype))
     frame = torch.repeat_interleave(torch.arange(len(frags), device=device), torch.tensor(counts, device=device))
-    return composite_batch(i_sim, frame, cat("pix"), colors)
+    pix = cat("pix")
+    if any(f.alpha is not None or f.noise is not None for f in frags):
+        colors = _over_frame(i_sim, frame, pix, colors, frags)
+    return composite_batch(i_sim, frame, pix, colors)
+
+
+def _over_frame(i_sim, frame, pix, colors, frags) -> torch.Tensor:
+    """``colors (P, 3)`` with each fragment's sensor ``noise`` added and laid over its frame's own
+    pixel by its coverage ``alpha`` (:class:`Fragments`; a frame without them: whole, noiseless)."""
+    dtype, device = colors.dtype, colors.device
+
+    def stacked(name, fill, shape):
+        parts = [
+            getattr(f, name) if getattr(f, name) is not None else np.full((f.num_pixels, *shape), fill) for f in frags
+        ]
+        return torch.from_numpy(np.concatenate(parts).astype(np.float64)).to(device, dtype)
+
+    colors = (colors + stacked("noise", 0.0, (3,))).clamp(0.0, 1.0)
+    a = stacked("alpha", 1.0, ())[:, None]
+    b, c, h, w = i_sim.shape
+    under = i_sim.reshape(b, c, h * w)[frame, :, pix]  # (P, 3) the frame's pixel under each fragment
+    return a * colors + (1.0 - a) * under
 
 
 def composite_batch(i_sim: torch.Tensor, frame: torch.Tensor, pix: torch.Tensor, colors: torch.Tensor) -> torch.Tensor:

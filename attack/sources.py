@@ -11,7 +11,8 @@ gives :class:`attack.render.Capture` records, the TCP poses and the adversarial 
 (paper Sec. III-C): ``num_envs`` initial configurations drawn from the task-feasible pool's
 "attack" part with the schedule's Beta weights over camera distance, each rolled out for
 ``rollout_steps`` steps under the current texture (rollouts only provide viewpoints; no gradient
-flows through the dynamics).
+flows through the dynamics). :class:`attack.recorded.RecordedFrames` is the other: a recording's
+frames (:mod:`sim.recording`) with the object composited in, open loop, with no simulator in it.
 
 Adding a source means one class with these three methods (and its test); the loop is unchanged.
 """
