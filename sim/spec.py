@@ -10,7 +10,7 @@ import math
 import re
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 import yaml
@@ -19,6 +19,9 @@ from pydantic import Field, ValidationError, field_validator, model_serializer, 
 from sim.configio import StrictModel, file_error, merged, read_yaml
 from sim.errors import AdvobjError, format_validation_error
 from sim.geometry import look_at, make_T, so3_exp
+
+if TYPE_CHECKING:
+    from sim.kinematics import ArmModel
 
 __all__ = [
     "load_spec",
@@ -36,6 +39,7 @@ __all__ = [
     "GripperSpec",
     "EpisodeSpec",
     "InitSpec",
+    "ArmModelConfig",
     "SceneSpec",
     "load_scene",
     "default_scene",
@@ -371,6 +375,26 @@ class InitSpec(_Strict):
         return self
 
 
+class ArmModelConfig(_Strict):
+    """The arm as a URDF: the kinematic chain from ``base_link`` to ``tool_link`` (:mod:`sim.kinematics`),
+    checked when the scene loads: a plain URDF (no xacro; its meshes are ignored), both links in it, the
+    tool link below the base link, and every joint between them revolute or prismatic with finite
+    position and velocity limits."""
+
+    urdf: str = Field(
+        min_length=1,
+        description="a shipped arm (panda, ur5) or a URDF file: relative to the scene file, inside its folder",
+    )
+    base_link: str = Field(min_length=1, description="the URDF link the arm's poses are expressed in")
+    tool_link: str = Field(min_length=1, description="the URDF link whose pose forward kinematics gives")
+
+    def load(self, device: str = "cpu") -> "ArmModel":
+        """The :class:`sim.kinematics.ArmModel` of this chain on ``device``."""
+        from sim.kinematics import load_arm, urdf_source  # lazy: robot_io start-up (torch)
+
+        return load_arm(urdf_source(self.urdf), self.base_link, self.tool_link, device=device)
+
+
 class SceneSpec(_Strict):
     name: str = "scene"
     background: Rgb = (0.55, 0.6, 0.65)
@@ -385,16 +409,21 @@ class SceneSpec(_Strict):
         default_factory=list,
         description="fixed cameras besides the wrist camera (which is named 'wrist'), each posed in the table frame",
     )
+    arm: ArmModelConfig | None = Field(
+        None, description="the arm as a URDF with its base and tool links (not used by the reach env yet)"
+    )
 
     _v_bg = field_validator("background")(_check_rgb)
 
     @model_serializer(mode="wrap")
     def _dump(self, handler):
-        # Without scene cameras a scene dumps exactly as before they existed: the run records and
-        # the evaluation config hashes that hold a scene's dump stay the same.
+        # Without scene cameras or an arm a scene dumps exactly as before they existed: the run
+        # records and the evaluation config hashes that hold a scene's dump stay the same.
         d = handler(self)
         if not self.scene_cameras:
             d.pop("scene_cameras", None)
+        if self.arm is None:
+            d.pop("arm", None)
         return d
 
     @field_validator("scene_cameras")
@@ -478,7 +507,29 @@ def scene_from_dict(data: dict, source: str = "<dict>") -> SceneSpec:
         spec = SceneSpec.model_validate(data)
     except ValidationError as err:
         raise SpecError(format_validation_error(err, "scene spec", source)) from None
-    return _resolve_paths(spec, source)
+    return _check_arm(_resolve_paths(spec, source), source)
+
+
+def _check_arm(spec: SceneSpec, source: str) -> SceneSpec:
+    """``spec`` with its arm's URDF checked (the file parses, both links exist and the chain between
+    them is usable) and, for a scene file, a URDF path made absolute: relative to the file, and
+    required to lie inside its folder. A shipped arm's name stays a name."""
+    if spec.arm is None:
+        return spec
+    from sim.kinematics import SHIPPED_ARMS, KinematicsError, read_chain, urdf_source  # lazy: robot_io start-up (torch)
+
+    root = None if source.startswith("<") else Path(source).resolve().parent
+    arm = spec.arm
+    try:
+        path = urdf_source(arm.urdf, root=root)
+        read_chain(path, arm.base_link, arm.tool_link)
+    except KinematicsError as err:
+        raise SpecError(f"{source}: arm.{err.field or 'urdf'}: {err}") from None
+    if root is None or arm.urdf in SHIPPED_ARMS:
+        return spec
+    return merged(
+        spec, {"arm": {**arm.model_dump(), "urdf": str(path)}}, what="scene spec", source=source, error=SpecError
+    )
 
 
 def _resolve_paths(spec: SceneSpec, source: str) -> SceneSpec:
