@@ -141,6 +141,7 @@ _POSE_TRIES = 32
 _REGION_GRID = 5  # points per side of the region checked for visibility
 _UNDISTORT_TOL_PX = 1e-3
 _GAMMA = 2.2  # pyrender's output encoding (attack.render.shade)
+_VIEW_CACHE_BYTES = 128 * 2**20
 
 VALIDATION_MEASURE = (
     f"toward fraction (held-out recorded frames whose first action points within {TOWARD_DEG:g} deg of the object)"
@@ -572,7 +573,9 @@ class RecordedFrames:
             self.close()
             raise
         self.object_mesh = self.rigs[self.cameras[0]].renderer.object_mesh(self.adv)
-        self._view = lru_cache(maxsize=4096)(self._read_view)
+        # The policy's views of recorded frames, kept (steps repeat across iterations) up to ~128 MiB.
+        view_bytes = max(r.height * r.width * 3 for r in self.rays.values())
+        self._view = lru_cache(maxsize=int(np.clip(_VIEW_CACHE_BYTES // view_bytes, 16, 4096)))(self._read_view)
         self._slots: list[_Slot] = []
         self._step = 0
         self._rng: np.random.Generator | None = None
