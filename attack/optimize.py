@@ -10,9 +10,11 @@ Each iteration (paper Sec. III-B/C):
    terms) over all image-action pairs, combine them with PCGrad over the N terms (summed), and take
    ``T <- clip(T - lr * g / ||g||, 0, 1)``.
 
-Steps 1-2 are the frame source's (:class:`attack.sources.SimRollouts`); step 3 is the objective's
-and :func:`attack_step`'s. :class:`AttackRun` holds the machinery (env, renderer, policy,
-objective, source); :class:`attack.state.AttackState` everything an iteration advances.
+Steps 1-2 are the frame source's (:class:`attack.sources.SimRollouts`; with ``recordings``,
+:class:`attack.recorded.RecordedFrames` instead: recorded frames with the object composited in, open
+loop, no simulator env); step 3 is the objective's and :func:`attack_step`'s. :class:`AttackRun`
+holds the machinery (env, renderer, policy, objective, source); :class:`attack.state.AttackState`
+everything an iteration advances.
 
 A run is resumable bit-for-bit: a checkpoint holds the texture, the iteration (which fixes the
 schedule stage), the loss history and every RNG state.
@@ -42,6 +44,7 @@ from attack.artifact import AttackArtifact, texture_to_uint8
 from attack.losses import pose_loss
 from attack.objective import FrameBatch, build_objective
 from attack.pcgrad import normalized_step, pcgrad_many, sum_gradients
+from attack.recorded import VALIDATION_MEASURE, RecordedFrames
 from attack.render import HybridRenderer, render_adversarial_batch
 from attack.schedule import stage_index
 from attack.sources import SimRollouts
@@ -71,6 +74,8 @@ __all__ = [
     "AttackWarning",
     "PRESETS",
     "resolve_config",
+    "fixed_light_warning",
+    "initial_texture",
     "AttackRun",
     "attack_step",
     "run_attack",
@@ -112,11 +117,30 @@ class AttackConfig(StrictModel):
     validation_max_steps: int | None = Field(
         None, ge=1, description="episode length of a validation rollout (None: the scene's max_steps)"
     )
+    recordings: str | None = Field(
+        None,
+        description="a recording folder (advobj record import): optimise on its frames with the object composited "
+        "in (attack.recorded), validate on its held-out episodes, instead of simulator rollouts",
+    )
     seed: int = 0
     device: str = "cpu"
 
 
 PRESETS: dict[str, dict] = {
+    # Seconds on 2 CPU cores: a test-sized run through every stage the quick preset uses (EOT, the C2F
+    # stages, held-out validation and best/, checkpoints), as the training presets' "ci"; its budget
+    # says nothing about what an attack can do.
+    "ci": {
+        "iterations": 4,
+        "num_envs": 2,
+        "rollout_steps": 2,
+        "texture_size": 16,
+        "lr": 1.0,
+        "checkpoint_every": 2,
+        "validation_every": 2,
+        "validation_episodes": 4,
+        "validation_max_steps": 10,
+    },
     # A few minutes on 2 CPU cores. The paper's eta = 0.1 moves a 256^2 texture too little in a
     # few hundred steps; a smaller texture and a larger step make the short run count.
     # Validation every 20 iterations on 16 held-out configurations: 1.27 s a call at 64 px, 8.4 s
@@ -161,7 +185,28 @@ def resolve_config(preset: str, overrides: dict | None = None, source: str = "<o
         raise AttackError(format_validation_error(err, "attack config", source)) from None
 
 
+def fixed_light_warning(cfg: AttackConfig) -> str | None:
+    """The warning for a texture optimised under the scene's one fixed light (None when the lights
+    are randomised): said before an attack runs, not after the texture is made."""
+    if cfg.light_randomization:
+        return None
+    return (
+        "warning: light_randomization is off: the texture is optimised under the scene's one fixed light and "
+        "may lose much of its effect under other lights, a real cell's included; for a texture to print, "
+        "attack with --light-randomization (or light_randomization: true in --config; the paper preset has it "
+        "on; 'advobj experiment lighting' measures the difference)"
+    )
+
+
 # ---------------------------------------------------------------------------------------------
+def _with_adversarial_mesh(spec, mesh: str | None):
+    """``spec`` with its adversarial object's mesh swapped for ``mesh`` (None: ``spec`` itself)."""
+    if mesh is None:
+        return spec
+    objs = [o.with_mesh(mesh) if o.role == "adversarial" else o.model_dump() for o in spec.objects]
+    return spec.with_updates(objects=objs)
+
+
 def _benign_texture(mesh, size: int) -> np.ndarray:
     img = getattr(getattr(mesh.visual, "material", None), "image", None)
     if img is None:
@@ -170,7 +215,10 @@ def _benign_texture(mesh, size: int) -> np.ndarray:
 
 
 def initial_texture(cfg: AttackConfig, mesh) -> torch.Tensor:
-    """Starting texture ``(3, S, S)`` float in [0, 1] (float32, on ``cfg.device``)."""
+    """Starting texture ``(3, S, S)`` float in [0, 1] (float32, on ``cfg.device``), ``S =
+    cfg.texture_size``: ``init_texture`` benign, the mesh's own texture image resized (plain grey
+    without one); gray, flat mid grey; random, uniform noise from ``cfg.seed``. The evaluation's
+    ``benign`` arm shows it unoptimised (:func:`trials.eval.conditions.start_source`)."""
     s = cfg.texture_size
     if cfg.init_texture == "benign":
         arr = _benign_texture(mesh, s)
@@ -204,6 +252,10 @@ class AttackRun:
         self.policy = policy.to(self.device).eval()
         for p in self.policy.parameters():
             p.requires_grad_(False)
+        self.validation_measure = "T-ASR"
+        if cfg.recordings is not None:
+            self._init_recorded(policy, spec, pool, out_dir)
+            return
         validating = cfg.validation_every > 0
         # The held-out split (sim.configs.config_part): EOT only ever sees the "attack" part and
         # the best texture is picked on the "validation" part; evaluations use neither.
@@ -215,11 +267,7 @@ class AttackRun:
         else:
             pool = list(pool)
             attack_pool, val_pool = in_part(pool, "attack"), in_part(pool, "validation")
-        if cfg.adversarial_mesh is not None:
-            objs = [
-                o.with_mesh(cfg.adversarial_mesh) if o.role == "adversarial" else o.model_dump() for o in spec.objects
-            ]
-            spec = spec.with_updates(objects=objs)
+        spec = _with_adversarial_mesh(spec, cfg.adversarial_mesh)
         self.spec = spec
         self.image_size = int(policy.image_size)
 
@@ -270,9 +318,31 @@ class AttackRun:
         self.adv = self.hybrid.adv
         self.objective = build_objective(cfg, spec.episode)
         self.source = SimRollouts(self.env, self.hybrid, spec, self.pool, cfg, self.device, self.hybrids)
-        self.state = AttackState.start(initial_texture(cfg, self.env.renderer.object_mesh(self.adv)), cfg.seed)
+        self.adv_mesh = self.env.renderer.object_mesh(self.adv)
+        self.state = AttackState.start(initial_texture(cfg, self.adv_mesh), cfg.seed)
         self.out_dir = None if out_dir is None else Path(out_dir)
         self._val_env = None
+
+    def _init_recorded(self, policy, spec, pool, out_dir) -> None:
+        """A recordings run (``cfg.recordings``): :class:`attack.recorded.RecordedFrames` is the source
+        and scores the held-out episodes; no simulator env or configuration pool exists (``env`` is None)."""
+        cfg = self.cfg
+        if pool is not None:
+            raise AttackError("pool: a recordings attack draws no simulator configurations; give no pool")
+        self.spec = spec = _with_adversarial_mesh(spec, cfg.adversarial_mesh)
+        self.image_size = int(policy.image_size)
+        self.contract = policy_contract(policy)
+        check_scene(policy, spec)
+        self.cameras = policy_cameras(policy)
+        self.saliency_camera = WRIST_CAMERA if WRIST_CAMERA in self.cameras else self.cameras[0]
+        self.pool, self.val_pool = [], []
+        self.env, self.hybrids, self.hybrid, self._val_env = None, {}, None, None
+        self.source = RecordedFrames.open(cfg.recordings, spec, cfg, policy, self.saliency_camera, self.device)
+        self.validation_measure = VALIDATION_MEASURE
+        self.adv, self.adv_mesh = self.source.adv, self.source.object_mesh
+        self.objective = build_objective(cfg, spec.episode)
+        self.state = AttackState.start(initial_texture(cfg, self.adv_mesh), cfg.seed)
+        self.out_dir = None if out_dir is None else Path(out_dir)
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> dict:
@@ -287,6 +357,8 @@ class AttackRun:
         the adversarial object first, and the mean TCP-to-adversarial-object distance (m) at the
         end of the episodes (the tie-breaker: lower is better).
         """
+        if self.env is None:  # a recordings run: its held-out recorded frames
+            return self.source.validate(self)
         if not self.val_pool:
             raise AttackError("validation_every: validation is off (no held-out configurations)")
         t0 = time.perf_counter()
@@ -331,6 +403,8 @@ class AttackRun:
         current texture (hybrid render, no rollout): the same images at every call, so a change
         is the texture's doing. NaN when the run has no pose term. Uses no training RNG."""
         cfg = self.cfg
+        if self.env is None:  # a recordings run: its held-out recorded frames
+            return self.source.probe_pose_loss(self)
         if not any(t.name == "pose" for t in self.objective.terms) or not self.val_pool:
             return float("nan")
         env, total, n = self.env, 0.0, 0
@@ -527,6 +601,9 @@ class AttackRun:
             self.state.best, self.state.best_texture = disk[0], disk[1].to(self.device)
 
     def close(self) -> None:
+        if self.env is None:
+            self.source.close()
+            return
         self.env.close()
         if self._val_env is not None:
             self._val_env.close()

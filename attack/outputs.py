@@ -15,9 +15,10 @@ import torch.nn.functional as F
 import trimesh
 from PIL import Image
 
-from attack.artifact import AttackArtifact, texture_to_uint8
+from attack.artifact import AttackArtifact, texture_to_uint8, write_config_record
 from attack.losses import grad_cam
 from sim.imaging import hstack, labelled, upscale
+from sim.runinfo import RunInfoError, read_run_info, write_run_info
 
 __all__ = [
     "textured_mesh",
@@ -66,7 +67,7 @@ def export_meshes(
     return {"glb": glb, "obj": obj}
 
 
-def plot_losses(path: str | Path, history) -> Path:
+def plot_losses(path: str | Path, history, measure: str = "T-ASR") -> Path:
     """``loss_curves.png``: the held-out validation T-ASR first (the figure that says whether the
     attack works), then the pose and saliency terms and the gradient norm, with a note on why the
     pose loss is no measure of progress."""
@@ -80,7 +81,7 @@ def plot_losses(path: str | Path, history) -> Path:
         ax = axes.pop(0)
         ax.plot(h.val_iteration, h.val_t_asr, marker="o")
         ax.set_ylim(-0.02, 1.02)
-        ax.set_title("held-out validation T-ASR")
+        ax.set_title(f"held-out validation {measure.split(' (')[0]}")
         ax.set_xlabel("iteration")
         probe = getattr(h, "val_probe_pose", None)
         if probe and np.isfinite(probe).any():
@@ -120,7 +121,8 @@ def summary_lines(metrics: dict) -> list[str]:
     if v:
         best = v.get("best") or {}
         lines.append(
-            f"held-out validation T-ASR (n = {best.get('episodes', '?')}): {v['t_asr'][0]:.2f} at the start -> "
+            f"held-out validation {v.get('measure', 'T-ASR')} (n = {best.get('episodes', '?')}): {v['t_asr'][0]:.2f} "
+            "at the start -> "
             f"{v['t_asr'][-1]:.2f} at the end; best {best.get('t_asr', float('nan')):.2f} at iteration "
             f"{best.get('iteration', '?')} (best/)"
         )
@@ -176,17 +178,84 @@ def _first(images, camera: str):
     return {k: v[0] for k, v in images.items()} if isinstance(images, dict) else images[0]
 
 
+def _records_config(out: Path, attack_config: dict) -> bool:
+    """Whether ``out/run.json`` exists and records ``attack_config`` as its attack config."""
+    try:
+        return read_run_info(out)["config"].get("attack") == attack_config
+    except RunInfoError:
+        return False
+
+
 def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dict:
-    """Everything a run directory holds besides the checkpoint and run.json."""
+    """Write a finished run's folder: the texture (``texture.npy``, ``texture.png``), ``run.json``,
+    ``configs.json``, the textured meshes, the plots and ``metrics.json``; returns the metrics.
+
+    ``run.json`` (the attack config and the scene the texture was optimised in, with provenance) is
+    kept when it already records this run's attack config: ``advobj attack run`` writes its own
+    before the run, with the preset, the policy and the pool. ``configs.json`` records the
+    configurations the attack drew from and validated on (:func:`attack.artifact.write_config_record`),
+    which ``advobj eval`` checks its own against. With these, the folder is what ``advobj eval
+    --attack`` and ``advobj fabricate`` read. The checkpoint and ``best/`` are
+    :func:`attack.optimize.run_attack`'s (a run with ``out_dir``).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tex = run.state.texture.detach().cpu()
-    AttackArtifact.from_tensor(tex).save(out, run="none")  # run.json: the job's, with provenance
-    mesh = run.env.renderer.object_mesh(run.adv)
-    paths = export_meshes(out, mesh, texture_to_uint8(tex))
-    plot_losses(out / "loss_curves.png", run.state.history)
+    AttackArtifact.from_tensor(tex).save(out, run="none")  # run.json: the job's if it wrote one, else below
+    if not _records_config(out, run.cfg.model_dump()):
+        write_run_info(
+            out,
+            {"job": "attack", "attack": run.cfg.model_dump(), "scene": run.spec.model_dump(mode="json")},
+            run.cfg.seed,
+        )
+    write_config_record(out, run.pool, run.val_pool)
+    paths = export_meshes(out, run.adv_mesh, texture_to_uint8(tex))
+    plot_losses(out / "loss_curves.png", run.state.history, run.validation_measure)
+    if run.env is None:  # a recordings run (attack.recorded): its figures show recorded frames
+        _recorded_figures(run, out, texture_before)
+    else:
+        _rollout_figures(run, out, texture_before)
+    h = run.state.history
+    tail = max(1, len(h.iteration) // 10)
+    pose = h.terms.get("pose")
+    metrics = {
+        "iterations": run.state.iteration,
+        "seconds": h.seconds,
+        "seconds_per_iteration": h.seconds / max(1, len(h.iteration)),
+        # The same without the held-out validation rollouts (comparable with validation off).
+        "seconds_per_iteration_training": (h.seconds - float(np.sum(getattr(h, "val_seconds", []) or [0.0])))
+        / max(1, len(h.iteration)),
+        "final_loss_pose": float(np.mean(pose[-tail:])) if pose else None,
+        "initial_loss_pose": float(np.mean(pose[:tail])) if pose else None,
+        "final_loss_saliency": float(np.mean(h.loss_saliency[-tail:])) if h.loss_saliency else None,
+        # every term of the objective by name (attack.objective), first and last tenth of the run
+        "loss_terms": {
+            k: {"initial": float(np.mean(v[:tail])), "final": float(np.mean(v[-tail:]))}
+            for k, v in h.terms.items()
+            if v
+        },
+        "skipped_updates": h.skipped,
+        "validation": None
+        if not getattr(h, "val_iteration", None)
+        else {
+            "iteration": h.val_iteration,
+            "t_asr": h.val_t_asr,
+            "dist_m": h.val_dist_m,
+            "seconds_per_call": float(np.median(h.val_seconds)),
+            "seconds_total": float(np.sum(h.val_seconds)),
+            "best": run.state.best,
+            "probe_pose_loss": h.val_probe_pose,
+            "measure": run.validation_measure,  # what "t_asr" holds (a recordings run: attack.recorded)
+        },
+        "texture_change_l2": float(torch.linalg.vector_norm(tex - texture_before.cpu())),
+        "meshes": {k: str(v.relative_to(out)) for k, v in paths.items()},
+    }
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics
 
-    # Grad-CAM before/after and a rollout strip from the same configuration (the pool's first).
+
+def _rollout_figures(run, out: Path, texture_before: torch.Tensor) -> None:
+    """Grad-CAM before/after and a rollout strip from the same configuration (the pool's first)."""
     env = run.env
     env.reset_envs([0], configs=[run.pool[0]])
     views = run.capture_views([0])
@@ -227,39 +296,29 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         actions[0] = a[0]
         env.step(actions)
     iio.imwrite(out / "rollout_strip.png", upscale(hstack(frames)))
-    h = run.state.history
-    tail = max(1, len(h.iteration) // 10)
-    pose = h.terms.get("pose")
-    metrics = {
-        "iterations": run.state.iteration,
-        "seconds": h.seconds,
-        "seconds_per_iteration": h.seconds / max(1, len(h.iteration)),
-        # The same without the held-out validation rollouts (comparable with validation off).
-        "seconds_per_iteration_training": (h.seconds - float(np.sum(getattr(h, "val_seconds", []) or [0.0])))
-        / max(1, len(h.iteration)),
-        "final_loss_pose": float(np.mean(pose[-tail:])) if pose else None,
-        "initial_loss_pose": float(np.mean(pose[:tail])) if pose else None,
-        "final_loss_saliency": float(np.mean(h.loss_saliency[-tail:])) if h.loss_saliency else None,
-        # every term of the objective by name (attack.objective), first and last tenth of the run
-        "loss_terms": {
-            k: {"initial": float(np.mean(v[:tail])), "final": float(np.mean(v[-tail:]))}
-            for k, v in h.terms.items()
-            if v
-        },
-        "skipped_updates": h.skipped,
-        "validation": None
-        if not getattr(h, "val_iteration", None)
-        else {
-            "iteration": h.val_iteration,
-            "t_asr": h.val_t_asr,
-            "dist_m": h.val_dist_m,
-            "seconds_per_call": float(np.median(h.val_seconds)),
-            "seconds_total": float(np.sum(h.val_seconds)),
-            "best": run.state.best,
-            "probe_pose_loss": h.val_probe_pose,
-        },
-        "texture_change_l2": float(torch.linalg.vector_norm(tex - texture_before.cpu())),
-        "meshes": {k: str(v.relative_to(out)) for k, v in paths.items()},
-    }
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    return metrics
+
+
+def _recorded_figures(run, out: Path, texture_before: torch.Tensor) -> None:
+    """Grad-CAM before/after on a recorded frame with the object composited in, and a strip of that
+    episode's next recorded steps under the final texture (open loop: the recorded trajectory)."""
+    frames, labels = run.source.examples(8)
+    views = frames.views if frames.views is not None else {run.cameras[0]: frames.captures}
+    cam = run.saliency_camera
+    T0 = frames.T_world_tcp[:1]
+    st = run.policy_state(T0)
+
+    def motion(o):
+        return run.next_delta(o, T0)
+
+    overlays = []
+    for texture, what in ((texture_before.to(run.device), "starting"), (run.state.texture, "final")):
+        one = _first(run.render_views({k: v[:1] for k, v in views.items()}, texture), cam)
+        overlays.append(
+            labelled(gradcam_overlay(run.policy, one, st, motion, cam), f"Grad-CAM, {what} texture ({labels[0]})")
+        )
+    iio.imwrite(out / "gradcam_before_after.png", hstack(overlays))
+    with torch.no_grad():
+        imgs = run.render_views(views, run.state.texture)
+    shown = imgs[cam] if isinstance(imgs, dict) else imgs
+    strip = [labelled(texture_to_uint8(img), f"recording {label}", min_side=128) for img, label in zip(shown, labels)]
+    iio.imwrite(out / "rollout_strip.png", upscale(hstack(strip)))

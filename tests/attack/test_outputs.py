@@ -57,3 +57,45 @@ def test_the_end_of_run_summary_puts_the_held_out_t_asr_first_and_explains_the_p
     assert lines[2].startswith("pose loss 0.136 -> 0.209") and "not comparable across iterations" in lines[2]
     off = summary_lines({**m, "validation": None})
     assert "validation: off" in off[1]
+
+
+def test_write_outputs_leaves_a_folder_eval_and_fabricate_read_and_keeps_a_jobs_run_record(tmp_path):
+    """The Python API (AttackRun, run_attack, write_outputs) writes run.json and configs.json beside the
+    texture, as 'advobj attack run' does: the folder is a valid texture source with its mesh and the
+    configurations it was optimised and validated on. A run.json recording this run's config (the job's,
+    written before the run) is kept; one recording another config is replaced."""
+    import json
+
+    import torch
+
+    from attack.artifact import AttackArtifact
+    from attack.optimize import AttackRun, resolve_config, run_attack
+    from attack.outputs import write_outputs
+    from sim.configs import config_id, sample_pool
+    from sim.policies.policy import VisuomotorPolicy
+
+    spec = default_scene()
+    cfg = resolve_config(
+        "ci",
+        {"iterations": 2, "num_envs": 1, "validation_every": 1, "validation_episodes": 2, "adversarial_mesh": "cube"},
+    )
+    pool = sample_pool(spec, 3, seed=0, part="attack") + sample_pool(spec, 2, seed=0, part="validation")
+    torch.manual_seed(0)
+    out = tmp_path / "mine"
+    (out).mkdir()
+    (out / "run.json").write_text(json.dumps({"config": {"attack": {"iterations": 99}}}))  # a stale record
+    run = AttackRun(VisuomotorPolicy(arch="small_cnn", image_size=32), spec, cfg, pool=pool, out_dir=out)
+    try:
+        before = run.state.texture.clone()
+        run_attack(run, progress=False)
+        write_outputs(run, out, before)
+        art = AttackArtifact.load(out)
+        assert art.mesh == "cube" and art.attack_config == cfg.model_dump() and art.seed == cfg.seed
+        assert art.trained_on >= {config_id(c) for c in pool}  # every configuration drawn from or validated on
+        assert art.scene["objects"][spec.object_index("adversarial")]["mesh"] == "cube"
+        job = {"config": {"job": "attack", "preset": "ci", "attack": cfg.model_dump()}, "seed": cfg.seed}
+        (out / "run.json").write_text(json.dumps(job))
+        write_outputs(run, out, before)
+        assert json.loads((out / "run.json").read_text()) == job  # the job's record, kept
+    finally:
+        run.close()

@@ -8,7 +8,7 @@ from pathlib import Path
 from pydantic import Field
 
 from attack.artifact import write_config_record
-from attack.optimize import AttackError, AttackRun, resolve_config, run_attack
+from attack.optimize import AttackError, AttackRun, fixed_light_warning, resolve_config, run_attack
 from attack.outputs import write_outputs
 from attack.state import find_checkpoint
 from sim.configio import StrictModel, file_error, read_yaml
@@ -75,8 +75,24 @@ def pool_matches_scene(path: Path, spec) -> bool:
 
 
 def attack_job(
-    policy_dir, preset: str, config_path, scene_path, pool_path, out, resume: bool, progress: bool = True, log=print
+    policy_dir,
+    preset: str,
+    config_path,
+    scene_path,
+    pool_path,
+    out,
+    resume: bool,
+    progress: bool = True,
+    log=print,
+    light_randomization: bool | None = None,
+    warn_fixed_light: bool = False,
+    recordings=None,
 ) -> dict:
+    """``light_randomization``: overrides the preset's and the config file's (None: theirs);
+    ``warn_fixed_light``: say up front when the texture will be optimised under the fixed light;
+    ``recordings``: a recording folder to attack on instead of simulator rollouts (overrides the
+    config file's ``recordings``; :mod:`attack.recorded`): no pool is read or built, and ``run.json``
+    records the recording's manifest hash and its episode split."""
     overrides = {}
     if config_path is not None:
         # An empty file is an empty set of overrides; anything else not a mapping is refused.
@@ -84,6 +100,10 @@ def attack_job(
         overrides = {} if overrides is None else overrides
         if not isinstance(overrides, dict):
             raise AttackError(f"{config_path}: an attack config must be a mapping of fields")
+    if light_randomization is not None:
+        overrides = {**overrides, "light_randomization": light_randomization}
+    if recordings is not None:
+        overrides = {**overrides, "recordings": str(recordings)}
     cfg = resolve_config(preset, overrides, source=str(config_path or "<preset>"))
     spec = load_spec(scene_path)
     # White-box now: an ONNX file's conversion is checked here, before a pool is built or anything written.
@@ -93,7 +113,10 @@ def attack_job(
     pool_file = Path(pool_path) if pool_path is not None else feasible_pool_path(policy_dir)
     out = Path(out)
     pool = None
-    if pool_file.is_file():
+    recorded = cfg.recordings is not None
+    if recorded and pool_path is not None:
+        raise AttackError("--pool: an attack on --recordings draws no simulator configurations; drop --pool")
+    if pool_file.is_file() and not recorded:
         if pool_path is None and not pool_matches_scene(pool_file, spec):
             # The policy's own pool is for the scene it was trained in; an own scene gets its own
             # task-feasible configurations (attack and validation parts only), built and kept here.
@@ -110,6 +133,8 @@ def attack_job(
                 raise PoolError(
                     f"{err}; --pool: give a pool made for this scene, or omit --pool to build one"
                 ) from None
+    if warn_fixed_light and (note := fixed_light_warning(cfg)) is not None:
+        log(f"attack: {note}")  # the inputs are checked; before anything is built or optimised
     if pool is not None:
         pool = top_up_attack_pool(policy, spec, pool, cfg, out, progress)
     run = AttackRun(policy, spec, cfg, pool=pool, out_dir=out)
@@ -129,6 +154,7 @@ def attack_job(
                 "policy": str(policy_dir),
                 "pool": str(pool_file) if pool is not None else None,
                 "scene": spec.model_dump(mode="json"),
+                **({"recordings": run.source.provenance()} if recorded else {}),
             },
             cfg.seed,
         )
@@ -151,8 +177,25 @@ class AttackJob(StrictModel):
     pool: Path | None = Field(None, description="task-feasible pool JSON (default: the policy's, if any)")
     out: Path = Path("runs/attack")
     resume: bool = False
+    light_randomization: bool | None = Field(
+        None, description="randomise the lights during optimisation (None: the preset's and --config's setting)"
+    )
+    recordings: Path | None = Field(
+        None, description="a recording folder: attack on its frames (object composited in) instead of sim rollouts"
+    )
 
     def run(self, progress: bool = True, log=print) -> dict:
         return attack_job(
-            self.policy, self.preset, self.config, self.scene, self.pool, self.out, self.resume, progress, log
+            self.policy,
+            self.preset,
+            self.config,
+            self.scene,
+            self.pool,
+            self.out,
+            self.resume,
+            progress,
+            log,
+            light_randomization=self.light_randomization,
+            warn_fixed_light=True,
+            recordings=self.recordings,
         )

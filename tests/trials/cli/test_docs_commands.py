@@ -888,8 +888,11 @@ def test_workflow_python_block_attacks_a_wrapped_torch_model(art):
         "__name__": "workflow_snippet",
     }
     exec(compile(code, "docs/workflow.md", "exec"), ns)
-    for name in ("texture.png", "texture.npy", "adversarial.glb", "metrics.json"):
+    for name in ("texture.png", "texture.npy", "adversarial.glb", "metrics.json", "run.json", "configs.json"):
         assert (out / name).is_file(), f"the workflow snippet did not write {name}"
+    from trials.eval.conditions import load_attack_source
+
+    assert load_attack_source(out).trained_on  # an 'advobj eval --attack' source with its configuration record
 
 
 def _workflow_block(marker: str) -> str:
