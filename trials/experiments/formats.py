@@ -265,7 +265,7 @@ def build_grid(cfg: FormatsConfig, out: str | Path) -> tuple[Grid, dict]:
     format. Returns the grid and its jobs by name."""
     out = Path(out)
     grid = Grid(out)
-    fn = __name__ + ":job_"
+    fn = MODULE + ":job_"
     shared = {"pool": cfg.pool, "scene": cfg.scene}
     jobs = {"export": grid.add("export", "formats-export", fn + "export", out / "export", {}, {"policy": cfg.policy})}
     for fmt in FORMATS:
@@ -402,6 +402,10 @@ def _portable(obj, out: Path, cfg: dict):
     return json.loads(text.replace(json.dumps(str(ROOT) + os.sep)[1:-1], ""))
 
 
+#: This module's name for ``python -m`` (``__name__`` is ``"__main__"`` when it is run that way).
+MODULE = "trials.experiments.formats"
+
+
 def _write_json(path: Path, doc) -> None:
     path.write_text(json.dumps(doc, indent=1) + "\n")
 
@@ -482,8 +486,8 @@ def evidence(
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     attempt = run_attempt(
         results,
-        [sys.executable, "-m", __name__, "run", *_run_argv(a, str)],  # the child runs in the checkout
-        f"python -m {__name__} run " + shlex.join(_run_argv(a, _shown)),
+        [sys.executable, "-m", MODULE, "run", *_run_argv(a, str)],  # the child runs in the checkout
+        f"python -m {MODULE} run " + shlex.join(_run_argv(a, _shown)),
         commit,
         cwd=ROOT,
         env=env,
@@ -522,7 +526,7 @@ def _run_argv(a: argparse.Namespace, path=str) -> list[str]:
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
-        prog=f"python -m {__name__}",
+        prog=f"python -m {MODULE}",
         description="The same attack through the checkpoint, its .onnx and its .pt2; evidence under results/formats/.",
     )
     sub = ap.add_subparsers(dest="cmd", required=True)

@@ -296,3 +296,18 @@ def test_a_run_folder_of_other_settings_is_refused_and_collect_again_is_the_same
         assert (again / name).read_bytes() == (results / name).read_bytes(), name
     a, b = (json.loads((d / "summary.json").read_text()) for d in (results, again))
     assert a == b
+
+
+def test_the_child_commands_name_the_module_not_main_so_python_m_runs_them(evidence_run):
+    # Run as ``python -m trials.experiments.formats``, the module's __name__ is "__main__": a child
+    # command or a job function spelled from it would not import.
+    import subprocess
+    import sys
+
+    assert formats.MODULE == formats.__name__
+    run, results, _ = evidence_run
+    record = json.loads((results / "run.json").read_text())
+    assert all(a["command"].startswith(f"python -m {formats.MODULE} run ") for a in record["attempts"])
+    assert not [p for p in run.rglob("*.json") if "__main__" in p.read_text(errors="replace")]
+    got = subprocess.run([sys.executable, "-m", formats.MODULE, "run", "--help"], capture_output=True, text=True)
+    assert got.returncode == 0 and "--policy" in got.stdout, got.stderr
