@@ -1246,6 +1246,12 @@ NOTES: tuple[Callable[[Rows, Path], list[str]], ...] = (
             _t2("c2f", "gray_texture", ("C2F", "grey texture")),
         ),
     ),
+    FollowUp(
+        "F2, F3 and F4 at a 40-iteration budget over attack seeds (results/table2-40-seeds/)",
+        "table2-40-seeds",
+        (C2F_NS, NS_F2C, C2F_F2C, SALIENCY, TARGETED),
+        seeds=True,
+    ),
     lighting_note,
     untargeted_note,
 )

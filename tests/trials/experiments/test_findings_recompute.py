@@ -29,8 +29,28 @@ ARMS = {
     ),
     "F3": ("table2-f3", "table2-f3", [("table2_c2f", "attack", "table2_c2f_untargeted", "attack", ">")], None),
     "F3-two-objects": ("table2", None, [("table2_c2f", "attack", "table2_c2f_untargeted", "attack", ">")], None),
-    "F4": ("table2", "table2-seeds", [("table2_c2f", "attack", "table2_c2f_no_saliency", "attack", ">")], None),
+    "F4": ("table2", "table2-f4", [("table2_c2f", "attack", "table2_c2f_no_saliency", "attack", ">")], None),
+    "F6": (
+        "cameras",
+        "cameras",
+        [
+            ("cameras", "attack_wrist_only", "cameras", "attack", ">="),
+            ("cameras", "attack_wrist_only", "cameras", "attack_front_only", ">"),
+        ],
+        None,
+    ),
 }
+# The follow-up over attack seeds at 40 iterations (results/findings.md), in its printed order.
+FOLLOW_UP_40 = (
+    "table2-40-seeds",
+    [
+        ("table2_c2f", "table2_ns", ">="),
+        ("table2_ns", "table2_f2c", ">"),
+        ("table2_c2f", "table2_f2c", ">"),
+        ("table2_c2f", "table2_c2f_no_saliency", ">"),
+        ("table2_c2f", "table2_c2f_untargeted", ">"),
+    ],
+)
 NUM = r"[+-]?\d+(?:\.\d+)?"
 PAIR = re.compile(
     rf"(?P<ra>{NUM})% vs [\w\- ]+? (?P<rb>{NUM})% \(difference (?P<d>{NUM}) pp, 95% CI \[(?P<lo>{NUM}), "
@@ -263,3 +283,34 @@ def test_a_result_from_an_uncommitted_checkout_is_marked(fid):
         attempts = json.loads((RESULTS / recipe / "run.json").read_text())["attempts"]
         dirty = any(a["commit"].endswith("+dirty") for a in attempts)
         assert (f"[results/{recipe}/](results/{recipe}/) (dirty)" in TABLE[fid][5]) == dirty, (recipe, TABLE[fid][5])
+
+
+@pytest.mark.skipif(not _committed(FOLLOW_UP_40[0]), reason="results/table2-40-seeds/ is not committed")
+def test_the_40_iteration_follow_up_over_seeds_recomputes_from_its_csv():
+    recipe, parts = FOLLOW_UP_40
+    text = (RESULTS / "findings.md").read_text()
+    section = text.split("at a 40-iteration budget over attack seeds", 1)[1].split("\n## ", 1)[0]
+    printed = [line for line in section.splitlines() if line.startswith("- ")]
+    assert len(printed) == len(parts), section
+    rows = _rows(recipe)
+    for line, (ea, eb, claim) in zip(printed, parts):
+        m = SEEDS.search(line)
+        assert m, line
+        a, b = _by_seed(rows, ea, "attack"), _by_seed(rows, eb, "attack")
+        assert sorted(a) == sorted(b) and len(a) >= 3
+        configs = sorted(set.intersection(*(set(x) for x in [*a.values(), *b.values()])))
+        xa = [[int(a[s][c]) for c in configs] for s in sorted(a)]
+        xb = [[int(b[s][c]) for c in configs] for s in sorted(b)]
+        k, n = len(xa), len(configs)
+        ma = sum(sum(x) / n for x in xa) / k
+        mb = sum(sum(x) / n for x in xb) / k
+        assert (int(m["k"]), int(m["n"])) == (k, n)
+        assert float(m["ma"]) == pytest.approx(100 * ma, abs=0.051)
+        assert float(m["mb"]) == pytest.approx(100 * mb, abs=0.051)
+        assert float(m["d"]) == pytest.approx(100 * (ma - mb), abs=0.051)
+        lo, hi = _bootstrap(xa, xb)
+        assert float(m["lo"]) == pytest.approx(100 * lo, abs=1.5) and float(m["hi"]) == pytest.approx(100 * hi, abs=1.5)
+        plo, phi_ = float(m["lo"]) / 100, float(m["hi"]) / 100
+        margin = 0.0 if claim == ">" else -0.05
+        want = "holds" if plo > margin else "does not hold" if phi_ < 0 else "inconclusive"
+        assert f"**{want}**" in line, line
