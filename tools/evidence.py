@@ -16,12 +16,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import resource
 import shutil
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 from attack.artifact import CONFIG_RECORD, TEXTURE_PNG, AttackArtifact
@@ -31,30 +27,11 @@ from sim.policies.pool import built_pool_path
 from sim.runinfo import git_commit
 from trials.eval.episodes import collect_evals
 from trials.experiments.recipes import RECIPES as REGISTRY
-from trials.experiments.record import read_record, write_record
+from trials.experiments.record import attempt_machine, read_record, run_attempt, write_record
 from trials.jobs.dag import read_markers
 
 ROOT = Path(__file__).resolve().parent.parent
 RECIPES = tuple(REGISTRY)  # the one list (trials.experiments.recipes.RECIPES)
-
-
-def _machine() -> dict:
-    model = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "cpus": os.cpu_count(),
-        "cpu_model": model,
-        "machine": platform.machine(),
-        "system": platform.system(),
-        "python": platform.python_version(),
-        "load_avg_start": list(os.getloadavg()),
-    }
 
 
 def _commit() -> str:
@@ -91,26 +68,7 @@ def run(
     if scene is not None and not any(a == "--scene" or a.startswith("--scene=") for a in extra):
         cmd += ["--scene", scene]
     cmd += extra
-    record = read_record(results / name)
-    attempt = {
-        "command": " ".join(["advobj"] + cmd[1:]),
-        "commit": commit,
-        "machine": _machine(),
-        "start_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    rc = subprocess.call(cmd, cwd=ROOT)
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    attempt.update(
-        wall_s=round(time.perf_counter() - t0, 1),
-        cpu_s=round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 1),
-        exit_code=rc,
-        end_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        load_avg_end=list(os.getloadavg()),
-    )
-    record["attempts"].append(attempt)
-    write_record(results / name, record)
+    rc = run_attempt(results / name, cmd, " ".join(["advobj"] + cmd[1:]), commit, cwd=ROOT)["exit_code"]
     if rc == 0:
         collect(name, work, results)
     return rc
@@ -180,7 +138,7 @@ def card(policy_dir: Path, results: Path, command: str) -> Path:
     its interval; no weights) to ``results/policies/<name>.json`` with the command that trained it."""
     doc = load_card(policy_dir).model_dump(mode="json")
     doc["command"] = command
-    doc["machine"] = _machine()
+    doc["machine"] = attempt_machine()
     dst = results / "policies" / f"{Path(policy_dir).name}.json"
     dst.parent.mkdir(parents=True, exist_ok=True)
     dst.write_text(json.dumps(doc, indent=1))
