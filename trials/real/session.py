@@ -62,7 +62,7 @@ from robot_io.config import (
 )
 from robot_io.errors import MissingIntrinsicsError
 from sim.configio import StrictModel, merged
-from sim.errors import AdvobjError
+from sim.errors import AdvobjError, flag_error
 from sim.geometry import rotation_angle
 from sim.policies.checkpoint import is_checkpoint, load_checkpoint, load_policy
 from sim.policies.contract import (
@@ -174,23 +174,9 @@ class SessionOptions(StrictModel):
 
 
 def _options_error(err: ValidationError) -> AdvobjError:
-    """One error naming the flags of a :class:`SessionOptions` validation failure.
-
-    A validator's own :class:`AdvobjError` (the session name's, the answers') is returned as it is;
-    otherwise each problem reads ``--flag: problem`` (the first three, then how many more)."""
-    problems = []
-    for e in err.errors():
-        cause = (e.get("ctx") or {}).get("error")
-        if isinstance(cause, AdvobjError):
-            return cause
-        field = str(e["loc"][0]) if e["loc"] else ""
-        msg = " ".join(e["msg"].removeprefix("Value error, ").split())
-        if e["type"] == "extra_forbidden":
-            problems.append(f"{field}: not an option of a trial session")
-        else:
-            problems.append(f"{_flag(field) if field else 'session options'}: {msg}")
-    more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
-    return SessionSetupError("; ".join(problems[:3]) + more)
+    """One error naming the flags of a :class:`SessionOptions` validation failure
+    (:func:`sim.errors.flag_error`; an unknown field is not an option of a trial session)."""
+    return flag_error(err, _flag, "session options", SessionSetupError, extra="not an option of a trial session")
 
 
 def file_sha256(path: str | Path | None) -> str | None:

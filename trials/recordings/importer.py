@@ -18,7 +18,7 @@ from typing import Callable, Literal, Optional
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from sim.configio import StrictModel
-from sim.errors import AdvobjError
+from sim.errors import AdvobjError, flag_error
 from sim.recording import MAX_SYNC_TOLERANCE_S, Recording, RecordingCamera, check_target, write_recording
 from trials.recordings.calib import (
     RecordImportError,
@@ -133,16 +133,7 @@ class ImportJob(StrictModel):
 
 
 def _job_error(err: ValidationError) -> AdvobjError:
-    problems = []
-    for e in err.errors():
-        cause = (e.get("ctx") or {}).get("error")
-        if isinstance(cause, AdvobjError):
-            return cause
-        field = str(e["loc"][0]) if e["loc"] else ""
-        msg = " ".join(e["msg"].removeprefix("Value error, ").split())
-        problems.append(f"{_flag(field) if field else 'record import'}: {msg}")
-    more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
-    return RecordImportError("; ".join(problems[:3]) + more)
+    return flag_error(err, _flag, "record import", RecordImportError)
 
 
 # ---------------------------------------------------------------------- the LeRobot import
