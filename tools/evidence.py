@@ -24,7 +24,7 @@ from attack.artifact import CONFIG_RECORD, TEXTURE_PNG, AttackArtifact
 from sim.configs import copy_pool
 from sim.policies.card import CARD_NAME, load_card
 from sim.policies.pool import built_pool_path
-from sim.runinfo import git_commit
+from sim.runinfo import RunInfoError, git_commit, read_run_info
 from trials.eval.episodes import collect_evals
 from trials.experiments.recipes import RECIPES as REGISTRY
 from trials.experiments.record import attempt_machine, read_record, run_attempt, write_record
@@ -135,9 +135,14 @@ def collect(name: str, work: Path, results: Path) -> Path:
 
 def card(policy_dir: Path, results: Path, command: str) -> Path:
     """Copy a trained policy's card (``policy.json``: config, training time, clean success with
-    its interval; no weights) to ``results/policies/<name>.json`` with the command that trained it."""
+    its interval; no weights) to ``results/policies/<name>.json`` with the command that trained it
+    and the commit its run record names."""
     doc = load_card(policy_dir).model_dump(mode="json")
     doc["command"] = command
+    try:  # the commit the training ran at, from the run's own record
+        doc["commit"] = read_run_info(policy_dir).get("git_commit")
+    except RunInfoError:
+        doc["commit"] = None
     doc["machine"] = attempt_machine()
     dst = results / "policies" / f"{Path(policy_dir).name}.json"
     dst.parent.mkdir(parents=True, exist_ok=True)
