@@ -281,8 +281,11 @@ def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: boo
     base = load_spec(cfg.scene)
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
     conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes), spec))
-    check_scene(policy, spec)  # a camera the scene lacks (or of another size): one line, before anything is written
-    for c in conds:
+    # A camera the scene lacks (or of another size): one line, before anything is written. The merge
+    # of shards passes no policy (each shard checked it with its own).
+    if policy is not None:
+        check_scene(policy, spec)
+    for c in conds if policy is not None else ():
         for name in c.attacked_cameras or ():
             if name not in policy_cameras(policy):
                 raise EvalError(
