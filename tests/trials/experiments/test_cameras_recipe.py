@@ -146,10 +146,11 @@ def test_without_a_policy_the_recipe_trains_a_two_camera_policy_on_the_two_camer
 def test_the_evidence_tool_passes_and_records_the_recipes_scene(tmp_path, monkeypatch):
     from tools import evidence
     from trials.cli.experiment import app as experiment_app
+    from trials.experiments import record
 
     monkeypatch.setattr(evidence, "_commit", lambda: "0123abc")
     ran = []
-    monkeypatch.setattr(evidence.subprocess, "call", lambda cmd, **k: ran.append(cmd) or 1)  # no run: nothing collected
+    monkeypatch.setattr(record.subprocess, "call", lambda cmd, **k: ran.append(cmd) or 1)  # no run: nothing collected
     extra = ["--attack-seeds", "0,1,2", "--workers", "2"]
     rc = evidence.run("cameras", 300, "runs/policy-two-camera", tmp_path / "work", tmp_path / "results", extra)
     assert rc == 1 and RECIPES["cameras"].scene == TWO_CAMERA_SCENE
