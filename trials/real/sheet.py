@@ -30,7 +30,7 @@ from scipy.spatial import ConvexHull
 from sim.assets import build_mesh
 from sim.spec import load_spec
 
-__all__ = ["placement_sheet_pdf", "footprint_xy_m", "ROWS_PER_PAGE", "sheet_page_count"]
+__all__ = ["placement_sheet_pdf", "placement_outlines", "footprint_xy_m", "ROWS_PER_PAGE", "sheet_page_count"]
 
 A4_IN = (210.0 / 25.4, 297.0 / 25.4)
 ROWS_PER_PAGE = 50
@@ -44,6 +44,23 @@ def footprint_xy_m(mesh: str, scale=1.0, **mesh_kwargs) -> np.ndarray:
     :meth:`~sim.spec.ObjectSpec.mesh_kwargs`), so the outline is the one the sim places."""
     xy = np.asarray(build_mesh(mesh, scale, **mesh_kwargs).vertices, dtype=np.float64)[:, :2]
     return xy[ConvexHull(xy).vertices]
+
+
+def placement_outlines(plan, spec) -> dict[str, dict[str, np.ndarray]]:
+    """``{role: {label: outline (M, 2) m}}`` of every object ``plan`` places on ``spec``'s table, in
+    its own frame (:func:`footprint_xy_m`): the goal's (labelled by its name) and, for the
+    adversarial role, each mesh a trial of the plan uses (:meth:`~trials.real.plan.TrialPlan.mesh_for`,
+    by mesh name) at the scene's adversarial scale."""
+    adv_meshes = list(plan.shapes) + (["patch"] if "patch" in plan.conditions else [])
+    return {
+        "goal": {spec.goal.name: footprint_xy_m(spec.goal.mesh, spec.goal.scale, **spec.goal.mesh_kwargs())},
+        "adversarial": {
+            m: footprint_xy_m(
+                m, spec.adversarial.scale, **(spec.adversarial.mesh_kwargs() if m == spec.adversarial.mesh else {})
+            )
+            for m in adv_meshes
+        },
+    }
 
 
 def sheet_page_count(plan) -> int:
@@ -183,16 +200,7 @@ def placement_sheet_pdf(plan, path, spec=None) -> int:
     matplotlib.use("Agg", force=False)
 
     spec = load_spec(plan.scene) if spec is None else spec
-    adv_meshes = list(plan.shapes) + (["patch"] if "patch" in plan.conditions else [])
-    outlines = {
-        "goal": {spec.goal.name: footprint_xy_m(spec.goal.mesh, spec.goal.scale, **spec.goal.mesh_kwargs())},
-        "adversarial": {
-            m: footprint_xy_m(
-                m, spec.adversarial.scale, **(spec.adversarial.mesh_kwargs() if m == spec.adversarial.mesh else {})
-            )
-            for m in adv_meshes
-        },
-    }
+    outlines = placement_outlines(plan, spec)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with PdfPages(path) as pdf:
