@@ -4,6 +4,8 @@ plots and overlays."""
 from __future__ import annotations
 
 import json
+import os
+import tempfile
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -13,10 +15,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 import trimesh
-from PIL import Image
+from PIL import Image, ImageDraw
 
 from attack.artifact import AttackArtifact, texture_to_uint8, write_config_record
 from attack.losses import grad_cam
+from attack.optimize import fixed_light_warning
+from sim.htmlreport import Bullets, Figure, Flag, Heading, Table, Text, write_page
 from sim.imaging import hstack, labelled, upscale
 from sim.runinfo import RunInfoError, read_run_info, write_run_info
 
@@ -25,6 +29,9 @@ __all__ = [
     "export_meshes",
     "plot_losses",
     "gradcam_overlay",
+    "gradcam_colour_bar",
+    "texture_trail",
+    "trail_iterations",
     "write_outputs",
 ]
 
@@ -148,12 +155,23 @@ def summary_lines(metrics: dict) -> list[str]:
     return lines
 
 
+# Grad-CAM overlays: the image at this weight plus the map (its share of its maximum) in red.
+CAM_IMAGE_WEIGHT = 0.55
+CAM_HEAT_WEIGHT = 0.45
+
+
+def _cam_blend(rgb: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``rgb (H, W, 3)`` in [0, 1] and the map ``S (H, W)`` in [0, 1] -> the overlay, (H, W, 3) uint8."""
+    heat = np.stack([S, np.zeros_like(S), np.zeros_like(S)], -1)
+    return np.clip(255 * (CAM_IMAGE_WEIGHT * rgb + CAM_HEAT_WEIGHT * heat), 0, 255).astype(np.uint8)
+
+
 def gradcam_overlay(
     policy, image, state: torch.Tensor | None = None, to_action=None, camera: str | None = None
 ) -> np.ndarray:
     """``image (3, H, W)`` (or ``{camera: (3, H_c, W_c)}`` for a policy reading several cameras,
     with ``camera`` the one shown) and the policy's ``state (1, D)`` -> (H, W, 3) uint8 with the
-    Grad-CAM map blended in red."""
+    Grad-CAM map blended in red (:func:`gradcam_colour_bar` is its scale)."""
     if isinstance(image, dict):
         x = {k: v[None].detach().clone().requires_grad_(True) for k, v in image.items()}
         shown = image[camera]
@@ -168,9 +186,133 @@ def gradcam_overlay(
     S = S.detach()[0]
     S = F.interpolate(S[None, None], size=shown.shape[-2:], mode="bilinear", align_corners=False)[0, 0]
     S = (S / S.max().clamp_min(1e-12)).cpu().numpy()
-    rgb = shown.detach().cpu().permute(1, 2, 0).numpy()
-    heat = np.stack([S, np.zeros_like(S), np.zeros_like(S)], -1)
-    return np.clip(255 * (0.55 * rgb + 0.45 * heat * 1.0 + 0.0), 0, 255).astype(np.uint8)
+    return _cam_blend(shown.detach().cpu().permute(1, 2, 0).numpy(), S)
+
+
+def gradcam_colour_bar(height_px: int, width_px: int = 96, grey: float = 0.5) -> np.ndarray:
+    """The scale of :func:`gradcam_overlay`: ``(height_px, width_px, 3)`` uint8, a strip blending
+    the map from 0 (bottom) to its maximum (top) over a ``grey`` image, as the overlays do, with
+    ticks at 0, 0.5 and 1 (the map's share of its maximum in that image) and a title bar."""
+    bar_px = 18  # the title bar, as sim.imaging.labelled's caption bar
+    h = int(height_px) - bar_px
+    if h < 24 or width_px < 48:
+        raise ValueError(f"colour bar: need at least 42 x 48 px, got {height_px} x {width_px}")
+    top, bottom = 8, h - 8
+    S = np.clip((bottom - np.arange(h, dtype=np.float64)) / (bottom - top), 0.0, 1.0)
+    strip = _cam_blend(np.full((h, 1, 3), grey), S[:, None])  # (h, 1, 3)
+    img = np.full((h, width_px, 3), 255, np.uint8)
+    img[:, 6:26] = strip
+    page = Image.fromarray(img)
+    draw = ImageDraw.Draw(page)
+    for v in (0.0, 0.5, 1.0):
+        y = int(round(bottom - v * (bottom - top)))
+        draw.line([(26, y), (31, y)], fill=(0, 0, 0))
+        draw.text((34, y - 5), f"{v:g}" + (" max" if v == 1 else ""), fill=(0, 0, 0))
+    title = Image.new("RGB", (width_px, bar_px), (0, 0, 0))
+    ImageDraw.Draw(title).text((4, 3), "Grad-CAM", fill=(255, 255, 255))
+    return np.concatenate([np.asarray(title), np.asarray(page)], 0)
+
+
+def _gradcam_figure(overlays: list[np.ndarray]) -> np.ndarray:
+    """Labelled overlays side by side with their colour bar at the right."""
+    return hstack([*overlays, gradcam_colour_bar(max(o.shape[0] for o in overlays))])
+
+
+# ----------------------------------------------------------------------------- the texture over iterations
+TRAIL_DIR = "texture_trail"  # <run>/texture_trail/iteration_000060.png: the texture at marked iterations
+TRAIL_MAX_PX = 128
+TRAIL_MARKS = 10
+
+
+def trail_iterations(cfg) -> list[int]:
+    """Iterations whose texture the trail keeps: the validated ones (so each shows its held-out
+    score), else evenly spaced ones, at most :data:`TRAIL_MARKS` of them, the last always."""
+    n = int(cfg.iterations)
+    if cfg.validation_every > 0:
+        marks = list(range(cfg.validation_every, n, cfg.validation_every)) + [n]
+    else:
+        marks = sorted({int(round(x)) for x in np.linspace(0, n, TRAIL_MARKS + 1)[1:]} - {0})
+    if len(marks) > TRAIL_MARKS:
+        marks = [marks[i] for i in sorted({int(round(x)) for x in np.linspace(0, len(marks) - 1, TRAIL_MARKS)})]
+    return marks
+
+
+def _trail_png(out: Path, iteration: int) -> Path:
+    return out / TRAIL_DIR / f"iteration_{int(iteration):06d}.png"
+
+
+def texture_trail(out_dir: str | Path, cfg):
+    """``on_iteration`` for :func:`attack.optimize.run_attack`: at each of :func:`trail_iterations`
+    it writes the texture (at most :data:`TRAIL_MAX_PX` px) to ``out_dir/texture_trail/``, through a
+    fresh temporary file renamed into place, so a resumed run keeps the marks it passed before and
+    :func:`write_outputs` shows the texture over iterations."""
+    out, marks = Path(out_dir), set(trail_iterations(cfg))
+
+    def on_iteration(run, info) -> None:
+        if run.state.iteration not in marks:
+            return
+        _write_trail(out, run.state.iteration, run.state.texture)
+
+    return on_iteration
+
+
+def _fit(img: np.ndarray, side: int) -> np.ndarray:
+    """A square texture ``(S, S, 3)`` uint8 at ``side`` px: box-filtered when smaller, as it is otherwise."""
+    if img.shape[0] == side and img.shape[1] == side:
+        return img
+    return np.asarray(Image.fromarray(img).resize((side, side), Image.BOX if side < img.shape[0] else Image.NEAREST))
+
+
+def _write_trail(out: Path, iteration: int, texture: torch.Tensor) -> Path:
+    img = texture_to_uint8(texture.detach().cpu())
+    img = _fit(img, min(img.shape[0], TRAIL_MAX_PX))
+    path = _trail_png(out, iteration)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".trail.", suffix=".png", dir=path.parent)  # O_EXCL
+    try:
+        with os.fdopen(fd, "wb") as f:
+            iio.imwrite(f, img, extension=".png")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _texture_over_iterations(run, out: Path, texture_before: torch.Tensor) -> Path:
+    """``texture_over_iterations.png``: the starting texture, the trail's marks this run passed,
+    the best validated one and the final one, each labelled with its iteration and, where it was
+    validated, its held-out score."""
+    h = run.state.history
+    scores = dict(zip(getattr(h, "val_iteration", []) or [], getattr(h, "val_t_asr", []) or []))
+    best = run.state.best or {}
+    shots: dict[int, np.ndarray] = {0: texture_to_uint8(texture_before.detach().cpu())}
+    for k in trail_iterations(run.cfg):
+        p = _trail_png(out, k)
+        if 0 < k < run.state.iteration and p.is_file():
+            try:
+                shots[k] = iio.imread(p)[..., :3]
+            except (OSError, ValueError):
+                continue  # a damaged mark is left out, not fatal
+    if run.state.best_texture is not None and best.get("iteration") is not None:
+        shots.setdefault(int(best["iteration"]), texture_to_uint8(run.state.best_texture.detach().cpu()))
+    shots[run.state.iteration] = texture_to_uint8(run.state.texture.detach().cpu())
+    side = min(TRAIL_MAX_PX, max(s.shape[0] for s in shots.values()))
+    tiles = []
+    for k in sorted(shots):
+        tags = [t for t, on in (("start", k == 0), ("best", k == best.get("iteration"))) if on]
+        label = f"iteration {k}" + (f" ({', '.join(tags)})" if tags else "")
+        if k in scores:
+            label += f", val {scores[k]:.2f}"
+        tiles.append(labelled(_fit(shots[k], side), label, min_side=176))
+    cols = min(6, len(tiles))
+    rows = [hstack(tiles[i : i + cols]) for i in range(0, len(tiles), cols)]
+    width = rows[0].shape[1]
+    rows = [np.concatenate([r, np.full((r.shape[0], width - r.shape[1], 3), 255, np.uint8)], 1) for r in rows]
+    gap = np.full((4, width, 3), 255, np.uint8)
+    path = out / "texture_over_iterations.png"
+    iio.imwrite(path, np.concatenate([x for r in rows for x in (r, gap)][:-1], 0))
+    return path
 
 
 def _first(images, camera: str):
@@ -215,6 +357,7 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         _recorded_figures(run, out, texture_before)
     else:
         _rollout_figures(run, out, texture_before)
+    _texture_over_iterations(run, out, texture_before)
     h = run.state.history
     tail = max(1, len(h.iteration) // 10)
     pose = h.terms.get("pose")
@@ -251,7 +394,68 @@ def write_outputs(run, out_dir: str | Path, texture_before: torch.Tensor) -> dic
         "meshes": {k: str(v.relative_to(out)) for k, v in paths.items()},
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_attack_page(run, out, metrics)
     return metrics
+
+
+def write_attack_page(run, out: Path, metrics: dict) -> Path:
+    """``report.html`` (:mod:`sim.htmlreport`): the end-of-run summary (the held-out validation
+    first), the validations, the texture over iterations, Grad-CAM before and after with its colour
+    bar, the rollout under the final texture, and the files the run wrote."""
+    cfg = run.cfg
+    adv = run.spec.objects[run.spec.object_index("adversarial")]
+    mesh = cfg.adversarial_mesh or adv.mesh or adv.name
+    lines = summary_lines(metrics)  # the held-out validation's line second: first on the page
+    blocks = [Heading("Summary"), Text(lines[1], strong=True), Text(lines[0]), *(Text(x) for x in lines[2:])]
+    if not metrics.get("validation"):
+        blocks.append(Flag("Held-out validation was off: this run does not say whether the texture works."))
+    if (note := fixed_light_warning(cfg)) is not None and cfg.recordings is None:
+        blocks.append(Flag(note.removeprefix("warning: ")))
+    v = metrics.get("validation")
+    if v:
+        measure = v.get("measure", "T-ASR")
+        best_it = (v.get("best") or {}).get("iteration")
+        rows = [
+            [str(k), f"{t:.3f}", f"{d:.3f}" if d == d else "-", "best" if k == best_it else ""]
+            for k, t, d in zip(v["iteration"], v["t_asr"], v["dist_m"])
+        ]
+        n = (v.get("best") or {}).get("episodes", "?")
+        blocks += [
+            Heading("Held-out validation"),
+            Table(
+                ["iteration", f"held-out {measure}", "mean final distance to the object (m)", ""],
+                rows,
+                caption=f"each on the same {n} held-out configurations",
+            ),
+        ]
+    blocks += [
+        Heading("The texture over iterations"),
+        Figure.from_file(
+            out / "texture_over_iterations.png",
+            "the starting texture, the texture at the marked iterations, the best validated one and the final one "
+            "(val: the held-out score at that iteration)",
+        ),
+        Heading("Losses"),
+        Figure.from_file(out / "loss_curves.png", "held-out validation, the objective's terms and the gradient norm"),
+        Heading("Grad-CAM before and after"),
+        Figure.from_file(
+            out / "gradcam_before_after.png",
+            "where the policy looks (Grad-CAM of the motion it executes next, red, scaled to its maximum in each "
+            "image; the colour bar shows the red added over a mid-grey image) under the starting and the final texture",
+        ),
+        Heading("Rollout under the final texture"),
+        Figure.from_file(out / "rollout_strip.png", "the policy's view, step by step"),
+        Heading("Files"),
+        Bullets(
+            [
+                "`texture.png`, `texture.npy`: the final texture; `best/`: the best validated one",
+                *(f"`{p}`: the textured mesh" for p in metrics.get("meshes", {}).values()),
+                "`metrics.json`, `run.json`, `configs.json`: figures, provenance and the configurations used",
+                "evaluate with `advobj eval --attack` on this folder for T-ASR by viewing angle and distance",
+            ]
+        ),
+    ]
+    return write_page(out, f"Attack report: {mesh} ({cfg.schedule}, {run.state.iteration} iterations)", blocks)
 
 
 def _rollout_figures(run, out: Path, texture_before: torch.Tensor) -> None:
@@ -271,7 +475,7 @@ def _rollout_figures(run, out: Path, texture_before: torch.Tensor) -> None:
 
     iio.imwrite(
         out / "gradcam_before_after.png",
-        hstack(
+        _gradcam_figure(
             [
                 labelled(
                     gradcam_overlay(run.policy, before, st, motion, cam), f"Grad-CAM, starting texture (config {seed})"
@@ -316,7 +520,7 @@ def _recorded_figures(run, out: Path, texture_before: torch.Tensor) -> None:
         overlays.append(
             labelled(gradcam_overlay(run.policy, one, st, motion, cam), f"Grad-CAM, {what} texture ({labels[0]})")
         )
-    iio.imwrite(out / "gradcam_before_after.png", hstack(overlays))
+    iio.imwrite(out / "gradcam_before_after.png", _gradcam_figure(overlays))
     with torch.no_grad():
         imgs = run.render_views(views, run.state.texture)
     shown = imgs[cam] if isinstance(imgs, dict) else imgs

@@ -9,7 +9,7 @@ from pydantic import Field
 
 from attack.artifact import write_config_record
 from attack.optimize import AttackError, AttackRun, fixed_light_warning, resolve_config, run_attack
-from attack.outputs import write_outputs
+from attack.outputs import texture_trail, write_outputs
 from attack.state import find_checkpoint
 from sim.configio import StrictModel, file_error, read_yaml
 from sim.configs import PoolError, in_part, load_pool, save_pool, spec_fingerprint
@@ -159,7 +159,7 @@ def attack_job(
             cfg.seed,
         )
         write_config_record(out, run.pool, run.val_pool)
-        run_attack(run, progress=progress)
+        run_attack(run, progress=progress, on_iteration=texture_trail(out, cfg))
         return write_outputs(run, out, before)
     finally:
         run.close()
