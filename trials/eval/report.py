@@ -17,7 +17,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 from PIL import Image
 
+from sim.htmlreport import Bullets, Figure, Flag, Gallery, Heading, Table, Text, write_page
 from sim.imaging import write_gif
+from trials.eval.episodes import read_rows
 from trials.eval.metrics import (
     DISTANCE_BINS_CM,
     PHI_BINS_DEG,
@@ -34,6 +36,9 @@ __all__ = [
     "paired_tests",
     "HEADLINE",
     "write_report",
+    "plot_rate_bars",
+    "rate_bars_figure",
+    "pick_rollout",
     "format_headline",
     "fmt_rate",
     "fmt_err",
@@ -214,45 +219,99 @@ def _fmt_p(p: float) -> str:
     return f"{p:.2g}" if p >= 1e-4 else f"{p:.1e}"
 
 
-def _bar_plot(path: Path, summary: dict, key: str, title: str, xlabel: str) -> Path:
-    matplotlib.use("Agg")
-
-    conds = list(summary["conditions"])
-    labels = [k for k in summary["conditions"][conds[0]][key] if k != "outside"]
-    x = np.arange(len(labels))
-    width = 0.8 / max(1, len(conds))
-    fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.2 * len(labels) * 2), 4.0), sharey=True)
-    for ax, metric, name in zip(axes, ("tasr", "asr"), ("T-ASR", "ASR")):
-        for ci, c in enumerate(conds):
-            bins = summary["conditions"][c][key]
-            rate = np.array([bins[l][metric]["rate"] if bins[l]["n"] else np.nan for l in labels]) * 100
-            lo = np.array([bins[l][metric]["lo"] for l in labels]) * 100
-            hi = np.array([bins[l][metric]["hi"] for l in labels]) * 100
-            yerr = np.stack([np.nan_to_num(rate - lo), np.nan_to_num(hi - rate)])
-            xs = x + (ci - (len(conds) - 1) / 2) * width
-            full = ~np.isnan(rate)
-            ax.bar(xs[full], rate[full], width, yerr=yerr[:, full], capsize=2, label=c, color=f"C{ci}")
-            # An empty bin is not a 0% bin: no bar, a hatched outline and "n=0".
-            for xe in xs[~full]:
-                ax.bar(xe, 100, width, fill=False, hatch="//", edgecolor="0.7", linewidth=0.5)
-                ax.text(xe, 50, "n=0", rotation=90, ha="center", va="center", fontsize=6, color="0.4")
-        ax.set_xticks(x, labels, rotation=30)
-        ax.set_title(f"{name} by {title}")
-        ax.set_xlabel(xlabel)
-        ax.set_ylim(0, 105)
-    axes[0].set_ylabel("% (95% Wilson intervals)")
-    # The legend goes below the axes: inside, it covers bars once a table has many conditions.
-    handles, names = axes[0].get_legend_handles_labels()
-    fig.legend(handles, names, loc="lower center", ncol=min(6, len(names)), fontsize=7, frameon=False)
-    fig.tight_layout(rect=(0, 0.06 + 0.05 * ((len(names) - 1) // 6), 1, 1))
+def plot_rate_bars(
+    path: Path,
+    labels: list[str],
+    series: dict[str, dict[str, dict]],
+    title: str,
+    xlabel: str,
+    panels=(("tasr", "T-ASR"), ("asr", "ASR")),
+) -> Path:
+    """:func:`rate_bars_figure` saved as a PNG at ``path``."""
+    fig = rate_bars_figure(labels, series, title, xlabel, panels)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
 
 
-def _compare_gifs(out: Path, names: list[str]) -> list[Path]:
-    """Side-by-side clean | condition GIFs for every recorded seed."""
-    made = []
+def rate_bars_figure(
+    labels: list[str],
+    series: dict[str, dict[str, dict]],
+    title: str,
+    xlabel: str,
+    panels=(("tasr", "T-ASR"), ("asr", "ASR")),
+):
+    """Bar chart of rates with their 95% intervals and ``n`` on every bar, one panel per metric.
+
+    ``series``: ``{name: {label: cell}}``, one colour per name, where a cell has ``n`` and each
+    metric of ``panels`` as a proportion dict (``rate``, ``lo``, ``hi``); a label a series lacks is
+    an empty bin. An empty bin (n = 0) draws no bar, only "n=0" at its foot; a 0 % bin draws a
+    line at 0 in the series' colour (a bar of no height is otherwise invisible). The legend sits
+    above the panels, in the axes' font size. The evaluation's bins and the trial report's
+    conditions both draw through here."""
+    matplotlib.use("Agg")
+
+    names = list(series)
+    x = np.arange(len(labels))
+    width = 0.8 / max(1, len(names))
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(max(8, 0.55 * len(labels) * max(2, len(names))) * len(panels) / 2, 4.6), sharey=True
+    )
+    axes = np.atleast_1d(axes)
+    upright = len(names) > 1  # bars side by side: n written upwards, so neighbours' labels do not overlap
+    small = len(labels) * len(names) > 24
+    for ax, (metric, name) in zip(axes, panels):
+        for si, c in enumerate(names):
+            cells = [series[c].get(l) for l in labels]
+            n = np.array([cell["n"] if cell else 0 for cell in cells])
+            full = n > 0
+            rate = np.array([100 * cell[metric]["rate"] if f else np.nan for cell, f in zip(cells, full)])
+            lo = np.array([100 * cell[metric]["lo"] if f else np.nan for cell, f in zip(cells, full)])
+            hi = np.array([100 * cell[metric]["hi"] if f else np.nan for cell, f in zip(cells, full)])
+            xs = x + (si - (len(names) - 1) / 2) * width
+            colour = f"C{si}"
+            yerr = np.clip(np.stack([rate - lo, hi - rate])[:, full], 0, None)
+            ax.bar(xs[full], rate[full], width, yerr=yerr, capsize=2, label=c, color=colour, ecolor="0.25")
+            for xe, r, top, k, f in zip(xs, rate, hi, n, full):
+                if not f:
+                    ax.text(xe, 1.5, "n=0", rotation=90, ha="center", va="bottom", fontsize=7, color="0.45")
+                    continue
+                if r == 0:
+                    ax.hlines(0, xe - width / 2, xe + width / 2, colors=colour, linewidth=4)
+                ax.text(
+                    xe,
+                    top + 1.5,
+                    f"n={k}",
+                    rotation=90 if upright else 0,
+                    ha="center",
+                    va="bottom",
+                    fontsize=7 if small else 8,
+                )
+        ax.set_xticks(x, labels, rotation=30 if len(labels) > 4 else 0)
+        ax.set_title(f"{name} by {title}")
+        ax.set_xlabel(xlabel)
+        ax.set_ylim(-2, 118)
+        ax.set_yticks(range(0, 101, 20))
+        ax.axhline(0, color="0.6", linewidth=0.6)
+    axes[0].set_ylabel("% (95% Wilson intervals)")
+    handles, shown = axes[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, shown, loc="upper center", ncol=min(6, len(shown)), fontsize=10, frameon=False)
+    rows = 1 + (len(shown) - 1) // 6 if handles else 0
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.07 * rows))
+    return fig
+
+
+def _bar_plot(path: Path, summary: dict, key: str, title: str, xlabel: str) -> Path:
+    conds = list(summary["conditions"])
+    labels = [k for k in summary["conditions"][conds[0]][key] if k != "outside"]
+    series = {c: {l: summary["conditions"][c][key][l] for l in labels} for c in conds}
+    return plot_rate_bars(path, labels, series, title, xlabel)
+
+
+def _compare_gifs(out: Path, names: list[str]) -> dict[tuple[str, int], Path]:
+    """Side-by-side clean | condition GIFs for every recorded seed: ``{(condition, seed): path}``."""
+    made = {}
     gdir = out / "gifs"
     for clean_gif in sorted(gdir.glob("clean_seed*.gif")) if gdir.is_dir() else []:
         seed = clean_gif.stem.split("_seed")[1]
@@ -266,76 +325,164 @@ def _compare_gifs(out: Path, names: list[str]) -> list[Path]:
             frames = [
                 np.concatenate([a[min(i, len(a) - 1)][..., :3], b[min(i, len(b) - 1)][..., :3]], 1) for i in range(n)
             ]
-            made.append(write_gif(gdir / f"compare_clean_vs_{c}_seed{seed}.gif", frames))
+            made[(c, int(seed))] = write_gif(gdir / f"compare_clean_vs_{c}_seed{seed}.gif", frames)
     return made
 
 
-def write_report(out: str | Path, summary: dict, conds=(), spec=None) -> Path:
-    """Write ``report.md`` with the headline, tables, bar plots, rollout GIFs and texture thumbnails.
+def pick_rollout(rows: list[dict], arm: str, seeds) -> tuple[int | None, str]:
+    """The recorded configuration (of ``seeds``) to show for ``arm``: one where ``arm`` reached the
+    adversarial object and ``clean`` did not, preferring one where clean reached the goal (lowest
+    seed first). Returns ``(seed, why)``; ``seed`` is None when no recorded configuration is one,
+    and ``why`` then says so, naming how many configurations are and how to record one."""
+    by = {(r["condition"], r["seed"]): r for r in rows}
+    recorded = sorted(int(x) for x in seeds)
+
+    def ok(seed, clean_goal):
+        a, c = by.get((arm, seed)), by.get(("clean", seed))
+        return (
+            a is not None and c is not None and a["targeted"] and not c["targeted"] and (c["success"] or not clean_goal)
+        )
+
+    for clean_goal in (True, False):
+        for seed in recorded:
+            if ok(seed, clean_goal):
+                return seed, (
+                    f"configuration {seed}: `{arm}` reached the adversarial object, `clean` "
+                    + ("reached the goal" if clean_goal else f"ended `{by[('clean', seed)]['outcome']}`")
+                )
+    anywhere = sorted({r["seed"] for r in rows if r["condition"] == arm} & {r["seed"] for r in rows})
+    where = [x for x in anywhere if ok(x, False)]
+    return None, (
+        f"none of the {len(recorded)} recorded configurations ({', '.join(map(str, recorded)) or 'none'}) is one where "
+        f"`{arm}` reached the adversarial object and `clean` did not"
+        + (
+            f"; {len(where)} of the evaluated configurations are (e.g. {', '.join(map(str, where[:5]))}): "
+            "re-run the evaluation with a larger `--gifs` to record more"
+            if where
+            else "; no evaluated configuration is one"
+        )
+    )
+
+
+def _outcome_text(rows: list[dict], seed: int, names: list[str]) -> str:
+    by = {(r["condition"], r["seed"]): r["outcome"] for r in rows}
+    return ", ".join(f"{c}: {by[(c, seed)]}" for c in names if (c, seed) in by)
+
+
+def _main_table(summary: dict) -> tuple[list[str], list[list[str]]]:
+    header = [
+        "condition",
+        "n",
+        "T-ASR % [95% CI]",
+        "ASR % [95% CI]",
+        "E_trans [95% CI]",
+        "E_rot rad [95% CI]",
+        "McNemar p vs clean (ASR)",
+        "(T-ASR)",
+    ]
+    rows = []
+    for c, s in summary["conditions"].items():
+        vs = s.get("vs_clean")
+        rows.append(
+            [
+                c,
+                str(s["n"]),
+                fmt_rate(s["tasr"]),
+                fmt_rate(s["asr"]),
+                fmt_err(s["e_trans"]),
+                fmt_err(s["e_rot"], 4),
+                _fmt_p(vs["asr"]["p_value"]) if vs else "-",
+                _fmt_p(vs["tasr"]["p_value"]) if vs else "-",
+            ]
+        )
+    return header, rows
+
+
+def _bins_table(summary: dict, key: str) -> tuple[list[str], list[list[str]]]:
+    names = list(summary["conditions"])
+    labels = [k for k in summary["conditions"][names[0]][key] if k != "outside"]
+    rows = []
+    for c in names:
+        b = summary["conditions"][c][key]
+        rows.append([c] + [f"{_pct(b[l]['tasr'])} / {_pct(b[l]['asr'])} (n={b[l]['n']})" for l in labels])
+    return ["condition"] + labels, rows
+
+
+def _paired_table(summary: dict, with_clean: bool) -> tuple[list[str], list[list[str]]]:
+    """McNemar between arms: every pair of non-clean arms, and each arm against clean when asked."""
+    pairs = dict(summary.get("paired") or {})
+    if with_clean:
+        pairs = {f"{c} vs clean": s["vs_clean"] for c, s in summary["conditions"].items() if s.get("vs_clean")} | pairs
+    rows = [
+        [
+            k,
+            f"{v['tasr']['b']} / {v['tasr']['c']}",
+            _fmt_p(v["tasr"]["p_value"]),
+            f"{v['asr']['b']} / {v['asr']['c']}",
+            _fmt_p(v["asr"]["p_value"]),
+        ]
+        for k, v in pairs.items()
+    ]
+    return ["A vs B", "T-ASR: only A / only B", "p", "ASR: only A / only B", "p"], rows
+
+
+def _md_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in rows]
+
+
+BINNINGS = (("by_phi", "viewing angle phi", "deg"), ("by_distance", "initial distance", "cm"))
+
+
+def write_report(out: str | Path, summary: dict, conds=(), spec=None, rows: list[dict] | None = None) -> Path:
+    """Write ``report.md`` with the headline, tables, bar plots, rollout GIFs and texture thumbnails,
+    and ``report.html`` (:mod:`sim.htmlreport`), the same with every image embedded: the page a person
+    opens; the Markdown stays for diffs.
 
     ``conds`` (:class:`trials.eval.conditions.Condition`) and ``spec`` (the scene evaluated) name the
-    mesh each arm shows in the header, and give the texture thumbnails.
+    mesh each arm shows in the header, and give the texture thumbnails. ``rows`` (the episodes; by
+    default the folder's own) choose the rollout shown: a configuration where the attack reached the
+    adversarial object and clean did not (:func:`pick_rollout`).
     """
     out = Path(out)
     names = list(summary["conditions"])
     meta = summary.get("meta", {})
-    lines = [
-        "# Evaluation report",
-        "",
+    rows = read_rows(out) if rows is None else rows
+    header_line = (
         f"Policy: `{meta.get('policy', '?')}`; goal `{summary['goal']}`, {_object_text(summary, conds, spec)}; "
         f"{meta.get('episodes_available', '?')} task-feasible configurations (of {meta.get('episodes_requested', '?')} "
         "requested) "
         f"from `{meta.get('pool', '?')}`, episodes of at most {meta.get('max_steps', '?')} steps, same configurations "
-        "for every condition.",
-        "",
-        *_headline_lines(summary, conds, spec),
-        _overlap_line(meta.get("overlap")),
-        "",
-        "| condition | n | T-ASR % [95% CI] | ASR % [95% CI] | E_trans [95% CI] | E_rot rad [95% CI] | McNemar p "
-        "vs clean (ASR) | (T-ASR) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for c in names:
-        s = summary["conditions"][c]
-        vs = s.get("vs_clean")
-        pa = _fmt_p(vs["asr"]["p_value"]) if vs else "-"
-        pt = _fmt_p(vs["tasr"]["p_value"]) if vs else "-"
-        lines.append(
-            f"| {c} | {s['n']} | {fmt_rate(s['tasr'])} | {fmt_rate(s['asr'])} | {fmt_err(s['e_trans'])} | "
-            f"{fmt_err(s['e_rot'], 4)} | {pa} | {pt} |"
-        )
-    for key, title, unit in (("by_phi", "viewing angle phi", "deg"), ("by_distance", "initial distance", "cm")):
-        labels = [k for k in summary["conditions"][names[0]][key] if k != "outside"]
-        lines += [
-            "",
-            f"## T-ASR / ASR (%) by {title} ({unit})",
-            "",
-            "| condition | " + " | ".join(labels) + " |",
-            "|---|" + "---|" * len(labels),
-        ]
-        for c in names:
-            b = summary["conditions"][c][key]
-            cells = [f"{_pct(b[l]['tasr'])} / {_pct(b[l]['asr'])} (n={b[l]['n']})" for l in labels]
-            lines.append(f"| {c} | " + " | ".join(cells) + " |")
-        png = _bar_plot(out / f"bars_{key}.png", summary, key, title, unit)
-        lines += ["", f"![{title}]({png.name})"]
+        "for every condition."
+    )
+    headline = _headline_lines(summary, conds, spec)
+    overlap = _overlap_line(meta.get("overlap"))
+    main = _main_table(summary)
+    lines = ["# Evaluation report", "", header_line, "", *headline, overlap, "", *_md_table(*main)]
+    plots = {}
+    for key, title, unit in BINNINGS:
+        lines += ["", f"## T-ASR / ASR (%) by {title} ({unit})", "", *_md_table(*_bins_table(summary, key))]
+        plots[key] = _bar_plot(out / f"bars_{key}.png", summary, key, title, unit)
+        lines += ["", f"![{title}]({plots[key].name})"]
     if summary.get("paired"):
         lines += [
             "",
             "## Paired comparisons between conditions (McNemar exact, same configurations)",
             "",
-            "| A vs B | T-ASR: only A / only B | p | ASR: only A / only B | p |",
-            "|---|---|---|---|---|",
+            *_md_table(*_paired_table(summary, with_clean=False)),
         ]
-        for k, v in summary["paired"].items():
-            lines.append(
-                f"| {k} | {v['tasr']['b']} / {v['tasr']['c']} | {_fmt_p(v['tasr']['p_value'])} | "
-                f"{v['asr']['b']} / {v['asr']['c']} | {_fmt_p(v['asr']['p_value'])} |"
-            )
     gifs = _compare_gifs(out, names)
+    recorded = sorted({seed for _, seed in gifs})
+    shown = {}  # arm -> (seed, why): the configuration shown for it
+    for c in names:
+        if c != "clean" and any(k[0] == c for k in gifs):
+            shown[c] = pick_rollout(rows, c, recorded)
     if gifs:
         lines += ["", "## Rollouts (left: clean, right: condition; same initial configuration)", ""]
-        lines += [f"![{g.stem}](gifs/{g.name})" for g in gifs]
+        for c, (seed, why) in shown.items():
+            lines.append(f"- `{c}`: {why}." if seed is None else f"- `{c}` (shown first): {why}.")
+        lines.append("")
+        order = sorted(gifs, key=lambda k: (names.index(k[0]), k[1] != shown.get(k[0], (None,))[0], k[1]))
+        lines += [f"![{gifs[k].stem}](gifs/{gifs[k].name}) {_outcome_text(rows, k[1], ['clean', k[0]])}" for k in order]
     thumbs = []
     for cond in conds:
         if cond.texture is not None:
@@ -343,13 +490,65 @@ def write_report(out: str | Path, summary: dict, conds=(), spec=None) -> Path:
             tdir.mkdir(exist_ok=True)
             p = tdir / f"{cond.name}.png"
             iio.imwrite(p, np.asarray(Image.fromarray(cond.texture).resize((96, 96), Image.NEAREST)))
-            thumbs.append(f"![{cond.name}](textures/{p.name}) `{cond.name}` ({cond.mesh or 'scene mesh'})")
+            thumbs.append((cond, p))
     if thumbs:
-        lines += ["", "## Textures", ""] + thumbs
+        lines += ["", "## Textures", ""]
+        lines += [f"![{c.name}](textures/{p.name}) `{c.name}` ({c.mesh or 'scene mesh'})" for c, p in thumbs]
     lines += ["", "## Metric definitions", "", METRIC_DEFINITIONS]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
+    _write_html(out, summary, header_line, headline, overlap, main, plots, gifs, shown, rows, thumbs)
     return path
+
+
+def _write_html(out, summary, header_line, headline, overlap, main, plots, gifs, shown, rows, thumbs) -> Path:
+    """``report.html``: the Markdown report's content, at a glance first (headline, the arms, the
+    paired tests), then the bins' charts, the chosen rollouts, the textures and the definitions."""
+    blocks = [Heading("Summary"), Text(header_line)]
+    blocks += [Text(h, strong=True) if h.startswith("**Headline") else Text(h) for h in headline if h]
+    blocks += [Text(overlap), Table(*main, caption="Every arm on the same configurations")]
+    paired = _paired_table(summary, with_clean=True)
+    if paired[1]:
+        blocks += [
+            Heading("Paired tests between arms"),
+            Text(
+                "McNemar's exact test on the configurations both arms ran: only A / only B count the "
+                "configurations where just one arm had the event."
+            ),
+            Table(*paired),
+        ]
+    for key, title, unit in BINNINGS:
+        blocks += [
+            Heading(f"T-ASR and ASR by {title} ({unit})"),
+            Figure.from_file(plots[key], f"T-ASR and ASR (%) by {title}, 95% Wilson intervals, n on every bar"),
+            Table(*_bins_table(summary, key), caption="T-ASR % / ASR % (n) per bin"),
+        ]
+    if gifs:
+        blocks.append(Heading("Rollouts: clean (left) and the arm (right) from the same configuration"))
+        for c, (seed, why) in shown.items():
+            if seed is None:  # said, and the first recorded configuration shown as it is
+                seed = min(k[1] for k in gifs if k[0] == c)
+                blocks.append(Flag(f"`{c}`: {why}."))
+                why = f"configuration {seed} ({_outcome_text(rows, seed, ['clean', c])})"
+            blocks.append(Figure.from_file(gifs[(c, seed)], f"`{c}`, {why}"))
+    if thumbs:
+        blocks += [
+            Heading("Textures"),
+            Gallery(Figure.from_file(p, f"`{c.name}` ({c.mesh or 'scene mesh'})") for c, p in thumbs),
+        ]
+    blocks += [Heading("Metric definitions"), Bullets(l.removeprefix("- ") for l in _definition_items())]
+    return write_page(out, "Evaluation report", blocks)
+
+
+def _definition_items() -> list[str]:
+    """:data:`METRIC_DEFINITIONS` as one string per bullet (its continuation lines joined)."""
+    items: list[str] = []
+    for line in METRIC_DEFINITIONS.splitlines():
+        if line.startswith("- "):
+            items.append(line)
+        elif items and line.strip():
+            items[-1] += " " + line.strip()
+    return items
 
 
 def _pct(p: dict) -> str:
