@@ -4,19 +4,25 @@ The simulator renders a few short episodes through the existing renderer (:class
 with the adversarial object hidden (the frames a user records hold the real scene, never the object
 the attack adds), and :func:`sim.recording.write_recording` writes them: frame k at the TCP pose it
 was rendered from, the wrist camera with its scene intrinsics and mount ``T_tcp_cam``, scene cameras
-at their fixed ``T_table_cam``.
+at their fixed ``T_table_cam`` (:func:`trials.recordings.simulated.scene_cameras`, as ``advobj record
+sim`` declares them). Unlike ``advobj record sim`` (closed-loop episodes of a policy), the TCP moves
+straight ahead here, so a test's frames do not depend on a policy.
 """
 
 from __future__ import annotations
+
+import contextlib
+from unittest import mock
 
 import numpy as np
 
 from sim.action import next_tcp_pose
 from sim.configs import sample_config
 from sim.geometry import make_T
-from sim.recording import RecordedStep, RecordingCamera, write_recording
+from sim.recording import RecordedStep, write_recording
 from sim.spec import WRIST
 from sim.world import SimWorld
+from trials.recordings.simulated import scene_cameras
 
 FORWARD = np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0])  # half a step along the TCP's approach axis
 
@@ -71,17 +77,28 @@ def sim_recording(
                 ep = spec.episode
                 world.set_tcp_pose(next_tcp_pose(world.T_world_tcp, FORWARD, ep.max_step_m, ep.max_step_rad))
             eps.append((f"ep{e}", rows))
-        cams = []
-        for c in cameras:
-            r = world.camera_renderer(c)
-            if c == WRIST:
-                cams.append(
-                    RecordingCamera(names.get(c, c), r.K, dist, r.width, r.height, "tcp", spec.camera.T_tcp_cam)
-                )
-            else:
-                T = spec.camera_spec(c).T_table_cam
-                cams.append(RecordingCamera(names.get(c, c), r.K, dist, r.width, r.height, "table", None, T))
+        cams = scene_cameras(spec, {c: world.camera_renderer(c) for c in cameras}, names, dist)
         base = make_T(np.eye(3), np.zeros(3)) if T_table_base is None else T_table_base
         return write_recording(path, cams, eps, T_table_base=base, sync_tolerance_s=0.01, source={"from": "sim"})
     finally:
         world.close()
+
+
+@contextlib.contextmanager
+def no_simulator():
+    """Within it, building the simulator's env or rolling one out raises AssertionError: what an
+    attack on recorded frames must never do (attack.recorded: open loop, no simulator in the loop)."""
+    import attack.optimize
+    import sim.env
+    import sim.policies.rollout
+
+    def refuse(*_a, **_k):
+        raise AssertionError("the recordings attack built a simulator env or rolled one out")
+
+    with (
+        mock.patch.object(sim.env.ReachEnv, "__init__", refuse),
+        mock.patch.object(attack.optimize, "ReachEnv", refuse),
+        mock.patch.object(attack.optimize, "rollout", refuse),
+        mock.patch.object(sim.policies.rollout, "rollout", refuse),
+    ):
+        yield

@@ -1,4 +1,5 @@
-"""``advobj record``: recordings (frames and poses) as input: import a trial session or a LeRobot dataset."""
+"""``advobj record``: recordings (frames and poses) as input: import a trial session or a LeRobot dataset, or
+record clean episodes in the simulator."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import typer
 from trials.cli.options import int_list, key_values
 
 app = typer.Typer(
-    no_args_is_help=True, help="Recordings as input: frames and poses from your trial sessions or LeRobot datasets."
+    no_args_is_help=True,
+    help="Recordings as input: frames and poses from your trial sessions, LeRobot datasets or the simulator.",
 )
 
 
@@ -67,6 +69,41 @@ def import_command(
         tolerance_s=tolerance_s,
     )
     rec = run_import(job, log=typer.echo)
+    frames = sum(e.n_frames for e in rec.episodes)
+    typer.echo(
+        f"recording: {len(rec.episodes)} episodes, {frames} steps, cameras {', '.join(rec.cameras)} in {rec.path}"
+    )
+
+
+@app.command("sim")
+def sim_command(
+    policy: Path = typer.Option(..., help="the policy that acts: a checkpoint directory, a .pt2 or an .onnx file"),
+    episodes: int = typer.Option(..., help="episodes to record (configurations of the split's attack part)"),
+    out: Path = typer.Option(..., help="the recording's folder (new or empty); nothing is written elsewhere"),
+    scene: Optional[Path] = typer.Option(None, help="scene YAML (default: the built-in scene)"),
+    seed: int = typer.Option(0, help="first configuration seed drawn (attack-part seeds from it on)"),
+    max_steps: Optional[int] = typer.Option(None, help="steps per episode (default: the scene's max_steps)"),
+    num_envs: int = typer.Option(8, help="episodes rolled out at once"),
+    cell: str = typer.Option(
+        "nominal", help="nominal: the scene as it is; shifted: the scene under another light, on another table"
+    ),
+    device: str = typer.Option("cpu", help="torch device of the policy"),
+) -> None:
+    """Record clean episodes of a policy in the simulator (the adversarial object hidden) as a recording."""
+    from trials.recordings.simulated import SimRecordJob, run_record_sim  # lazy: CLI start-up (torch, pyrender)
+
+    job = SimRecordJob(
+        policy=policy,
+        episodes=episodes,
+        out=out,
+        scene=scene,
+        seed=seed,
+        max_steps=max_steps,
+        num_envs=num_envs,
+        cell=cell,
+        device=device,
+    )
+    rec = run_record_sim(job, log=typer.echo, progress=True)
     frames = sum(e.n_frames for e in rec.episodes)
     typer.echo(
         f"recording: {len(rec.episodes)} episodes, {frames} steps, cameras {', '.join(rec.cameras)} in {rec.path}"
