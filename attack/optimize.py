@@ -48,7 +48,7 @@ from attack.recorded import VALIDATION_MEASURE, RecordedFrames
 from attack.render import HybridRenderer, render_adversarial_batch
 from attack.schedule import stage_index
 from attack.sources import SimRollouts
-from attack.state import AttackState, better_score, read_best, swap_in
+from attack.state import AttackState, better_score, find_checkpoint, read_best, swap_in
 from sim.configio import StrictModel
 from sim.configs import in_part, sample_pool
 from sim.env import ReachEnv
@@ -79,7 +79,12 @@ __all__ = [
     "AttackRun",
     "attack_step",
     "run_attack",
+    "read_cpu_record",
+    "CPU_RECORD",
 ]
+
+#: The key of a checkpoint's ``run.json`` config that holds the loop's CPU time and budget.
+CPU_RECORD = "cpu"
 
 
 class AttackError(AdvobjError, ValueError):
@@ -121,6 +126,13 @@ class AttackConfig(StrictModel):
         None,
         description="a recording folder (advobj record import): optimise on its frames with the object composited "
         "in (attack.recorded), validate on its held-out episodes, instead of simulator rollouts",
+    )
+    max_cpu_s: float | None = Field(
+        None,
+        gt=0,
+        le=1e7,
+        description="CPU budget (s, every thread of the process; a resumed run counts its earlier sessions): the run "
+        "ends at the first iteration that reaches it, validated and checkpointed as a finished one (None: no budget)",
     )
     seed: int = 0
     device: str = "cpu"
@@ -253,6 +265,7 @@ class AttackRun:
         for p in self.policy.parameters():
             p.requires_grad_(False)
         self.validation_measure = "T-ASR"
+        self.cpu_s = 0.0  # CPU time of the loop so far (run_attack), earlier sessions of a resumed run included
         if cfg.recordings is not None:
             self._init_recorded(policy, spec, pool, out_dir)
             return
@@ -574,8 +587,27 @@ class AttackRun:
         self.state.write(tmp, self.cfg.model_dump())
         # The evaluation-ready texture of this checkpoint (a user can stop here and use it):
         # checkpoint/ is itself a valid ``advobj eval --attack`` source.
-        self._write_attack_source(tmp, self.state.texture, {"checkpoint_iteration": self.state.iteration})
+        self._write_attack_source(
+            tmp, self.state.texture, {"checkpoint_iteration": self.state.iteration, CPU_RECORD: self.cpu_record()}
+        )
         return swap_in(tmp, self.out_dir / "checkpoint")
+
+    def cpu_record(self) -> dict:
+        """What the loop's CPU time and budget were at this point: ``cpu_s`` (s, the loop's, earlier
+        sessions included), ``max_cpu_s`` (the budget, None without one), ``iterations`` done of
+        ``iterations_planned``, and whether the budget ended the run (``stopped_at_budget``). Kept in
+        the checkpoint's ``run.json`` config (:func:`read_cpu_record`)."""
+        cfg = self.cfg
+        return {
+            "cpu_s": round(self.cpu_s, 3),
+            "max_cpu_s": cfg.max_cpu_s,
+            "iterations": self.state.iteration,
+            "iterations_planned": cfg.iterations,
+            "stopped_at_budget": cfg.max_cpu_s is not None
+            and self.state.iteration < cfg.iterations
+            and self.cpu_s >= cfg.max_cpu_s,
+        }
+
 
     def load_checkpoint(self, ckpt: str | Path) -> None:
         """Restore a checkpoint written by :meth:`save_checkpoint` (same config required)."""
@@ -594,6 +626,7 @@ class AttackRun:
                 "resume with the checkpoint's values or start a new run directory"
             )
         self.state = state
+        self.cpu_s = float((_checkpoint_config(ckpt).get(CPU_RECORD) or {}).get("cpu_s", 0.0))
         # best/ may be newer than the checkpoint (a crash between the two writes); it is the
         # larger score, and replaying the iterations in between reproduces it exactly.
         disk = read_best(ckpt.parent / "best")
@@ -608,6 +641,22 @@ class AttackRun:
         if self._val_env is not None:
             self._val_env.close()
             self._val_env = None
+
+
+def _checkpoint_config(ckpt: Path) -> dict:
+    """The ``run.json`` config of checkpoint folder ``ckpt`` (empty when it has none)."""
+    try:
+        return AttackArtifact.load(ckpt, error=AttackError).config
+    except AttackError:
+        return {}
+
+
+def read_cpu_record(run_dir: str | Path) -> dict | None:
+    """The CPU record (:meth:`AttackRun.cpu_record`) of the attack run in ``run_dir``, as of its latest
+    checkpoint (a finished run's last one); None when it has none."""
+    ckpt = find_checkpoint(run_dir)
+    rec = None if ckpt is None else _checkpoint_config(ckpt).get(CPU_RECORD)
+    return rec if isinstance(rec, dict) else None
 
 
 def attack_step(run: AttackRun, state: AttackState) -> dict:
@@ -660,21 +709,30 @@ def run_attack(
 ) -> AttackRun:
     """Iterate to ``cfg.iterations`` with validation and checkpoints; Ctrl-C saves a checkpoint,
     then re-raises. The one attack loop: ``on_iteration(run, info)`` runs after each iteration's
-    validation and checkpoint (the tradeoff sweep writes its snapshots there)."""
+    validation and checkpoint (the tradeoff sweep writes its snapshots there). With
+    ``cfg.max_cpu_s``, the first iteration at which the loop's CPU time (``time.process_time``: every
+    thread, validation included; a resumed run adds its earlier sessions') reaches the budget is the
+    last: validated and checkpointed as the final one; the checkpoint records the CPU time, the budget
+    and the iterations done (:func:`read_cpu_record`)."""
     cfg = run.cfg
     bar = tqdm(total=cfg.iterations, initial=run.state.iteration, desc=desc, disable=not progress, dynamic_ncols=True)
-    t0 = time.perf_counter()
-    start_seconds = run.state.history.seconds
+    t0, c0 = time.perf_counter(), time.process_time()
+    start_seconds, start_cpu = run.state.history.seconds, run.cpu_s
     validating = cfg.validation_every > 0
+    budget = cfg.max_cpu_s
     try:
         if validating and not run.state.history.val_iteration:
             run.validate_and_keep_best()  # the starting texture is the first "best so far"
-        while run.state.iteration < cfg.iterations:
+        spent = budget is not None and run.cpu_s >= budget  # a resumed run that had reached its budget
+        while run.state.iteration < cfg.iterations and not spent:
             info = run.step()
-            last = run.state.iteration == cfg.iterations
+            run.cpu_s = start_cpu + time.process_time() - c0
+            spent = budget is not None and run.cpu_s >= budget  # the CPU budget ends the run here
+            last = run.state.iteration == cfg.iterations or spent
             if validating and (run.state.iteration % cfg.validation_every == 0 or last):
                 run.validate_and_keep_best()
             run.state.history.seconds = start_seconds + time.perf_counter() - t0
+            run.cpu_s = start_cpu + time.process_time() - c0
             post = {name: f"{v:.4g}" for name, v in info["terms"].items()}
             if run.state.history.val_t_asr:
                 post["val_t_asr"] = f"{run.state.history.val_t_asr[-1]:.2f}"
@@ -686,6 +744,7 @@ def run_attack(
                 on_iteration(run, info)
     except KeyboardInterrupt:
         if run.out_dir is not None:
+            run.cpu_s = start_cpu + time.process_time() - c0
             run.save_checkpoint()
         raise
     finally:

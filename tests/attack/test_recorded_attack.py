@@ -19,7 +19,7 @@ from attack.outputs import write_outputs
 from attack.state import find_checkpoint
 from sim.policies.policy import VisuomotorPolicy
 from sim.spec import default_scene
-from tests.attack.recordings_helpers import sim_recording
+from tests.attack.recordings_helpers import no_simulator, sim_recording
 
 S = 64  # the policy's (and the recorded wrist camera's) image size
 TINY = {
@@ -108,25 +108,17 @@ def test_a_resumed_recordings_run_reaches_the_same_texture_bit_for_bit(rec, spec
     assert not torch.equal(full.state.texture, start)  # the texture moved: the equality says something
 
 
-def test_the_recordings_attack_never_constructs_the_simulators_env(rec, spec, tmp_path, monkeypatch):
-    import attack.optimize
-    import sim.env
-    import sim.policies.rollout
-
-    def refuse(*_a, **_k):
-        raise AssertionError("the recordings attack built a simulator env or rolled one out")
-
-    monkeypatch.setattr(sim.env.ReachEnv, "__init__", refuse)
-    monkeypatch.setattr(attack.optimize, "ReachEnv", refuse)
-    monkeypatch.setattr(attack.optimize, "rollout", refuse)
-    monkeypatch.setattr(sim.policies.rollout, "rollout", refuse)
-    run = AttackRun(_policy(), spec, resolve_config("quick", {**TINY, "recordings": str(rec.path)}), out_dir=tmp_path)
-    try:
-        before = run.state.texture.clone()
-        run_attack(run, progress=False)
-        metrics = write_outputs(run, tmp_path, before)
-    finally:
-        run.close()
+def test_the_recordings_attack_never_constructs_the_simulators_env(rec, spec, tmp_path):
+    with no_simulator():
+        run = AttackRun(
+            _policy(), spec, resolve_config("quick", {**TINY, "recordings": str(rec.path)}), out_dir=tmp_path
+        )
+        try:
+            before = run.state.texture.clone()
+            run_attack(run, progress=False)
+            metrics = write_outputs(run, tmp_path, before)
+        finally:
+            run.close()
     assert run.env is None and metrics["validation"]["measure"] == recorded.VALIDATION_MEASURE
     assert (tmp_path / "texture.png").is_file() and (tmp_path / "best" / "texture.npy").is_file()
     assert json.loads((tmp_path / "configs.json").read_text())["attack"] == []  # no simulator configuration
