@@ -31,7 +31,9 @@ optimisations), so both the configuration and the seed-to-seed variance are in i
 verdict is then the one over seeds, with the same rules on that interval; the single-texture
 verdict is printed beside it.
 Transfer (F5) compares different policies on their own task-feasible configurations, so it is not
-paired: it holds when the 95% interval of T-ASR(target) / T-ASR(white-box) lies above 1/2.
+paired: it holds when the 95% interval of T-ASR(target) / T-ASR(white-box) lies above 1/2. The
+recordings finding (F7) is a ratio too, against the floor 0.7; over attack seeds its interval is the
+same two-level bootstrap, of the ratio of the arms' means.
 
     python -m trials.experiments.findings            # rewrite results/findings.md and the README/docs blocks
     python -m trials.experiments.findings --check    # exit 1 if any of them is stale
@@ -65,6 +67,7 @@ __all__ = [
     "Subgroup",
     "Finding",
     "FINDINGS",
+    "recordings_finding",
     "FollowUp",
     "NOTES",
     "Paired",
@@ -290,6 +293,47 @@ C2F_F2C = _t2("c2f", "f2c", ("C2F", "F2C"))
 TARGETED = _t2("c2f", "c2f_untargeted", ("targeted", "untargeted"))
 SALIENCY = _t2("c2f", "c2f_no_saliency", ("with saliency", "without"), short=("saliency on", "off"))
 
+
+def recordings_finding(sizes: tuple[int, ...] = (5, 20, 80)) -> Finding:
+    """F7 on the ``recordings`` recipe's arms for recordings of ``sizes`` episodes (its
+    ``RECORDED_EPISODES``): the recordings attack on the largest recording against the closed-loop
+    simulator attack at the same CPU budget, as a ratio of T-ASR with the floor 0.7 (over attack
+    seeds when the run has several), with the growth from each recording to the next larger one and
+    the shifted cell as extras."""
+    sizes = tuple(sorted(sizes))
+    big = sizes[-1]
+
+    def rec(name: str) -> Arm:
+        return Arm(f"recordings_{name}")
+
+    growth = tuple(
+        Part(rec(f"nominal_{b}"), rec(f"nominal_{a}"), (f"{b} episodes", f"{a} episodes"))
+        for a, b in zip(sizes, sizes[1:])
+    )
+    shift = Part(rec(f"shifted_{big}"), rec(f"nominal_{big}"), ("shifted cell", "same cell"))
+    return Finding(
+        "F7",
+        f"an attack on recorded frames ({big} clean episodes, no simulator in the loop) keeps at least 70% of the "
+        "T-ASR of the closed-loop simulator attack given the same CPU time",
+        "not in the paper (its attacks, like every published one on robot policies, run in a simulator); a new "
+        "measurement, the simulator standing in for the real cell",
+        "recordings",
+        (Part(rec(f"nominal_{big}"), rec("closed_loop"), (f"recordings ({big} episodes)", "closed loop"), "ratio"),),
+        floor=0.7,
+        control="clean",
+        seeds="recordings",
+        optional=True,
+        extras=(*growth, shift),
+        parts_title="recordings vs closed loop, by recorded episodes and in a shifted cell",
+        shortfall=(
+            "results/recordings/table.md holds what tells the causes apart: whether the CPU budget cut the "
+            "recordings attack's iterations short of the closed-loop attack's, its open-loop validation (the toward "
+            "fraction) against the closed-loop one's T-ASR, and how T-ASR grows with the recorded episodes (the "
+            "comparisons above)."
+        ),
+    )
+
+
 FINDINGS: tuple[Finding, ...] = (
     Finding(
         "F1",
@@ -385,6 +429,9 @@ FINDINGS: tuple[Finding, ...] = (
         optional=True,
         title="F6: which camera carries the attack (results/cameras/)",
     ),
+    # Declared before its data ran (results/recordings/, the recordings recipe, issue 29): the attack on
+    # recorded frames against the closed-loop simulator attack. Not a finding of the paper.
+    recordings_finding(),
     Finding(
         "F5",
         "black-box transfer keeps more than half of the white-box T-ASR",
@@ -575,15 +622,17 @@ def over_seeds(
     where=None,
     resamples: int = BOOTSTRAP,
     seed: int = BOOTSTRAP_SEED,
+    floor: float = 0.5,
 ) -> OverSeeds | None:
     """Part ``part`` over attack seeds (``seed -> config -> row`` per arm, :func:`seed_arms`); None
     with fewer than two seeds or when the run did not include one of the arms. Both arms must have
     the same attack seeds, else ValueError.
 
     The statistic is mean over seeds of the arm's rate, A minus B, on the configurations every run
-    has (restricted by ``where``). Its interval is a two-level (hierarchical) bootstrap: each of
-    ``resamples`` draws resamples the configurations with replacement (the same draw for every run,
-    since they share the configurations) and, independently per arm, the arm's seeds with
+    has (restricted by ``where``); for a ``"ratio"`` part, A's mean over B's (``diff`` holds it),
+    judged against ``floor`` as a ratio part is. Its interval is a two-level (hierarchical) bootstrap:
+    each of ``resamples`` draws resamples the configurations with replacement (the same draw for every
+    run, since they share the configurations) and, independently per arm, the arm's seeds with
     replacement. A bootstrap over only 3 seeds understates the seed variance somewhat (a resample
     of 3 has less spread than the population); the per-seed rates are printed so the reader sees it.
     """
@@ -610,11 +659,21 @@ def over_seeds(
     wa, wb = np.zeros((resamples, k)), np.zeros((resamples, k))
     np.add.at(wa, (rows, rng.integers(0, k, size=(resamples, k))), 1.0 / k)  # seed weights, arm A
     np.add.at(wb, (rows, rng.integers(0, k, size=(resamples, k))), 1.0 / k)  # and arm B, independent
-    stat = ((wa @ xa - wb @ xb) * cw).sum(axis=1)
+    ratio = part.claim == "ratio"
+    ma, mb = ((wa @ xa) * cw).sum(axis=1), ((wb @ xb) * cw).sum(axis=1)
+    if ratio:  # a resample whose reference rate is 0 has no ratio (NaN: the interval then says nothing)
+        stat = np.divide(ma, mb, out=np.full_like(ma, math.nan), where=mb > 0)
+    else:
+        stat = ma - mb
     lo, hi = (float(v) for v in np.quantile(stat, [0.025, 0.975]))
     ra, rb = tuple(float(v) for v in xa.mean(1)), tuple(float(v) for v in xb.mean(1))
-    diff = sum(ra) / k - sum(rb) / k
     keep = set(configs)
+    if ratio:
+        diff = sum(ra) / sum(rb) if sum(rb) > 0 else math.nan
+        v = "holds" if lo > floor else ("does not hold" if hi < floor else "inconclusive")
+        per_seed = tuple(_ratio_verdict(xa[i].sum(), n, xb[i].sum(), n, floor) for i in range(k))
+        return OverSeeds(part, seeds, n, ra, rb, diff, lo, hi, v, per_seed)
+    diff = sum(ra) / k - sum(rb) / k
     per_seed = tuple(
         verdict(paired({c: a[s][c] for c in keep}, {c: b[s][c] for c in keep}, event), part.claim) for s in seeds
     )
@@ -676,6 +735,14 @@ class Evaluated:
     single: str = ""  # the verdict on the recipe's one texture per arm (the verdict when no seed runs)
 
 
+def _ratio_verdict(k: float, n: int, k_ref: float, n_ref: int, floor: float) -> str:
+    """The verdict on "rate(a) / rate(ref) > floor" from the ratio's 95% interval (:func:`_ratio_ci`)."""
+    if not n or not n_ref:
+        return "not measured"
+    _, lo, hi = _ratio_ci(int(k), n, int(k_ref), n_ref)
+    return "holds" if lo > floor else ("does not hold" if hi < floor else "inconclusive")
+
+
 def _ratio_outcome(f: Finding, part: Part, rows: list[dict] | None) -> Outcome:
     tgt, ref = arm(rows, part.a.eval, part.a.condition), arm(rows, part.b.eval, part.b.condition)
     k, n = sum(r[f.event] for r in tgt.values()), len(tgt)
@@ -684,7 +751,7 @@ def _ratio_outcome(f: Finding, part: Part, rows: list[dict] | None) -> Outcome:
         return Outcome(part, "not measured", ratio=Ratio(k, n, k_ref, n_ref, math.nan, math.nan, math.nan, None))
     ratio, lo, hi = _ratio_ci(k, n, k_ref, n_ref)
     control = paired(tgt, arm(rows, part.a.eval, f.control), f.event) if f.control else None
-    v = "holds" if lo > f.floor else ("does not hold" if hi < f.floor else "inconclusive")
+    v = _ratio_verdict(k, n, k_ref, n_ref, f.floor)
     return Outcome(part, v, ratio=Ratio(k, n, k_ref, n_ref, ratio, lo, hi, control))
 
 
@@ -723,8 +790,11 @@ def evaluate(f: Finding, rows_of: Rows, results: Path) -> Evaluated | None:
         complement = paired(*sides(f.parts[0]), f.event, where=f.subgroup.outside)
     extras = tuple((p, paired(*sides(p), f.event)) for p in f.extras)
     over: tuple[OverSeeds, ...] = ()
-    if f.seeds and f.test == "paired McNemar" and (srows := rows_of(f.seeds)):
-        got = [over_seeds(p, seed_arms(srows, p.a), seed_arms(srows, p.b), f.event, f.subgroup) for p in f.parts]
+    if f.seeds and (srows := rows_of(f.seeds)):
+        got = [
+            over_seeds(p, seed_arms(srows, p.a), seed_arms(srows, p.b), f.event, f.subgroup, floor=f.floor)
+            for p in f.parts
+        ]
         over = tuple(o for o in got if o is not None)
     single = v
     if over and len(over) == len(f.parts):
@@ -929,6 +999,11 @@ def _seeds_text(o: OverSeeds) -> str:
     a, b = o.part.names
     if not o.n:
         return f"{a} vs {b}: no configurations"
+    if o.part.claim == "ratio":
+        return (
+            f"{a} {_pct(o.mean_a)}% (sd {_pct(o.sd_a)}) vs {b} {_pct(o.mean_b)}% (sd {_pct(o.sd_b)}), ratio "
+            f"{o.diff:.2f}, 95% CI [{o.lo:.2f}, {o.hi:.2f}] ({len(o.seeds)} seeds x {o.n} configurations)"
+        )
     return (
         f"{a} {_pct(o.mean_a)}% (sd {_pct(o.sd_a)}) vs {b} {_pct(o.mean_b)}% (sd {_pct(o.sd_b)}), difference "
         f"{100 * o.diff:+.1f} pp, 95% CI [{100 * o.lo:+.1f}, {100 * o.hi:+.1f}] "
@@ -959,11 +1034,14 @@ def _seeds_section(f: dict[str, Evaluated]) -> list[str]:
     for e in es:
         for o in e.seeds:
             one = ", ".join(o.per_seed)
+            if o.part.claim == "ratio":  # A's mean over B's, against the finding's floor
+                d, ci = f"ratio {o.diff:.2f}", f"[{o.lo:.2f}, {o.hi:.2f}] (floor {e.finding.floor:g})"
+            else:
+                d, ci = f"{100 * o.diff:+.1f}", f"[{100 * o.lo:+.1f}, {100 * o.hi:+.1f}]"
             lines.append(
                 f"| {e.finding.id} | {o.part.label} | {o.n} | {', '.join(_pct(x) for x in o.rates_a)} | "
                 f"{_pct(o.mean_a)} ({_pct(o.sd_a)}) | {', '.join(_pct(x) for x in o.rates_b)} | "
-                f"{_pct(o.mean_b)} ({_pct(o.sd_b)}) | {100 * o.diff:+.1f} | [{100 * o.lo:+.1f}, {100 * o.hi:+.1f}] | "
-                f"**{o.verdict}** | {one} |"
+                f"{_pct(o.mean_b)} ({_pct(o.sd_b)}) | {d} | {ci} | **{o.verdict}** | {one} |"
             )
     return lines
 
@@ -1058,7 +1136,7 @@ def render_details(f: dict[str, Evaluated], extra: Sequence[list[str]] = (), dir
         *([sec] if (sec := _seeds_section(f)) else []),
         *_bins_sections(f),
         *extra,
-        *(_parts_section(e) for e in f.values() if len(e.parts) > 1),
+        *(_parts_section(e) for e in f.values() if len(e.parts) > 1 or e.extras),
     ]
     return "\n\n".join("\n".join(s) for s in sections) + "\n"
 

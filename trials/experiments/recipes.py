@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
@@ -419,9 +420,10 @@ def job_train_policy(
     )
 
 
-def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict) -> Path:
+def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict, recordings: Path | None = None) -> Path:
     """An ``attack`` job into ``out/attacks/<name>``: reused when finished with the same config,
-    resumed if interrupted."""
+    resumed if interrupted; with ``recordings`` (a recording folder, an input of the job), the attack
+    on those recorded frames instead of simulator rollouts."""
     from attack.optimize import resolve_config  # lazy: CLI start-up (torch, trimesh)
 
     fields = {**ctx.cfg.attack_overrides, **overrides}
@@ -435,19 +437,30 @@ def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict) ->
         "trials.experiments.recipes:job_attack",
         d,
         {"preset": ctx.cfg.attack_preset, "fields": fields},
-        {"policy": policy_dir, **_scene_input(ctx)},
+        {"policy": policy_dir, **_scene_input(ctx), **({} if recordings is None else {"recordings": recordings})},
         **ctx.resources(),
     )
     return d
 
 
+def _below_cwd(path: Path) -> str:
+    """``path`` relative to the working directory when it lies below it (what a run records), else as it is."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
 def job_attack(out: Path, inputs: dict, preset: str, fields: dict) -> None:
-    """The ``attack`` job: run, resume or reuse the attack of ``fields`` into ``out``."""
+    """The ``attack`` job: run, resume or reuse the attack of ``fields`` into ``out`` (on the
+    recording ``inputs["recordings"]`` when given)."""
     from attack.artifact import TEXTURE_NPY, AttackArtifact  # lazy: CLI start-up (trimesh, PIL)
     from attack.optimize import resolve_config  # lazy: CLI start-up (torch, trimesh)
     from attack.state import find_checkpoint  # lazy: CLI start-up (torch, trimesh)
     from trials.jobs.attack import attack_job  # lazy: CLI start-up (torch, onnxruntime)
 
+    if "recordings" in inputs:
+        fields = {**fields, "recordings": _below_cwd(inputs["recordings"])}
     want = resolve_config(preset, fields).model_dump()
     if (out / "metrics.json").is_file() and (out / TEXTURE_NPY).is_file():
         have = AttackArtifact.load(out, error=ExperimentError).attack_config
@@ -667,10 +680,13 @@ def unseeded(name: str) -> str:
     return head if sep and head and tail.isdigit() else name
 
 
-def ensure_seeded_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict, seed: int) -> Path:
+def ensure_seeded_attack(
+    ctx: Context, policy_dir: Path, name: str, overrides: dict, seed: int, recordings: Path | None = None
+) -> Path:
     """:func:`ensure_attack` for attack seed ``seed``: an independent optimisation run (its own
     training configurations, sampling and validation draws) of the same method."""
-    return ensure_attack(ctx, policy_dir, seeded(name, seed), overrides if seed == 0 else {**overrides, "seed": seed})
+    fields = overrides if seed == 0 else {**overrides, "seed": seed}
+    return ensure_attack(ctx, policy_dir, seeded(name, seed), fields, recordings)
 
 
 def table1(ctx: Context) -> str:
@@ -1061,6 +1077,239 @@ def cameras(ctx: Context) -> str:
     return "\n".join(lines) + "\n" + seeds_markdown(ctx, {c: ("cameras", c) for c in conds})
 
 
+# ----------------------------------------------------------------------------- the attack on recorded frames
+#: Episodes of the recordings attacked: the largest is recorded, each smaller one is its first episodes.
+RECORDED_EPISODES = (5, 20, 80)
+#: A recording's folder inside its job's output folder (beside the job's own files).
+RECORDING_DIR = "recording"
+#: What the recordings attack aims at: this share of the closed-loop attack's T-ASR (finding F7's floor).
+RECORDINGS_AIM = 0.7
+
+
+def ensure_recording(
+    ctx: Context, policy_dir: Path, name: str, episodes: int, cell: str = "nominal", first_of: Path | None = None
+) -> Path:
+    """A recording in ``out/recordings/<name>/``: a ``record-sim`` job (clean episodes of the policy
+    in the simulator's ``cell``, ``advobj record sim``), or with ``first_of`` (a recording) a
+    ``record-prefix`` job copying its first ``episodes`` episodes; returns the recording's folder."""
+    d = ctx.out / "recordings" / name
+    if first_of is None:
+        c = ctx.cfg
+        params = {"episodes": episodes, "seed": c.seed, "max_steps": c.max_steps, "num_envs": c.num_envs}
+        params |= {"cell": cell, "device": c.device}
+        inputs = {"policy": policy_dir, **_scene_input(ctx)}
+        fn, kind = "trials.experiments.recipes:job_record_sim", "record-sim"
+    else:
+        params, inputs = {"episodes": episodes}, {"recording": first_of}
+        fn, kind = "trials.experiments.recipes:job_first_episodes", "record-prefix"
+    ctx.grid.add(f"record-{name}", kind, fn, d, params, inputs, **ctx.resources())
+    return d / RECORDING_DIR
+
+
+def _recording_target(out: Path) -> Path | None:
+    """Where a record job writes its recording (``out/recording``); None when a finished one is
+    there (reused). What an interrupted write left (a staging folder) is removed first."""
+    from sim.recording import is_recording  # lazy: CLI start-up (PIL)
+
+    d = out / RECORDING_DIR
+    if is_recording(d):
+        print(f"recording: reusing {d}")
+        return None
+    if d.is_dir():
+        shutil.rmtree(d)
+    return d
+
+
+def job_record_sim(
+    out: Path, inputs: dict, episodes: int, seed: int, max_steps: int, num_envs: int, cell: str, device: str = "cpu"
+) -> None:
+    """The ``record-sim`` job: ``advobj record sim`` into ``out/recording`` (reused when finished)."""
+    from trials.jobs.dag import show_progress  # lazy: CLI start-up (+15 ms)
+    from trials.recordings.simulated import SimRecordJob, run_record_sim  # lazy: CLI start-up (torch, pyrender)
+
+    target = _recording_target(out)
+    if target is None:
+        return
+    job = SimRecordJob(
+        policy=inputs["policy"],
+        out=target,
+        episodes=episodes,
+        scene=inputs.get("scene"),
+        seed=seed,
+        max_steps=max_steps,
+        num_envs=num_envs,
+        cell=cell,
+        device=device,
+    )
+    run_record_sim(job, log=print, progress=show_progress())
+
+
+def job_first_episodes(out: Path, inputs: dict, episodes: int) -> None:
+    """The ``record-prefix`` job: the first ``episodes`` episodes of ``inputs["recording"]`` into ``out/recording``."""
+    from trials.recordings.simulated import first_episodes  # lazy: CLI start-up (PIL)
+
+    target = _recording_target(out)
+    if target is not None:
+        first_episodes(inputs["recording"], target, episodes)
+
+
+def _rate(rows: dict) -> float:
+    return sum(int(r["targeted"]) for r in rows.values()) / len(rows) if rows else float("nan")
+
+
+def _validation_cell(attack_dir: Path) -> str:
+    """The last held-out validation of an attack run: T-ASR (simulator) or toward fraction (recordings)."""
+    m = json.loads((attack_dir / "metrics.json").read_text())
+    v = m.get("validation") or {}
+    if not v.get("t_asr"):
+        return "-"
+    kind = "toward fraction" if str(v.get("measure", "")).startswith("toward") else "T-ASR"
+    return f"{kind} {v['t_asr'][-1]:.2f}"
+
+
+def recordings(ctx: Context) -> str:
+    """The attack on recorded frames against the closed-loop simulator attack (issue 29's check).
+
+    The simulator stands in for the real cell: clean episodes of the policy are recorded in it
+    (``advobj record sim``: the adversarial object hidden, configurations of the split's attack part),
+    the largest of :data:`RECORDED_EPISODES` and the others as its first episodes, and the largest
+    again in the shifted cell (another light, another table). For every attack seed the closed-loop
+    C2F attack runs first; its CPU time is the budget of the recordings attacks with the same preset
+    and seed (``max_cpu_s``: the same iterations, ended at the first that reaches the budget), which
+    never build a simulator env. Every texture is evaluated closed loop on the same held-out
+    configurations with its paired clean arm, and the recordings' configurations are checked not to
+    be among them."""
+    from attack.optimize import read_cpu_record  # lazy: CLI start-up (torch, trimesh)
+    from sim.recording import read_recording  # lazy: CLI start-up (PIL)
+    from trials.experiments.findings import paired  # lazy: CLI start-up (+33 ms)
+    from trials.recordings.simulated import RecordSimError, check_held_out  # lazy: CLI start-up (torch)
+
+    ref = ensure_policy(ctx)
+    sizes = tuple(sorted(set(RECORDED_EPISODES)))
+    big = sizes[-1]
+    recs = {f"nominal_{big}": ensure_recording(ctx, ref, f"nominal-{big}", big)}
+    for n in sizes[:-1]:
+        recs[f"nominal_{n}"] = ensure_recording(ctx, ref, f"nominal-{n}", n, first_of=recs[f"nominal_{big}"])
+    recs[f"shifted_{big}"] = ensure_recording(ctx, ref, f"shifted-{big}", big, cell="shifted")
+    arms = ["closed_loop"] + [f"nominal_{n}" for n in sizes] + [f"shifted_{big}"]
+    seeds = ctx.cfg.attack_seeds
+    c2f = {"schedule": "c2f"}
+    attacks = {("closed_loop", s): ensure_seeded_attack(ctx, ref, "closed_loop", c2f, s) for s in seeds}
+    evals = {
+        ("closed_loop", s): ensure_eval(
+            ctx, ref, seeded("recordings_closed_loop", s), ["attack"], attack=attacks["closed_loop", s]
+        )
+        for s in seeds
+    }
+    ctx.run_jobs()  # the closed-loop attacks' CPU time is the recordings attacks' budget
+    budget = {}
+    for s in seeds:
+        cpu = read_cpu_record(attacks["closed_loop", s])
+        if cpu is None:
+            raise ExperimentError(f"{attacks['closed_loop', s]}: the closed-loop attack recorded no CPU time")
+        budget[s] = float(cpu["cpu_s"])
+    for arm in arms[1:]:
+        for s in seeds:
+            d = ensure_seeded_attack(ctx, ref, arm, {**c2f, "max_cpu_s": budget[s]}, s, recordings=recs[arm])
+            attacks[arm, s] = d
+            evals[arm, s] = ensure_eval(ctx, ref, seeded(f"recordings_{arm}", s), ["attack"], attack=d)
+    ctx.run_jobs()
+    rows = {(arm, s): eval_rows(ctx, seeded(f"recordings_{arm}", s), "attack") for arm in arms for s in seeds}
+    first = seeds[0]
+    eval_seeds = sorted(rows["closed_loop", first])
+    c = ctx.cfg
+    lines = _header(
+        "Attacking recorded frames: the recordings attack against the closed-loop simulator attack",
+        ctx,
+        "The simulator stands in for the real cell. Recordings: clean episodes of the policy in the simulator "
+        f"(advobj record sim: the adversarial object hidden; configurations of the attack part from seed {c.seed}, "
+        f"at most {c.max_steps} steps), the {', '.join(str(n) for n in sizes[:-1])}-episode ones the first episodes "
+        f"of the {big}-episode one; shifted: {big} episodes under another light and on another table than the "
+        "evaluation's scene. The recordings attacks build no simulator env (open loop on the frames). CPU: each "
+        "recordings attack runs the closed-loop attack's preset and iterations with its attack seed, ended at the "
+        "first iteration whose CPU time reaches the closed-loop attack's (max_cpu_s), so it never has more CPU "
+        "than the closed-loop attack. Every texture is evaluated closed loop in the simulator on the same held-out "
+        "configurations, each with its paired clean arm.",
+    )
+    lines += [
+        "## The recordings",
+        "",
+        "| recording | cell | episodes | steps | evaluation configurations among its configurations |",
+        "|---|---|---|---|---|",
+    ]
+    for arm in arms[1:]:
+        rec = read_recording(recs[arm])
+        try:
+            checked = check_held_out(rec, eval_seeds)
+        except RecordSimError as err:
+            raise ExperimentError(str(err)) from None
+        steps = sum(e.n_frames for e in rec.episodes)
+        lines.append(f"| {arm} | {rec.source.get('cell', '?')} | {len(rec.episodes)} | {steps} | 0 of {checked} |")
+    lines += [
+        "",
+        "## CPU time of the attacks",
+        "",
+        "| attack seed | arm | CPU s | budget s | iterations done / planned | ended by the budget | last held-out "
+        "validation |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for s in seeds:
+        for arm in arms:
+            cpu = read_cpu_record(attacks[arm, s]) or {}
+            cap = cpu.get("max_cpu_s")
+            lines.append(
+                f"| {s} | {arm} | {cpu.get('cpu_s', float('nan')):.1f} | {'-' if cap is None else f'{cap:.1f}'} | "
+                f"{cpu.get('iterations', '?')} / {cpu.get('iterations_planned', '?')} | "
+                f"{'yes' if cpu.get('stopped_at_budget') else 'no'} | {_validation_cell(attacks[arm, s])} |"
+            )
+    ref_rates = [_rate(rows["closed_loop", s]) for s in seeds]
+    ref_mean = sum(ref_rates) / len(ref_rates)
+    lines += [
+        "",
+        "## T-ASR (held-out configurations, closed loop in the simulator)",
+        "",
+        f"The aim: the recordings attack on {big} episodes keeps at least {RECORDINGS_AIM:.0%} of the closed-loop "
+        "attack's T-ASR (ratio of the means over attack seeds; its interval and verdict: finding F7 in "
+        "results/findings.md).",
+        "",
+        "| arm | " + " | ".join(f"seed {s} %" for s in seeds) + " | mean % | ratio to closed loop | "
+        f"McNemar p vs clean (seed {first}) | n configs |",
+        "|---|" + "---|" * (len(seeds) + 4),
+    ]
+    for arm in arms:
+        rates = [_rate(rows[arm, s]) for s in seeds]
+        mean = sum(rates) / len(rates)
+        p = evals[arm, first]["conditions"]["attack"].get("vs_clean", {}).get("tasr", {}).get("p_value")
+        ns = "/".join(str(n) for n in sorted({len(rows[arm, s]) for s in seeds}))
+        ratio = mean / ref_mean if ref_mean > 0 else float("nan")
+        lines.append(
+            f"| {arm} | " + " | ".join(f"{100 * r:.2f}" for r in rates) + f" | {100 * mean:.2f} | {ratio:.2f} | "
+            f"{'-' if p is None else f'{p:.2g}'} | {ns} |"
+        )
+    pairs = [(f"nominal_{big}", "closed_loop")]
+    pairs += [(f"nominal_{b}", f"nominal_{a}") for a, b in zip(sizes, sizes[1:])]
+    pairs += [(f"shifted_{big}", f"nominal_{big}")]
+    lines += [
+        "",
+        "## Paired McNemar tests (T-ASR, same configurations)",
+        "",
+        "| attack seed | A | B | n | A % | B % | only A / only B | A - B (pp) [95% CI] | p |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for s in seeds:
+        for a, b in pairs:
+            pr = paired(rows[a, s], rows[b, s])
+            if not pr.n:
+                lines.append(f"| {s} | {a} | {b} | 0 | n/a | n/a | - | n/a | n/a |")
+                continue
+            lo, hi = pr.diff_ci()
+            lines.append(
+                f"| {s} | {a} | {b} | {pr.n} | {100 * pr.rate_a:.2f} | {100 * pr.rate_b:.2f} | {pr.b} / {pr.c} | "
+                f"{100 * pr.diff:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] | {pr.p:.2g} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
 def _arch(pdir: Path) -> str:
     try:
         from sim.policies.card import load_card  # lazy: CLI start-up (torch)
@@ -1107,6 +1356,11 @@ RECIPES: dict[str, Recipe] = {
         "unless --policy is given) with the texture in both cameras, the wrist camera only and the front camera only.",
         scene=TWO_CAMERA_SCENE,
         check=_cameras_read,
+    ),
+    "recordings": Recipe(
+        recordings,
+        "The attack on recorded frames (no simulator in the loop) against the closed-loop attack at equal CPU: "
+        "recordings of 5, 20 and 80 clean episodes made in the simulator, and 80 in a shifted cell.",
     ),
 }
 

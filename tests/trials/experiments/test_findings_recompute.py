@@ -39,6 +39,13 @@ ARMS = {
         ],
         None,
     ),
+    # a ratio part: "ratio F" claims T-ASR(a) / T-ASR(b) above the floor F
+    "F7": (
+        "recordings",
+        "recordings",
+        [("recordings_nominal_80", "attack", "recordings_closed_loop", "attack", "ratio 0.7")],
+        None,
+    ),
 }
 # The follow-up over attack seeds at 40 iterations (results/findings.md), in its printed order.
 FOLLOW_UP_40 = (
@@ -55,6 +62,14 @@ NUM = r"[+-]?\d+(?:\.\d+)?"
 PAIR = re.compile(
     rf"(?P<ra>{NUM})% vs [\w\- ]+? (?P<rb>{NUM})% \(difference (?P<d>{NUM}) pp, 95% CI \[(?P<lo>{NUM}), "
     rf"(?P<hi>{NUM})\]; discordant (?P<b>\d+)/(?P<c>\d+); n = (?P<n>\d+)\)"
+)
+RATIO = re.compile(
+    rf"(?P<rb>{NUM})% \(n = (?P<nb>\d+)\); [^;]*? (?P<ra>{NUM})% \(n = (?P<na>\d+)\) = (?P<r>{NUM}) x [^\[;]+ "
+    rf"\[(?P<lo>{NUM}), (?P<hi>{NUM})\]"
+)
+SEEDS_RATIO = re.compile(
+    rf"(?P<ma>{NUM})% \(sd (?P<sa>{NUM}|n/a)\) vs [\w\- ()]+? (?P<mb>{NUM})% \(sd (?P<sb>{NUM}|n/a)\), ratio "
+    rf"(?P<r>{NUM}), 95% CI \[(?P<lo>{NUM}), (?P<hi>{NUM})\] \((?P<k>\d+) seeds x (?P<n>\d+) configurations\)"
 )
 SEEDS = re.compile(
     rf"(?P<ma>{NUM})% \(sd (?P<sa>{NUM}|n/a)\) vs [\w\- ]+? (?P<mb>{NUM})% \(sd (?P<sb>{NUM}|n/a)\), difference "
@@ -134,6 +149,44 @@ def _bootstrap(xa, xb, resamples=3000, seed=12345):
     return stats[int(0.025 * resamples)], stats[int(0.975 * resamples) - 1]
 
 
+def _floor(claim):
+    """The floor of a ``"ratio F"`` claim (None for a paired one)."""
+    return float(claim.split()[1]) if claim.startswith("ratio") else None
+
+
+def _katz(ka, na, kb, nb, z=1.959964):
+    """rate(a) / rate(b) with the Katz log interval, 0.5 added to every cell when one is empty or full."""
+    if ka in (0, na) or kb in (0, nb):
+        ka, na, kb, nb = ka + 0.5, na + 1, kb + 0.5, nb + 1
+    r = (ka / na) / (kb / nb)
+    se = math.sqrt(1 / ka - 1 / na + 1 / kb - 1 / nb)
+    return r, r * math.exp(-z * se), r * math.exp(z * se)
+
+
+def _ratio_single(rows, ev_a, c_a, ev_b, c_b):
+    """Each arm's events and episodes (unpaired: every episode of each), and their Katz ratio."""
+    a, b = _arm(rows, ev_a, c_a), _arm(rows, ev_b, c_b)
+    ka = sum(r["targeted"] in ("1", "True", "true") for r in a.values())
+    kb = sum(r["targeted"] in ("1", "True", "true") for r in b.values())
+    return (ka, len(a), kb, len(b), *_katz(ka, len(a), kb, len(b)))
+
+
+def _bootstrap_ratio(xa, xb, resamples=3000, seed=12345):
+    """The two-level bootstrap of the ratio of the arms' mean rates, written plainly."""
+    rng = random.Random(seed)
+    k, n = len(xa), len(xa[0])
+    stats = []
+    for _ in range(resamples):
+        cs = [rng.randrange(n) for _ in range(n)]
+        sa = [rng.randrange(k) for _ in range(k)]
+        sb = [rng.randrange(k) for _ in range(k)]
+        ma = sum(sum(xa[s][c] for c in cs) / n for s in sa) / k
+        mb = sum(sum(xb[s][c] for c in cs) / n for s in sb) / k
+        stats.append(ma / mb if mb > 0 else math.nan)
+    stats.sort()
+    return stats[int(0.025 * resamples)], stats[int(0.975 * resamples) - 1]
+
+
 def _committed(recipe):
     return recipe is not None and (RESULTS / recipe / "episodes.csv").is_file()
 
@@ -150,6 +203,17 @@ def _has_seed_runs(recipe, parts):
 def test_the_single_texture_figures_recompute_from_the_csvs(fid):
     recipe, _, parts, phi_min = ARMS[fid]
     rows = _rows(recipe)
+    if _floor(parts[0][4]) is not None:  # ratio parts: unpaired, each arm's episodes and the Katz interval
+        printed = list(RATIO.finditer(TABLE[fid][2]))
+        assert len(printed) == len(parts), TABLE[fid][2]
+        for m, (ea, ca, eb, cb, _) in zip(printed, parts):
+            ka, na, kb, nb, r, lo, hi = _ratio_single(rows, ea, ca, eb, cb)
+            assert (int(m["na"]), int(m["nb"])) == (na, nb)
+            assert float(m["ra"]) == pytest.approx(100 * ka / na, abs=0.051)
+            assert float(m["rb"]) == pytest.approx(100 * kb / nb, abs=0.051)
+            for key, want in (("r", r), ("lo", lo), ("hi", hi)):
+                assert float(m[key]) == pytest.approx(want, abs=0.0051)
+        return
     printed = list(PAIR.finditer(TABLE[fid][2]))
     assert len(printed) == len(parts), TABLE[fid][2]
     for m, (ea, ca, eb, cb, claim) in zip(printed, parts):
@@ -172,6 +236,11 @@ def test_the_verdict_follows_the_stated_rules(fid):
     rows = _rows(recipe)
     verdicts = []
     for ea, ca, eb, cb, claim in parts:
+        floor = _floor(claim)
+        if floor is not None:  # holds when the ratio's interval lies above the floor
+            *_, lo, hi = _ratio_single(rows, ea, ca, eb, cb)
+            verdicts.append("holds" if lo > floor else "does not hold" if hi < floor else "inconclusive")
+            continue
         g = _single(rows, ea, ca, eb, cb, phi_min)
         if claim == ">":
             sig = _mcnemar_p(g["b"], g["c"]) < 0.05
@@ -195,7 +264,8 @@ def test_the_over_seeds_figures_recompute_with_an_independent_bootstrap(fid):
     _, seeds_recipe, parts, phi_min = ARMS[fid]
     rows = _rows(seeds_recipe)
     phi = {int(r["seed"]): _phi_deg(r) for r in rows}
-    printed = list(SEEDS.finditer(TABLE[fid][2]))
+    ratio = _floor(parts[0][4]) is not None
+    printed = list((SEEDS_RATIO if ratio else SEEDS).finditer(TABLE[fid][2]))
     assert len(printed) == len(parts), TABLE[fid][2]
     verdicts = []
     for m, (ea, ca, eb, cb, claim) in zip(printed, parts):
@@ -214,6 +284,14 @@ def test_the_over_seeds_figures_recompute_with_an_independent_bootstrap(fid):
         assert float(m["mb"]) == pytest.approx(100 * mb, abs=0.051)
         assert float(m["sa"]) == pytest.approx(100 * sd(ra, ma), abs=0.051)
         assert float(m["sb"]) == pytest.approx(100 * sd(rb, mb), abs=0.051)
+        if ratio:  # the ratio of the means over seeds, and its interval against the floor
+            floor = _floor(claim)
+            assert float(m["r"]) == pytest.approx(ma / mb, abs=0.0051)
+            lo, hi = _bootstrap_ratio(xa, xb)
+            assert float(m["lo"]) == pytest.approx(lo, abs=0.03) and float(m["hi"]) == pytest.approx(hi, abs=0.03)
+            plo, phi_ = float(m["lo"]), float(m["hi"])
+            verdicts.append("holds" if plo > floor else "does not hold" if phi_ < floor else "inconclusive")
+            continue
         assert float(m["d"]) == pytest.approx(100 * (ma - mb), abs=0.051)
         lo, hi = _bootstrap(xa, xb)
         # two bootstraps of a few thousand draws agree to Monte Carlo error, not digit for digit
