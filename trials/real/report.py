@@ -25,7 +25,18 @@ Precision line: the number of trials for a +/- h interval at rate p uses the nor
 approximation ``n = ceil(z^2 p (1 - p) / h^2)`` (z = 1.96 for 95 %), 385 at the worst case
 p = 0.5 and h = 5 %; the current precision is reported both as the normal-approximation
 half-width ``z sqrt(p (1 - p) / n)`` (30 trials at p = 0.5: +/- 17.9 %) and as the half-width of
-the Wilson interval actually shown (15 of 30: +/- 16.8 %).
+the Wilson interval actually shown (15 of 30: +/- 16.8 %). At an observed 0 % or 100 % the
+normal approximation has no width, so only the Wilson half-width is given there.
+
+Paired test between arms (:func:`paired_arms`): a plan repeats every TCP pose and object layout
+for each condition, so an ``adv3d`` trial and a ``clean`` trial of the same session, env, shape,
+tags, TCP pose and object layout are a pair; McNemar's exact test
+(:func:`trials.eval.metrics.mcnemar_from_outcomes`, the evaluation's) compares the arms on the
+rated pairs, for the T-ASR and the ASR event. A clean arm that never reaches the goal is flagged
+(:func:`clean_flags`): the policy does not do the task there, and no attack rate means anything.
+
+``report.md`` (for diffs) and ``report.html`` (:mod:`sim.htmlreport`, the page a person opens,
+with the rates by arm as a chart) hold the same content; one session is shown once.
 """
 
 from __future__ import annotations
@@ -39,15 +50,20 @@ from pathlib import Path
 from statistics import NormalDist
 
 from sim.errors import AdvobjError
+from sim.htmlreport import Bullets, Figure, Flag, Heading, Table, Text, write_page
 from sim.runinfo import RunInfoError, read_run_info
 from sim.stats import proportion, wilson_interval
 from trials.eval.episodes import StorageError, read_summary
+from trials.eval.metrics import mcnemar_from_outcomes
+from trials.eval.report import plot_rate_bars
 
 __all__ = [
     "ReportError",
     "OUTCOMES",
     "rate_cell",
     "summarize_trials",
+    "paired_arms",
+    "clean_flags",
     "trials_for_half_width",
     "normal_half_width",
     "wilson_half_width",
@@ -136,6 +152,11 @@ def _breakdown(rows, confidence: float) -> dict:
         "by_condition": {k: cell(v) for k, v in _by(rows, lambda r: [r["condition"]]).items()},
         # a trial with several tags counts under each of them
         "by_tag": {k: cell(v) for k, v in _by(rows, lambda r: list(r.get("tags") or []) or [UNTAGGED]).items()},
+        # env/shape -> condition -> cell: the chart's bars
+        "by_object_condition": {
+            k: {c: cell(w) for c, w in _by(v, lambda r: [r["condition"]]).items()}
+            for k, v in _by(rows, lambda r: [f"{r['env']}/{r['shape']}"]).items()
+        },
         "cells": {
             k: cell(v)
             for k, v in _by(
@@ -161,7 +182,78 @@ def summarize_trials(rows, confidence: float = 0.95) -> dict:
         "sessions": sessions,
         "all": _breakdown(rows, confidence),
         "by_session": {s: _breakdown([r for r in rows if r["session"] == s], confidence) for s in sessions},
+        "paired": paired_arms(rows),
+        "flags": clean_flags(rows, confidence),
     }
+
+
+# Arms compared pairwise, (A, B): the attack against its control, the patch against it, and the two.
+PAIRED_ARMS = (("adv3d", "clean"), ("patch", "clean"), ("adv3d", "patch"))
+_PAIR_KEY = ("session", "env", "shape", "tcp_pose", "object_layout")
+
+
+def _pair_key(row: dict) -> tuple | None:
+    """What makes two trials of different arms a pair (see the module docstring); None if unknown."""
+    if any(row.get(k) is None for k in _PAIR_KEY):
+        return None
+    return tuple(row[k] for k in _PAIR_KEY) + (tuple(row.get("tags") or ()),)
+
+
+def paired_arms(rows) -> list[dict]:
+    """McNemar's exact test of arm A against arm B (:data:`PAIRED_ARMS` present in ``rows``) on the
+    pairs of trials both rated: ``{a, b, n_pairs, unrated_pairs, unpaired, tasr, asr}``, ``tasr`` and
+    ``asr`` as :class:`trials.eval.metrics.McNemar` dicts (``b``: only A had the event, ``c``: only
+    B). ``unpaired`` counts the two arms' trials without a partner (several trials of one arm at the
+    same key pair in order)."""
+    rows = list(rows)
+    keyed: dict[str, dict[tuple, list[str]]] = defaultdict(lambda: defaultdict(list))
+    count: dict[str, int] = defaultdict(int)
+    for r in rows:
+        count[r["condition"]] += 1
+        k = _pair_key(r)
+        if k is not None:
+            keyed[r["condition"]][k].append(_final(r))
+    out = []
+    for a, b in PAIRED_ARMS:
+        if not count[a] or not count[b]:
+            continue
+        pairs, unrated = [], 0
+        for k in sorted(keyed[a].keys() & keyed[b].keys(), key=str):
+            for oa, ob in zip(keyed[a][k], keyed[b][k]):
+                if oa in UNRATED or ob in UNRATED:
+                    unrated += 1
+                else:
+                    pairs.append((oa, ob))
+        out.append(
+            {
+                "a": a,
+                "b": b,
+                "n_pairs": len(pairs),
+                "unrated_pairs": unrated,
+                "unpaired": count[a] + count[b] - 2 * (len(pairs) + unrated),
+                "tasr": mcnemar_from_outcomes(
+                    [x == "adversarial" for x, _ in pairs], [y == "adversarial" for _, y in pairs]
+                ).to_dict(),
+                "asr": mcnemar_from_outcomes(
+                    [x != "goal" for x, _ in pairs], [y != "goal" for _, y in pairs]
+                ).to_dict(),
+            }
+        )
+    return out
+
+
+def clean_flags(rows, confidence: float = 0.95) -> list[str]:
+    """One line per env/shape whose clean arm has rated trials and never reached the goal."""
+    clean = [r for r in rows if r["condition"] == "clean"]
+    flags = []
+    for k, rs in _by(clean, lambda r: [f"{r['env']}/{r['shape']}"]).items():
+        c = rate_cell(rs, confidence)
+        if c["n"] and c["asr"]["k"] == c["n"]:
+            flags.append(
+                f"the clean arm never reached the goal in {plain_text(k)} (0 of {c['n']} rated clean trials): the "
+                "policy does not do the task there, so the attack's rates there say nothing about the texture"
+            )
+    return flags
 
 
 def audit(rows, planned: dict, amendments) -> dict:
@@ -201,33 +293,45 @@ def audit(rows, planned: dict, amendments) -> dict:
     return {"planned": planned, "incomplete": incomplete, "overrides": overrides, "amendments": amended, "notes": notes}
 
 
-def audit_md(a: dict) -> list[str]:
-    """The audit as Markdown; every value from the database (names, notes, reasons) through :func:`md_text`."""
-    m = md_text
-    lines = ["## Completeness, overrides, amendments and notes", ""]
-    lines += [f"- **Incomplete:** {m(t)}." for t in a["incomplete"]] or [
-        "- Every session committed all its planned trials."
+def _audit_sections(a: dict, esc) -> list[tuple[str, list[str]]]:
+    """The audit as (title line, item lines), every database value through ``esc``."""
+    m = esc
+    incomplete = [f"**Incomplete:** {m(t)}." for t in a["incomplete"]] or [
+        "Every session committed all its planned trials."
     ]
-    lines += ["", f"Operator overrides ({len(a['overrides'])}):", ""]
-    lines += [
-        f"- {m(o['session'])}/{m(o['trial_id'])}: {m(o['auto'])} -> {m(o['operator'])}"
+    overrides = [
+        f"{m(o['session'])}/{m(o['trial_id'])}: {m(o['auto'])} -> {m(o['operator'])}"
         + (f" ({m(o['note'])})" if o["note"] else "")
         for o in a["overrides"]
-    ] or ["- none"]
-    lines += [
-        "",
-        f"Amendments after the session ({len(a['amendments'])}; old values kept in the database's `amendments` table):",
-        "",
-    ]
-    lines += [
-        f"- {m(x['session'])}/{m(x['trial_id'])} at {m(x['at'])}: {m(x['old'])} -> {m(x['new'])}"
+    ] or ["none"]
+    amended = [
+        f"{m(x['session'])}/{m(x['trial_id'])} at {m(x['at'])}: {m(x['old'])} -> {m(x['new'])}"
         + (f', note "{m(x["old_note"])}" -> "{m(x["new_note"])}"' if x["old_note"] != x["new_note"] else "")
         + (f"; reason: {m(x['reason'])}" if x["reason"] else "")
         for x in a["amendments"]
-    ] or ["- none"]
-    lines += ["", f"Notes ({len(a['notes'])}):", ""]
-    lines += [f"- {m(n['session'])}/{m(n['trial_id'])}: {m(n['note'])}" for n in a["notes"]] or ["- none"]
-    return lines + [""]
+    ] or ["none"]
+    notes = [f"{m(n['session'])}/{m(n['trial_id'])}: {m(n['note'])}" for n in a["notes"]] or ["none"]
+    return [
+        ("", incomplete),
+        (f"Operator overrides ({len(a['overrides'])}):", overrides),
+        (
+            f"Amendments after the session ({len(a['amendments'])}; old values kept in the database's "
+            "`amendments` table):",
+            amended,
+        ),
+        (f"Notes ({len(a['notes'])}):", notes),
+    ]
+
+
+AUDIT_TITLE = "Completeness, overrides, amendments and notes"
+
+
+def audit_md(a: dict) -> list[str]:
+    """The audit as Markdown; every value from the database (names, notes, reasons) through :func:`md_text`."""
+    lines = [f"## {AUDIT_TITLE}", ""]
+    for title, items in _audit_sections(a, md_text):
+        lines += ([title, ""] if title else []) + [f"- {i}" for i in items] + [""]
+    return lines
 
 
 def _z(confidence: float) -> float:
@@ -280,10 +384,15 @@ def precision_line(prec: dict) -> str:
     if prec["trials_needed_observed"] is not None:
         need = f"{prec['trials_needed_observed']} trials at the observed {100 * prec['rate']:.1f} % ({need})"
     now = "no rated trials yet"
-    if prec["n"]:
+    if prec["n"] and 0.0 < prec["rate"] < 1.0:
         now = (
             f"the {prec['n']} trials here give ±{100 * prec['normal_half_width']:.1f} % (normal approximation "
             f"z·√(p(1−p)/n)) / ±{100 * prec['wilson_half_width']:.1f} % (Wilson half-width)"
+        )
+    elif prec["n"]:
+        now = (
+            f"the {prec['n']} trials here give ±{100 * prec['wilson_half_width']:.1f} % (Wilson half-width; at an "
+            f"observed {100 * prec['rate']:.0f} % the normal approximation has no width and says nothing)"
         )
     return f"A ±{h:g} % {pct} % interval on T-ASR needs n = ⌈z²·p(1−p)/h²⌉ = {need}; {now}."
 
@@ -392,46 +501,115 @@ def _pct(p: dict | None, ci: bool = True) -> str:
     return s + (f" [{100 * p['lo']:.1f}, {100 * p['hi']:.1f}]" if ci else "")
 
 
+CELLS_HEADER = ["n", "T-ASR % [95% CI]", "ASR % [95% CI]", "unknown"]
+BREAKDOWNS = (("by_env", "env"), ("by_shape", "shape"), ("by_condition", "condition"), ("by_tag", "tag"))
+
+
+def _cells_rows(cells: dict) -> list[list[str]]:
+    return [[k, str(c["n"]), _pct(c["tasr"]), _pct(c["asr"]), str(c["unknown"])] for k, c in cells.items()]
+
+
 def _cells_md(title: str, cells: dict, key: str) -> list[str]:
     lines = [
         f"### {title}",
         "",
-        f"| {key} | n | T-ASR % [95% CI] | ASR % [95% CI] | unknown |",
+        f"| {key} | " + " | ".join(CELLS_HEADER) + " |",
         "|---|---:|---|---|---:|",
     ]
-    for k, c in cells.items():
-        lines.append(f"| {md_text(k)} | {c['n']} | {_pct(c['tasr'])} | {_pct(c['asr'])} | {c['unknown']} |")
+    for k, *rest in _cells_rows(cells):
+        lines.append(f"| {md_text(k)} | " + " | ".join(rest) + " |")
     return lines + [""]
 
 
-def _breakdown_md(b: dict) -> list[str]:
+def _overall_line(b: dict) -> str:
     o = b["overall"]
     errors = f", {o['policy_error']} policy_error" if o["policy_error"] else ""
-    lines = [
+    return (
         f"All trials: n = {o['n']} rated ({o['unknown']} unknown{errors}), T-ASR {_pct(o['tasr'])} %, ASR "
-        f"{_pct(o['asr'])} %",
-        "",
-    ]
-    for key, title in (("by_env", "env"), ("by_shape", "shape"), ("by_condition", "condition"), ("by_tag", "tag")):
+        f"{_pct(o['asr'])} %"
+    )
+
+
+def _breakdown_md(b: dict) -> list[str]:
+    lines = [_overall_line(b), ""]
+    for key, title in BREAKDOWNS:
         lines += _cells_md(f"By {title}", b[key], title)
     lines += _cells_md("By env / shape / condition / tag", b["cells"], "cell")
     return lines
 
 
-def table_iv_md(table: list[dict]) -> list[str]:
-    lines = [
-        "| Env | Shape | Sim T-ASR | Sim ASR | Real T-ASR | Real ASR | n | Note |",
-        "|---|---|---:|---:|---:|---:|---:|---|",
+def _breakdown_blocks(b: dict) -> list:
+    blocks = [Text(_overall_line(b))]
+    for key, title in (*BREAKDOWNS, ("cells", "env / shape / condition / tag")):
+        rows = [[plain_text(k), *rest] for k, *rest in _cells_rows(b[key])]
+        blocks += [
+            Heading(f"By {title}", 3),
+            Table([title.split(" ")[0] if key != "cells" else "cell", *CELLS_HEADER], rows),
+        ]
+    return blocks
+
+
+def _sessions_shown(summary: dict) -> list[tuple[str, dict]]:
+    """(title, breakdown) of the per-session part: every session and the pooled one, or, for one
+    session, that session once (its pooled breakdown is the same)."""
+    by = summary["by_session"]
+    if len(by) == 1:
+        ((name, b),) = by.items()
+        return [(f"Session {plain_text(name)} (all trials)", b)]
+    return [("All sessions (pooled)", summary["all"])] + [(f"Session {plain_text(s)}", b) for s, b in by.items()]
+
+
+TABLE_IV_HEADER = ["Env", "Shape", "Sim T-ASR", "Sim ASR", "Real T-ASR", "Real ASR", "n", "Note"]
+
+
+def _table_iv_rows(table: list[dict], esc) -> list[list[str]]:
+    rows = [
+        [
+            esc(r["env"]),
+            esc(r["shape"]),
+            _pct(r["sim"]["tasr"], False),
+            _pct(r["sim"]["asr"], False),
+            _pct(r["real"]["tasr"]),
+            _pct(r["real"]["asr"]),
+            str(r["n"]),
+            esc(r["note"]),
+        ]
+        for r in table
     ]
-    for r in table:
-        lines.append(
-            f"| {md_text(r['env'])} | {md_text(r['shape'])} | {_pct(r['sim']['tasr'], False)} | "
-            f"{_pct(r['sim']['asr'], False)} | "
-            f"{_pct(r['real']['tasr'])} | {_pct(r['real']['asr'])} | {r['n']} | {md_text(r['note'])} |"
-        )
-    if not table:
-        lines.append("| – | – | – | – | – | – | 0 | no untagged adv3d trials |")
-    return lines
+    return rows or [["–", "–", "–", "–", "–", "–", "0", "no untagged adv3d trials"]]
+
+
+def table_iv_md(table: list[dict]) -> list[str]:
+    lines = ["| " + " | ".join(TABLE_IV_HEADER) + " |", "|---|---|---:|---:|---:|---:|---:|---|"]
+    return lines + ["| " + " | ".join(r) + " |" for r in _table_iv_rows(table, md_text)]
+
+
+PAIRED_HEADER = ["A vs B", "pairs", "T-ASR: only A / only B", "p", "ASR: only A / only B", "p", "left out"]
+
+
+def _fmt_p(p: float) -> str:
+    return f"{p:.2g}" if p >= 1e-4 else f"{p:.1e}"
+
+
+def _paired_rows(paired: list[dict]) -> list[list[str]]:
+    return [
+        [
+            f"{x['a']} vs {x['b']}",
+            str(x["n_pairs"]),
+            f"{x['tasr']['b']} / {x['tasr']['c']}",
+            _fmt_p(x["tasr"]["p_value"]),
+            f"{x['asr']['b']} / {x['asr']['c']}",
+            _fmt_p(x["asr"]["p_value"]),
+            f"{x['unrated_pairs']} pairs unrated, {x['unpaired']} trials unpaired",
+        ]
+        for x in paired
+    ]
+
+
+PAIRED_TEXT = (
+    "McNemar's exact test between arms on pairs of trials at the same session, env, shape, tags, TCP pose and "
+    "object layout, both rated; only A / only B count the pairs where just one arm had the event."
+)
 
 
 def table_precision(table: list[dict], summary: dict, half_width: float = 0.05) -> dict:
@@ -458,26 +636,31 @@ def _json_safe(x):
 def write_trial_report(
     out_dir, summary: dict, table: list[dict] | None = None, half_width: float = 0.05, sources: dict | None = None
 ) -> tuple[Path, Path]:
-    """Write ``report.md`` (Table IV, the precision line, per-session and pooled tables) and ``report.json``."""
+    """Write ``report.md`` (Table IV, the precision line, the paired tests between arms, per-session
+    and pooled tables), ``report.html`` (the same with the rates by arm as a chart: the page a
+    person opens) and ``report.json``. One session is shown once, not also as "all sessions"."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = table or []
     prec = table_precision(table, summary, half_width)
+    precision_text = precision_line(prec)
     prec_text = (
         f"Precision ({md_text(prec['row'])}, the Table IV row with the fewest trials): "
         if prec["row"]
         else "Precision: "
-    ) + precision_line(prec)
+    ) + precision_text
     a = summary.get("audit")
+    flags = summary.get("flags") or []
+    paired = summary.get("paired") or []
     md = [
         "# Real-robot trial report",
         "",
         f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): "
         f"{', '.join(md_text(x) for x in summary['sessions']) or '–'}."
         + ("".join(f" **Incomplete: {md_text(t)}.**" for t in a["incomplete"]) if a else ""),
-        "T-ASR = ended at the adversarial object; ASR = did not end at the goal; trials with an unknown outcome are "
-        "excluded from the rates (n = rated trials). Intervals: 95 % Wilson.",
+        READING,
         "",
+        *[f"**Flag: {md_text(f)}.**\n" for f in flags],
         "## Table IV: sim-to-real transferability (%)",
         "",
         "Real: untagged adv3d trials. Sim: the matching condition of the given eval (see the note).",
@@ -486,16 +669,27 @@ def write_trial_report(
         "",
         prec_text,
         "",
-        "## All sessions",
+        "## Paired tests between arms",
         "",
-        *_breakdown_md(summary["all"]),
+        PAIRED_TEXT,
+        "",
     ]
-    for s, b in summary["by_session"].items():
-        md += [f"## Session {md_text(s)}", "", *_breakdown_md(b)]
+    if paired:
+        md += ["| " + " | ".join(PAIRED_HEADER) + " |", "|---|---:|---|---|---|---|---|"]
+        md += ["| " + " | ".join(r) + " |" for r in _paired_rows(paired)]
+    else:
+        md.append("No two arms ran here: nothing to pair.")
+    chart = _rates_chart(out, summary)
+    if chart is not None:
+        md += ["", f"![T-ASR and ASR by arm]({chart.name})"]
+    md.append("")
+    for title, b in _sessions_shown(summary):
+        md += [f"## {md_text(title)}", "", *_breakdown_md(b)]
     if a:
         md += audit_md(a)
     md_path, json_path = out / "report.md", out / "report.json"
     md_path.write_text("\n".join(md) + "\n")
+    _write_html(out, summary, table, prec, precision_text, chart)
     doc = {
         "summary": summary,
         "table_iv": table,
@@ -505,3 +699,68 @@ def write_trial_report(
     }
     json_path.write_text(json.dumps(_json_safe(doc), indent=2))
     return md_path, json_path
+
+
+READING = (
+    "T-ASR = ended at the adversarial object; ASR = did not end at the goal; trials with an unknown outcome are "
+    "excluded from the rates (n = rated trials). Intervals: 95 % Wilson."
+)
+CONDITION_ORDER = ("clean", "adv3d", "patch")
+
+
+def _rates_chart(out: Path, summary: dict) -> Path | None:
+    """``rates_by_arm.png``: T-ASR and ASR per arm, one bar per env/shape, n on every bar
+    (:func:`trials.eval.report.plot_rate_bars`); None without trials."""
+    by = summary["all"].get("by_object_condition") or {}
+    conds = sorted(
+        {c for v in by.values() for c in v},
+        key=lambda c: (c not in CONDITION_ORDER, CONDITION_ORDER.index(c) if c in CONDITION_ORDER else 0, c),
+    )
+    if not conds:
+        return None
+    series = {plain_text(k): v for k, v in by.items()}
+    return plot_rate_bars(out / "rates_by_arm.png", conds, series, "arm", "arm")
+
+
+def _write_html(out: Path, summary: dict, table, prec, precision_text, chart) -> Path:
+    a = summary.get("audit")
+    sessions = ", ".join(plain_text(x) for x in summary["sessions"]) or "–"
+    blocks = [
+        Heading("Summary"),
+        Text(f"{summary['n_trials']} trials in {len(summary['sessions'])} session(s): {sessions}."),
+        *[Flag(f"Incomplete: {plain_text(t)}.") for t in (a["incomplete"] if a else [])],
+        *[Flag(f"{f[0].upper()}{f[1:]}.") for f in summary.get("flags") or []],
+        Text(_overall_line(summary["all"]), strong=True),
+        Text(READING),
+        Heading("T-ASR and ASR by arm"),
+    ]
+    if chart is not None:
+        blocks.append(
+            Figure.from_file(chart, "T-ASR and ASR (%) per arm and object, 95% Wilson intervals, n on every bar")
+        )
+    blocks.append(Table(["condition", *CELLS_HEADER], _cells_rows(summary["all"]["by_condition"])))
+    blocks += [Heading("Paired tests between arms"), Text(PAIRED_TEXT)]
+    paired = summary.get("paired") or []
+    blocks.append(
+        Table(PAIRED_HEADER, _paired_rows(paired)) if paired else Text("No two arms ran here: nothing to pair.")
+    )
+    blocks += [
+        Heading("Table IV: sim-to-real transferability (%)"),
+        Text("Real: untagged adv3d trials. Sim: the matching condition of the given eval (see the note)."),
+        Table(TABLE_IV_HEADER, _table_iv_rows(table, plain_text)),
+        Text(
+            (
+                f"Precision ({plain_text(prec['row'])}, the Table IV row with the fewest trials): "
+                if prec["row"]
+                else "Precision: "
+            )
+            + precision_text
+        ),
+    ]
+    for title, b in _sessions_shown(summary):
+        blocks += [Heading(title), *_breakdown_blocks(b)]
+    if a:
+        blocks.append(Heading(AUDIT_TITLE))
+        for title, items in _audit_sections(a, plain_text):
+            blocks += ([Text(title)] if title else []) + [Bullets(items)]
+    return write_page(out, "Real-robot trial report", blocks)
