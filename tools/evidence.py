@@ -24,31 +24,23 @@ from attack.artifact import CONFIG_RECORD, TEXTURE_PNG, AttackArtifact
 from sim.configs import copy_pool
 from sim.policies.card import CARD_NAME, load_card
 from sim.policies.pool import built_pool_path
-from sim.runinfo import RunInfoError, git_commit, read_run_info
+from sim.runinfo import RunInfoError, read_run_info
 from trials.eval.episodes import collect_evals
 from trials.experiments.recipes import RECIPES as REGISTRY
-from trials.experiments.record import attempt_machine, read_record, run_attempt, write_record
+from trials.experiments.record import attempt_machine, check_evidence, read_record, run_attempt, write_record
 from trials.jobs.dag import read_markers
 
 ROOT = Path(__file__).resolve().parent.parent
 RECIPES = tuple(REGISTRY)  # the one list (trials.experiments.recipes.RECIPES)
 
 
-def _commit() -> str:
-    sys.path.insert(0, str(ROOT))
-
-    return git_commit()
-
-
 def run(
     recipe: str, episodes: int, policy: str | None, work: Path, results: Path, extra: list[str], name: str | None = None
 ) -> int:
     name = name or recipe
-    commit = _commit()
-    if commit.endswith("+dirty"):
-        # A committed result must name the code that made it: commit first (or run from a clean clone).
-        print(f"evidence: the checkout has uncommitted changes ({commit}); commit them first", file=sys.stderr)
-        return 2
+    commit, refused = check_evidence([])
+    if refused:
+        return refused
     out = work / name
     # Paths relative to the checkout, so the recorded command is the one a reader types there.
     cmd = [

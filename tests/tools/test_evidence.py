@@ -1,10 +1,11 @@
 """The evidence tool refuses to record a result from a checkout with uncommitted changes, and records every attempt."""
 
 from tools import evidence
+from trials.experiments import record
 
 
 def test_a_dirty_checkout_is_refused_before_anything_runs_or_is_written(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(evidence, "_commit", lambda: "0123abc+dirty")
+    monkeypatch.setattr(record, "git_commit", lambda: "0123abc+dirty")
     ran = []
     monkeypatch.setattr(evidence, "run_attempt", lambda *a, **k: ran.append(a) or {"exit_code": 0})
     rc = evidence.run("table1", 10, None, tmp_path / "work", tmp_path / "results", [])
@@ -15,9 +16,7 @@ def test_a_dirty_checkout_is_refused_before_anything_runs_or_is_written(tmp_path
 
 
 def test_a_failed_run_is_recorded_as_an_attempt_with_its_command_machine_and_times(tmp_path, monkeypatch):
-    from trials.experiments import record
-
-    monkeypatch.setattr(evidence, "_commit", lambda: "0123abc")
+    monkeypatch.setattr(record, "git_commit", lambda: "0123abc")
     calls = []
     monkeypatch.setattr(record.subprocess, "call", lambda argv, **k: calls.append(argv) or 3)
     rc = evidence.run("table1", 10, None, tmp_path / "work", tmp_path / "results", ["--workers", "2"])

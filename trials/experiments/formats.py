@@ -56,14 +56,14 @@ from sim.configs import copy_pool, load_pool
 from sim.errors import AdvobjError, format_validation_error
 from sim.policies.checkpoint import load_checkpoint
 from sim.policies.pool import feasible_pool_path
-from sim.runinfo import git_commit, read_run_info
+from sim.runinfo import read_run_info
 from sim.spec import load_spec
 from sim.stats import proportion
 from trials.eval.episodes import collect_evals, has_summary, read_collected, read_rows, write_summary
 from trials.eval.evaluate import load_eval_config, run_eval
 from trials.eval.metrics import mcnemar_exact
-from trials.experiments.record import read_record, run_attempt, write_record
-from trials.experiments.tradeoff import TradeoffConfig, _build_eval_set, eval_set_path
+from trials.experiments.record import check_evidence, read_record, run_attempt, write_record
+from trials.experiments.tradeoff import TradeoffConfig, build_eval_set, eval_set_path
 from trials.experiments.tradeoff_report import attack_outcomes
 from trials.jobs.dag import Grid, SerialExecutor, read_markers
 
@@ -226,7 +226,7 @@ def job_attack(out: Path, inputs: dict, fmt: str, preset: str) -> None:
 def job_eval_set(out: Path, inputs: dict, episodes: int, num_envs: int, seed: int) -> None:
     """The ``formats-eval-set`` job: the fixed held-out set, as the tradeoff sweep builds its own
     (the first ``episodes`` evaluation-part configurations of the pool, topped up with clean
-    rollouts of the checkpoint where it holds fewer; :func:`trials.experiments.tradeoff._build_eval_set`)."""
+    rollouts of the checkpoint where it holds fewer; :func:`trials.experiments.tradeoff.build_eval_set`)."""
     scene = str(inputs["scene"]) if "scene" in inputs else None
     spec = load_spec(scene)
     cfg = TradeoffConfig(
@@ -239,7 +239,7 @@ def job_eval_set(out: Path, inputs: dict, episodes: int, num_envs: int, seed: in
         eval_num_envs=num_envs,
         seed=seed,
     )
-    _build_eval_set(cfg, "ref", out, spec)
+    build_eval_set(cfg, "ref", out, spec)
 
 
 def job_eval(out: Path, inputs: dict, episodes: int, num_envs: int) -> None:
@@ -475,13 +475,9 @@ def evidence(
     problems = []
     if a.episodes < min_episodes:
         problems.append(f"--episodes {a.episodes} < {min_episodes}")
-    commit = git_commit()
-    if commit.endswith("+dirty"):
-        # A committed result must name the code that made it: commit first (or run from a clean clone).
-        problems.append(f"the checkout has uncommitted changes ({commit}); commit them first")
-    if problems:
-        print("evidence: " + "; ".join(problems), file=sys.stderr)
-        return 2
+    commit, refused = check_evidence(problems)
+    if refused:
+        return refused
     _config(a)  # bad input: one line now, before an attempt is recorded
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     attempt = run_attempt(

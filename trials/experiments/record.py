@@ -14,10 +14,22 @@ import os
 import platform
 import resource
 import subprocess
+import sys
 import time
 from pathlib import Path
 
-__all__ = ["RECORD_NAME", "record_path", "read_record", "write_record", "is_dirty", "attempt_machine", "run_attempt"]
+from sim.runinfo import git_commit
+
+__all__ = [
+    "RECORD_NAME",
+    "record_path",
+    "read_record",
+    "write_record",
+    "is_dirty",
+    "check_evidence",
+    "attempt_machine",
+    "run_attempt",
+]
 
 RECORD_NAME = "run.json"
 
@@ -43,6 +55,21 @@ def write_record(folder: str | Path, record: dict) -> Path:
 def is_dirty(folder: str | Path) -> bool:
     """Whether any attempt in ``folder``'s record ran from a checkout with uncommitted changes."""
     return any(str(a.get("commit", "")).endswith("+dirty") for a in read_record(folder).get("attempts", []))
+
+
+def check_evidence(problems: list[str]) -> tuple[str, int | None]:
+    """The checkout's commit, and whether an evidence run may start: ``None`` when it may, ``2`` when
+    it is refused. Refused for the caller's ``problems`` (e.g. too few episodes) and for a checkout with
+    uncommitted changes (a committed result must name the code that made it: commit first, or run from
+    a clean clone); every reason is printed as one ``evidence: ...`` line on stderr."""
+    problems = list(problems)
+    commit = git_commit()
+    if commit.endswith("+dirty"):
+        problems.append(f"the checkout has uncommitted changes ({commit}); commit them first")
+    if problems:
+        print("evidence: " + "; ".join(problems), file=sys.stderr)
+        return commit, 2
+    return commit, None
 
 
 def attempt_machine() -> dict:

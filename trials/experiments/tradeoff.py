@@ -97,7 +97,7 @@ from sim.stats import proportion
 from trials.eval.conditions import Condition
 from trials.eval.episodes import collect_evals, read_rows
 from trials.eval.evaluate import load_eval_config, resolve_pool, rollout_condition, run_eval
-from trials.experiments.record import read_record, run_attempt, write_record
+from trials.experiments.record import check_evidence, read_record, run_attempt, write_record
 from trials.experiments.tradeoff_report import KNOBS, attack_outcomes, latest_records, write_report
 from trials.jobs.dag import Grid, GridError, SerialExecutor, clear_finished, is_finished, usable_cpus
 
@@ -111,6 +111,7 @@ __all__ = [
     "load_tradeoff_config",
     "baseline_key",
     "build_rows",
+    "build_eval_set",
     "set_size",
     "select_rows",
     "run_sweep",
@@ -540,7 +541,7 @@ def run_sweep(
     for label in dict.fromkeys(r.policy for r in todo):
         if not eval_set_path(out, label).is_file():
             log(f"evaluation set of the {label} policy: the first {set_size(cfg, label)} task-feasible configurations")
-            _build_eval_set(cfg, label, out, _eval_spec(cfg), progress)
+            build_eval_set(cfg, label, out, _eval_spec(cfg), progress)
 
     # Serially each row runs in a child process (isolate) or in-process; on Ray in a fresh worker.
     mode = "worker" if executor is not None else ("child" if isolate else "inline")
@@ -689,7 +690,7 @@ def eval_set_path(out: str | Path, label: str) -> Path:
     return Path(out) / "eval_sets" / f"{label}.json"
 
 
-def _build_eval_set(cfg: TradeoffConfig, label: str, out: Path, spec, progress: bool = True) -> Path:
+def build_eval_set(cfg: TradeoffConfig, label: str, out: Path, spec, progress: bool = True) -> Path:
     """Write the fixed evaluation set of policy ``label`` (timed): the first :func:`set_size`
     evaluation-part configurations of its task-feasible pool, topped up by
     :func:`trials.eval.evaluate.resolve_pool` (clean rollouts of the evaluation part's next seeds
@@ -1340,13 +1341,9 @@ def evidence(argv: list[str], results: str | Path = RESULTS, log=print) -> int:
         problems.append(f"--episodes {episodes} < {EVIDENCE_MIN_EPISODES}")
     if a.attack_seeds is None or len(a.attack_seeds) < EVIDENCE_MIN_SEEDS:
         problems.append(f"--attack-seeds needs at least {EVIDENCE_MIN_SEEDS} seeds (e.g. 0,1,2)")
-    commit = git_commit()
-    if commit.endswith("+dirty"):
-        # A committed result must name the code that made it: commit first (or run from a clean clone).
-        problems.append(f"the checkout has uncommitted changes ({commit}); commit them first")
-    if problems:
-        print("evidence: " + "; ".join(problems), file=sys.stderr)
-        return 2
+    commit, refused = check_evidence(problems)
+    if refused:
+        return refused
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     # its CPU time: the sweep process and every row process it waited for (its children's)
     rc = run_attempt(

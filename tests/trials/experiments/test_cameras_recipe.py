@@ -148,7 +148,7 @@ def test_the_evidence_tool_passes_and_records_the_recipes_scene(tmp_path, monkey
     from trials.cli.experiment import app as experiment_app
     from trials.experiments import record
 
-    monkeypatch.setattr(evidence, "_commit", lambda: "0123abc")
+    monkeypatch.setattr(record, "git_commit", lambda: "0123abc")
     ran = []
     monkeypatch.setattr(record.subprocess, "call", lambda cmd, **k: ran.append(cmd) or 1)  # no run: nothing collected
     extra = ["--attack-seeds", "0,1,2", "--workers", "2"]
