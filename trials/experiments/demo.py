@@ -32,10 +32,29 @@ from trials.experiments.recipes import (
 )
 from trials.jobs.scene import expert_rollout
 
-__all__ = ["run_demo", "DEMO_BUDGET"]
+__all__ = ["run_demo", "DEMO_BUDGET", "verdicts_once"]
 
 # Sized for <= 15 minutes on 2 CPU cores including setup (measured figures: docs/evaluation.md).
 DEMO_BUDGET = dict(attack_overrides={"iterations": 60}, episodes=40, max_steps=60, num_envs=8, gifs=2)
+
+
+def verdicts_once(text: str) -> str:
+    """``text`` with each verdict line (``**A vs B** (claim: ...``) kept where it first appears, and
+    the blank line after a repeat dropped: the Table I layout's per-phi and per-distance sections
+    each open with the same overall 3D-vs-patch verdict, which the demo's report printed twice."""
+    seen, out, skip_blank = set(), [], False
+    for line in text.split("\n"):
+        if skip_blank and not line.strip():
+            skip_blank = False
+            continue
+        skip_blank = False
+        if line.startswith("**") and "** (claim: " in line:
+            if line in seen:
+                skip_blank = True
+                continue
+            seen.add(line)
+        out.append(line)
+    return "\n".join(out)
 
 
 def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
@@ -82,7 +101,7 @@ def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
         "## Table I layout (by viewing angle)",
         "",
     ]
-    table = table1_markdown(summary, ctx, eval_rows(ctx, "demo")).split("\n", 2)[2]
+    table = verdicts_once(table1_markdown(summary, ctx, eval_rows(ctx, "demo")).split("\n", 2)[2])
     (out / "report.md").write_text("\n".join(head) + table + "\n" + body)
     return {
         "summary": summary,
