@@ -167,3 +167,25 @@ def test_the_evidence_tool_passes_and_records_the_recipes_scene(tmp_path, monkey
     ran.clear()
     evidence.run("cameras", 10, None, tmp_path / "work", tmp_path / "results", ["--scene", "my.yaml"])
     assert ran[0].count("--scene") == 1 and ran[0][ran[0].index("--scene") + 1] == "my.yaml"
+
+
+def test_a_sharded_two_camera_evaluation_merges_every_condition_of_every_camera(
+    tmp_path, two_camera_dir, two_camera_pool
+):
+    """The evaluations in shards (as ``--workers`` runs them) and their merge, which has no policy to
+    check the cameras with: it once refused every camera but the wrist camera at the merge."""
+    run_experiment(
+        "cameras",
+        _cfg(two_camera_pool, attack_seeds=(0,)),
+        tmp_path,
+        policy=two_camera_dir,
+        progress=False,
+        log=lambda m: None,
+        shards=2,
+    )
+    d = tmp_path / "evals" / "cameras"
+    assert sorted(p.name for p in (d / "shards").iterdir()) == ["0-of-2", "1-of-2"]
+    assert set(json.loads((d / "summary.json").read_text())["conditions"]) == CONDITIONS
+    rows = read_rows(d)
+    by = {c: sorted(r["seed"] for r in rows if r["condition"] == c) for c in CONDITIONS}
+    assert len({tuple(v) for v in by.values()}) == 1 and len(by["attack"]) == 2  # both shards' configurations
