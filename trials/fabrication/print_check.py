@@ -18,10 +18,12 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
+from PIL import Image, ImageDraw
 from tqdm import tqdm
 
 from sim import textures as tx
 from sim.geometry import look_at, make_T
+from sim.imaging import hstack, labelled
 from sim.render import SceneRenderer
 from sim.spec import default_scene
 from trials.fabrication.base import FabricationError, mesh_ring_mm, sample_page
@@ -273,15 +275,32 @@ def check_print(layout, rasters, mesh, texture: np.ndarray, progress: bool = Fal
     return CheckResult(view_mae, float(diff[covered].mean()), piece_mae, unread, scale_errors(layout, mesh), renders)
 
 
+ROW_LABELS = ("optimised", "printed back", "|diff| x 4")
+
+
+def _check_figure(result: CheckResult) -> np.ndarray:
+    """``print_check.png``: one column per view (its azimuth, elevation and error above it), rows
+    :data:`ROW_LABELS` named at the left: the optimised texture's render, the printed-back one's,
+    and their absolute difference times 4 on the object's pixels."""
+    cols = []
+    for (a, b, mask), (az, el), err in zip(result.renders, VIEWS_DEG, result.view_mae):
+        d = np.abs(a.astype(np.int16) - b.astype(np.int16)) * 4
+        d[~mask] = 0
+        col = np.concatenate([a, b, np.clip(d, 0, 255).astype(np.uint8)], 0)
+        cols.append(labelled(col, f"view az {az}, el {el}: error {err:.4f}", min_side=1))
+    grid = hstack(cols)
+    top_px, row_px = grid.shape[0] - 3 * result.renders[0][0].shape[0], result.renders[0][0].shape[0]
+    side = Image.new("RGB", (96, grid.shape[0]), (255, 255, 255))
+    draw = ImageDraw.Draw(side)
+    for i, text in enumerate(ROW_LABELS):
+        draw.text((6, top_px + i * row_px + row_px // 2 - 5), text, fill=(0, 0, 0))
+    return np.concatenate([np.asarray(side), grid], 1)
+
+
 def write_check(out_dir, result: CheckResult) -> dict[str, Path]:
     """``print_check.json`` and ``print_check.png`` (rows: optimised, printed back, |diff| x4;
     one column per view)."""
     out = Path(out_dir)
     (out / "print_check.json").write_text(json.dumps(result.summary(), indent=2))
-    cols = []
-    for a, b, mask in result.renders:
-        d = np.abs(a.astype(np.int16) - b.astype(np.int16)) * 4
-        d[~mask] = 0
-        cols.append(np.concatenate([a, b, np.clip(d, 0, 255).astype(np.uint8)], 0))
-    iio.imwrite(out / "print_check.png", np.concatenate(cols, 1))
+    iio.imwrite(out / "print_check.png", _check_figure(result))
     return {"json": out / "print_check.json", "png": out / "print_check.png"}
