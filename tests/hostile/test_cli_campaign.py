@@ -13,7 +13,9 @@ take, and inputs that do not fit together: a policy file's card and its model, a
 scene's cameras, a scene camera without a pose) are given where they are read; their line must also
 say what is wrong (``EXPECT``), so that another refusal firing first (a placeholder input, a missing
 ``--attack``) does not pass for theirs, and with the optional output folders left at their defaults
-they must write nothing at all.
+they must write nothing at all. Recordings as input have theirs too (LeRobot datasets ``record import``
+cannot read, a recording whose frames show no table); a LeRobot dataset is given with the rest of its
+import command (``ARGS_OF``).
 
 The figures (commands covered, cases, tracebacks, files touched outside) are printed and written
 to ``campaign.json`` in the pytest temp directory; run with ``-s`` to see them.
@@ -81,6 +83,11 @@ BUILT_KINDS = {
     "card_image_size": ("tests.hostile.binding_files", "card_image_size_onnx", ".onnx"),
     "camera_wrong_size": ("tests.hostile.binding_files", "front_64px_onnx", ".onnx"),
     "scene_camera_no_pose": ("tests.hostile.binding_files", "scene_camera_without_pose", ".yaml"),
+    # recordings as input (issue 29): LeRobot datasets record import cannot read, frames with no table
+    "lerobot_truncated_mp4": ("tests.trials.recordings.hostile_recordings", "lerobot_truncated_mp4", ""),
+    "lerobot_no_pose_column": ("tests.trials.recordings.hostile_recordings", "lerobot_no_pose_column", ""),
+    "lerobot_unknown_version": ("tests.trials.recordings.hostile_recordings", "lerobot_unknown_version", ""),
+    "recording_no_table": ("tests.trials.recordings.hostile_recordings", "recording_no_table", ""),
 }
 # What the one line must say for each of those kinds (besides naming the file).
 EXPECT = {
@@ -94,11 +101,18 @@ EXPECT = {
     "card_image_size": "image.size is 64x64 px but the model takes 32x32 px",
     "camera_wrong_size": "camera 'front' renders 128x128 px but the model takes 64x64 px",
     "scene_camera_no_pose": "has no extrinsics",
+    "lerobot_truncated_mp4": "episode_000001.mp4: not a readable video",
+    "lerobot_no_pose_column": "no column 'observation.state' (--pose-key)",
+    "lerobot_unknown_version": "codebase_version 'v1.6' is a LeRobot layout",
+    "recording_no_table": "frames with no table visible",
 }
 # Kinds that need more of the command line to reach their refusal: the scene whose camera the
 # policy does not fit. An evaluation is given the clean condition alone (its default, attack, asks
 # for --attack before it reads the policy).
 SCENE_OF = {"camera_wrong_size": str(Path(__file__).resolve().parents[2] / "scenes" / "two-cameras.yaml")}
+# ... and a LeRobot dataset the rest of its import command (source, pose column, calibration files).
+LEROBOT_KINDS = ("lerobot_truncated_mp4", "lerobot_no_pose_column", "lerobot_unknown_version")
+ARGS_OF = {k: ("tests.trials.recordings.hostile_recordings", "LEROBOT_ARGS") for k in LEROBOT_KINDS}
 CARD_KINDS = ("card_missing_input", "card_unknown_camera", "card_unknown_camera_pt2", "card_image_size")
 TARGETED = {
     (("attack", "run"), "policy"): ("onnx_unsupported_op", "onnx_mismatch", "pt2_truncated", "pt2_other_torch")
@@ -106,6 +120,8 @@ TARGETED = {
     + ("camera_wrong_size",),
     (("policy", "eval"), "policy"): ("pt2_truncated", "pt2_other_torch") + CARD_KINDS + ("camera_wrong_size",),
     (("eval",), "policy"): CARD_KINDS + ("camera_wrong_size",),
+    (("record", "import"), "src"): LEROBOT_KINDS,
+    (("attack", "run"), "recordings"): ("recording_no_table",),
 }
 # Peak resident memory of the whole campaign process (every case runs in it): a bound on each case's.
 RSS_CAP_MB = 4096
@@ -242,6 +258,11 @@ def _argv(path, cmd, target: str, kind: str, work: Path) -> list[str]:
             argv += [flag, value]
     if kind in SCENE_OF and target != "scene":
         argv += ["--scene", SCENE_OF[kind]]
+    if kind in ARGS_OF:  # given after the placeholders: the last value of an option is the one used
+        import importlib
+
+        module, name = ARGS_OF[kind]
+        argv += list(getattr(importlib.import_module(module), name))
     if list(path) == ["eval"] and kind in BUILT_KINDS:
         argv += ["--condition", "clean"]
     return argv
