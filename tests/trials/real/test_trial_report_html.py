@@ -5,8 +5,8 @@ report.html in a real Chromium. The trials go through a real SQLite store and th
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
-import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from sim.htmlreport import REPORT_HTML
 from tests.sim.browser_helpers import assert_renders_cleanly, needs_chromium, outline, render_in_chromium
+from tests.trials.real.test_trial_report import _record as trial_record
 from trials.eval.metrics import mcnemar_exact
 from trials.real.report import (
     clean_flags,
@@ -89,30 +90,9 @@ def test_the_precision_line_at_0_and_100_percent_gives_the_wilson_width_only():
 
 
 def _record(i, condition, outcome, pose):
-    from trials.real.store import TrialRecord
-
-    return TrialRecord(
-        trial_id=f"A-cube-{condition}-t{pose}-o0",
-        plan_order=i,
-        env="A",
-        shape="cube",
-        condition=condition,
-        tcp_pose=pose,
-        object_layout=0,
-        tags=[],
-        texture_sha256=None,
-        started_at="2025-01-01T00:00:00Z",
-        duration_s=5.0,
-        stop_reason="reached",
-        auto_outcome=outcome,
-        auto_reason="test",
-        distances_m={},
-        operator_outcome=None,
-        note="",
-        placement_checks=1,
-        placement_skipped=False,
-        T_table_tcp_final=np.eye(4),
-        frames_dir="frames",
+    """test_trial_report's trial record, at TCP pose ``pose``."""
+    return replace(
+        trial_record(i, outcome, condition=condition), trial_id=f"A-cube-{condition}-t{pose}-o0", tcp_pose=pose
     )
 
 
