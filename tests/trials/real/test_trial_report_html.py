@@ -17,6 +17,7 @@ from tests.sim.browser_helpers import assert_renders_cleanly, needs_chromium, ou
 from tests.trials.real.test_trial_report import _record as trial_record
 from trials.eval.metrics import mcnemar_exact
 from trials.real.report import (
+    audit,
     clean_flags,
     paired_arms,
     precision,
@@ -174,3 +175,16 @@ def test_several_sessions_show_the_pooled_breakdown_and_each_session(tmp_path):
     heads = [x for x in md.read_text().splitlines() if x.startswith("## ")]
     assert heads[-3:] == ["## All sessions (pooled)", "## Session s1", "## Session s2"]
     assert "No two arms ran here" in md.read_text()
+
+
+def test_a_hostile_note_is_text_on_the_page(tmp_path):
+    note = "<script>alert(1)</script> <img src=x onerror=alert(2)> \x1b[31mred\x1b[0m"
+    rows = [{**_row("s", "adv3d", 0, 0, "goal"), "note": note, "operator_outcome": None, "auto_outcome": "goal"}]
+    s = summarize_trials(rows)
+    s["audit"] = audit(rows, {"s": 1}, [])
+    write_trial_report(tmp_path, s)
+    page = (tmp_path / REPORT_HTML).read_text()
+    o = outline(page)
+    assert o.scripts == 0 and len(o.images) == 1  # the chart only
+    assert "s/A-cube-adv3d-t0-o0: <script>alert(1)</script> <img src=x onerror=alert(2)> red" in o.text
+    assert "\x1b" not in page
