@@ -9,7 +9,7 @@ from typing import List, Optional
 import typer
 from pydantic import ValidationError
 
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, CalibrationFileError
 from sim.errors import AdvobjError, format_validation_error
 
 app = typer.Typer(no_args_is_help=True, help="Calibrate cameras, tags and hand-eye for real trials.")
@@ -47,6 +47,49 @@ def _read_image(path: Path):
     from calibration.io import read_image  # lazy: CLI start-up (+11 ms)
 
     return read_image(path)
+
+
+# The photos of one intrinsics calibration: tens are plenty (the coverage and tilt it reports say
+# when more views help), and every photo is decoded and held at once. A folder exported from a
+# recording (a ROS bag, a video) can hold thousands of frames: pick a subset.
+MAX_INTRINSICS_PHOTOS = 100
+
+
+def _photo_paths(images: List[Path]) -> list[Path]:
+    """The photos ``calibrate intrinsics`` reads: each file as given, each folder as its image files
+    (the replay camera's suffixes, any case; sorted by name; sub-folders and other files left out). At
+    most :data:`MAX_INTRINSICS_PHOTOS`; every file's size is checked before any is read."""
+    from calibration.io import MAX_IMAGE_BYTES, check_file  # lazy: CLI start-up (+11 ms)
+    from robot_io.cameras.replay import IMAGE_SUFFIXES  # lazy: CLI start-up (numpy, PIL)
+
+    paths: list[Path] = []
+    for p in images:
+        if not p.is_dir():
+            paths.append(p)
+            continue
+        try:
+            found = sorted((f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and f.is_file()), key=str)
+        except OSError as err:
+            raise CalibrationFileError(p, "<images>", f"cannot list the folder ({err.strerror or err})") from None
+        if not found:
+            raise CalibrationFileError(
+                p,
+                "<images>",
+                f"a folder with no photos ({' '.join(IMAGE_SUFFIXES)}); give the board photos or their folder",
+            )
+        root = p.resolve()
+        for f in found:
+            if not f.resolve().is_relative_to(root):
+                raise CalibrationFileError(f, "<images>", f"a link to {f.resolve()}, outside the folder {p}")
+        paths += found
+    if len(paths) > MAX_INTRINSICS_PHOTOS:
+        raise CalibrationError(
+            f"<images>: {len(paths)} photos, over the maximum of {MAX_INTRINSICS_PHOTOS} for one calibration; pick a "
+            "subset that shows the board across the image and tilted (e.g. every 10th frame of a recording)"
+        )
+    for f in paths:
+        check_file(f, "<image>", MAX_IMAGE_BYTES)
+    return paths
 
 
 _SQX = typer.Option(8, "--squares-x", help="board squares across")
@@ -113,7 +156,9 @@ def _inner_corners(text: Optional[str]):
 
 @app.command()
 def intrinsics(
-    images: List[Path] = typer.Argument(..., help="board photos (ChArUco or plain chessboard)"),
+    images: List[Path] = typer.Argument(
+        ..., help="board photos (ChArUco or plain chessboard), or folders of them (their image files, sorted by name)"
+    ),
     out: Path = typer.Option(Path("cam.yaml"), help="output camera YAML"),
     board: str = typer.Option(
         "auto", help="auto (tell from the photos), charuco, chessboard, or a board YAML from 'calibrate board'"
@@ -148,6 +193,7 @@ def intrinsics(
     if fmt not in CAMERA_FORMATS:
         raise typer.BadParameter(f"expected one of {', '.join(CAMERA_FORMATS)}, got {fmt!r}", param_hint="--format")
     corners = _inner_corners(inner_corners)
+    images = _photo_paths(images)
     arrays = [_read_image(p) for p in images]
     if board in ("auto", "charuco", "chessboard"):
         charuco = _board(None, squares_x, squares_y, square_mm, marker_mm, dictionary, legacy)
