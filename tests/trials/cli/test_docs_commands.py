@@ -764,6 +764,11 @@ TINY: dict[str, Tiny] = {
         expect="recording:",
         setup=_tiny_lerobot,
     ),
+    "advobj record sim --policy runs/policy-quick --episodes 80 --out runs/rec-sim": Tiny(
+        "record sim --policy {policy} --episodes 2 --max-steps 3 --out {tmp}/rec-sim",
+        ("{tmp}/rec-sim/recording.json",),
+        expect="recording: 2 episodes",
+    ),
     # ---- hardware
     "advobj hw check --config examples/hardware/sim.yaml": Tiny(
         "hw check --config {root}/examples/hardware/sim.yaml --frames 2", expect="nothing moved"
