@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.trials.experiments.test_findings_recompute import _bootstrap_ratio, _katz
+from tests.trials.experiments.test_findings_recompute import _bootstrap, _katz
 from trials.experiments import findings as fd
 
 RESULTS = Path(__file__).resolve().parents[3] / "results"
@@ -53,7 +53,7 @@ def test_the_ratio_over_seeds_is_the_plain_bootstrap_of_the_ratio_of_means(rates
     xb = [[int(b[s][c]["targeted"]) for c in range(300)] for s in sorted(b)]
     ma, mb = sum(map(sum, xa)) / 900, sum(map(sum, xb)) / 900
     assert o.diff == pytest.approx(ma / mb, rel=1e-12)
-    lo, hi = _bootstrap_ratio(xa, xb)
+    lo, hi = _bootstrap(xa, xb, ratio=True)
     assert o.lo == pytest.approx(lo, abs=0.02) and o.hi == pytest.approx(hi, abs=0.02)
     assert o.verdict == want
     # each seed's pair alone: the Katz interval of its two rates against the floor
