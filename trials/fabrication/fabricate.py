@@ -21,8 +21,12 @@ uses it to read every texel back from the rasterised page, so a mirrored, rotate
 mis-scaled print shows up before paper is wasted.
 
 Tag card: an optional piece with an AprilTag (tag36h11) and the object's footprint beside it at
-a known offset. Lay it on the table and stand the object on the footprint; the tag then locates
-the object without covering any of its optimised surface (see :func:`tag_registry`).
+a known offset, for any mesh (a mesh without a net gets a sheet holding the card alone,
+:data:`CARD`). Lay it on the table and stand the object on the footprint; the tag then locates
+the object without covering any of its optimised surface: the card records the tag's pose in the
+object frame ``T_obj_tag`` and :func:`tag_registry` makes the registry entry from it. The object
+to make is the run's mesh, or an object of a scene named by the user (``--scene S --shape NAME``,
+:mod:`trials.fabrication.shapes`), whose mesh the run must have optimised.
 """
 
 from __future__ import annotations
@@ -44,18 +48,20 @@ from tqdm import tqdm
 
 from attack.artifact import RUN_JSON, AttackArtifact
 from attack.outputs import export_meshes
+from calibration.io import T_to_pose
 from calibration.printables import image_mm, page_figure, scale_bar
 from calibration.registry import ObjectRegistry, save_registry
 from sim.assets import AssetError, build_mesh, region_texture, texel_density_ratio
-from sim.geometry import make_T, so3_exp
+from sim.geometry import invert_T, make_T, so3_exp
 from sim.runinfo import write_run_info
-from sim.spec import default_scene
-from trials.eval.conditions import ConditionError
+from sim.spec import load_spec
 from trials.fabrication.base import FabricationError, mesh_ring_mm, sample_bilinear
 from trials.fabrication.print_check import check_print, write_check
+from trials.fabrication.shapes import RunSource, ShapeError, load_run, run_mesh_problem, scene_shape
 
 __all__ = [
     "SHEET_SHAPES",
+    "CARD",
     "PAGES_MM",
     "CHECK_LINE_MM",
     "Region",
@@ -78,6 +84,7 @@ __all__ = [
 ]
 
 SHEET_SHAPES = ("cube", "cylinder")
+CARD = "card"  # a layout of the tag card alone, for a mesh without a net
 PAGES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4), "a3": (297.0, 420.0)}
 MARGIN_MM = 8.0  # printers do not reach the paper's edge
 GAP_MM = 3.0  # clearance kept around every item on a page
@@ -90,20 +97,6 @@ BLEED_MM = 1.0  # texture printed past a cap's cut line so a slightly wide cut s
 
 
 # ============================================================================ inputs
-@dataclass(frozen=True)
-class RunSource:
-    """An attack run's texture and the mesh it was optimised on."""
-
-    run_dir: str
-    texture: np.ndarray  # (H, W, 3) uint8
-    mesh: str  # built-in name or mesh file path
-    scale: object  # the scene's scale of the adversarial object (number or 3-tuple)
-    sha256: str  # of texture.npy
-    mesh_kwargs: dict = field(
-        default_factory=dict
-    )  # units / up_axis / placement of a mesh file (sim.assets.build_mesh)
-
-
 def optimised_texel_size_mm(mesh, width_px: int, height_px: int) -> dict | None:
     """How large one texel of a ``width_px x height_px`` texture is on the mesh's optimised faces:
     the side (mm) of a texel's footprint per face (sqrt of 3D area over texel count), its
@@ -120,21 +113,6 @@ def optimised_texel_size_mm(mesh, width_px: int, height_px: int) -> dict | None:
     cdf = np.cumsum(w[order]) / w.sum()
     q = lambda p: float(mm[order][min(np.searchsorted(cdf, p), len(order) - 1)])  # noqa: E731
     return {"median": q(0.5), "p10": q(0.1), "p90": q(0.9)}
-
-
-def load_run(run_dir) -> RunSource:
-    """Read an ``advobj attack run`` directory (clear errors naming the missing/bad file)."""
-    art = AttackArtifact.load(run_dir, error=ConditionError)
-    scene = art.scene
-    adv = next((o for o in scene.get("objects", []) if isinstance(o, dict) and o.get("role") == "adversarial"), None)
-    if adv is None:
-        o = next(o for o in default_scene().objects if o.role == "adversarial")
-        adv = {"mesh": o.mesh, "scale": o.scale}
-    mesh = art.mesh or adv.get("mesh")
-    kw = {k: adv[k] for k in ("units", "up_axis", "placement", "attack_region") if adv.get(k) is not None}
-    if mesh != adv.get("mesh"):
-        kw.pop("attack_region", None)  # the region is an image of the scene mesh's UV layout
-    return RunSource(str(run_dir), art.texture_u8, str(mesh), adv.get("scale", 1.0), art.sha256, kw)
 
 
 # ============================================================================ layout data
@@ -254,10 +232,10 @@ class Placed:
 class SheetLayout:
     """Pieces and furniture placed on pages of ``page_mm`` (width, height, as oriented)."""
 
-    shape: str
+    shape: str  # cube, cylinder, or CARD (the tag card alone)
     page_mm: tuple[float, float]
     dpi: int
-    uv_side_m: float
+    uv_side_m: float | None  # None: nothing of the texture is printed (CARD)
     pieces: tuple[Piece, ...]
     items: tuple[Item, ...]
     placements: tuple[Placed, ...]
@@ -287,6 +265,7 @@ class SheetLayout:
             }
             if p.kind == "card":
                 d.update({k: p.fold[k] for k in ("tag_id", "tag_size_mm", "tag_centre_mm", "object_centre_mm")})
+                d["T_obj_tag"] = T_to_pose(p.fold["T_obj_tag"]).model_dump(mode="json")
             return d
 
         def item(i: Item):
@@ -306,7 +285,7 @@ class SheetLayout:
             "pages": self.n_pages,
             "dpi": self.dpi,
             "uv_side_m": self.uv_side_m,
-            "mm_per_uv": self.uv_side_m * 1000.0,
+            "mm_per_uv": None if self.uv_side_m is None else self.uv_side_m * 1000.0,
             "check_line_mm": CHECK_LINE_MM,
             "pieces": [piece(p) for p in self.pieces],
             "items": [item(i) for i in self.items],
@@ -569,11 +548,16 @@ def cylinder_pieces(mesh, tweak: LayoutTweak = LayoutTweak()) -> list[Piece]:
 
 
 def tag_card(tag_id: int, tag_size_mm: float, shape: str, mesh) -> Piece:
-    """A card with the tag (left) and the object's footprint (right), centres on one line.
+    """A card with the tag (left) and the object's footprint (right), their centres on one line.
 
     Tag frame (:mod:`calibration.registry`): +x right, +y up on the printed tag, +z out of its
-    face. The footprint is drawn with the object's +x to the right and +y up (its -y, front, face
-    toward the card's bottom edge), so ``T_tag_object`` is a pure translation.
+    face. The footprint is the object seen from above, drawn with its +x to the right and +y up
+    (its -y, front, toward the card's bottom edge), a cross on its frame's origin: for the cube a
+    square, for the cylinder a circle (a tick at the seam, +x), for any other mesh the convex
+    outline of its vertices (a tick at the front). The card lies face up on the table, so the tag's
+    pose in the object frame ``T_obj_tag`` (``fold["T_obj_tag"]``, (4, 4) m) is a pure
+    translation: the printed offset in x and y, and the table's height in the object frame (its
+    lowest point) in z.
     """
     if not 0 <= tag_id < 587:
         raise FabricationError(f"tag_id: tag36h11 has ids 0..586, got {tag_id}")
@@ -583,23 +567,36 @@ def tag_card(tag_id: int, tag_size_mm: float, shape: str, mesh) -> Piece:
     cells = d.markerSize + 2
     quiet = 2 * tag_size_mm / cells
     img = cv2.aruco.generateImageMarker(d, int(tag_id), cells, borderBits=1)
-    ext = np.asarray(mesh.extents, float) * 1000.0
+    lo, hi = np.asarray(mesh.bounds, float) * 1000.0  # object frame, mm
+    ext = hi - lo
     m, gap, label = 3.0, 8.0, 8.0
     tag_block = tag_size_mm + 2 * quiet
     h = max(tag_block, ext[1]) + 2 * m + label
     cy = m + max(tag_block, ext[1]) / 2
     tag_c = (m + tag_block / 2, cy)
-    obj_c = (m + tag_block + gap + ext[0] / 2, cy)
-    w = obj_c[0] + ext[0] / 2 + m
+    # The object's frame origin on the card (paper y down = object -y): its footprint box beside the
+    # tag block, centred on the tag's line.
+    obj_c = (m + tag_block + gap - lo[0], cy + (lo[1] + hi[1]) / 2)
+    w = m + tag_block + gap + ext[0] + m
+    box_cx = obj_c[0] + (lo[0] + hi[0]) / 2
     if shape == "cylinder":
         outline = tuple(
-            (obj_c[0] + ext[0] / 2 * math.cos(t), cy - ext[1] / 2 * math.sin(t))
+            (box_cx + ext[0] / 2 * math.cos(t), cy - ext[1] / 2 * math.sin(t))
             for t in np.linspace(0, 2 * np.pi, 97)[:-1]
         )
         note = "stand the cylinder here, seam (+x) at the tick"
-    else:
-        outline = _rect_poly(obj_c[0] - ext[0] / 2, cy - ext[1] / 2, ext[0], ext[1])
+        tick = (box_cx + ext[0] / 2, cy)
+    elif shape == "cube":
+        outline = _rect_poly(box_cx - ext[0] / 2, cy - ext[1] / 2, ext[0], ext[1])
         note = "stand the cube here, front (-y) face toward the tick"
+        tick = (box_cx, cy + ext[1] / 2)
+    else:
+        xy = np.asarray(mesh.vertices, float)[:, :2] * 1000.0
+        hull = cv2.convexHull(xy.astype(np.float32)).reshape(-1, 2).astype(float)
+        outline = tuple((obj_c[0] + x, obj_c[1] - y) for x, y in hull)
+        note = "stand the object on its outline, front (-y) toward the tick"
+        tick = (box_cx, cy + ext[1] / 2)
+    t_obj_tag = np.round(np.array([tag_c[0] - obj_c[0], -(tag_c[1] - obj_c[1]), lo[2]]) / 1000.0, 9) + 0.0
     return Piece(
         "tag_card",
         "card",
@@ -610,7 +607,7 @@ def tag_card(tag_id: int, tag_size_mm: float, shape: str, mesh) -> Piece:
         ((0.0, 0.0, w, h),),
         (
             (f"tag36h11 id {tag_id}, {tag_size_mm:g} mm", tag_c[0], h - m - label / 2, 5, 0),
-            (note, obj_c[0], h - m - label / 2, 4, 0),
+            (note, box_cx, h - m - label / 2, 4, 0),
         ),
         {
             "tag_image": img,
@@ -620,26 +617,33 @@ def tag_card(tag_id: int, tag_size_mm: float, shape: str, mesh) -> Piece:
             "object_centre_mm": obj_c,
             "outline": outline,
             "shape": shape,
-            "tick": (obj_c[0] + ext[0] / 2, cy) if shape == "cylinder" else (obj_c[0], cy + ext[1] / 2),
+            "tick": tick,
+            "T_obj_tag": make_T(np.eye(3), t_obj_tag),
         },
     )
 
 
-def tag_registry(card: Piece, mesh) -> dict:
-    """The object-registry entry (``examples/calibration/objects.yaml`` format) for the tag card:
-    the object's centre (bounding-box centre) from the tag, card lying face up on the table."""
+def tag_registry(card: Piece, mesh, name: str = "adversarial", T_obj_tag=None) -> dict:
+    """The object-registry entry (``examples/calibration/objects.yaml`` format) for the tag card.
+
+    The registry's object frame is the object's centre (its bounding-box centre, the point the
+    reach criterion measures to) with the object's axes, so ``T_tag_object`` is ``inv(T_obj_tag)``
+    followed by the centre's offset in the object frame: a locator recovers the object's own pose
+    as the tag's pose composed with ``inv(T_obj_tag)``. ``name``: the registry's object name (the
+    scene object's name, or ``adversarial``); ``T_obj_tag``: the card's own by default.
+    """
     f = card.fold
-    dx = (f["object_centre_mm"][0] - f["tag_centre_mm"][0]) / 1000.0
-    dy = -(f["object_centre_mm"][1] - f["tag_centre_mm"][1]) / 1000.0  # paper y down = tag -y
+    T_obj_tag = f["T_obj_tag"] if T_obj_tag is None else np.asarray(T_obj_tag, float)
     lo, hi = np.asarray(mesh.bounds, float)
-    centre = (lo + hi) / 2
-    t = [round(float(dx + centre[0]), 6), round(float(dy + centre[1]), 6), round(float(centre[2]), 6)]
+    T_tag_centre = invert_T(T_obj_tag) @ make_T(np.eye(3), (lo + hi) / 2)
+    pose = T_to_pose(T_tag_centre)  # rounded to a micrometre: the printed offsets are whole mm and fractions
+    t = [round(v, 6) + 0.0 for v in pose.translation_m]
     return {
         "tags": {
             f["tag_id"]: {
-                "object": "adversarial",
+                "object": name,
                 "size_m": f["tag_size_mm"] / 1000.0,
-                "T_tag_object": {"translation_m": t, "rotvec_rad": [0.0, 0.0, 0.0]},
+                "T_tag_object": {"translation_m": t, "rotvec_rad": list(pose.rotvec_rad)},
             }
         }
     }
@@ -674,27 +678,32 @@ def texture_swatches(texture: np.ndarray, n: int = 4) -> list[tuple[int, int, in
 _ASSEMBLY = {
     "cube": "net: middle row -x, -y (front), +x, +y; +z (top) above -y, -z below; printed side out",
     "cylinder": "wrap: left edge is the seam (+x), 'top' edge up; caps: the triangles point at the seam",
+    CARD: "lay the card flat, tag face up; stand the object on its outline, front (-y) at the tick",
 }
 
 
 def furniture(src: RunSource, shape: str, texture: np.ndarray) -> tuple[list[Item], list[Item]]:
-    """(per-page items: title, scale; once-only items: colour check)."""
+    """(per-page items: title, scale; once-only items: colour check, none for the tag card alone)."""
     swatches = [*_FIXED_SWATCHES, *texture_swatches(texture)]
+    cut = "cut along the solid line" if shape == CARD else "cut solid lines, fold dashed, glue the tabs"
     title = Item(
         "title",
         "title",
         (100.0, 17.0),
         {
             "lines": [
-                f"advobj fabricate: {shape}  |  PRINT AT 100 % (actual size, no fit-to-page)",
-                f"source: {Path(src.run_dir).name}  mesh: {src.mesh}",
+                f"advobj fabricate: {'tag card' if shape == CARD else shape}  |  PRINT AT 100 % (actual size, "
+                "no fit-to-page)",
+                f"source: {Path(src.run_dir).name}  mesh: {Path(src.mesh).name}",
                 f"texture sha256: {src.sha256[:32]}",
-                f"date: {time.strftime('%Y-%m-%d')}  cut solid lines, fold dashed, glue the tabs",
+                f"date: {time.strftime('%Y-%m-%d')}  {cut}",
                 _ASSEMBLY[shape],
             ]
         },
     )
     scale = Item("scale", "scale", (108.0, 15.0), {"check_line_mm": CHECK_LINE_MM})
+    if shape == CARD:
+        return [title, scale], []
     cols = 6
     rows = math.ceil(len(swatches) / cols)
     colors = Item(
@@ -814,19 +823,22 @@ def build_layout(
     tweak: LayoutTweak = LayoutTweak(),
 ) -> SheetLayout:
     """Pieces, furniture and their page placements for ``shape``; the page orientation (portrait or
-    landscape) is the one needing fewer pages (portrait on a tie)."""
-    if shape not in SHEET_SHAPES:
+    landscape) is the one needing fewer pages (portrait on a tie). ``shape`` :data:`CARD`: the tag
+    card alone (``tag`` needed), for a mesh without a net, whose card footprint is its outline."""
+    if shape not in SHEET_SHAPES and shape != CARD:
         raise FabricationError(
             f"shape {shape!r} has no flat net; sheets exist for {', '.join(SHEET_SHAPES)} "
             "(other meshes: use the GLB/OBJ for colour 3D printing)"
         )
+    if shape == CARD and tag is None:
+        raise FabricationError("a tag card layout needs a tag: give --tag-id")
     if page not in PAGES_MM:
         raise FabricationError(f"page {page!r}: choose one of {', '.join(PAGES_MM)}")
     if not 30 <= dpi <= 1200:
         raise FabricationError(f"dpi: must be in 30..1200, got {dpi}")
     if not (0.5 <= tweak.scale <= 2.0):
         raise FabricationError(f"tweak.scale: must be in 0.5..2, got {tweak.scale}")
-    pieces = cube_pieces(mesh, tweak) if shape == "cube" else cylinder_pieces(mesh, tweak)
+    pieces = cube_pieces(mesh, tweak) if shape == "cube" else cylinder_pieces(mesh, tweak) if shape != CARD else []
     if tag is not None:
         pieces.append(tag_card(int(tag[0]), float(tag[1]), shape, mesh))
     per_page, once = furniture(src, shape, src.texture)
@@ -847,9 +859,8 @@ def build_layout(
     items = list(once)
     for k in range(n_pages):
         items += [it if k == 0 else replace(it, name=f"{it.name}@{k}") for it in per_page]
-    return SheetLayout(
-        shape, best[1], int(dpi), float(mesh.metadata["uv_side_m"]), tuple(pieces), tuple(items), tuple(best[2])
-    )
+    uv_side = None if shape == CARD else float(mesh.metadata["uv_side_m"])
+    return SheetLayout(shape, best[1], int(dpi), uv_side, tuple(pieces), tuple(items), tuple(best[2]))
 
 
 # ============================================================================ rasters and drawing
@@ -1030,13 +1041,23 @@ def fabricate(
     log=print,
     progress: bool = True,
     obj_units: str = "m",
+    scene=None,
 ) -> dict:
     """Everything ``advobj fabricate`` writes into ``out_dir``; returns a summary dict.
+
+    ``scene``: a scene YAML whose object ``shape`` (default: its adversarial object) is made: its
+    mesh, scale, units, up axis and placement (:func:`trials.fabrication.shapes.scene_shape`); the
+    attack run must have optimised that mesh. Without it, ``shape`` is a sheet shape (cube,
+    cylinder) and the run's own mesh is made.
 
     Always: ``adversarial.glb`` + ``adversarial_obj/`` (colour 3D printing) and ``run.json``.
     For cube and cylinder: ``sheet.pdf``, ``layout.json``, ``objects.yaml`` (with a tag) and,
     unless ``check`` is False, ``print_check.png`` / ``print_check.json``; a failed check raises
-    :class:`FabricationError` after writing them.
+    :class:`FabricationError` after writing them. For any other mesh with a tag: the tag card alone
+    (``sheet.pdf``, ``layout.json``, ``objects.yaml``, the check of the card). The card's
+    ``T_obj_tag`` (the tag's pose in the object frame) is in ``layout.json`` and the summary, and
+    ``objects.yaml`` holds the registry entry made from it, named after the scene object (else
+    ``adversarial``).
     """
     t0 = time.perf_counter()
     # every option first: nothing is written for a run that would be refused later (build_layout checks again)
@@ -1048,9 +1069,49 @@ def fabricate(
         raise FabricationError(f"--out: {out_dir} is a file; give an output directory")
     if obj_units not in ("m", "mm"):
         raise FabricationError(f"--units: expected m or mm, got {obj_units!r}")
+    if tag is not None and not 0 <= int(tag[0]) < 587:
+        raise FabricationError(f"--tag-id: tag36h11 has ids 0..586, got {tag[0]}")
+    if tag is not None and not (math.isfinite(tag[1]) and 1.0 <= tag[1] <= 500.0):
+        raise FabricationError(f"--tag-size-mm: must be 1..500 mm, got {tag[1]}")
+    spec = None if scene is None else load_spec(scene)
     src = load_run(run_dir)
-    out = Path(out_dir)
+    obj = None
+    if spec is not None:
+        try:
+            obj = scene_shape(spec, shape or spec.adversarial.name, "--shape", str(scene))
+        except ShapeError as err:
+            raise FabricationError(str(err)) from None
+    if obj is not None:
+        problem = run_mesh_problem(src, obj)
+        if problem is not None:
+            raise FabricationError(f"--shape {obj.object.name}: {problem} (run {run_dir})")
+        # the object as the scene declares it: the texture's mesh, at the scene's size
+        src = replace(src, mesh=obj.object.mesh, scale=obj.object.scale, mesh_kwargs=obj.object.mesh_kwargs())
+        sheet_shape = obj.object.mesh if obj.object.mesh in SHEET_SHAPES else None
+    else:
+        if shape is not None and shape not in SHEET_SHAPES:
+            raise FabricationError(
+                f"--shape {shape}: no flat net for this shape; sheets exist for {', '.join(SHEET_SHAPES)}"
+                + ("" if scene is not None else "; to make an object of your scene, give --scene SCENE --shape OBJECT")
+            )
+        if shape is not None and shape != src.mesh:
+            raise FabricationError(
+                f"--shape {shape}: the texture in {run_dir} was optimised on {src.mesh!r}, not {shape!r}; "
+                "its UV layout would not fit the net"
+            )
+        sheet_shape = shape if shape is not None else (src.mesh if src.mesh in SHEET_SHAPES else None)
+    name = "adversarial" if obj is None else obj.object.name
     light_dr = _attack_field(run_dir, "light_randomization")
+    try:
+        mesh = build_mesh(src.mesh, src.scale, **src.mesh_kwargs)
+    except AssetError as err:
+        where = f"--scene {scene}: object {name!r}" if obj is not None else f"{_run_json(run_dir)}"
+        raise FabricationError(f"{where}: mesh {src.mesh!r} cannot be built ({err})") from None
+    if sheet_shape is not None and np.any(np.asarray(src.scale, float) != 1.0):
+        raise FabricationError(
+            f"{_run_json(run_dir) if obj is None else f'--scene {scene}: object {name!r}'}: the object is scaled by "
+            f"{src.scale}; print sheets need the built-in size (scale 1)"
+        )
     if light_dr is False:
         # The paper optimises under lighting randomisation for the real cell; a fixed-light texture
         # may lose much of its effect under the cell's own lights (experiment lighting measures it).
@@ -1060,31 +1121,14 @@ def fabricate(
             "for a real cell, optimise with light_randomization: true ('advobj experiment lighting' measures the "
             "difference)"
         )
-    try:
-        mesh = build_mesh(src.mesh, src.scale, **src.mesh_kwargs)
-    except AssetError as err:
-        raise FabricationError(f"{_run_json(run_dir)}: mesh {src.mesh!r} of the run cannot be built ({err})") from None
-    sheet_shape = shape if shape is not None else (src.mesh if src.mesh in SHEET_SHAPES else None)
-    if shape is not None and shape not in SHEET_SHAPES:
-        raise FabricationError(
-            f"--shape {shape}: no flat net for this shape; sheets exist for {', '.join(SHEET_SHAPES)}"
-        )
-    if shape is not None and shape != src.mesh:
-        raise FabricationError(
-            f"--shape {shape}: the texture in {run_dir} was optimised on {src.mesh!r}, not {shape!r}; "
-            "its UV layout would not fit the net"
-        )
-    if tag is not None and sheet_shape is None:
-        # The tag card is a piece of a print sheet; a mesh without a sheet has nowhere to carry it.
-        raise FabricationError(
-            f"--tag-id: {src.mesh!r} has no print sheet (sheets exist for {', '.join(SHEET_SHAPES)}), so no tag "
-            "card can go with it; tag the printed object yourself and register it in objects.yaml "
-            "(docs/calibration.md), or omit --tag-id"
-        )
+    layout_shape = sheet_shape if sheet_shape is not None else (CARD if tag is not None else None)
     config = {
         "job": "fabricate",
         "run_dir": str(run_dir),
+        "scene": None if scene is None else str(scene),
+        "object": None if obj is None else name,
         "mesh": src.mesh,
+        "mesh_sha256": None if obj is None else obj.mesh_sha256,
         "scale": src.scale,
         "shape": sheet_shape,
         "page": page,
@@ -1095,6 +1139,7 @@ def fabricate(
         "light_randomization": light_dr,
         "tweak": asdict(tweak) if tweak != LayoutTweak() else None,
     }
+    out = Path(out_dir)
     write_run_info(out, config, None)
 
     printed = region_texture(mesh, src.texture)
@@ -1116,25 +1161,27 @@ def fabricate(
             "mm for 80 % of "
             f"their area), whatever the print resolution"
         )
-    if sheet_shape is None:
+    if layout_shape is None:
         log(
-            f"fabricate: {src.mesh!r} has no flat net; wrote {paths['glb'].name} and {paths['obj'].parent.name}/ "
-            "for colour 3D printing "
-            f"(sheets exist for {', '.join(SHEET_SHAPES)})"
+            f"fabricate: {Path(src.mesh).name!r} has no flat net; wrote {paths['glb'].name} and "
+            f"{paths['obj'].parent.name}/ for colour 3D printing "
+            f"(sheets exist for {', '.join(SHEET_SHAPES)}; --tag-id adds a tag card that locates it in the cell)"
         )
         summary["seconds"] = time.perf_counter() - t0
         return summary
-    if np.any(np.asarray(src.scale, float) != 1.0):
-        raise FabricationError(
-            f"{_run_json(run_dir)}: the adversarial object is scaled by {src.scale}; "
-            "print sheets need the built-in size (scale 1)"
-        )
 
-    layout = build_layout(src, mesh, sheet_shape, page, dpi, tag, tweak)
+    layout = build_layout(src, mesh, layout_shape, page, dpi, tag, tweak)
     (out / "layout.json").write_text(json.dumps(layout.to_json(), indent=2))
     card = next((p for p in layout.pieces if p.kind == "card"), None)
     if card is not None:
-        save_registry(out / "objects.yaml", ObjectRegistry.model_validate(tag_registry(card, mesh)))
+        save_registry(out / "objects.yaml", ObjectRegistry.model_validate(tag_registry(card, mesh, name)))
+        pose = T_to_pose(card.fold["T_obj_tag"])
+        summary["T_obj_tag"] = pose.model_dump(mode="json")
+        log(
+            f"fabricate: tag {card.fold['tag_id']} on the card lies at "
+            f"[{', '.join(f'{v * 1000:.1f}' for v in pose.translation_m)}] mm in the frame of {name!r} "
+            f"(T_obj_tag, in layout.json); objects.yaml registers it as object {name!r}"
+        )
     with tqdm(total=layout.n_pages, desc="sheet pages", unit="page", disable=not progress) as bar:
         rasters = draw_pages(layout, src.texture, out / "sheet.pdf", raster=check, progress=bar.update)
     summary.update(

@@ -295,11 +295,19 @@ def test_exports_follow_their_formats_glb_y_up_and_obj_says_its_units(tmp_path):
     np.testing.assert_allclose(A.build_mesh(obj, units="mm", placement="keep").bounds, back.bounds, atol=1e-5)
 
 
-def test_tag_id_on_a_mesh_without_a_sheet_is_refused_in_one_line_and_nothing_written(tmp_path):
-    run = make_attack_dir(tmp_path / "run", mesh=None, size=16)
+def test_tag_id_on_a_mesh_without_a_net_gets_the_tag_card_alone_and_a_bad_id_writes_nothing(tmp_path):
+    from calibration.registry import load_registry
+
+    run = make_attack_dir(tmp_path / "run", mesh=None, size=16)  # the scene's mustard bottle: no net
     res = _invoke(["fabricate", run, "--out", tmp_path / "out", "--dpi", DPI, "--tag-id", 5])
-    assert res.exit_code != 0 and "--tag-id: 'mustard_bottle' has no print sheet" in str(res.exception)
-    assert not (tmp_path / "out").exists()
+    assert res.exit_code == 0, res.output
+    assert "pre-print check PASSED: tag card: tag 5 read back" in res.output
+    layout = json.loads((tmp_path / "out" / "layout.json").read_text())
+    assert layout["shape"] == "card" and [p["kind"] for p in layout["pieces"]] == ["card"]
+    assert load_registry(tmp_path / "out" / "objects.yaml").tags[5].object == "adversarial"
+    res = _invoke(["fabricate", run, "--out", tmp_path / "bad", "--dpi", DPI, "--tag-id", 587])
+    assert res.exit_code != 0 and "--tag-id: tag36h11 has ids 0..586, got 587" in str(res.exception)
+    assert not (tmp_path / "bad").exists()
 
 
 def test_the_optimised_texel_size_is_said_honestly(tmp_path):
