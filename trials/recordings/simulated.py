@@ -33,13 +33,25 @@ from typing import Callable, Literal, Optional
 
 import numpy as np
 from pydantic import Field, ValidationError
+from tqdm import tqdm
 
 from sim.configio import StrictModel
 from sim.configs import PARTS, config_part, sample_pool
 from sim.env import ReachEnv
 from sim.errors import AdvobjError, flag_error
 from sim.geometry import make_T
-from sim.recording import MAX_EPISODES, Recording, RecordingCamera, check_target, read_recording, write_recording
+from sim.policies.checkpoint import load_policy
+from sim.policies.contract import check_scene, policy_cameras
+from sim.policies.rollout import rollout
+from sim.recording import (
+    MAX_EPISODES,
+    RecordedStep,
+    Recording,
+    RecordingCamera,
+    check_target,
+    read_recording,
+    write_recording,
+)
 from sim.spec import WRIST, LightingSpec, LightSpec, load_spec
 
 __all__ = [
@@ -185,8 +197,6 @@ class _RecordingEnv(ReachEnv):
 
 def _frame_bytes(policy, spec) -> int:
     """Bytes of one step's frames: every camera the policy reads (the wrist camera at its input size)."""
-    from sim.policies.contract import policy_cameras
-
     size = int(policy.image_size)
     sides = [
         (size, size) if c == WRIST else (spec.camera_spec(c).width, spec.camera_spec(c).height)
@@ -208,10 +218,6 @@ def record_episodes(policy, spec, configs, num_envs: int = 8, progress: Callable
     for :func:`sim.recording.write_recording` (rolled out a batch at a time as it is consumed; an
     episode ended before its first step, by a policy error, is left out) and ``outcomes``, filled as
     it runs: ``{id: reached object index (-1: none)}``. The env is closed when the generator ends."""
-    from sim.policies.contract import check_scene, policy_cameras
-    from sim.policies.rollout import rollout
-    from sim.recording import RecordedStep
-
     configs = list(configs)
     check_attack_part(configs)
     check_scene(policy, spec)
@@ -222,8 +228,7 @@ def record_episodes(policy, spec, configs, num_envs: int = 8, progress: Callable
     for name in cams:
         env.renderers[name].set_object_visible(adv, False)
     cameras = scene_cameras(spec, {c: env.renderers[c] for c in cams})
-    frame_bytes = sum(c.width * c.height * 3 for c in cameras)
-    batch = _batch_size(n, spec.episode.max_steps, frame_bytes)
+    batch = _batch_size(n, spec.episode.max_steps, _frame_bytes(policy, spec))
     outcomes: dict[str, int] = {}
 
     def episodes():
@@ -274,10 +279,6 @@ def _seed_of(episode_id: str) -> int:
 
 def run_record_sim(job: SimRecordJob, log: Callable[[str], None] | None = None, progress: bool = False) -> Recording:
     """Record ``job.episodes`` clean episodes of ``job.policy`` in the simulator into ``job.out``."""
-    from tqdm import tqdm
-
-    from sim.policies.checkpoint import load_policy
-
     log = log or (lambda _text: None)
     check_target(job.out)  # before anything is loaded or rolled out
     base = load_spec(job.scene)
