@@ -10,6 +10,13 @@ for the current camera frame and arm pose:
   T_cam_object``. The registry's object frame is the object's centre (the point the reach
   criterion measures to); its xy is compared with the plan's base-centre xy, which assumes the
   object frame's z axis is vertical above the base centre (true for the registry's upright objects).
+  The runner names each trial's object (:meth:`TagLocator.for_trial`): the adversarial role is
+  read from the registry object named after it (the scene object's name, e.g. ``objects.yaml`` of
+  ``advobj fabricate --scene S --shape my_box``), else from ``adversarial``. For an object of the
+  plan's scene the locator knows its centre in its own frame, so it gives the object's own pose:
+  the tag card's registry entry is ``T_tag_object = inv(T_obj_tag) @ T_obj_centre``, hence
+  ``T_table_object = T_table_tag @ inv(T_obj_tag)``: the tag's pose composed with the inverse of
+  the tag's pose in the object frame.
 * :class:`SimLocator` (sim hardware): the sim world's ground-truth poses, with optional Gaussian
   noise to exercise the tolerance check.
 
@@ -28,7 +35,7 @@ import numpy as np
 from calibration.apriltag import detect_tags
 from calibration.frames import T_base_object
 from calibration.registry import locate_objects, visible_tag_fraction
-from sim.geometry import invert_T, rot_z
+from sim.geometry import invert_T, make_T, rot_z
 
 __all__ = [
     "LocatedObject",
@@ -138,6 +145,18 @@ class TagLocator:
         self.intrinsics = intrinsics
         self.T_tcp_cam = np.asarray(T_tcp_cam, dtype=np.float64)
         self.T_base_table = np.asarray(T_base_table, dtype=np.float64)
+        self.names = {role: (role,) for role in ("goal", "adversarial")}  # registry names tried, per role
+        self.centers_local: dict[str, np.ndarray] = {}  # role -> its centre in its own frame, where known
+
+    def for_trial(self, plan, trial) -> None:
+        """Look for ``trial``'s adversarial object: under its name in the registry (the scene
+        object's, the built-in shape's or ``patch``: :meth:`trials.real.plan.TrialPlan.object_name`),
+        else under ``adversarial``; a scene object's own pose comes from its recorded centre."""
+        self.names["adversarial"] = tuple(dict.fromkeys((plan.object_name(trial), "adversarial")))
+        obj = plan.adversarial_for(trial)
+        self.centers_local.pop("adversarial", None)
+        if not isinstance(obj, str):
+            self.centers_local["adversarial"] = np.asarray(obj.center_m, dtype=np.float64)
 
     def observe(self, frame):
         dets = detect_tags(frame.rgb, self.intrinsics, self.registry.tag_size)
@@ -151,18 +170,21 @@ class TagLocator:
         T_table_cam = invert_T(self.T_base_table) @ np.asarray(T_base_tcp, dtype=np.float64) @ self.T_tcp_cam
         out = {}
         for role in ("goal", "adversarial"):
-            obs = observations.get(role)
-            if obs is None:
+            name = next((n for n in self.names.get(role, (role,)) if n in observations), None)
+            if name is None:
                 continue
-            T = T_table_cam @ obs.T_cam_object
+            obs = observations[name]
+            T_centre = T_table_cam @ obs.T_cam_object  # the registry's frame: the object's centre
+            c = self.centers_local.get(role)
+            T = T_centre if c is None else T_centre @ make_T(np.eye(3), -c)
             alts = [(T_table_cam @ a)[:3, 3] for a in obs.alternatives]
             vis = None
             if self.registry is not None and self.intrinsics is not None:
-                vis = visible_tag_fraction(self.registry, role, obs.T_cam_object, obs.tag_ids, self.intrinsics)
+                vis = visible_tag_fraction(self.registry, name, obs.T_cam_object, obs.tag_ids, self.intrinsics)
             out[role] = LocatedObject(
                 role,
                 T,
-                T[:3, 3].copy(),
+                T_centre[:3, 3].copy(),
                 tuple(obs.tag_ids),
                 bool(obs.ambiguous),
                 np.array(alts) if alts else None,

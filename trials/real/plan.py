@@ -9,6 +9,13 @@ layouts (5 x 6 = 30 trials in the paper), and this block is repeated for every c
 * ``patch``  - the built-in ``patch`` mesh with ``textures["<shape>/patch"]``, placed where the
   adversarial object would stand.
 
+A shape is a built-in mesh (``cube``, ``cylinder``, ...) or the name of an object of the plan's
+scene YAML (not its goal), whose mesh may be a file (:func:`trials.fabrication.shapes.scene_shape`):
+``advobj trial plan --scene my.yaml --shape my_box``. Such a shape is recorded in
+``shape_objects`` with the object as the scene declares it, the sha256 of its mesh file and its
+centre, so staging, the locator and a resumed session use that very object; an attack run's
+texture for it must have been optimised on that mesh file (same bytes), at the same size.
+
 Scenario tags (``dim``, ``bright``, ``dynamic_lighting``, ``occluded``, ``moved_object``) are
 free-form: each tag adds one more full block (every env x shape x condition x pose x layout) whose
 trials carry that tag and a ``-<tag>`` id suffix. A tag therefore costs as much as the untagged
@@ -39,7 +46,7 @@ from pathlib import Path
 from typing import Annotated, Literal, Sequence
 
 import numpy as np
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_serializer, model_validator
 
 from calibration.io import write_yaml
 from sim.assets import BUILTIN_MESHES
@@ -48,7 +55,8 @@ from sim.configs import object_local_centers, object_poses_world, sample_config
 from sim.errors import AdvobjError, format_validation_error
 from sim.geometry import invert_T, make_T, so3_exp, so3_log, transform_points
 from sim.paths import SAFE_NAME_RULE, SafeName, name_problem
-from trials.eval.conditions import load_attack_source
+from sim.spec import default_scene
+from trials.fabrication.shapes import SceneShape, ShapeError, load_run, run_mesh_problem, scene_shape, with_shape
 
 __all__ = [
     "PlanError",
@@ -191,6 +199,19 @@ class TrialPlan(_Strict):
     object_layouts: list[ObjectLayout]
     textures: dict[str, TextureRef]
     trials: list[PlannedTrial]
+    shape_objects: dict[str, SceneShape] = Field(
+        default_factory=dict,
+        description="shapes that are objects of the scene, by shape name: the object as the scene declares it, its "
+        "mesh file's sha256 and its centre (other shapes are built-in meshes)",
+    )
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # A plan of built-in shapes dumps exactly as before scene objects could be named.
+        d = handler(self)
+        if not self.shape_objects:
+            d.pop("shape_objects", None)
+        return d
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -212,6 +233,14 @@ class TrialPlan(_Strict):
                     raise ValueError(
                         f"{field}.{i}.index: expected {i} (indices count 0, 1, 2, ... in list order), got {item.index}"
                     )
+        for shape in self.shapes:
+            if shape not in self.shape_objects and shape not in BUILTIN_MESHES:
+                raise ValueError(
+                    f"shapes: {shape!r} is no built-in mesh and has no entry in shape_objects (the scene object)"
+                )
+        for shape in self.shape_objects:
+            if shape not in self.shapes:
+                raise ValueError(f"shape_objects.{shape}: not one of the plan's shapes {self.shapes}")
         for shape in self.shapes:
             for c in TEXTURED:
                 if c in self.conditions and f"{shape}/{c}" not in self.textures:
@@ -258,9 +287,30 @@ class TrialPlan(_Strict):
         """The texture a trial shows (``None`` for clean: the shape's benign default look)."""
         return None if trial.condition == "clean" else self.textures[f"{trial.shape}/{trial.condition}"]
 
+    def shape_object(self, shape: str) -> SceneShape | None:
+        """The scene object a shape names (None: the shape is a built-in mesh)."""
+        return self.shape_objects.get(shape)
+
     def mesh_for(self, trial: PlannedTrial) -> str:
-        """The adversarial-role mesh a trial uses: its shape, or ``patch`` for the 2D patch."""
-        return "patch" if trial.condition == "patch" else trial.shape
+        """The adversarial-role mesh a trial uses: its shape's (a built-in name or the scene object's
+        mesh file), or ``patch`` for the 2D patch."""
+        if trial.condition == "patch":
+            return "patch"
+        obj = self.shape_object(trial.shape)
+        return trial.shape if obj is None else obj.object.mesh
+
+    def adversarial_for(self, trial: PlannedTrial):
+        """What a trial stands in the adversarial slot (:func:`trials.fabrication.shapes.with_shape`):
+        ``"patch"``, a built-in mesh name, or the :class:`SceneShape` of a scene object."""
+        if trial.condition == "patch":
+            return "patch"
+        return self.shape_object(trial.shape) or trial.shape
+
+    def object_name(self, trial: PlannedTrial) -> str:
+        """The name of the object in the adversarial slot of ``trial``: the scene object's name, the
+        built-in shape's, or ``patch`` (a tag registry may register it under that name)."""
+        obj = self.adversarial_for(trial)
+        return obj if isinstance(obj, str) else obj.object.name
 
 
 def trial_id(env: str, shape: str, condition: str, tcp_pose: int, object_layout: int, tag: str | None = None) -> str:
@@ -268,23 +318,27 @@ def trial_id(env: str, shape: str, condition: str, tcp_pose: int, object_layout:
     return f"{env}-{shape}-{condition}-t{tcp_pose}-o{object_layout}" + (f"-{tag}" if tag else "")
 
 
-def texture_ref(path: str | Path, key: str, spec=None) -> TextureRef:
+def texture_ref(path: str | Path, key: str, spec=None, scene: str | None = None) -> TextureRef:
     """A :class:`TextureRef` for ``key`` (``"<shape>/adv3d"`` or ``"<shape>/patch"``) from an attack run.
 
     Checks the run was optimised on the mesh the trial will use: ``patch`` for ``/patch``, the
-    shape itself for ``/adv3d`` (a run on the scene's own adversarial mesh counts when that mesh is
-    the shape).
+    shape itself for ``/adv3d``: a built-in mesh by name, an object of ``spec`` (read from the file
+    ``scene``) by its mesh file's bytes and, when the run recorded its scene, its size and
+    orientation (:func:`trials.fabrication.shapes.run_mesh_problem`). A run that recorded neither
+    ``adversarial_mesh`` nor its scene is taken to be on ``spec``'s adversarial mesh.
     """
     shape, _, cond = key.partition("/")
     if cond not in TEXTURED or not shape:
         raise PlanError(f"--texture {key}: key must be '<shape>/adv3d' or '<shape>/patch'")
-    src = load_attack_source(path)
-    mesh = src.mesh if src.mesh is not None else (spec.adversarial.mesh if spec is not None else None)
-    want = "patch" if cond == "patch" else shape
-    if mesh != want:
-        raise PlanError(
-            f"--texture {key}={path}: the attack run optimised mesh {mesh!r}, but {key} needs mesh {want!r}"
-        )
+    spec = default_scene() if spec is None else spec
+    src = load_run(path, spec)
+    try:
+        want = "patch" if cond == "patch" else (scene_shape(spec, shape, "--texture", scene) or shape)
+    except ShapeError as err:
+        raise PlanError(str(err)) from None
+    problem = run_mesh_problem(src, want, key)
+    if problem is not None:
+        raise PlanError(f"--texture {key}={path}: {problem}")
     return TextureRef(path=str(path), sha256=src.sha256)
 
 
@@ -428,7 +482,6 @@ def make_plan(
     ``workspace``: ``(min_m, max_m, T_base_table)`` of a cell's safety box: start poses are drawn inside it.
     """
     envs = _check_names("--env", envs)
-    shapes = _check_names("--shape", shapes)
     conditions = _check_names("--condition", conditions)
     tags = list(tags)
     if tags:
@@ -436,9 +489,19 @@ def make_plan(
     for c in conditions:
         if c not in CONDITIONS:
             raise PlanError(f"--condition: unknown condition {c!r}; choose from {', '.join(CONDITIONS)}")
-    for s in shapes:
-        if s not in BUILTIN_MESHES:
-            raise PlanError(f"--shape: {s!r} is not a built-in mesh ({', '.join(BUILTIN_MESHES)})")
+    shape_objects = {}
+    for s in dict.fromkeys(shapes):  # what each name means first: a file path gets its own advice
+        try:
+            obj = scene_shape(spec, s, "--shape", scene)
+        except ShapeError as err:
+            raise PlanError(str(err)) from None
+        if obj is not None:
+            try:
+                with_shape(spec, obj)  # the staged scene must hold it (names stay unique, etc.)
+            except AdvobjError as err:
+                raise PlanError(f"--shape {s}: {err}") from None
+            shape_objects[s] = obj
+    shapes = _check_names("--shape", shapes)
     for s in shapes:
         for c in TEXTURED:
             if c in conditions and f"{s}/{c}" not in textures:
@@ -506,6 +569,7 @@ def make_plan(
             object_layouts=layouts,
             textures=dict(textures),
             trials=trials,
+            shape_objects=shape_objects,
             **{**defaults, **settings},
         )
     except ValidationError as err:
@@ -522,6 +586,12 @@ def design_summary(plan: TrialPlan) -> list[str]:
         "per env x shape x condition" + (f", plus one such block per tag ({', '.join(tags)})" if tags else ""),
         f"envs {', '.join(plan.envs)}; shapes {', '.join(plan.shapes)}; conditions {', '.join(plan.conditions)}",
     ]
+    for shape, obj in plan.shape_objects.items():
+        o = obj.object
+        sha = "" if obj.mesh_sha256 is None else f", sha256 {obj.mesh_sha256[:12]}..."
+        lines.append(
+            f"shape {shape}: scene object {o.name!r}, mesh {Path(o.mesh).name} ({o.units}, scale {o.scale}{sha})"
+        )
     counts: dict[tuple, int] = {}
     for t in plan.trials:
         key = (t.env, t.shape, t.condition, ",".join(t.tags) or "-")
@@ -534,6 +604,7 @@ def design_summary(plan: TrialPlan) -> list[str]:
 _HEADER = """advobj real-robot trial plan (advobj trial plan). Run the trials in 'order' (one environment after the other).
 Frames: the table frame = the simulator's world frame (z up, origin on the table top).
 Object placements: base centre xy (m) and yaw (rad) per scene role; TCP poses: T_table_tcp.
+Shapes: built-in meshes, or objects of the plan's scene (shape_objects: the object, its mesh file's sha256).
 Conditions: clean = the shape's benign look; adv3d = the shape with textures['<shape>/adv3d'];
 patch = the built-in 'patch' mesh with textures['<shape>/patch'] where the adversarial object stands.
 Each scenario tag adds one full block of trials carrying that tag (trial id suffix -<tag>)."""  # noqa: E501 (written into plan files as is)

@@ -55,7 +55,10 @@ def placement_outlines(plan, spec) -> dict[str, dict[str, np.ndarray]]:
     return {
         "goal": {spec.goal.name: footprint_xy_m(spec.goal.mesh, spec.goal.scale, **spec.goal.mesh_kwargs())},
         "adversarial": {
-            m: footprint_xy_m(
+            # a shape that is an object of the scene: its own mesh and size (TrialPlan.shape_object)
+            m: footprint_xy_m(o.mesh, o.scale, **o.mesh_kwargs())
+            if (o := getattr(plan.shape_object(m), "object", None)) is not None
+            else footprint_xy_m(
                 m, spec.adversarial.scale, **(spec.adversarial.mesh_kwargs() if m == spec.adversarial.mesh else {})
             )
             for m in adv_meshes

@@ -3,10 +3,14 @@
 On a real cell a person places the printed objects. With ``sim`` camera and arm the
 :class:`SimStage` does it in the shared :class:`sim.world.SimWorld`:
 
-* the scene for the trial's shape and condition (the adversarial-role object gets the mesh
-  :meth:`trials.real.plan.TrialPlan.mesh_for` names, with the same swap as
-  :func:`trials.eval.conditions.condition_spec`: same pose, the mesh's own default look), and the
-  plan's texture on it for ``adv3d`` / ``patch`` (``clean`` keeps the benign look);
+* the scene for the trial's shape and condition (the adversarial slot holds what
+  :meth:`trials.real.plan.TrialPlan.adversarial_for` names, through
+  :func:`trials.fabrication.shapes.with_shape`: a built-in mesh swapped in as
+  :func:`trials.eval.conditions.condition_spec` does, same pose, the mesh's own default look; or
+  the plan's scene object as its scene declares it, at that pose), and the plan's texture on it for
+  ``adv3d`` / ``patch`` (``clean`` keeps the benign look). A scene object's mesh file must still
+  have the bytes the plan recorded (checked for every shape when the stage is built, before any
+  trial);
 * the object poses of the trial's layout, optionally with a deliberate misplacement
   (:meth:`misplace`) that the live placement check must catch;
 * :meth:`follow_guidance`: the simulated operator moves each object by the correction the check
@@ -31,12 +35,13 @@ from sim.errors import AdvobjError
 from sim.render import SceneRenderer
 from sim.world import camera_renderer
 from trials.eval.conditions import load_attack_source
+from trials.fabrication.shapes import mesh_file_problem, with_shape
 
 __all__ = ["StageError", "SimStage", "load_texture"]
 
 
 class StageError(AdvobjError, ValueError):
-    """A plan's texture cannot be used (missing, changed since planning, malformed)."""
+    """A plan's texture or mesh file cannot be used (missing, changed since planning, malformed)."""
 
 
 def load_texture(ref, plan_dir: Path | None = None) -> np.ndarray:
@@ -75,6 +80,10 @@ class SimStage:
         self._textures: dict[str, np.ndarray] = {}
         self._offsets: dict[str, np.ndarray] = {}
         self.builds = 0  # renderers built (the cache's effect is measurable)
+        for shape, obj in plan.shape_objects.items():
+            problem = mesh_file_problem(obj.object.mesh, obj.mesh_sha256)
+            if problem is not None:
+                raise StageError(f"shape_objects.{shape}.object.mesh: {problem}; the plan was made for the old file")
 
     def misplace(self, role: str, dx_m: float = 0.0, dy_m: float = 0.0, dyaw_rad: float = 0.0) -> None:
         """Put ``role`` off its planned pose by this much in the next :meth:`prepare` (tests, demos)."""
@@ -89,19 +98,13 @@ class SimStage:
             self._textures[key] = load_texture(ref, self.plan_dir)
         return self._textures[key], key
 
-    def _scene(self, mesh: str):
-        spec = self.base_spec
-        # the plan's mesh goes through validation with the rest of the scene (with_updates)
-        objs = [o.with_mesh(mesh) if o.role == "adversarial" else o.model_dump() for o in spec.objects]
-        return spec.with_updates(objects=objs)
-
     def prepare(self, trial) -> None:
         """Scene and object poses for ``trial`` (the TCP stays where the arm is)."""
-        mesh = self.plan.mesh_for(trial)
         tex, tex_key = self.texture(trial)
-        key = (mesh, tex_key)
+        key = ("patch" if trial.condition == "patch" else trial.shape, tex_key)
         if key not in self._renderers:
-            spec = self._scene(mesh)
+            # the plan's object goes through validation with the rest of the scene (with_updates)
+            spec = with_shape(self.base_spec, self.plan.adversarial_for(trial))
             r = SceneRenderer(spec, self.world.width, self.world.height)
             cams = {name: camera_renderer(spec, name) for name in self.cameras}
             if tex is not None:

@@ -177,7 +177,7 @@ def test_make_plan_rejects_bad_options(spec):
         make_plan(spec, 0, ["A"], ["cube"], ["clean", "stereo"], {})
     with pytest.raises(PlanError, match="needs --texture cube/adv3d=RUN_DIR"):
         make_plan(spec, 0, ["A"], ["cube"], ["clean", "adv3d"], {})
-    with pytest.raises(PlanError, match="not a built-in mesh"):
+    with pytest.raises(PlanError, match="--shape teapot: no object 'teapot' in the built-in scene .* no built-in mesh"):
         make_plan(spec, 0, ["A"], ["teapot"], ["clean"], {})
     with pytest.raises(PlanError, match="repeated"):
         make_plan(spec, 0, ["A", "A"], ["cube"], ["clean"], {})
