@@ -24,13 +24,19 @@ def plan_command(
     seed: int = typer.Option(0, help="seed of the poses, layouts and the trial order"),
     env: List[str] = typer.Option(["A"], "--env", help="environment name (repeatable)"),
     shape: List[str] = typer.Option(
-        ["cube", "cylinder"], "--shape", help="adversarial-object shape, a built-in mesh (repeatable)"
+        ["cube", "cylinder"],
+        "--shape",
+        help="adversarial-object shape: an object's name in --scene (its mesh may be a file), or a built-in mesh "
+        "(repeatable)",
     ),
     condition: List[str] = typer.Option(
         ["clean", "adv3d", "patch"], "--condition", help="clean, adv3d or patch (repeatable)"
     ),
     texture: List[str] = typer.Option(
-        [], "--texture", help="SHAPE/adv3d=RUN_DIR or SHAPE/patch=RUN_DIR: attack run with the texture (repeatable)"
+        [],
+        "--texture",
+        help="SHAPE/adv3d=RUN_DIR or SHAPE/patch=RUN_DIR: attack run with the texture, optimised on that shape's "
+        "mesh (repeatable)",
     ),
     tag: List[str] = typer.Option(
         [],
@@ -78,7 +84,10 @@ def plan_command(
     )
 
     spec = load_spec(scene)
-    textures = {key: texture_ref(path, key, spec) for key, path in key_values(texture, "--texture").items()}
+    textures = {
+        key: texture_ref(path, key, spec, None if scene is None else str(scene))
+        for key, path in key_values(texture, "--texture").items()
+    }
     workspace = None
     if table_frame is not None and hardware is None:
         raise PlanError("--table-frame: only with --hardware (it places the hardware's workspace box)")
@@ -160,6 +169,15 @@ def run_command(
         help="take the session over from a runner the database names but that holds no lock (one on another "
         "host, or a live process that is not that run); a dead runner on this host is taken over without it",
     ),
+    view: bool = typer.Option(
+        False,
+        "--view",
+        help="live view: serve the cameras' latest frames with the plan's placement overlay on a web page at "
+        "127.0.0.1 while the session runs (the URL is printed)",
+    ),
+    view_port: Optional[int] = typer.Option(
+        None, "--view-port", min=0, max=65535, help="the live view's port (default 8765; 0: any free port)"
+    ),
 ) -> None:
     """Run (or resume) the plan's trials: placement check, policy loop, outcome, operator confirmation, commit."""
     import numpy as np  # lazy: CLI start-up (numpy)
@@ -180,6 +198,8 @@ def run_command(
         rate_limit=rate_limit,
         threads=threads,
         take_over_stale_lock=take_over_stale_lock,
+        view=view,
+        view_port=view_port,
     )
     summary = run_session(opts, log=typer.echo)
     t = summary.timings

@@ -217,6 +217,9 @@ class TrialRunner:
             read (a sim scenario moves or hides an object there).
         scene_cameras: ``{name: connected camera}`` of the fixed cameras; each one the policy reads
             (:func:`sim.policies.contract.policy_cameras`) must be here.
+        view: a :class:`trials.real.view.LiveView` (``--view``), or None: each frame read (the wrist
+            camera's at the placement check, the outcome and every step; each fixed camera's at
+            every step) is published to it with the TCP pose it was taken at and the trial.
     """
 
     def __init__(
@@ -240,6 +243,7 @@ class TrialRunner:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable = time.sleep,
         scene_cameras=None,
+        view=None,
     ):
         self.plan = plan
         self.camera = camera
@@ -268,6 +272,8 @@ class TrialRunner:
         self.clock = clock
         self.sleep = sleep
         self._sid: int | None = None  # the session's row id, once run() opened it
+        self.view = view
+        self._trial = None  # the trial in progress, for the live view
 
     # ------------------------------------------------------------------ session
     def run(self, max_trials: int | None = None) -> RunSummary:
@@ -396,6 +402,7 @@ class TrialRunner:
     # ------------------------------------------------------------------ one trial
     def _run_trial(self, trial):
         plan = self.plan
+        self._trial = trial
         t_wall = time.time()
         t0 = self.clock()
         events: list[EventRecord] = []
@@ -405,6 +412,8 @@ class TrialRunner:
 
         if self.stage is not None:
             self.stage.prepare(trial)
+        if hasattr(self.locator, "for_trial"):  # a tag locator looks for this trial's object by its name
+            self.locator.for_trial(plan, trial)
         t1 = self.clock()
         T_base_tcp0 = self.T_base_table @ plan.tcp_pose(trial.tcp_pose).T_table_tcp.T()
         self.arm.move_to(T_base_tcp0)
@@ -485,7 +494,17 @@ class TrialRunner:
 
     def _locate(self):
         frame = self.camera.read()
-        return self.locator.locate(frame, self.arm.tcp_pose())
+        T_base_tcp = self.arm.tcp_pose()
+        self._publish({WRIST_CAMERA: frame}, T_base_tcp)
+        return self.locator.locate(frame, T_base_tcp)
+
+    def _publish(self, frames, T_base_tcp) -> None:
+        """Hand ``{camera: frame}``, just read with the TCP at ``T_base_tcp``, to the live view (if
+        any): a reference each, under its lock; no camera is read for it and nothing waits on a client."""
+        if self.view is not None:
+            T_table_tcp = self.T_table_base @ T_base_tcp
+            for camera, frame in frames.items():
+                self.view.publish(camera, frame, T_table_tcp, self._trial)
 
     def _placement(self, trial, layout, events, t0):
         """Check (and guide) the placement until it is within tolerance or skipped."""
@@ -583,6 +602,7 @@ class TrialRunner:
             if self.on_step is not None:
                 self.on_step(trial, k)
             frame, frames = self._read_frames()
+            self._publish({**frames, WRIST_CAMERA: frame}, T_frame)
             if light is None:  # what the camera saw at the start: the lighting scenarios' measure
                 light = float(np.asarray(frame.rgb, dtype=np.float32).mean() / 255.0)
             if queue.needs([0]):

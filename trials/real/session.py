@@ -92,6 +92,7 @@ from trials.real.store import (
     check_session_name,
     session_frames_dir,
 )
+from trials.real.view import DEFAULT_VIEW_PORT, LiveView, PlacementOverlay, view_cameras
 
 __all__ = [
     "SessionSetupError",
@@ -154,6 +155,14 @@ class SessionOptions(StrictModel):
         description="take the session over from a runner the database names but that holds no lock (one on "
         "another host, or a live process that is not that run); a dead runner on this host is taken over anyway",
     )
+    view: bool = Field(
+        False,
+        description="serve the cameras' latest frames with the plan's placement overlay on a web page at "
+        "127.0.0.1 while the session runs (trials.real.view)",
+    )
+    view_port: Optional[int] = Field(
+        None, ge=0, le=65535, description=f"the live view's port (default {DEFAULT_VIEW_PORT}; 0: any free port)"
+    )
 
     def __init__(self, **values):
         try:
@@ -170,6 +179,8 @@ class SessionOptions(StrictModel):
     def _one_answer_source(self):
         if self.answers is not None and self.auto_confirm:
             raise SessionSetupError("--auto-confirm and --answers: give one of them")
+        if self.view_port is not None and not self.view:
+            raise SessionSetupError("--view-port: only with --view (the live view it is the port of)")
         return self
 
 
@@ -376,7 +387,11 @@ def run_prepared(
     """
     log = log or (lambda _text: None)
     hw, plan, sim, info, opts = prep.hw, prep.plan, prep.sim, prep.info, prep.opts
-    with contextlib.ExitStack() as stack:  # closed in reverse: devices, world, stage, the locks, store
+    with contextlib.ExitStack() as stack:  # closed in reverse: devices, world, stage, the locks, store, view
+        view = None
+        if opts.view:  # first: a port in use is one line naming --view-port, before anything is written
+            view = stack.enter_context(LiveView((WRIST_CAMERA, *prep.scene_cameras), opts.view_port, info.name))
+            log(f"live view: {view.url} (the cameras' latest frames with the plan's placement)")
         store = TrialStore(opts.db)
         stack.callback(store.close)
         # First of all: this process becomes the session's only runner and the arm's only driver
@@ -432,6 +447,8 @@ def run_prepared(
                 hw, camera, arm, opts.registry, opts.table_frame, stored_T_base_table, log
             )
         info = dataclasses.replace(info, T_base_table=T_base_table)
+        if view is not None:
+            view.set_overlay(PlacementOverlay(plan, prep.spec, view_cameras(hw, prep.spec, camera, fixed)))
         runner = TrialRunner(
             plan,
             camera,
@@ -448,6 +465,7 @@ def run_prepared(
             on_trial_end=on_trial_end,
             gripper_m=prep.spec.gripper.opening_m,
             scene_cameras=fixed,
+            view=view,
         )
         if on_ready is not None:
             on_ready(runner, world)

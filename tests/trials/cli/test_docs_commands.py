@@ -739,6 +739,14 @@ TINY: dict[str, Tiny] = {
         ("{tmp}/trials/trials.sqlite",),
         expect="trials done",
     ),
+    "advobj trial run --hardware my_cell.yaml --policy runs/policy-quick.onnx --plan runs/plan.yaml --session "
+    "day1 --registry objects.yaml --view": Tiny(
+        "trial run --hardware {root}/examples/hardware/sim.yaml --policy {onnx} --plan {plan} --session day1 "
+        "--registry {root}/examples/calibration/objects.yaml --db {tmp}/trials/view.sqlite --auto-confirm --view "
+        "--view-port 0",
+        ("{tmp}/trials/view.sqlite",),
+        expect="live view: http://127.0.0.1:",
+    ),
     "advobj trial report --db runs/trials.sqlite --sim cube=runs/eval-cube --out runs/trial-report": Tiny(
         "trial report --db {trial_db} --sim cube={eval} --out {tmp}/trials/report",
         ("{tmp}/trials/report/report.md", "{tmp}/trials/report/report.json"),
