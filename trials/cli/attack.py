@@ -7,6 +7,8 @@ from typing import Optional
 
 import typer
 
+from trials.cli.options import MIN_CLEAN_SUCCESS
+
 app = typer.Typer(
     no_args_is_help=True,
     help="Optimise a 3D adversarial texture against a white-box policy (checkpoint, .pt2 or .onnx).",
@@ -37,6 +39,7 @@ def run(
         help="a recording folder (advobj record import): optimise on its frames with the object composited in, "
         "validate on its held-out episodes, instead of simulator rollouts (no simulator in the loop; no --pool)",
     ),
+    min_clean_success: float = MIN_CLEAN_SUCCESS,
 ) -> None:
     """Run the attack; writes the texture, textured meshes, plots and metrics into OUT."""
     from attack.outputs import summary_lines  # lazy: CLI start-up (torch, matplotlib)
@@ -52,6 +55,7 @@ def run(
         resume=resume,
         light_randomization=light_randomization,
         recordings=recordings,
+        min_clean_success=min_clean_success,
     )
     metrics = job.run(log=typer.echo)
     for line in summary_lines(metrics):

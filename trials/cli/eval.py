@@ -7,9 +7,10 @@ from typing import List, Optional
 
 import typer
 
+from sim.policies.competence import DEFAULT_MIN_CLEAN_SUCCESS
 from sim.runtime import set_torch_threads
 from trials.cli import grid as cli_grid
-from trials.cli.options import key_values
+from trials.cli.options import MIN_CLEAN_SUCCESS, OptionError, key_values
 from trials.experiments.recipes import run_eval_grid
 
 
@@ -59,6 +60,7 @@ def eval_command(
         help="torch threads; 1 (default) avoids OpenMP spin-waits stealing the CPU renderer's cores, 0 = "
         "torch's default",
     ),
+    min_clean_success: float = MIN_CLEAN_SUCCESS,
     workers: Optional[int] = cli_grid.WORKERS,
     address: Optional[str] = cli_grid.ADDRESS,
     shards: Optional[int] = cli_grid.SHARDS,
@@ -85,8 +87,14 @@ def eval_command(
         allow_overlap=allow_overlap,
     )
     if workers is None and address is None and shards is None:
-        summary = run_eval(cfg, out, resume=resume)
+        summary = run_eval(cfg, out, resume=resume, min_clean_success=min_clean_success)
     else:  # the job layer: a pool job, eval-shard jobs, their merge (a re-run resumes; --resume is implied)
+        if min_clean_success != DEFAULT_MIN_CLEAN_SUCCESS:
+            # The job layer's pool job checks at the default (trials.eval.evaluate.resolve_pool).
+            raise OptionError(
+                f"--min-clean-success: the job layer (--workers/--address/--shards) checks at the default "
+                f"{DEFAULT_MIN_CLEAN_SUCCESS:g} only; run without them to use {min_clean_success:g}"
+            )
         ex, default_shards = cli_grid.executor(workers, address, typer.echo)
         summary = run_eval_grid(cfg, out, ex, shards or default_shards, log=typer.echo)
     typer.echo(format_summary(summary))

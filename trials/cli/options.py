@@ -1,11 +1,23 @@
-"""Option types shared by the commands: one KEY=VALUE parser for every repeatable mapping flag, and one
-parser of comma-separated integers (``--attack-seeds 0,1,2``)."""
+"""Option types shared by the commands: one KEY=VALUE parser for every repeatable mapping flag, one
+parser of comma-separated integers (``--attack-seeds 0,1,2``), and the competence gate's option
+(``--min-clean-success``) of the commands that attack or evaluate a policy."""
 
 from __future__ import annotations
 
-from sim.errors import AdvobjError
+import typer
 
-__all__ = ["OptionError", "int_list", "key_values"]
+from sim.errors import AdvobjError
+from sim.policies.competence import CHECK_EPISODES, DEFAULT_MIN_CLEAN_SUCCESS
+
+__all__ = ["OptionError", "int_list", "key_values", "MIN_CLEAN_SUCCESS"]
+
+MIN_CLEAN_SUCCESS = typer.Option(
+    DEFAULT_MIN_CLEAN_SUCCESS,
+    min=0.0,
+    max=1.0,
+    help="refuse a policy whose clean success on the scene is below this fraction: from its card, else measured on "
+    f"at most {CHECK_EPISODES} clean episodes before a task-feasible pool is built; 0 turns the check off",
+)
 
 
 class OptionError(AdvobjError, ValueError):

@@ -32,6 +32,7 @@ from sim.configs import PoolError, in_part, load_pool, save_pool
 from sim.errors import AdvobjError, format_validation_error
 from sim.imaging import labelled, write_gif
 from sim.policies.checkpoint import load_policy
+from sim.policies.competence import DEFAULT_MIN_CLEAN_SUCCESS, require_competence
 from sim.policies.contract import check_scene, policy_cameras, policy_contract, to_delta
 from sim.policies.paired import rollout_paired
 from sim.policies.pool import build_feasible, built_pool_path, feasible_pool_path
@@ -168,7 +169,13 @@ def rollout_condition(
 
 
 def resolve_pool(
-    cfg: EvalConfig, policy, spec, out: Path, progress: bool = True, final: bool = False
+    cfg: EvalConfig,
+    policy,
+    spec,
+    out: Path,
+    progress: bool = True,
+    final: bool = False,
+    min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS,
 ) -> tuple[list, str]:
     """The task-feasible configurations of the split's "evaluation" part, and where they came from.
 
@@ -181,7 +188,9 @@ def resolve_pool(
     seeds of the evaluation part from ``cfg.seed`` on) and the result is saved as
     ``out/feasible_pool.json``, which a resumed evaluation reuses. ``final``: ``cfg.pool`` is the
     pool to use as it is, even short (a grid's pool job already built it; its shards must not
-    build more each).
+    build more each). Before more are built, the competence gate
+    (:func:`sim.policies.competence.require_competence` at ``min_clean_success``, 0: off) refuses a
+    policy that does not do the task.
     """
     path = built_pool_path(out)
     if path.is_file():  # built by an earlier (interrupted) run of this evaluation: keep using it
@@ -199,6 +208,9 @@ def resolve_pool(
     configs = in_part(base, "evaluation")
     if len(configs) >= cfg.episodes or (final and cfg.pool is not None):
         return configs, src
+    require_competence(
+        policy, spec, min_clean_success, seed=cfg.seed, num_envs=cfg.num_envs, progress=progress, name=cfg.policy
+    )
     extra, tried = build_feasible(
         policy,
         spec,
@@ -275,9 +287,10 @@ def _row(cond_name: str, config, res: dict, spec) -> dict:
     return row
 
 
-def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: bool):
+def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: bool, min_clean_success: float = 0.0):
     """The conditions, scene, configurations, pool source, overlap and resolved config of an
-    evaluation (refusing an in-sample one): what every shard and the merge share."""
+    evaluation (refusing an in-sample one): what every shard and the merge share. With a policy, the
+    competence gate at ``min_clean_success`` (:func:`run_eval`) before anything is written."""
     base = load_spec(cfg.scene)
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": cfg.max_steps})
     conds = build_conditions(cfg.conditions, Sources(cfg.attack, cfg.patch, dict(cfg.shapes), spec))
@@ -292,8 +305,12 @@ def _prepare(cfg: EvalConfig, out: Path, policy, progress: bool, final_pool: boo
                     f"condition {c.name!r}: the policy reads {', '.join(policy_cameras(policy))}; it does not read "
                     f"camera {name!r}"
                 )
+    if policy is not None:  # the card's figure now; without one, measured before a pool is built (resolve_pool)
+        require_competence(policy, spec, min_clean_success, measure=False, name=cfg.policy)
+    configs, pool_src = resolve_pool(
+        cfg, policy, spec, out, progress, final=final_pool, min_clean_success=min_clean_success
+    )
     out.mkdir(parents=True, exist_ok=True)
-    configs, pool_src = resolve_pool(cfg, policy, spec, out, progress, final=final_pool)
     configs = configs[: cfg.episodes]
     overlap = overlap_with_training(configs, conds)
     leaked = {k: v for k, v in overlap.items() if v}
@@ -355,8 +372,14 @@ def run_eval(
     report: bool = True,
     shard: tuple[int, int] | None = None,
     final_pool: bool = False,
+    min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS,
 ) -> dict:
     """Run (or resume) an evaluation into ``out``; returns the summary (also ``summary.json``).
+
+    ``min_clean_success``: the competence gate (:mod:`sim.policies.competence`; 0: off): a card
+    that records the policy's clean success on this scene (at this episode length) below it refuses
+    the evaluation (:class:`sim.policies.competence.IncompetentPolicyError`) before anything is
+    written; without such a card, the success is measured before a task-feasible pool is built.
 
     ``shard=(k, K)`` runs only configurations ``k, k + K, ...`` of the evaluation (a job of a
     sharded evaluation, merged by :func:`merge_eval`). Sharding changes no configuration, noise
@@ -365,7 +388,9 @@ def run_eval(
     """
     out = Path(out)
     policy = load_policy(cfg.policy, cfg.device)
-    conds, spec, configs, pool_src, overlap, resolved = _prepare(cfg, out, policy, progress, final_pool)
+    conds, spec, configs, pool_src, overlap, resolved = _prepare(
+        cfg, out, policy, progress, final_pool, min_clean_success
+    )
     gif_seeds = {int(c.seed) for c in configs[: cfg.gifs]}
     if shard is not None:
         k, n = (int(x) for x in shard)

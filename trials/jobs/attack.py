@@ -14,6 +14,7 @@ from attack.state import find_checkpoint
 from sim.configio import StrictModel, file_error, read_yaml
 from sim.configs import PoolError, in_part, load_pool, save_pool, spec_fingerprint
 from sim.policies.checkpoint import load_policy
+from sim.policies.competence import DEFAULT_MIN_CLEAN_SUCCESS, require_competence
 from sim.policies.pool import build_feasible, built_pool_path, feasible_pool_path
 from sim.runinfo import write_run_info
 from sim.spec import load_spec
@@ -24,36 +25,53 @@ __all__ = ["AttackJob", "attack_job", "top_up_attack_pool", "MIN_ATTACK_CONFIGS"
 MIN_ATTACK_CONFIGS = 32
 
 
-def top_up_attack_pool(policy, spec, pool: list, cfg, out: Path, progress: bool = True) -> list:
+def top_up_attack_pool(
+    policy,
+    spec,
+    pool: list,
+    cfg,
+    out: Path,
+    progress: bool = True,
+    min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS,
+    name: str = "policy",
+    log=None,
+) -> list:
     """``pool`` plus task-feasible configurations built for the parts the attack uses ("attack",
     and "validation" when validation is on) that hold too few (saved as ``out/feasible_pool.json``
-    and reused on resume). The evaluation part is never touched."""
+    and reused on resume). The evaluation part is never touched. Before the first clean rollout,
+    the competence gate (:func:`sim.policies.competence.require_competence`, ``min_clean_success``;
+    ``name`` names the policy in its refusal) refuses a policy that does not do the task."""
     path = built_pool_path(out)
     if path.is_file():
         return load_pool(path, spec)
     want = {"attack": MIN_ATTACK_CONFIGS, "validation": cfg.validation_episodes if cfg.validation_every > 0 else 0}
+    shortfall = {part: n - len(in_part(pool, part)) for part, n in want.items() if n > len(in_part(pool, part))}
+    if shortfall:
+        figure = require_competence(
+            policy, spec, min_clean_success, part=next(iter(shortfall)), seed=cfg.seed, progress=progress, name=name
+        )
+        if figure is not None and log is not None:
+            log(f"attack: clean success {figure.describe()}")
     extra = []
-    for part, n in want.items():
-        short = n - len(in_part(pool, part))
-        if short > 0:
-            got, tried = build_feasible(
-                policy,
-                spec,
-                part,
-                short,
-                cfg.seed,
-                8,
-                exclude=[c.seed for c in pool],
-                progress=progress,
-                desc=f"feasible pool ({part})",
+    for part, short in shortfall.items():
+        got, tried = build_feasible(
+            policy,
+            spec,
+            part,
+            short,
+            cfg.seed,
+            8,
+            exclude=[c.seed for c in pool],
+            progress=progress,
+            desc=f"feasible pool ({part})",
+        )
+        if not got and not in_part(pool, part):
+            raise AttackError(
+                f"feasible pool: the clean policy reached the goal in none of the {tried} configurations of this "
+                f"scene tried for the {part} part, so there is nothing to attack from: it does not do the task "
+                "in this scene (check the scene's objects, their sizes and the camera), or give --pool"
             )
-            if not got and not in_part(pool, part):
-                raise AttackError(
-                    f"feasible pool: the clean policy reached the goal in none of the {tried} configurations of this "
-                    f"scene tried for the {part} part, so there is nothing to attack from: it does not do the task "
-                    "in this scene (check the scene's objects, their sizes and the camera), or give --pool"
-                )
-            extra += got
+        extra += got
     if not extra:
         return pool
     pool = pool + extra
@@ -87,12 +105,19 @@ def attack_job(
     light_randomization: bool | None = None,
     warn_fixed_light: bool = False,
     recordings=None,
+    min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS,
 ) -> dict:
     """``light_randomization``: overrides the preset's and the config file's (None: theirs);
     ``warn_fixed_light``: say up front when the texture will be optimised under the fixed light;
     ``recordings``: a recording folder to attack on instead of simulator rollouts (overrides the
     config file's ``recordings``; :mod:`attack.recorded`): no pool is read or built, and ``run.json``
-    records the recording's manifest hash and its episode split."""
+    records the recording's manifest hash and its episode split.
+
+    ``min_clean_success``: the competence gate (:mod:`sim.policies.competence`; 0: off), for an
+    attack in the simulator: once the inputs are checked, a card that records the policy's clean
+    success on this scene below it refuses the attack (:class:`sim.policies.competence.IncompetentPolicyError`)
+    before anything is written; without such a card, the success is measured before a task-feasible
+    pool is topped up (:func:`top_up_attack_pool`)."""
     overrides = {}
     if config_path is not None:
         # An empty file is an empty set of overrides; anything else not a mapping is refused.
@@ -133,10 +158,14 @@ def attack_job(
                 raise PoolError(
                     f"{err}; --pool: give a pool made for this scene, or omit --pool to build one"
                 ) from None
+    if not recorded:  # the inputs are checked: the card's figure, before anything is built or written
+        require_competence(policy, spec, min_clean_success, measure=False, name=str(policy_dir))
     if warn_fixed_light and (note := fixed_light_warning(cfg)) is not None:
         log(f"attack: {note}")  # the inputs are checked; before anything is built or optimised
     if pool is not None:
-        pool = top_up_attack_pool(policy, spec, pool, cfg, out, progress)
+        pool = top_up_attack_pool(
+            policy, spec, pool, cfg, out, progress, min_clean_success, name=str(policy_dir), log=log
+        )
     run = AttackRun(policy, spec, cfg, pool=pool, out_dir=out)
     try:
         before = run.state.texture.clone()
@@ -183,6 +212,12 @@ class AttackJob(StrictModel):
     recordings: Path | None = Field(
         None, description="a recording folder: attack on its frames (object composited in) instead of sim rollouts"
     )
+    min_clean_success: float = Field(
+        DEFAULT_MIN_CLEAN_SUCCESS,
+        ge=0.0,
+        le=1.0,
+        description="refuse a policy whose clean success on the scene is below this fraction (0: no check)",
+    )
 
     def run(self, progress: bool = True, log=print) -> dict:
         return attack_job(
@@ -198,4 +233,5 @@ class AttackJob(StrictModel):
             light_randomization=self.light_randomization,
             warn_fixed_light=True,
             recordings=self.recordings,
+            min_clean_success=self.min_clean_success,
         )
