@@ -10,6 +10,7 @@ import typer
 from pydantic import ValidationError
 
 from sim.errors import AdvobjError, format_validation_error
+from sim.policies.competence import DEFAULT_MIN_CLEAN_SUCCESS
 from sim.runinfo import write_run_info
 from sim.runtime import set_torch_threads
 
@@ -154,6 +155,11 @@ def evaluate(
         built_pool_path(out), spec, res, meta={"policy": str(policy), "seed": seed, "env": env_cfg.model_dump()}
     )
     typer.echo(f"clean success: {res.success_rate}")
+    if res.success_rate.rate < DEFAULT_MIN_CLEAN_SUCCESS:
+        typer.echo(
+            f"below the {DEFAULT_MIN_CLEAN_SUCCESS:.0%} that 'advobj attack run' and 'advobj eval' ask for by default "
+            "(--min-clean-success): train it longer, or check the scene is the one it was trained for"
+        )
     if res.policy_error.any():
         typer.echo(
             f"policy errors: {int(res.policy_error.sum())} of {len(res.seeds)} episodes ended on a non-finite "

@@ -171,3 +171,11 @@ def test_the_python_attack_job_raises_the_same_refusal(ci_policy, tmp_path):
     with pytest.raises(IncompetentPolicyError, match=re.escape(REFUSED_BY_CARD)):
         AttackJob(policy=ci_policy, preset="ci", out=tmp_path / "atk").run(progress=False, log=lambda _t: None)
     assert not (tmp_path / "atk").exists()
+
+
+def test_policy_eval_says_when_the_clean_success_is_below_the_gates_default(tmp_path, monkeypatch, capsys):
+    policy = incompetent_policy(tmp_path / "policy")
+    code, err, said = _cli(monkeypatch, capsys, "policy", "eval", policy, "--episodes", "2", "--out", tmp_path / "ev")
+    assert code == 0, err
+    assert "clean success: 0.0% (0/2;" in said
+    assert "below the 50% that 'advobj attack run' and 'advobj eval' ask for by default (--min-clean-success)" in said
