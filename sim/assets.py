@@ -53,6 +53,7 @@ from PIL import Image, ImageDraw, ImageFilter
 
 from sim import textures as tx
 from sim.errors import AdvobjError
+from sim.files import FileRefusedError, read_regular
 from sim.geometry import so3_exp
 
 __all__ = [
@@ -301,35 +302,24 @@ def atlas_cache_dir() -> Path | None:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "advobj" / "uv"
 
 
+# How a mesh, material or cache file's refusal is worded (sim.files' standard words otherwise).
+_FILE_WORDS = {
+    "missing": "cannot read ({strerror})",
+    "directory": "not a regular file",
+    "special": "not a regular file",
+    "too_large": "{size:,} bytes, more than the {max_bytes:,} advobj reads",
+    "grew": "more than the {max_bytes:,} bytes advobj reads",
+}
+
+
 def _read_regular(path, cap: int, label: str, follow: bool = True) -> bytes:
     """The bytes of regular file ``path``, refused (:class:`AssetError` naming ``label``) when it is
     not a regular file (a FIFO or device is never waited on) or holds more than ``cap`` bytes;
-    ``follow=False`` also refuses a symlink. Memory stays within ``cap``."""
-    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | (0 if follow else os.O_NOFOLLOW)
+    ``follow=False`` also refuses a symlink. Memory stays within ``cap`` (:func:`sim.files.read_regular`)."""
     try:
-        fd = os.open(path, flags)
-    except OSError as err:
-        raise AssetError(f"{label}: cannot read ({err.strerror})") from None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise AssetError(f"{label}: not a regular file")
-        if st.st_size > cap:
-            raise AssetError(f"{label}: {st.st_size:,} bytes, more than the {cap:,} advobj reads")
-        chunks, left = [], cap + 1
-        while left > 0:
-            chunk = os.read(fd, min(left, 1 << 24))
-            if not chunk:
-                break
-            chunks.append(chunk)
-            left -= len(chunk)
-        if left <= 0:
-            raise AssetError(f"{label}: more than the {cap:,} bytes advobj reads")
-        return b"".join(chunks)
-    except OSError as err:
-        raise AssetError(f"{label}: cannot read ({err.strerror})") from None
-    finally:
-        os.close(fd)
+        return read_regular(path, cap, follow_symlinks=follow)
+    except FileRefusedError as err:
+        raise AssetError(f"{label}: {err.problem(_FILE_WORDS)}") from None
 
 
 def _atlas_entry_limits(n_faces: int) -> dict[str, tuple[np.dtype, int]]:

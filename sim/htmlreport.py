@@ -27,7 +27,6 @@ import html
 import io
 import os
 import re
-import stat
 import struct
 import tempfile
 from dataclasses import dataclass, field
@@ -36,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.errors import AdvobjError
+from sim.files import FileRefusedError, read_regular
 
 __all__ = [
     "REPORT_HTML",
@@ -57,6 +57,14 @@ __all__ = [
 REPORT_HTML = "report.html"
 MAX_IMAGE_BYTES = 24 * 2**20  # one embedded image (a long rollout GIF is a few MB)
 MAX_PAGE_BYTES = 96 * 2**20  # the whole page, base64 included
+# How Figure.from_file words a refused image file (sim.files' standard words otherwise).
+_IMAGE_FILE_WORDS = {
+    "missing": "cannot read ({strerror})",
+    "directory": "not a regular file",
+    "special": "not a regular file",
+    "too_large": "{size} bytes, above the {max_bytes} an embedded image may have",
+    "grew": "above the {max_bytes} bytes an embedded image may have",
+}
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _GIF_MAGICS = (b"GIF87a", b"GIF89a")
@@ -146,20 +154,12 @@ class Figure:
     @classmethod
     def from_file(cls, path: str | Path, caption: str) -> Figure:
         """A figure of an image file: a regular file (not a link) of at most :data:`MAX_IMAGE_BYTES`,
-        its size checked before it is read."""
+        its size checked before it is read (:func:`sim.files.read_regular`)."""
         p = Path(path)
         try:
-            st = p.lstat()
-        except OSError as err:
-            raise ReportPageError(f"{p}: cannot read ({err.strerror or err})") from None
-        if not stat.S_ISREG(st.st_mode):
-            raise ReportPageError(f"{p}: not a regular file")
-        if st.st_size > MAX_IMAGE_BYTES:
-            raise ReportPageError(f"{p}: {st.st_size} bytes, above the {MAX_IMAGE_BYTES} an embedded image may have")
-        try:
-            data = p.read_bytes()
-        except OSError as err:
-            raise ReportPageError(f"{p}: cannot read ({err.strerror or err})") from None
+            data = read_regular(p, MAX_IMAGE_BYTES, follow_symlinks=False)
+        except FileRefusedError as err:
+            raise ReportPageError(f"{p}: {err.problem(_IMAGE_FILE_WORDS)}") from None
         _kind_and_size(data, str(p))  # refused naming the file, not the caption
         return cls(data, caption)
 

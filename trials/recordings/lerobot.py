@@ -39,8 +39,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from calibration.io import check_file
 from sim.errors import AdvobjError
+from sim.files import FileRefusedError, check_regular, read_regular
 from sim.geometry import make_T, so3_exp
 from sim.paths import UnsafePathError, name_problem, safe_join
 from sim.policies.contract import LEROBOT_IMAGE_PREFIX
@@ -121,20 +121,23 @@ def _inside(root: Path, rel: str, what: str) -> Path:
 
 
 def _regular(path: Path, what: str, max_bytes: int) -> None:
-    """Refuse a missing file, a FIFO or device, or one over ``max_bytes``, before anything opens it."""
-    if not path.exists():
-        raise LeRobotError(f"{path}: {what}: missing")
-    check_file(path, what, max_bytes)
+    """Refuse a missing file, a directory, FIFO or device, or one over ``max_bytes``, before anything
+    opens it (for the readers that open the path themselves: parquet, video)."""
+    try:
+        check_regular(path, max_bytes)
+    except FileRefusedError as err:
+        raise LeRobotError(f"{path}: {what}: {err.problem()}") from None
 
 
 def _read_json_text(path: Path, what: str, max_bytes: int) -> str:
-    _regular(path, what, max_bytes)
     try:
-        return path.read_bytes().decode("utf-8")
+        data = read_regular(path, max_bytes)
+    except FileRefusedError as err:
+        raise LeRobotError(f"{path}: {what}: {err.problem()}") from None
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError as err:
         raise LeRobotError(f"{path}: {what}: not UTF-8 text (byte {err.start})") from None
-    except OSError as err:
-        raise LeRobotError(f"{path}: {what}: cannot read ({err.strerror or err})") from None
 
 
 def _json(text: str, where: str):
