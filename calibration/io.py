@@ -6,21 +6,19 @@ project's rotation exchange format); :func:`pose_to_T` / :func:`T_to_pose` conve
 
 from __future__ import annotations
 
-import math
-import os
 import re
-import stat
 from pathlib import Path
 from typing import Annotated, TypeVar
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, Field, ValidationError, field_validator
+from pydantic import BaseModel, Field, ValidationError
 
 from calibration.errors import CalibrationFileError
 from sim.configio import StrictModel
 from sim.configio import read_yaml as _read_yaml
-from sim.geometry import make_T, so3_exp, so3_log
+from sim.files import FileRefusedError, check_regular, not_a_regular_file, read_regular
+from sim.poses import Pose, check_T
 
 __all__ = [
     "Strict",
@@ -51,143 +49,56 @@ class Strict(StrictModel):
     """Base of every file schema: unknown keys are errors, values are immutable."""
 
 
-def _finite(v: tuple[float, ...]) -> tuple[float, ...]:
-    if not all(math.isfinite(x) for x in v):
-        raise ValueError("values must be finite numbers")
-    return v
-
-
 Vec3 = Annotated[tuple[float, float, float], Field(description="3-vector")]
-MAX_TRANSLATION_M = 1000.0
-MAX_ROTVEC_RAD = 100.0
 
 
-class PoseModel(Strict):
-    """A rigid transform ``T_parent_child`` as translation (m) + axis-angle rotation (rad)."""
+class PoseModel(Pose, Strict):
+    """A rigid transform ``T_parent_child`` as translation (m) + axis-angle rotation (rad).
+
+    The project's pose entry (:class:`sim.poses.Pose`: its bounds, ``.T`` and ``of``), each field
+    defaulting to zero (an omitted one is the identity's).
+    """
 
     translation_m: Vec3 = (0.0, 0.0, 0.0)
     rotvec_rad: Vec3 = (0.0, 0.0, 0.0)
 
-    _check = field_validator("translation_m", "rotvec_rad")(_finite)
-
-    @field_validator("translation_m")
-    @classmethod
-    def _bounded_translation(cls, v):
-        # A cell is metres across; 1 km catches unit mistakes (mm given as m) and overflowing values.
-        if max(abs(x) for x in v) > MAX_TRANSLATION_M:
-            raise ValueError(f"each component must lie within +-{MAX_TRANSLATION_M:g} m")
-        return v
-
-    @field_validator("rotvec_rad")
-    @classmethod
-    def _bounded_rotvec(cls, v):
-        # Any rotation has an axis-angle of norm <= pi; allow wound-up values, refuse absurd ones
-        # (1e200 overflows the exponential map to NaN).
-        if math.sqrt(sum(x * x for x in v)) > MAX_ROTVEC_RAD:
-            raise ValueError(f"norm must be at most {MAX_ROTVEC_RAD:g} rad (a rotation needs at most pi)")
-        return v
-
-    @property
-    def T(self) -> np.ndarray:
-        return pose_to_T(self)
-
 
 def pose_to_T(pose: PoseModel) -> np.ndarray:
     """4x4 ``T_parent_child`` from a :class:`PoseModel`."""
-    return make_T(so3_exp(np.asarray(pose.rotvec_rad)), np.asarray(pose.translation_m))
+    return pose.T
 
 
 def T_to_pose(T: np.ndarray) -> PoseModel:
-    """:class:`PoseModel` of a 4x4 rigid transform."""
-    T = check_T(T, "T")
-    return PoseModel(
-        translation_m=tuple(float(x) for x in T[:3, 3]),
-        rotvec_rad=tuple(float(x) for x in so3_log(T[:3, :3])),
-    )
-
-
-def check_T(T, name: str, tol: float = 1e-6) -> np.ndarray:
-    """``T`` as a float64 (..., 4, 4) rigid transform, or ValueError naming ``name``."""
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape[-2:] != (4, 4):
-        raise ValueError(f"{name}: expected shape (..., 4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError(f"{name}: contains NaN or inf")
-    R = T[..., :3, :3]
-    if np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max() > tol or np.any(np.linalg.det(R) < 0):
-        raise ValueError(f"{name}: rotation part is not a proper rotation matrix")
-    if np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max() > tol:
-        raise ValueError(f"{name}: last row must be [0, 0, 0, 1]")
-    return T
+    """:class:`PoseModel` of a 4x4 rigid transform (held to :func:`check_T` first)."""
+    return PoseModel.of(check_T(T, "T", single=True))
 
 
 MAX_YAML_BYTES = 64 * 2**20  # a calibration YAML (samples, registry, board) is kilobytes
 MAX_IMAGE_BYTES = 1024 * 2**20  # an uncompressed 16384 x 16384 RGB(A) photo fits
 
 
-def not_a_regular_file(path) -> str | None:
-    """Why ``path`` is no file to read (a device such as ``/dev/zero``, a FIFO, a socket), or None.
-
-    Asked before anything opens the path: reading a FIFO blocks and ``/dev/zero`` never ends. A
-    missing path or a directory gives None (the reader reports those in its own words).
-    """
-    try:
-        mode = os.stat(path).st_mode
-    except (OSError, ValueError):
-        return None
-    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
-        return None
-    kind = (
-        "a FIFO (named pipe)"
-        if stat.S_ISFIFO(mode)
-        else "a character device"
-        if stat.S_ISCHR(mode)
-        else "a block device"
-        if stat.S_ISBLK(mode)
-        else "a socket"
-        if stat.S_ISSOCK(mode)
-        else "not a regular file"
-    )
-    return f"is {kind}, not a regular file"
-
-
 def check_file(path, field: str, max_bytes: int) -> None:
     """:class:`CalibrationFileError` naming ``path`` and ``field`` for a device, FIFO or socket, or a
-    file over ``max_bytes``; asked before anything opens or reads it."""
-    problem = not_a_regular_file(path)
-    if problem is not None:
-        raise CalibrationFileError(path, field, problem)
+    file over ``max_bytes``; asked before anything opens or reads it (:func:`sim.files.check_regular`).
+    A missing path, a directory or one that cannot be asked about passes: its reader reports it."""
     try:
-        size = os.stat(path).st_size
-    except (OSError, ValueError):
-        return
-    if size > max_bytes:
-        raise CalibrationFileError(path, field, f"{size} bytes, over the limit of {max_bytes} bytes")
+        check_regular(path, max_bytes)
+    except FileRefusedError as err:
+        if err.reason not in ("missing", "unreadable", "directory"):
+            raise CalibrationFileError(path, field, err.problem()) from None
+
+
+_READ_WORDS = {"missing": "cannot read ({strerror})"}  # a missing calibration file is one that cannot be read
 
 
 def read_bytes(path, field: str, max_bytes: int) -> bytes:
     """The bytes of the regular file ``path``, at most ``max_bytes``: a device, FIFO, socket,
     directory, missing or larger file raises :class:`CalibrationFileError` naming the file, without
-    blocking (the file is opened non-blocking and checked on the open descriptor)."""
-    check_file(path, field, max_bytes)
+    blocking (:func:`sim.files.read_regular`: checked before it is opened and on the open file)."""
     try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-    except OSError as err:
-        raise CalibrationFileError(path, field, f"cannot read ({err.strerror or err})") from None
-    mode = os.fstat(fd).st_mode
-    if not stat.S_ISREG(mode):
-        os.close(fd)
-        raise CalibrationFileError(
-            path, field, "is a directory, expected a file" if stat.S_ISDIR(mode) else "is not a regular file"
-        )
-    with os.fdopen(fd, "rb") as f:
-        try:
-            data = f.read(max_bytes + 1)
-        except OSError as err:
-            raise CalibrationFileError(path, field, f"cannot read ({err.strerror or err})") from None
-    if len(data) > max_bytes:
-        raise CalibrationFileError(path, field, f"over the limit of {max_bytes} bytes")
-    return data
+        return read_regular(path, max_bytes)
+    except FileRefusedError as err:
+        raise CalibrationFileError(path, field, err.problem(_READ_WORDS)) from None
 
 
 _COMPACT = re.compile(r"(?:[-?](?:[ \t]+|$))*")  # leading "- - " / "? " indicators: one block level each

@@ -56,15 +56,14 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 import os
 import re
 import shutil
-import stat
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator, Literal, Mapping, NamedTuple, Sequence
+from typing import BinaryIO, Iterable, Iterator, Literal, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from PIL import Image
@@ -72,8 +71,10 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
+from sim.files import FileRefusedError, open_regular, read_regular
 from sim.geometry import make_T, so3_exp, so3_log
 from sim.paths import SafeName, UnsafePathError, name_problem, safe_join
+from sim.poses import MAX_ROTVEC_RAD, MAX_TRANSLATION_M, Pose, check_T
 from sim.spec import CAMERA_NAME
 
 __all__ = [
@@ -114,9 +115,6 @@ MAX_SYNC_TOLERANCE_S = 2.0  # one period of the slowest trial loop a plan accept
 MAX_MANIFEST_BYTES = 16 * 2**20
 MAX_STEPS_BYTES = 256 * 2**20
 MAX_FRAME_BYTES = 256 * 2**20
-MAX_TRANSLATION_M = 1000.0  # a cell is metres across: a unit mistake (mm as m) or garbage beyond
-MAX_ROTVEC_RAD = 100.0  # a rotation needs at most pi; wound-up values are fine, absurd ones are not
-_ROTATION_TOL = 1e-6
 _PNG_COMPRESSION = 3  # zlib level: lossless whatever the level; 3 writes several times faster than 9
 
 _POSE_COLUMNS = ("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad")
@@ -130,35 +128,6 @@ class RecordingError(AdvobjError, ValueError):
 Vec3 = tuple[float, float, float]
 
 
-class _Pose(StrictModel):
-    translation_m: Vec3
-    rotvec_rad: Vec3
-
-    @field_validator("translation_m")
-    @classmethod
-    def _bounded_translation(cls, v):
-        if max(abs(x) for x in v) > MAX_TRANSLATION_M:
-            raise ValueError(f"each component must lie within +-{MAX_TRANSLATION_M:g} m")
-        return v
-
-    @field_validator("rotvec_rad")
-    @classmethod
-    def _bounded_rotvec(cls, v):
-        if math.sqrt(sum(x * x for x in v)) > MAX_ROTVEC_RAD:
-            raise ValueError(f"norm must be at most {MAX_ROTVEC_RAD:g} rad (a rotation needs at most pi)")
-        return v
-
-    @property
-    def T(self) -> np.ndarray:
-        return make_T(so3_exp(np.asarray(self.rotvec_rad)), np.asarray(self.translation_m))
-
-    @staticmethod
-    def of(T: np.ndarray) -> "_Pose":
-        return _Pose(
-            translation_m=tuple(float(x) for x in T[:3, 3]), rotvec_rad=tuple(float(x) for x in so3_log(T[:3, :3]))
-        )
-
-
 class _Camera(StrictModel):
     name: str
     width: int = Field(ge=1, le=MAX_SIDE_PX)
@@ -166,8 +135,8 @@ class _Camera(StrictModel):
     K: tuple[Vec3, Vec3, Vec3] | None = None
     dist: tuple[float, ...] = ()
     mount: Literal["tcp", "table"]
-    T_tcp_cam: _Pose | None = None
-    T_table_cam: _Pose | None = None
+    T_tcp_cam: Pose | None = None
+    T_table_cam: Pose | None = None
 
     @field_validator("name")
     @classmethod
@@ -216,7 +185,7 @@ class _Manifest(StrictModel):
     source: dict[str, str] = {}
     sync_tolerance_s: float = Field(ge=0.0, le=MAX_SYNC_TOLERANCE_S)
     gripper: Literal["opening_m", "state"] | None = None
-    T_table_base: _Pose
+    T_table_base: Pose
     cameras: list[_Camera] = Field(min_length=1, max_length=64)
     episodes: list[_Episode] = Field(min_length=1, max_length=MAX_EPISODES)
 
@@ -303,7 +272,7 @@ def _camera_entry(cam: RecordingCamera) -> _Camera:
     for name in ("T_tcp_cam", "T_table_cam"):
         T = getattr(cam, name)
         if T is not None:
-            poses[name] = _Pose.of(_check_T(T, f"camera {cam.name!r}: {name}")).model_dump()
+            poses[name] = Pose.of(_check_T(T, f"camera {cam.name!r}: {name}")).model_dump()
     try:
         dist = np.asarray(cam.dist, dtype=np.float64).reshape(-1).tolist()
         return _Camera.model_validate(
@@ -318,23 +287,12 @@ def _camera_entry(cam: RecordingCamera) -> _Camera:
 
 
 def _check_T(T, what: str) -> np.ndarray:
-    """``T`` as a float64 (4, 4) rigid transform, or :class:`RecordingError` naming ``what``."""
+    """``T`` as a float64 (4, 4) rigid transform within :data:`~sim.poses.MAX_TRANSLATION_M`
+    (:func:`sim.poses.check_T`), or :class:`RecordingError` naming ``what``."""
     try:
-        T = np.asarray(T, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise RecordingError(f"{what}: not a 4x4 array of numbers") from None
-    if T.shape != (4, 4):
-        raise RecordingError(f"{what}: expected shape (4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise RecordingError(f"{what}: contains NaN or inf")
-    R = T[:3, :3]
-    if np.abs(R @ R.T - np.eye(3)).max() > _ROTATION_TOL or np.linalg.det(R) < 0:
-        raise RecordingError(f"{what}: the rotation part is not a proper rotation matrix")
-    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > _ROTATION_TOL:
-        raise RecordingError(f"{what}: the last row must be [0, 0, 0, 1]")
-    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_M:
-        raise RecordingError(f"{what}: each translation component must lie within +-{MAX_TRANSLATION_M:g} m")
-    return T
+        return check_T(T, what, single=True, max_translation_m=MAX_TRANSLATION_M)
+    except ValueError as err:
+        raise RecordingError(str(err)) from None
 
 
 def _check_timeline(
@@ -389,31 +347,24 @@ def _check_timeline(
             )
 
 
-def _regular_file(path: Path, what: str, max_bytes: int) -> int:
-    """The size of ``path``, refused unless it is a regular file of at most ``max_bytes`` (asked
-    before anything opens it: a FIFO would block, a device never end)."""
+_FILE_WORDS = {"directory": "not a regular file", "special": "not a regular file"}
+
+
+def _open_file(path: Path, what: str, max_bytes: int) -> BinaryIO:
+    """``path`` open for reading: a regular file of at most ``max_bytes``, checked before it is
+    opened and on the open file (:func:`sim.files.open_regular`: a FIFO would block, a device never
+    end), or :class:`RecordingError` naming ``what``."""
     try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: {what}: missing") from None
-    except OSError as err:
-        raise RecordingError(f"{path}: {what}: cannot read ({err.strerror or err})") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise RecordingError(f"{path}: {what}: not a regular file")
-    if st.st_size > max_bytes:
-        raise RecordingError(f"{path}: {what}: {st.st_size} bytes, over the limit of {max_bytes} bytes")
-    return st.st_size
+        return open_regular(path, max_bytes)
+    except FileRefusedError as err:
+        raise RecordingError(f"{path}: {what}: {err.problem(_FILE_WORDS)}") from None
 
 
 def _read_text(path: Path, what: str, max_bytes: int) -> str:
-    _regular_file(path, what, max_bytes)
     try:
-        with open(path, "rb") as f:
-            data = f.read(max_bytes + 1)
-    except OSError as err:
-        raise RecordingError(f"{path}: {what}: cannot read ({err.strerror or err})") from None
-    if len(data) > max_bytes:
-        raise RecordingError(f"{path}: {what}: over the limit of {max_bytes} bytes")
+        data = read_regular(path, max_bytes)
+    except FileRefusedError as err:
+        raise RecordingError(f"{path}: {what}: {err.problem(_FILE_WORDS)}") from None
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as err:
@@ -609,32 +560,39 @@ def _frame_path(root: Path, episode: str, camera: str, step: int) -> Path:
     return _inside(root, EPISODES_DIR, episode, camera, _frame_name(step), what=f"episode {episode!r}")
 
 
+@contextmanager
+def _frame(path: Path, cam) -> Iterator[Image.Image]:
+    """The frame file ``path`` open as an image, once it is a regular file of at most
+    :data:`MAX_FRAME_BYTES` (checked on the open file) and an 8-bit RGB PNG of the camera's size
+    (only its header is read here)."""
+    what = f"frame of camera {cam.name}"
+    with _open_file(path, what, MAX_FRAME_BYTES) as f:
+        try:
+            im = Image.open(f)
+        except (OSError, ValueError, Image.DecompressionBombError) as err:
+            raise RecordingError(f"{path}: {what}: not a readable image ({_one_line(err)})") from None
+        with im:
+            if im.format != "PNG" or im.mode != "RGB":
+                raise RecordingError(f"{path}: {what}: a {im.format} image in mode {im.mode}, expected an RGB PNG")
+            if im.size != (cam.width, cam.height):
+                raise RecordingError(
+                    f"{path}: {what}: {im.size[0]}x{im.size[1]} px, the camera's is {cam.width}x{cam.height}"
+                )
+            yield im
+
+
 def _check_png_header(path: Path, cam) -> None:
-    """A frame file that is a regular file, at most :data:`MAX_FRAME_BYTES`, and an 8-bit RGB PNG
-    of the camera's size (only its header is read)."""
-    _regular_file(path, f"frame of camera {cam.name}", MAX_FRAME_BYTES)
-    try:
-        with Image.open(path) as im:
-            fmt, size, mode = im.format, im.size, im.mode
-    except (OSError, ValueError, Image.DecompressionBombError) as err:
-        raise RecordingError(f"{path}: frame of camera {cam.name}: not a readable image ({_one_line(err)})") from None
-    if fmt != "PNG" or mode != "RGB":
-        raise RecordingError(f"{path}: frame of camera {cam.name}: a {fmt} image in mode {mode}, expected an RGB PNG")
-    if size != (cam.width, cam.height):
-        raise RecordingError(
-            f"{path}: frame of camera {cam.name}: {size[0]}x{size[1]} px, the camera's is {cam.width}x{cam.height}"
-        )
+    with _frame(path, cam):
+        pass
 
 
 def _read_png(root: Path, episode: str, cam, step: int) -> np.ndarray:
     path = _frame_path(root, episode, cam.name, step)
-    _check_png_header(path, cam)  # again: the file may have changed since the recording was read
-    try:
-        with Image.open(path) as im:
-            rgb = np.asarray(im, dtype=np.uint8)
-    except (OSError, ValueError) as err:
-        raise RecordingError(f"{path}: frame of camera {cam.name}: cannot decode ({_one_line(err)})") from None
-    return rgb
+    with _frame(path, cam) as im:  # checked again: the file may have changed since the recording was read
+        try:
+            return np.asarray(im, dtype=np.uint8)
+        except (OSError, ValueError) as err:
+            raise RecordingError(f"{path}: frame of camera {cam.name}: cannot decode ({_one_line(err)})") from None
 
 
 # ---------------------------------------------------------------------- writing
@@ -778,7 +736,7 @@ def write_recording(
         "source": {str(k): str(v) for k, v in (source or {}).items()},
         "sync_tolerance_s": sync_tolerance_s,
         "gripper": gripper,
-        "T_table_base": _Pose.of(_check_T(T_table_base, "T_table_base")).model_dump(),
+        "T_table_base": Pose.of(_check_T(T_table_base, "T_table_base")).model_dump(),
         "cameras": [_camera_entry(c).model_dump() for c in cams],
     }
     _validate_manifest({**head, "episodes": [{"id": "episode", "n_frames": 1}]}, "recording")  # before any write
