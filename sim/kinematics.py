@@ -7,7 +7,8 @@ This module owns URDF arm models: it alone reads ``.urdf`` files and the shipped
   ``tool_link``: its actuated joints in chain order (:attr:`ArmModel.joint_names`), their units
   (``rad`` for revolute, ``m`` for prismatic joints) and limits (position and velocity, each one
   finite: a NaN or infinite limit is refused), and :meth:`ArmModel.fk`, ``q: (..., n) ->
-  T_base_tool: (..., 4, 4)``, batched, differentiable, on the model's device, in float64 or float32.
+  T_base_tool: (..., 4, 4)``, batched, differentiable, on the model's device, in float64 or float32;
+  :meth:`ArmModel.fk_jacobian` adds the geometric Jacobian (the IK's, :mod:`sim.ik`).
 * :func:`read_chain` is the parsing half alone (numpy, float64, no device), which a scene config
   uses to check its links at load.
 * :data:`SHIPPED_ARMS` lists the arms that come with advobj (:func:`shipped_urdf`,
@@ -537,14 +538,31 @@ class ArmModel:
         own pose and leaves every other pose of the batch as it is; a large finite angle gives a
         rigid transform. A wrong length, dtype or device raises :class:`KinematicsError`.
         """
+        return self._walk(q, jacobian=False)[0]
+
+    def fk_jacobian(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(T_base_tool (..., 4, 4), J (..., 6, n))``: :meth:`fk` and the geometric Jacobian.
+
+        ``J``'s rows are the tool origin's linear velocity (m/s, first three) and the tool's angular
+        velocity (rad/s, last three), both in the base frame, per unit joint velocity: a revolute
+        joint ``k`` with axis ``z_k`` through ``o_k`` gives ``(z_k x (p_tool - o_k), z_k)``, a
+        prismatic one ``(z_k, 0)``. Same inputs and checks as :meth:`fk`.
+        """
+        return self._walk(q, jacobian=True)
+
+    def _walk(self, q: torch.Tensor, jacobian: bool):
         q = self._checked(q)
         f = self._by_dtype[q.dtype]
         batch = q.shape[:-1]
         R = torch.eye(3, dtype=q.dtype, device=q.device).expand(*batch, 3, 3)
         p = torch.zeros(*batch, 3, dtype=q.dtype, device=q.device)
+        axes, origins = [], []
         for k, kind in enumerate(self.chain.joint_types):
             # (R, p) <- (R, p) (C_k M_k(q_k)): joint k's fixed transform, then its motion.
             qk = q[..., k, None, None]
+            if jacobian:  # joint k's axis and origin in the base frame, before its own motion
+                axes.append((R @ f.p_slide[k].unsqueeze(-1)).squeeze(-1))
+                origins.append(p + (R @ f.p_fixed[k].unsqueeze(-1)).squeeze(-1))
             if kind == "revolute":
                 half = torch.sin(qk / 2)  # 1 - cos q = 2 sin^2(q/2), exact near q = 0
                 G_R = f.R_fixed[k] + torch.sin(qk) * f.R_sin[k] + 2 * half * half * f.R_vers[k]
@@ -560,7 +578,15 @@ class ArmModel:
         top = torch.cat([R, p.unsqueeze(-1)], dim=-1)
         bottom = torch.zeros(*batch, 1, 4, dtype=q.dtype, device=q.device)
         bottom[..., 0, 3] = 1
-        return torch.cat([top, bottom], dim=-2)
+        T = torch.cat([top, bottom], dim=-2)
+        if not jacobian:
+            return T, None
+        z = torch.stack(axes, -1)  # (..., 3, n)
+        o = torch.stack(origins, -1)
+        revolute = torch.tensor([t == "revolute" for t in self.chain.joint_types], device=q.device)
+        lin = torch.where(revolute, torch.linalg.cross(z, p.unsqueeze(-1) - o, dim=-2), z)
+        ang = torch.where(revolute, z, torch.zeros_like(z))
+        return T, torch.cat([lin, ang], dim=-2)
 
     def check_q(self, q: torch.Tensor, *, tol: float = 0.0, what: str = "q") -> torch.Tensor:
         """``q`` itself when it is a usable joint vector: the right length, dtype and device, every
