@@ -21,6 +21,7 @@ from sim.errors import AdvobjError, format_validation_error
 from sim.geometry import look_at, make_T, so3_exp
 
 if TYPE_CHECKING:
+    from sim.ik import SceneArm
     from sim.kinematics import ArmModel
 
 __all__ = [
@@ -379,7 +380,13 @@ class ArmModelConfig(_Strict):
     """The arm as a URDF: the kinematic chain from ``base_link`` to ``tool_link`` (:mod:`sim.kinematics`),
     checked when the scene loads: a plain URDF (no xacro; its meshes are ignored), both links in it, the
     tool link below the base link, and every joint between them revolute or prismatic with finite
-    position and velocity limits."""
+    position and velocity limits.
+
+    A joint-space policy moves this arm (``ReachEnv(control="joint")``, :class:`sim.ik.SceneArm`): its
+    base stands at ``T_table_base`` in the table frame, the TCP (the floating gripper's, which the
+    wrist camera is mounted on) sits at ``T_tool_tcp`` in the tool link's frame, and one env step
+    lasts ``control_period_s``, so a joint moves at most its URDF velocity limit times that per step.
+    """
 
     urdf: str = Field(
         min_length=1,
@@ -387,12 +394,60 @@ class ArmModelConfig(_Strict):
     )
     base_link: str = Field(min_length=1, description="the URDF link the arm's poses are expressed in")
     tool_link: str = Field(min_length=1, description="the URDF link whose pose forward kinematics gives")
+    t_table_base_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="where the base link stands in the table frame (m)"
+    )
+    rotvec_table_base: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="the base link's orientation in the table frame, axis-angle (rad)"
+    )
+    t_tool_tcp_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="the TCP in the tool link's frame (m); the wrist camera is mounted on the TCP"
+    )
+    rotvec_tool_tcp: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="the TCP's orientation in the tool link's frame, axis-angle (rad)"
+    )
+    control_period_s: Positive = Field(
+        0.1, le=10.0, description="one env step (s): a joint moves at most its URDF velocity limit times this per step"
+    )
+    q_home: tuple[float, ...] | None = Field(
+        None,
+        description="joint positions (rad or m, chain order) the IK of a start pose begins from; None: the middle "
+        "of each joint's limits",
+    )
+
+    _v_base = field_validator("t_table_base_m")(_check_reach)
+
+    @field_validator("rotvec_table_base", "rotvec_tool_tcp")
+    @classmethod
+    def _angle(cls, v):
+        if math.hypot(*v) > 2 * math.pi + 1e-9:
+            raise ValueError("the rotation angle (the vector's norm) must be at most 2 pi rad")
+        return v
+
+    @property
+    def T_table_base(self) -> np.ndarray:
+        """(4, 4) the base link's pose in the table (world) frame."""
+        return make_T(so3_exp(np.asarray(self.rotvec_table_base, dtype=np.float64)), np.asarray(self.t_table_base_m))
+
+    @property
+    def T_tool_tcp(self) -> np.ndarray:
+        """(4, 4) the TCP's pose in the tool link's frame."""
+        return make_T(so3_exp(np.asarray(self.rotvec_tool_tcp, dtype=np.float64)), np.asarray(self.t_tool_tcp_m))
 
     def load(self, device: str = "cpu") -> "ArmModel":
         """The :class:`sim.kinematics.ArmModel` of this chain on ``device``."""
         from sim.kinematics import load_arm, urdf_source  # lazy: robot_io start-up (torch)
 
         return load_arm(urdf_source(self.urdf), self.base_link, self.tool_link, device=device)
+
+    def scene_arm(self, device: str = "cpu") -> "SceneArm":
+        """The :class:`sim.ik.SceneArm` of this arm where the scene puts it, on ``device``."""
+        from sim.ik import SceneArm  # lazy: robot_io start-up (torch)
+
+        model = self.load(device)
+        chain = model.chain
+        home = (chain.q_min + chain.q_max) / 2.0 if self.q_home is None else np.asarray(self.q_home, np.float64)
+        return SceneArm(model, self.T_table_base, self.T_tool_tcp, float(self.control_period_s), home)
 
 
 class SceneSpec(_Strict):
@@ -410,7 +465,9 @@ class SceneSpec(_Strict):
         description="fixed cameras besides the wrist camera (which is named 'wrist'), each posed in the table frame",
     )
     arm: ArmModelConfig | None = Field(
-        None, description="the arm as a URDF with its base and tool links (not used by the reach env yet)"
+        None,
+        description="the arm as a URDF with its base and tool links, where it stands and its TCP; a joint-space "
+        "policy moves it (a TCP policy moves the floating gripper, as without an arm)",
     )
 
     _v_bg = field_validator("background")(_check_rgb)
@@ -522,9 +579,22 @@ def _check_arm(spec: SceneSpec, source: str) -> SceneSpec:
     arm = spec.arm
     try:
         path = urdf_source(arm.urdf, root=root)
-        read_chain(path, arm.base_link, arm.tool_link)
+        chain = read_chain(path, arm.base_link, arm.tool_link)
     except KinematicsError as err:
         raise SpecError(f"{source}: arm.{err.field or 'urdf'}: {err}") from None
+    if arm.q_home is not None:
+        n = len(chain.joint_names)
+        if len(arm.q_home) != n:
+            raise SpecError(
+                f"{source}: arm.q_home: {len(arm.q_home)} values for the {n} joints of the chain "
+                f"({', '.join(chain.joint_names)})"
+            )
+        for k, v in enumerate(arm.q_home):
+            if not chain.q_min[k] <= v <= chain.q_max[k]:
+                raise SpecError(
+                    f"{source}: arm.q_home[{k}]: joint {chain.joint_names[k]!r} at {v} {chain.units[k]} is outside its "
+                    f"limits [{chain.q_min[k]:.6g}, {chain.q_max[k]:.6g}]"
+                )
     if root is None or arm.urdf in SHIPPED_ARMS:
         return spec
     return merged(
