@@ -117,15 +117,7 @@ class PolicyCard(_Strict):
         Checked for checkpoints, whose network is rebuilt from ``arch``; an ONNX card's ``arch``
         only needs the right ``image_size``, since the graph is the user's.
         """
-        c, a = self.contract, self.arch
-        if a.state_dim != c.state_dim:
-            return f"arch.state_dim is {a.state_dim} but the contract's state {list(c.state)} has {c.state_dim} values"
-        if a.chunk != c.action.chunk:
-            return f"arch.chunk is {a.chunk} but contract.action.chunk is {c.action.chunk}"
-        want = "tanh" if c.action.kind == "delta_tcp" else "linear"
-        if a.output != want:
-            return f"arch.output is {a.output!r} but {c.action.kind} actions need {want!r}"
-        return None
+        return self.arch.contract_mismatch(self.contract)
 
 
 def load_card(path: str | Path) -> PolicyCard:

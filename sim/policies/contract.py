@@ -11,7 +11,15 @@ everywhere. It travels in the policy card (checkpoint ``policy.json`` or ONNX me
   top), which is the sim's world frame. On the real cell the runner converts the arm's base-frame
   pose with the calibrated ``T_base_table``;
 * ``gripper``: 1 value, the finger opening (m). A reach task never closes the gripper, so the
-  sim and the real cell both report the scene's ``gripper.opening_m``.
+  sim and the real cell both report the scene's ``gripper.opening_m``;
+* ``joint_positions``: one value per joint in ``joints`` order, each in its ``joint_units`` entry
+  (rad for a revolute joint, m for a prismatic one). Read by joint-space policies only.
+
+**Joints** (joint-space policies: a ``joint_position`` or ``joint_delta`` action): ``joints`` names
+the arm's actuated joints in the order of ``joint_positions`` and of every joint action, and
+``joint_units`` each one's unit. Both must be those of the scene's arm (:class:`sim.spec.ArmModelConfig`:
+the URDF's chain from base link to tool link, base to tool), checked by :func:`check_scene`; a joint
+policy needs a scene with an arm.
 
 **Action output**: ``K = action.chunk`` actions per call, ``(B, 6)`` when ``K = 1``, else
 ``(B, K, 6)`` (``(B, 6K)`` is accepted too). Of each chunk the first ``k = action.execute`` are
@@ -23,15 +31,22 @@ executed, one per control step, before the policy is asked again. Each action is
   One step moves toward it by at most the scene's step limits: the motion is the ``delta_tcp``
   that reaches the target, scaled down as a whole (direction kept) until every component is within
   ``[-1, 1]``. The real runner makes the same step from the measured TCP pose and sends it through
-  the safety layer, which stays the backstop.
+  the safety layer, which stays the backstop;
+* ``joint_position``: target joint positions, ``n`` values in ``joints`` order and units;
+* ``joint_delta``: a change of the joint positions, ``q_target = q + a`` (same order and units).
+  A joint action is ``(B, n)`` (``(B, K, n)`` or ``(B, n K)`` in chunks). The arm then moves toward
+  the target by :meth:`sim.ik.SceneArm.limit_step`: the target clipped to the joint position limits,
+  the motion scaled down as a whole until no joint exceeds its URDF velocity limit over the scene's
+  ``arm.control_period_s``; the TCP and the wrist camera follow by forward kinematics.
 
 The attack's pose loss takes the intended next TCP position and heading of the first action of
-a chunk after this conversion, so it means the same thing for every action kind.
+a chunk after this conversion (:func:`to_delta`; a joint action's through the arm's forward
+kinematics, differentiably), so it means the same thing for every action kind.
 
 **Named inputs** (:class:`InputBinding`, the card's ``inputs``): each model input is bound to a
 source: a camera by name (``wrist`` or one of the scene's ``scene_cameras``), the state vector
-above (``state``), or one of its fields alone (``tcp_pose``, ``gripper``); ``joint_positions`` is
-reserved for joint-space policies and refused for now. An image input states how a camera frame
+above (``state``), or one of its fields alone (``tcp_pose``, ``gripper``, ``joint_positions``). An
+image input states how a camera frame
 becomes the tensor the model takes (:class:`ImageInput`: size, preprocess, value range, channel
 order, layout, normalisation). Without bindings, LeRobot's names bind as they come
 (``observation.images.<camera>`` -> camera ``<camera>``, ``observation.state`` -> ``state``;
@@ -46,11 +61,11 @@ needed (:func:`to_delta`, :func:`to_model_image`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 import torch
-from pydantic import Field, model_validator
+from pydantic import Field, model_serializer, model_validator
 
 from sim.configio import StrictModel
 from sim.geometry import _is_torch, so3_exp, so3_log
@@ -61,6 +76,9 @@ from sim.spec import UnknownCameraError
 __all__ = [
     "StateField",
     "STATE_SIZES",
+    "TCP_ACTIONS",
+    "JOINT_ACTIONS",
+    "JOINT_UNITS",
     "ActionContract",
     "PolicyContract",
     "policy_contract",
@@ -68,6 +86,9 @@ __all__ = [
     "decode_actions",
     "first_action",
     "to_delta",
+    "to_joint_target",
+    "from_joint_target",
+    "check_joints",
     "call_policy",
     "ActionQueue",
     "WRIST_CAMERA",
@@ -86,8 +107,15 @@ __all__ = [
     "default_plan",
 ]
 
-StateField = Literal["tcp_pose", "gripper"]
+StateField = Literal["tcp_pose", "gripper", "joint_positions"]
+#: Values per state field; ``joint_positions`` has one per joint of the contract (``len(joints)``).
 STATE_SIZES = {"tcp_pose": 6, "gripper": 1}
+TCP_ACTIONS = ("delta_tcp", "absolute_tcp")
+JOINT_ACTIONS = ("joint_position", "joint_delta")
+#: The unit a joint's position is stated in (velocities: per second), as sim.kinematics.JOINT_UNITS
+#: says; ``contract.joint_units`` accepts these only (an unknown unit is refused naming its entry).
+JointUnit = Literal["rad", "m"]
+JOINT_UNITS = get_args(JointUnit)
 
 
 LEROBOT_IMAGE_PREFIX = "observation.images."
@@ -96,10 +124,11 @@ LEROBOT_ACTION = "action"
 
 
 class ActionContract(StrictModel):
-    kind: Literal["delta_tcp", "absolute_tcp"] = Field(
+    kind: Literal["delta_tcp", "absolute_tcp", "joint_position", "joint_delta"] = Field(
         "delta_tcp",
         description="delta_tcp: normalised TCP-frame motion in [-1, 1]^6; absolute_tcp: target pose [x, y, z (m), "
-        "rx, ry, rz (rad)] in the table frame (the sim's world frame)",
+        "rx, ry, rz (rad)] in the table frame (the sim's world frame); joint_position: target joint positions, "
+        "joint_delta: their change (both in the contract's joints order and joint_units)",
     )
     chunk: int = Field(1, ge=1, le=128, description="K: actions the policy outputs per call")
     execute: int = Field(
@@ -115,19 +144,78 @@ class ActionContract(StrictModel):
 
 class PolicyContract(StrictModel):
     state: tuple[StateField, ...] = Field(
-        (), description="proprioceptive inputs, concatenated in this order: tcp_pose (6), gripper (1)"
+        (),
+        description="proprioceptive inputs, concatenated in this order: tcp_pose (6), gripper (1), joint_positions "
+        "(one per joint)",
     )
     action: ActionContract = ActionContract()
+    joints: tuple[str, ...] = Field(
+        (),
+        description="joint-space policies: the arm's joints (URDF names, base to tool) in the order of "
+        "joint_positions and of each joint action; must be the scene arm's chain in its order",
+    )
+    joint_units: tuple[JointUnit, ...] = Field(
+        (), description="joint-space policies: each joint's position unit, rad (revolute) or m (prismatic)"
+    )
 
     @model_validator(mode="after")
     def _unique(self):
         if len(set(self.state)) != len(self.state):
             raise ValueError(f"state: each input may appear once, got {list(self.state)}")
+        joint_action = self.action.kind in JOINT_ACTIONS
+        if "joint_positions" in self.state and not joint_action:
+            raise ValueError(
+                f"state: joint_positions is read by joint-space policies (action joint_position or joint_delta); "
+                f"this one's action is {self.action.kind}"
+            )
+        if joint_action and not self.joints:
+            raise ValueError(
+                f"joints: a {self.action.kind} policy names the arm's joints in the order of its actions (and units "
+                "in joint_units)"
+            )
+        if self.joints and not joint_action:
+            raise ValueError(
+                f"joints: a {self.action.kind} policy commands no joints; leave out joints and joint_units"
+            )
+        if len(set(self.joints)) != len(self.joints):
+            raise ValueError(f"joints: each joint may appear once, got {list(self.joints)}")
+        if len(self.joint_units) != len(self.joints):
+            raise ValueError(
+                f"joint_units: one unit per joint: {len(self.joints)} joints, {len(self.joint_units)} units"
+            )
         return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # A TCP contract dumps as before joints existed: cards, run records and hashes unchanged.
+        d = handler(self)
+        if isinstance(d, dict) and not self.joints:
+            d.pop("joints", None)
+            d.pop("joint_units", None)
+        return d
+
+    def state_size(self, field: str) -> int:
+        """Values of state field ``field`` (``joint_positions``: one per joint)."""
+        return len(self.joints) if field == "joint_positions" else STATE_SIZES[field]
 
     @property
     def state_dim(self) -> int:
-        return sum(STATE_SIZES[s] for s in self.state)
+        return sum(self.state_size(s) for s in self.state)
+
+    @property
+    def is_joint_space(self) -> bool:
+        """Whether the policy commands the arm's joints (``joint_position`` or ``joint_delta``)."""
+        return self.action.kind in JOINT_ACTIONS
+
+    @property
+    def control(self) -> str:
+        """What the policy moves: ``"joint"`` (the arm's joints) or ``"tcp"`` (``ReachEnv(control=...)``)."""
+        return "joint" if self.is_joint_space else "tcp"
+
+    @property
+    def action_dim(self) -> int:
+        """Values per action: 6 for a TCP action, one per joint for a joint action."""
+        return len(self.joints) if self.is_joint_space else 6
 
     @property
     def is_default(self) -> bool:
@@ -137,7 +225,8 @@ class PolicyContract(StrictModel):
         a = self.action
         state = "+".join(self.state) if self.state else "none"
         chunk = f", chunks of {a.chunk} (execute {a.execute})" if a.chunk > 1 else ""
-        return f"state {state}; {a.kind}{chunk}"
+        joints = f" over {len(self.joints)} joints" if self.joints else ""
+        return f"state {state}; {a.kind}{joints}{chunk}"
 
 
 def policy_contract(policy) -> PolicyContract:
@@ -202,8 +291,8 @@ class InputBinding(StrictModel):
     """What one model input reads: a camera (with its :class:`ImageInput`) or the state."""
 
     source: InputSource = Field(
-        description="camera (name it in camera), state (the contract's state vector), tcp_pose or gripper alone; "
-        "joint_positions is reserved for joint-space policies"
+        description="camera (name it in camera), state (the contract's state vector), tcp_pose, gripper or "
+        "joint_positions alone"
     )
     camera: str | None = Field(None, description="source camera: the camera's name (wrist or a scene camera)")
     image: ImageInput | None = Field(None, description="source camera: how its frame becomes the input")
@@ -333,7 +422,7 @@ def bind_inputs(
     ``bindings`` is the card's ``inputs`` (None or empty: LeRobot's names as they come, else the
     first input is the wrist camera and a second one the state). Raises :class:`PolicyError` in
     one line for a binding of an input the model lacks, a model input left unbound, an image input
-    of the wrong shape, ``joint_positions``, or state inputs that disagree with ``contract.state``.
+    of the wrong shape, or state inputs that disagree with ``contract.state``.
     ``where`` prefixes messages (e.g. ``"policy.onnx: "``).
     """
     names = [n for n, _ in model_inputs]
@@ -348,7 +437,7 @@ def bind_inputs(
             if name not in bindings:
                 raise PolicyError(
                     f"{where}input {name!r} of the model is not bound by the card's inputs; bind it to a camera, "
-                    "state, tcp_pose or gripper"
+                    "state, tcp_pose, gripper or joint_positions"
                 )
         bound = dict(bindings)
     elif any(_camera_of_name(n) or n == LEROBOT_STATE for n in names):
@@ -382,16 +471,11 @@ def bind_inputs(
     images, states = [], []
     offsets, o = {}, 0
     for s in contract.state:
-        offsets[s] = (o, o + STATE_SIZES[s])
-        o += STATE_SIZES[s]
+        offsets[s] = (o, o + contract.state_size(s))
+        o += contract.state_size(s)
     read: list[str] = []
     for name in names:
         b = bound[name]
-        if b.source == "joint_positions":
-            raise PolicyError(
-                f"{where}input {name!r}: source joint_positions is reserved for joint-space policies and not "
-                "supported yet"
-            )
         if b.source == "camera":
             size = _image_shape(shapes[name], b.image, where, name)
             if any(im.camera == b.camera for im in images):
@@ -462,15 +546,55 @@ def policy_cameras(policy) -> tuple[str, ...]:
     return plan.cameras if isinstance(plan, InputPlan) else (WRIST_CAMERA,)
 
 
+def check_joints(contract: PolicyContract, spec, where: str = "") -> None:
+    """Refuse, in one line naming the card field, a joint-space ``contract`` that ``spec``'s arm
+    cannot run: a scene without an arm, joints that are not the arm's chain in its order (the URDF's
+    actuated joints from base link to tool link), or a unit that is not its joint's. A TCP contract
+    passes (it runs in every scene)."""
+    if not contract.is_joint_space:
+        return
+    if spec.arm is None:
+        raise PolicyError(
+            f"{where}contract: a joint-space policy ({contract.describe()}) needs a scene with an arm (arm: urdf, "
+            f"base_link, tool_link); scene {spec.name!r} has none"
+        )
+    from sim.kinematics import read_chain, urdf_source  # lazy: robot_io start-up (torch)
+
+    arm = spec.arm
+    chain = read_chain(urdf_source(arm.urdf), arm.base_link, arm.tool_link)
+    names, units = chain.joint_names, chain.units
+    urdf = f"the arm's chain {arm.base_link} -> {arm.tool_link} in {chain.urdf.name}"
+    got = tuple(contract.joints)
+    if got != names:
+        unknown = [j for j in got if j not in names]
+        if unknown:
+            why = f"joint {unknown[0]!r} is not in {urdf}"
+        elif len(got) != len(names):
+            why = f"{len(got)} joints for the {len(names)} of {urdf}"
+        else:
+            k = next(i for i, (a, b) in enumerate(zip(got, names)) if a != b)
+            why = f"position {k} is {got[k]!r} where {urdf} has {names[k]!r} (the order is base to tool)"
+        raise PolicyError(f"{where}contract.joints: {why}; the arm's joints: {', '.join(names)}")
+    for k, (u, want) in enumerate(zip(contract.joint_units, units)):
+        if u != want:
+            kind = "revolute" if want == "rad" else "prismatic"
+            raise PolicyError(
+                f"{where}contract.joint_units.{k}: joint {names[k]!r} is {kind} in {chain.urdf.name}, so its unit is "
+                f"{want}, not {u}"
+            )
+
+
 def check_scene(policy, spec) -> None:
     """Refuse, in one line, a policy reading a camera ``spec`` does not have, or a scene camera
-    rendering another size than its input takes (the wrist camera renders at the policy's size).
+    rendering another size than its input takes (the wrist camera renders at the policy's size),
+    or a joint-space policy ``spec``'s arm cannot run (:func:`check_joints`).
     The line names the policy's file when it has one (``.onnx``: ``path``, ``.pt2``: ``source``)."""
+    src = getattr(policy, "source", None) or getattr(policy, "path", None)
+    where = f"{src}: " if src else ""
+    check_joints(policy_contract(policy), spec, where)
     plan = getattr(policy, "inputs", None)
     if not isinstance(plan, InputPlan):
         return
-    src = getattr(policy, "source", None) or getattr(policy, "path", None)
-    where = f"{src}: " if src else ""
     for b in plan.images:
         try:
             cam = spec.camera_spec(b.camera)  # an unknown name: one line listing the scene's cameras
@@ -490,9 +614,10 @@ def check_scene(policy, spec) -> None:
             )
 
 
-def state_vector(contract: PolicyContract, T_base_tcp, gripper_m) -> np.ndarray | None:
-    """``(B, D)`` float32 state for TCP poses ``(B, 4, 4)`` and openings ``gripper_m`` (scalar or
-    ``(B,)``, m); ``None`` when the contract reads no state."""
+def state_vector(contract: PolicyContract, T_base_tcp, gripper_m, q=None) -> np.ndarray | None:
+    """``(B, D)`` float32 state for TCP poses ``(B, 4, 4)``, openings ``gripper_m`` (scalar or
+    ``(B,)``, m) and, for a contract reading ``joint_positions``, the joint positions ``q (B, n)`` in
+    the contract's joint order and units; ``None`` when the contract reads no state."""
     if not contract.state:
         return None
     T = np.asarray(T_base_tcp, dtype=np.float64).reshape(-1, 4, 4)
@@ -500,65 +625,123 @@ def state_vector(contract: PolicyContract, T_base_tcp, gripper_m) -> np.ndarray 
     for s in contract.state:
         if s == "tcp_pose":
             parts.append(np.concatenate([T[:, :3, 3], so3_log(T[:, :3, :3])], -1))
+        elif s == "joint_positions":
+            n = len(contract.joints)
+            if q is None:
+                raise PolicyError(
+                    "state: the policy reads joint_positions; no joint positions given (a joint-space policy runs "
+                    "on the scene's arm: ReachEnv(control='joint'))"
+                )
+            qa = np.asarray(q, dtype=np.float64)
+            if qa.shape != (len(T), n):
+                raise PolicyError(
+                    f"state: joint_positions must be ({len(T)}, {n}) for joints {', '.join(contract.joints)}, "
+                    f"got {qa.shape}"
+                )
+            parts.append(qa)
         else:
             parts.append(np.broadcast_to(np.asarray(gripper_m, dtype=np.float64).reshape(-1, 1), (len(T), 1)))
     return np.ascontiguousarray(np.concatenate(parts, -1), dtype=np.float32)
 
 
 def decode_actions(raw, contract: PolicyContract, batch: int):
-    """``(B, K, 6)`` from a policy output of ``(B, 6)`` (K = 1), ``(B, K, 6)`` or ``(B, 6K)``.
+    """``(B, K, A)`` from a policy output of ``(B, A)`` (K = 1), ``(B, K, A)`` or ``(B, A K)``, with
+    ``A = contract.action_dim`` (6 for a TCP action, one per joint for a joint action).
 
     Raises :class:`PolicyError` naming the expected shape. Values are not checked here: a
     non-finite action is the consumer's to refuse (the env raises, the runner logs it).
     """
-    K = contract.action.chunk
+    K, A = contract.action.chunk, contract.action_dim
     shape = tuple(raw.shape)
-    if shape == (batch, K, 6):
+    if shape == (batch, K, A):
         return raw
-    if shape == (batch, 6 * K):
-        return raw.reshape(batch, K, 6)
-    want = f"({batch}, 6)" if K == 1 else f"({batch}, {K}, 6) or ({batch}, {6 * K})"
+    if shape == (batch, A * K):
+        return raw.reshape(batch, K, A)
+    want = f"({batch}, {A})" if K == 1 else f"({batch}, {K}, {A}) or ({batch}, {A * K})"
     raise PolicyError(
         f"actions: the policy's contract ({contract.describe()}) needs outputs of shape {want}, got {shape}"
     )
 
 
 def first_action(actions):
-    """The action executed next: ``(B, 6)`` of a ``(B, 6)`` or ``(B, K, 6)`` output."""
+    """The action executed next: ``(B, A)`` of a ``(B, A)`` or ``(B, K, A)`` output."""
     return actions[:, 0] if actions.ndim == 3 else actions
 
 
 def _rot_log(R):
+    # numpy: the execution's log map; torch: the differentiable one of the loss (sim.ik.rotvec)
     if not _is_torch(R):
         return so3_log(R)
+    from sim.ik import rotvec  # lazy: robot_io start-up (torch)
 
-    # Differentiable log map for the loss: atan2 form with floored norms (finite gradients at 0);
-    # near pi the axis is less accurate than the numpy path, which the execution uses.
-    vee = 0.5 * torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    cos = ((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0).clamp(-1.0, 1.0)
-    sin = torch.sqrt((vee * vee).sum(-1).clamp_min(1e-12))
-    theta = torch.atan2(sin, cos)
-    return vee * (theta / sin)[..., None]
+    return rotvec(R)
 
 
-def to_delta(T_base_tcp, actions, kind: str, max_step_m: float, max_step_rad: float):
-    """Normalised ``delta_tcp`` motions ``(B, 6)`` in [-1, 1] for actions ``(B, 6)`` of ``kind``.
+def _motion(T, p_target, R_target, max_step_m: float, max_step_rad: float):
+    """The normalised ``delta_tcp`` (unclipped) that moves TCP poses ``T (B, 4, 4)`` to positions
+    ``p_target (B, 3)`` and orientations ``R_target (B, 3, 3)``: the inverse of :func:`sim.action.next_tcp_pose`."""
+    R, p = T[..., :3, :3], T[..., :3, 3]
+    Rt = R.transpose(-1, -2) if _is_torch(T) else np.swapaxes(R, -1, -2)
+    dp = (Rt @ (p_target - p)[..., None])[..., 0] / max_step_m
+    drot = _rot_log(Rt @ R_target) / max_step_rad
+    return torch.cat([dp, drot], -1) if _is_torch(T) else np.concatenate([dp, drot], -1)
 
-    ``delta_tcp`` is clipped; ``absolute_tcp`` becomes the motion toward the target, scaled down as
-    a whole until every component fits (see the module docstring). numpy or torch.
+
+def to_joint_target(q, actions, kind: str):
+    """Commanded joint positions ``(B, n)`` of joint actions ``(B, n)`` of ``kind`` at joint positions
+    ``q (B, n)``: ``joint_position`` is the target itself, ``joint_delta`` ``q + a``. The arm then
+    moves toward it within its limits (:meth:`sim.ik.SceneArm.limit_step`). numpy or torch."""
+    if kind == "joint_position":
+        return actions
+    if kind == "joint_delta":
+        return q + actions
+    raise PolicyError(f"action: {kind} is not a joint action ({', '.join(JOINT_ACTIONS)})")
+
+
+def from_joint_target(q, q_target, kind: str):
+    """The joint action of ``kind`` that commands ``q_target (B, n)`` at ``q (B, n)``: the inverse of
+    :func:`to_joint_target` (how the expert's joint targets become training labels)."""
+    if kind == "joint_position":
+        return q_target
+    if kind == "joint_delta":
+        return q_target - q
+    raise PolicyError(f"action: {kind} is not a joint action ({', '.join(JOINT_ACTIONS)})")
+
+
+def to_delta(T_base_tcp, actions, kind: str, max_step_m: float, max_step_rad: float, *, q=None, arm=None):
+    """Normalised ``delta_tcp`` motions ``(B, 6)`` for actions ``(B, A)`` of ``kind``: the motion the
+    env executes next, as the pose loss reads it.
+
+    ``delta_tcp`` is clipped to [-1, 1]; ``absolute_tcp`` becomes the motion toward the target,
+    scaled down as a whole until every component fits (see the module docstring). A joint action
+    (``joint_position``, ``joint_delta``) needs the joint positions ``q (B, n)`` and the scene's arm
+    (:class:`sim.ik.SceneArm`): the joints move by :meth:`~sim.ik.SceneArm.limit_step`, the TCP
+    follows by forward kinematics, and the motion to that TCP pose is returned unclipped (it can
+    exceed 1: a joint step is bounded by the velocity limits, not by the TCP step limits), so
+    ``sim.action.intended_position`` and ``intended_heading`` of it are the FK pose. Differentiable
+    in ``actions`` through the FK (torch); numpy in, numpy out.
     """
     if kind == "delta_tcp":
         return actions.clamp(-1.0, 1.0) if _is_torch(actions) else np.clip(actions, -1.0, 1.0)
+    if kind in JOINT_ACTIONS:
+        if q is None or arm is None:
+            raise PolicyError(
+                f"action: a {kind} action moves the arm's joints; its motion needs the joint positions and the "
+                "scene's arm (q=, arm=)"
+            )
+        if not _is_torch(actions):
+            a = torch.as_tensor(np.asarray(actions, dtype=np.float64), device=arm.device)
+            qt = torch.as_tensor(np.asarray(q, dtype=np.float64), device=arm.device)
+            T = torch.as_tensor(np.asarray(T_base_tcp, dtype=np.float64), device=arm.device)
+            return to_delta(T, a, kind, max_step_m, max_step_rad, q=qt, arm=arm).cpu().numpy()
+        qt = q.to(actions.dtype)
+        T_next = arm.tcp_pose(arm.limit_step(qt, to_joint_target(qt, actions, kind)))
+        return _motion(T_base_tcp.to(actions.dtype), T_next[..., :3, 3], T_next[..., :3, :3], max_step_m, max_step_rad)
     T = T_base_tcp.to(actions.dtype) if _is_torch(actions) else np.asarray(T_base_tcp, dtype=np.float64)
-    R, p = T[..., :3, :3], T[..., :3, 3]
-    Rt = R.transpose(-1, -2) if _is_torch(actions) else np.swapaxes(R, -1, -2)
-    dp = (Rt @ (actions[..., :3] - p)[..., None])[..., 0] / max_step_m
-    drot = _rot_log(Rt @ so3_exp(actions[..., 3:])) / max_step_rad
+    a = _motion(T, actions[..., :3], so3_exp(actions[..., 3:]), max_step_m, max_step_rad)
     if _is_torch(actions):
-        a = torch.cat([dp, drot], -1)
         scale = a.abs().amax(-1, keepdim=True).clamp_min(1.0)
         return a / scale
-    a = np.concatenate([dp, drot], -1)
     return a / np.maximum(np.abs(a).max(-1, keepdims=True), 1.0)
 
 
@@ -607,7 +790,7 @@ class ActionQueue:
 
     def pop(self, slots) -> np.ndarray:
         out = [self._q[int(i)].pop(0) for i in slots]
-        return np.stack(out) if out else np.zeros((0, 6))
+        return np.stack(out) if out else np.zeros((0, self.contract.action_dim))
 
     def clear(self, slot: int) -> None:
         self._q[int(slot)] = []

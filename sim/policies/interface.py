@@ -1,9 +1,11 @@
 """The policy interface shared by white-box (torch) and black-box (onnxruntime) policies.
 
 A policy maps wrist-camera images (and, when its contract reads one, a state vector) to actions
-through ``act(images[, state])``: ``(B, 6)``, ``(B, K, 6)`` or ``(B, 6K)`` float32 as its
+through ``act(images[, state])``: ``(B, A)``, ``(B, K, A)`` or ``(B, A K)`` float32 as its
 contract says (:mod:`sim.policies.contract`: ``delta_tcp`` in [-1, 1] with the action semantics
-of :mod:`sim.action`, or ``absolute_tcp`` poses, in chunks of K). ``images`` is either what the
+of :mod:`sim.action`, or ``absolute_tcp`` poses, ``A = 6``; or ``joint_position`` targets or
+``joint_delta`` changes of the arm's ``A`` joints, in the contract's joint order and units; in
+chunks of K). ``images`` is either what the
 env returns, ``(B, H, W, 3)`` uint8, or network input, ``(B, 3, H, W)`` float in [0, 1];
 ``state`` is ``(B, D)`` float32. This module is numpy-only so black-box use never needs torch.
 """

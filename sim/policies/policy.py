@@ -6,7 +6,10 @@
   (normalization happens inside, so attacks work in image space);
 * ``head(A, state=None) -> (B, 6)`` in [-1, 1]: 1x1 conv to ``head_channels``, flatten, (join
   the state vector,) MLP, ``tanh``. Chunked policies output ``(B, K, 6)``; absolute-pose policies
-  a linear output (see :mod:`sim.policies.contract`).
+  a linear output (see :mod:`sim.policies.contract`). A joint-space policy outputs ``action_dim``
+  values per action, one per joint: ``tanh`` times ``output_scale`` (a ``joint_delta`` policy: each
+  joint's most motion per step, so the network cannot command more than the arm executes) or linear
+  (``joint_position`` targets).
 
 Grad-CAM is then ``w = d||a|| / dA`` averaged over ``(h, w)`` without hooks. The head flattens the
 map instead of global-average-pooling it because the action depends on *where* the goal is in the
@@ -71,7 +74,17 @@ class PolicyArch(StrictModel):
     state_dim: int = Field(0, ge=0, le=64, description="proprioceptive inputs, joined to the flattened features")
     chunk: int = Field(1, ge=1, le=128, description="actions per call (K)")
     output: Literal["tanh", "linear"] = Field(
-        "tanh", description="tanh for delta_tcp actions in [-1, 1]; linear for absolute_tcp poses"
+        "tanh",
+        description="tanh for delta_tcp actions in [-1, 1] (and joint_delta, times output_scale); linear for "
+        "absolute_tcp poses and joint_position targets",
+    )
+    action_dim: int = Field(
+        ACTION_DIM, ge=1, le=64, description="values per action: 6 (a TCP action) or one per joint (a joint action)"
+    )
+    output_scale: tuple[float, ...] = Field(
+        (),
+        description="tanh output: each action value's bound (a joint_delta policy: each joint's most motion per "
+        "step, rad or m); empty: 1",
     )
     cameras: tuple[str, ...] = Field(
         (WRIST_CAMERA,),
@@ -86,6 +99,16 @@ class PolicyArch(StrictModel):
 
     @model_validator(mode="after")
     def _camera_sizes(self):
+        if self.output_scale:
+            if self.output != "tanh":
+                raise ValueError("output_scale: scales a tanh output; a linear output has none")
+            if len(self.output_scale) != self.action_dim:
+                raise ValueError(
+                    f"output_scale: one bound per action value: {len(self.output_scale)} for action_dim "
+                    f"{self.action_dim}"
+                )
+            if any(not v > 0 for v in self.output_scale):
+                raise ValueError(f"output_scale: each bound must be > 0, got {list(self.output_scale)}")
         cams = self.cameras
         if len(set(cams)) != len(cams):
             raise ValueError(f"cameras: name each camera once, got {list(cams)}")
@@ -114,7 +137,29 @@ class PolicyArch(StrictModel):
                 d.pop("cameras", None)
             if not self.camera_px:
                 d.pop("camera_px", None)
+            if self.action_dim == ACTION_DIM:  # a TCP network dumps as before joint actions existed
+                d.pop("action_dim", None)
+            if not self.output_scale:
+                d.pop("output_scale", None)
         return d
+
+    def contract_mismatch(self, contract: PolicyContract) -> str | None:
+        """Why this network cannot honour ``contract`` (None: it can), naming the field: its state
+        width, chunk and values per action must be the contract's, and its output ``tanh`` for
+        ``delta_tcp``, ``tanh`` (optionally scaled) or linear for ``joint_delta``, linear otherwise."""
+        c, a = contract, self
+        if a.state_dim != c.state_dim:
+            return f"arch.state_dim is {a.state_dim} but the contract's state {list(c.state)} has {c.state_dim} values"
+        if a.chunk != c.action.chunk:
+            return f"arch.chunk is {a.chunk} but contract.action.chunk is {c.action.chunk}"
+        if a.action_dim != c.action_dim:
+            return f"arch.action_dim is {a.action_dim} but {c.action.kind} actions have {c.action_dim} values"
+        allowed = {"delta_tcp": ("tanh",), "joint_delta": ("tanh", "linear")}.get(c.action.kind, ("linear",))
+        if a.output not in allowed:
+            return f"arch.output is {a.output!r} but {c.action.kind} actions need {' or '.join(map(repr, allowed))}"
+        if a.output_scale and c.action.kind != "joint_delta":
+            return f"arch.output_scale: {c.action.kind} actions are not scaled (joint_delta's are)"
+        return None
 
     def camera_size(self, camera: str) -> tuple[int, int]:
         """``(H, W)`` px of camera ``camera``'s frames: ``image_size`` square for the wrist camera."""
@@ -143,14 +188,9 @@ class VisuomotorPolicy(nn.Module):
         c = self.config
         self.contract = contract if contract is not None else PolicyContract()
         k = self.contract
-        if (c.state_dim, c.chunk, c.output) != (
-            k.state_dim,
-            k.action.chunk,
-            "tanh" if k.action.kind == "delta_tcp" else "linear",
-        ):
+        if (why := c.contract_mismatch(k)) is not None:
             raise PolicyError(
-                f"contract: ({k.describe()}) does not fit the architecture (state_dim {c.state_dim}, chunk {c.chunk}, "
-                f"output {c.output}); pass the matching contract"
+                f"contract: ({k.describe()}) does not fit the architecture ({why}); pass the matching contract"
             )
         if any(s <= 0 for s in self.config.std):
             raise PolicyError(f"std: normalization std must be positive, got {self.config.std}")
@@ -158,6 +198,8 @@ class VisuomotorPolicy(nn.Module):
         self.cameras = tuple(self.config.cameras)
         #: the model's inputs (sim.policies.contract.InputPlan): what policy_cameras, call_policy and check_scene read
         self.inputs: InputPlan = c.input_plan(self.contract)
+        if c.output_scale:  # not in the weights file: it is the card's (arch.output_scale)
+            self.register_buffer("out_scale", torch.tensor(c.output_scale, dtype=torch.float32), persistent=False)
         self.register_buffer("mean", torch.tensor(self.config.mean, dtype=torch.float32).view(1, 3, 1, 1))
         self.register_buffer("std", torch.tensor(self.config.std, dtype=torch.float32).view(1, 3, 1, 1))
         if c.is_one_camera:
@@ -178,7 +220,7 @@ class VisuomotorPolicy(nn.Module):
                 len(self.cameras) * self.config.head_channels * h * w + self.config.state_dim, self.config.head_hidden
             ),
             nn.ReLU(),
-            nn.Linear(self.config.head_hidden, ACTION_DIM * self.config.chunk),
+            nn.Linear(self.config.head_hidden, self.config.action_dim * self.config.chunk),
         )
 
     @property
@@ -234,7 +276,9 @@ class VisuomotorPolicy(nn.Module):
         out = self.mlp(z)  # its Flatten is a no-op on (B, F); kept so old weights load by name
         if self.config.output == "tanh":
             out = torch.tanh(out)
-        return out.view(-1, self.config.chunk, ACTION_DIM) if self.config.chunk > 1 else out
+            if self.config.output_scale:
+                out = out * self.out_scale
+        return out.view(-1, self.config.chunk, self.config.action_dim) if self.config.chunk > 1 else out
 
     def forward(self, x, state: torch.Tensor | None = None) -> torch.Tensor:
         return self.head(self.features(x), state)

@@ -25,6 +25,7 @@ from sim.policies.contract import (
     policy_contract,
     state_vector,
     to_delta,
+    to_joint_target,
 )
 from sim.policies.interface import IMAGE_SIZE_MAX_PX, IMAGE_SIZE_MIN_PX, PolicyError
 from sim.stats import Proportion, proportion
@@ -54,9 +55,10 @@ class EnvConfig(StrictModel):
         return Randomization(light=self.light, background=self.background, noise_std=self.noise_std)
 
 
-def make_env(spec, cfg: EnvConfig, num_envs: int, seed: int = 0, cameras=(WRIST_CAMERA,)):
+def make_env(spec, cfg: EnvConfig, num_envs: int, seed: int = 0, cameras=(WRIST_CAMERA,), control: str = "tcp"):
     """A :class:`sim.env.ReachEnv` rendering ``cfg.image_size`` px with ``cfg``'s randomisation
-    (the wrist camera at that size, each other camera in ``cameras`` at its own)."""
+    (the wrist camera at that size, each other camera in ``cameras`` at its own), moving the TCP or,
+    with ``control="joint"``, the scene's arm (a joint-space policy's contract says which)."""
     return ReachEnv(
         spec,
         num_envs=num_envs,
@@ -64,6 +66,7 @@ def make_env(spec, cfg: EnvConfig, num_envs: int, seed: int = 0, cameras=(WRIST_
         seed=seed,
         randomization=cfg.randomization(),
         cameras=tuple(cameras),
+        control=control,
     )
 
 
@@ -150,6 +153,11 @@ def rollout(
     contract = policy_contract(policy)
     N = env.num_envs
     gripper_m = float(env.spec.gripper.opening_m)
+    if contract.control != env.control:
+        raise PolicyError(
+            f"control: the policy ({contract.describe()}) moves the {'joints' if contract.is_joint_space else 'TCP'} "
+            f"but the env is made with control={env.control!r}; make it with control={contract.control!r}"
+        )
     if query is None:
         cameras = policy_cameras(policy)
         if cameras != (WRIST_CAMERA,):
@@ -164,7 +172,7 @@ def rollout(
             # one camera: the observation as always; several: every camera's images, by name
             obs = env.observe() if cameras == (WRIST_CAMERA,) else env.images()
             if fixed_batch:
-                full = state_vector(contract, env.T_world_tcp, gripper_m)
+                full = state_vector(contract, env.T_world_tcp, gripper_m, env.q)
                 return np.asarray(call_policy(policy, obs, full))[slots]
             part = {k: v[slots] for k, v in obs.items()} if isinstance(obs, dict) else obs[slots]
             return np.asarray(call_policy(policy, part, state))
@@ -192,7 +200,10 @@ def rollout(
         if active:
             need = queue.needs(active)
             if need:
-                raw = query(need, state_vector(contract, env.T_world_tcp[need], gripper_m))
+                q = env.q
+                raw = query(
+                    need, state_vector(contract, env.T_world_tcp[need], gripper_m, None if q is None else q[need])
+                )
                 queue.push(need, decode_actions(np.asarray(raw, dtype=np.float64), contract, len(need)))
             chosen = queue.pop(active)
             bad = nonfinite_rows(chosen)
@@ -201,10 +212,14 @@ def rollout(
                 active = [i for k, i in enumerate(active) if not bad[k]]
                 chosen = chosen[~bad]
             if active:
-                actions = np.zeros((N, 6))
-                actions[active] = to_delta(
-                    env.T_world_tcp[active], chosen, contract.action.kind, env.max_step_m, env.max_step_rad
-                )
+                actions = np.zeros((N, env.action_dim))
+                if contract.is_joint_space:  # joint targets; the env enforces the limits (sim.env)
+                    actions[~env.done] = env.q[~env.done]
+                    actions[active] = to_joint_target(env.q[active], chosen, contract.action.kind)
+                else:
+                    actions[active] = to_delta(
+                        env.T_world_tcp[active], chosen, contract.action.kind, env.max_step_m, env.max_step_rad
+                    )
                 env.step(actions)
         for i in range(N):
             if slot[i] >= 0 and env.done[i]:
@@ -279,7 +294,8 @@ def evaluate_policy(
     env_cfg = env_cfg or EnvConfig(image_size=policy.image_size)
     own = env is None
     if own:
-        env = make_env(spec, env_cfg, min(num_envs, max(1, episodes)), cameras=policy_cameras(policy))
+        control = policy_contract(policy).control
+        env = make_env(spec, env_cfg, min(num_envs, max(1, episodes)), cameras=policy_cameras(policy), control=control)
     else:
         set_randomization(env, env_cfg)
     try:

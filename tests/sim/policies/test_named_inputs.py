@@ -226,7 +226,8 @@ def test_to_model_image_is_the_same_in_numpy_and_torch():
                 "observation.images.front": {"source": "camera", "camera": "front"},
                 "observation.state": {"source": "joint_positions"},
             },
-            r"source joint_positions is reserved for joint-space policies and not supported yet",
+            # a TCP card's state lists no joint positions: binding them is refused, naming the input
+            r"input 'observation.state' reads joint_positions but the card's contract.state .* does not list it",
         ),
         (
             {
