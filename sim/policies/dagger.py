@@ -17,9 +17,18 @@ is trained by the same loop: every visited state keeps one frame per camera (``{
 W_c, 3)}``, from ``info["images"]``), labelled with the same expert action, and each minibatch hands
 the policy ``{camera: images}``.
 
+A joint-space policy (its contract's action ``joint_delta`` or ``joint_position``, in an env with
+``control="joint"``) is trained by the same loop too: every visited state also keeps the policy's
+state vector (the joint positions, ``states``), the expert's joint target (its TCP motion solved
+by IK, :meth:`sim.env.ReachEnv.expert_actions`) is labelled as the joint action that executes it
+(:meth:`sim.ik.SceneArm.limit_step`, then :func:`sim.policies.contract.from_joint_target`), and the
+policy's own actions are executed as joint targets. The progress record counts the expert steps
+whose IK fell short of the expert's TCP target (``expert_ik_misses``).
+
 The state directory holds only safetensors, ``.npz`` arrays (loaded with ``allow_pickle=False``;
 the wrist camera's frames under ``images`` as they always were, a scene camera's under
-``images.<camera>``) and the optimizer state (``torch.load(weights_only=True)``): nothing executable.
+``images.<camera>``, a state-reading policy's state vectors under ``states``) and the optimizer
+state (``torch.load(weights_only=True)``): nothing executable.
 """
 
 from __future__ import annotations
@@ -35,7 +44,15 @@ from safetensors.torch import load_file, save_file
 from tqdm.auto import tqdm
 
 from sim.configio import StrictModel
-from sim.policies.contract import WRIST_CAMERA, call_policy, policy_cameras
+from sim.policies.contract import (
+    WRIST_CAMERA,
+    call_policy,
+    from_joint_target,
+    policy_cameras,
+    policy_contract,
+    state_vector,
+    to_joint_target,
+)
 from sim.policies.interface import PolicyError
 from sim.policies.rollout import EnvConfig, run_episodes, set_randomization
 
@@ -43,6 +60,10 @@ __all__ = ["DaggerConfig", "train_dagger", "TRAIN_SEED_BASE", "collect"]
 
 # Training configurations come from seeds >= TRAIN_SEED_BASE; evaluation uses small seeds.
 TRAIN_SEED_BASE = 10_000_000
+
+# The key of the state vectors among a batch's arrays: no camera can be called this (a camera name
+# starts with a letter, sim.spec.CAMERA_NAME).
+_STATE = "_state"
 
 
 class DaggerConfig(StrictModel):
@@ -65,12 +86,21 @@ class DaggerConfig(StrictModel):
 
 
 def collect(env, policy, expert_mask: np.ndarray, seeds: list[int]):
-    """One batch of episodes; returns ``(frames, actions (T, 6) f32, success, driven)`` with
-    ``frames = {camera: (T, H_c, W_c, 3) uint8}`` for every camera the policy reads.
+    """One batch of episodes; returns ``(frames, actions (T, A) f32, success, driven)`` with
+    ``frames = {camera: (T, H_c, W_c, 3) uint8}`` for every camera the policy reads and, for a
+    policy reading a state, ``frames["_state"] (T, D) f32`` (the module docstring).
 
     ``expert_mask[j]`` says env ``j`` executes expert actions; the others execute the policy's.
     Every visited state (of every env) is labelled with the expert's action.
     """
+    contract = policy_contract(policy)
+    if contract.control != env.control:
+        raise PolicyError(
+            f"control: the policy ({contract.describe()}) needs an env made with control={contract.control!r}, "
+            f"this one has {env.control!r}"
+        )
+    joint = contract.is_joint_space
+    gripper_m = float(env.spec.gripper.opening_m)
     cams = policy_cameras(policy)
     missing = [c for c in cams if c not in env.cameras]
     if missing:
@@ -81,25 +111,42 @@ def collect(env, policy, expert_mask: np.ndarray, seeds: list[int]):
     env.reset_envs(range(env.num_envs), seeds=seeds)
     views = env.images()
     frames: dict[str, list] = {c: [] for c in cams}
+    states: list = []
     labels = []
     while not env.done.all():
         active = ~env.done
+        q = env.q
+        state = state_vector(contract, env.T_world_tcp, gripper_m, q)
         expert = env.expert_actions()
+        if joint:  # the joint target as the action that executes it (the env's own limits applied)
+            reached = env.arm.limit_step(torch.from_numpy(q), torch.from_numpy(expert)).numpy()
+            label = from_joint_target(q, reached, contract.action.kind)
+        else:
+            label = expert
         for c in cams:
             frames[c].append(views[c][active])
-        labels.append(expert[active].astype(np.float32))
+        if state is not None:
+            states.append(state[active])
+        labels.append(label[active].astype(np.float32))
         act = expert.copy()
         if not expert_mask.all():
-            act[~expert_mask] = call_policy(policy, {c: views[c][~expert_mask] for c in cams}, None)
+            st = None if state is None else state[~expert_mask]
+            out = np.asarray(call_policy(policy, {c: views[c][~expert_mask] for c in cams}, st), dtype=np.float64)
+            act[~expert_mask] = to_joint_target(q[~expert_mask], out, contract.action.kind) if joint else out
         *_, info = env.step(act)
         views = info["images"]
     success = env.reached == env.goal_index
-    return {c: np.concatenate(f) for c, f in frames.items()}, np.concatenate(labels), success, ~expert_mask
+    out = {c: np.concatenate(f) for c, f in frames.items()}
+    if states:
+        out[_STATE] = np.concatenate(states)
+    return out, np.concatenate(labels), success, ~expert_mask
 
 
 def _npz_key(camera: str) -> str:
     """The ``data.npz`` array of camera ``camera``'s frames: ``images`` for the wrist camera (as
     before several cameras), ``images.<camera>`` for a scene camera."""
+    if camera == _STATE:
+        return "states"
     return "images" if camera == WRIST_CAMERA else f"images.{camera}"
 
 
@@ -141,7 +188,7 @@ class _State:
             # weights_only: a pickle that builds any object is refused, never executed.
             optimizer.load_state_dict(torch.load(self.dir / "optim.pt", weights_only=True))
             with np.load(self.dir / "data.npz", allow_pickle=False) as d:
-                images = {c: d[_npz_key(c)] for c in policy_cameras(policy)}
+                images = {c: d[_npz_key(c)] for c in _data_keys(policy)}
                 actions = d["actions"]
         except PolicyError:
             raise
@@ -154,8 +201,14 @@ class _State:
         return images, actions, progress
 
 
+def _data_keys(policy) -> tuple[str, ...]:
+    """The arrays of a training data set: every camera the policy reads, and its states if it reads any."""
+    return policy_cameras(policy) + ((_STATE,) if policy_contract(policy).state else ())
+
+
 def _train_steps(policy, optimizer, images, actions, steps: int, batch: int, rng: np.random.Generator, device) -> float:
-    """``steps`` Adam steps on minibatches of ``images`` (``{camera: (T, H_c, W_c, 3)}``) and ``actions``."""
+    """``steps`` Adam steps on minibatches of ``images`` (``{camera: (T, H_c, W_c, 3)}``, and the
+    ``(T, D)`` states under ``"_state"`` for a policy reading them) and ``actions``."""
     n = len(actions)
     if steps == 0 or n == 0:
         return float("nan")
@@ -164,11 +217,14 @@ def _train_steps(policy, optimizer, images, actions, steps: int, batch: int, rng
     for _ in range(steps):
         idx = rng.integers(0, n, size=min(batch, n))
         views = {
-            c: torch.from_numpy(v[idx]).to(device).permute(0, 3, 1, 2).float().div_(255.0) for c, v in images.items()
+            c: torch.from_numpy(v[idx]).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+            for c, v in images.items()
+            if c != _STATE
         }
         x = views[WRIST_CAMERA] if tuple(views) == (WRIST_CAMERA,) else views  # one camera: the tensor, as always
         y = torch.from_numpy(actions[idx]).to(device)
-        loss = torch.nn.functional.mse_loss(policy(x), y)
+        st = torch.from_numpy(images[_STATE][idx]).to(device) if _STATE in images else None
+        loss = torch.nn.functional.mse_loss(policy(x) if st is None else policy(x, st), y)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -206,8 +262,12 @@ def train_dagger(
     optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     state = _State(out_dir)
     cams = policy_cameras(policy)
+    contract = policy_contract(policy)
+    keys = _data_keys(policy)
     images = {c: np.zeros((0, *env.image_shape(c)), np.uint8) for c in cams}
-    actions = np.zeros((0, 6), np.float32)
+    if contract.state:
+        images[_STATE] = np.zeros((0, contract.state_dim), np.float32)
+    actions = np.zeros((0, contract.action_dim), np.float32)
     prog = {
         "fingerprint": fingerprint,
         "iterations_done": 0,
@@ -236,6 +296,7 @@ def train_dagger(
         set_randomization(env, env_cfg)
         driven_success = []
         new_x, new_y = [], []
+        misses = env.expert_ik_misses
         # Per-episode progress inside the iteration: the first one alone can take minutes.
         episodes = tqdm(
             total=batches * N,
@@ -257,7 +318,7 @@ def train_dagger(
                     episodes.set_postfix(policy_success=f"{np.mean(driven_success):.2f}")
         finally:
             episodes.close()
-        images = {c: np.concatenate([images[c], *(x[c] for x in new_x)])[-cfg.max_frames :] for c in cams}
+        images = {c: np.concatenate([images[c], *(x[c] for x in new_x)])[-cfg.max_frames :] for c in keys}
         actions = np.concatenate([actions, *new_y])[-cfg.max_frames :]
         loss = _train_steps(policy, optimizer, images, actions, cfg.grad_steps_per_iter, cfg.batch_size, rng, device)
         record = {
@@ -268,6 +329,8 @@ def train_dagger(
             "policy_driven_success": float(np.mean(driven_success)) if driven_success else None,
             "policy_driven_episodes": len(driven_success),
         }
+        if env.control == "joint":
+            record["expert_ik_misses"] = int(env.expert_ik_misses - misses)
         if cfg.eval_episodes:
             te, ce = time.perf_counter(), time.process_time()
             set_randomization(env, clean)

@@ -29,6 +29,15 @@ per step and a backbone of its own per training image: with the quick preset and
 scene's 128 px ``front`` camera, measured at 2.7x the wrist camera alone's env-step time (16 envs)
 and 2.0x its time per Adam step (batch 64, 1 torch thread), so a run takes at most about 2.7x the
 quick preset's training time (README), inside the ~15 minutes of 2 CPU cores it is meant for.
+
+**Joint-space policies.** Any preset trains a policy that reads the arm's joint positions and
+commands its joints (``action``: ``joint_delta`` or ``joint_position``) in a scene with an ``arm``,
+e.g. ``advobj policy train --preset quick --scene scenes/panda-joint.yaml`` (a scene with an arm
+trains ``joint_delta`` unless ``--action`` says otherwise). The contract reads ``joint_positions``
+and names the arm's joints and units from its URDF; the env moves the arm (``ReachEnv(control=
+"joint")``) and the expert's labels are its TCP motion solved by IK, as the joint action that
+executes it. A ``joint_delta`` network ends in ``tanh`` times each joint's most motion per step
+(velocity limit times the arm's control period); a ``joint_position`` one is linear.
 """
 
 from __future__ import annotations
@@ -37,15 +46,16 @@ import hashlib
 import json
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, model_serializer, model_validator
 
 from sim.configio import StrictModel
+from sim.policies.contract import JOINT_ACTIONS, PolicyContract
 from sim.policies.dagger import DaggerConfig
 from sim.policies.policy import PolicyArch, scene_camera_px
 from sim.policies.ppo import PPOConfig
 from sim.policies.rollout import EnvConfig
 
-__all__ = ["TrainConfig", "PRESETS", "resolve_preset"]
+__all__ = ["TrainConfig", "PRESETS", "resolve_preset", "joint_contract"]
 
 
 class TrainConfig(StrictModel):
@@ -60,13 +70,39 @@ class TrainConfig(StrictModel):
     final_eval_episodes: int = Field(200, ge=0)
     target_success: float = Field(0.9, gt=0, le=1)
     seed: int = 0
+    contract: PolicyContract = Field(
+        default_factory=PolicyContract,
+        description="what the trained policy reads and commands: the default (image in, delta_tcp out), or a "
+        "joint-space contract (state joint_positions, action joint_delta or joint_position) on the scene's arm",
+    )
 
     @model_validator(mode="after")
     def _sizes_agree(self):
         if self.policy.image_size != self.env.image_size:
             raise ValueError(f"policy.image_size ({self.policy.image_size}) != env.image_size ({self.env.image_size})")
-        p = self.policy
-        if (p.state_dim, p.chunk, p.output) != (0, 1, "tanh"):
+        p, k = self.policy, self.contract
+        if k.is_joint_space:
+            n = len(k.joints)
+            if k.state != ("joint_positions",) or k.action.chunk != 1:
+                raise ValueError(
+                    "contract: training teaches a joint-space policy that reads joint_positions and outputs one action "
+                    "per state (the expert labels one); set state [joint_positions] and chunk 1"
+                )
+            output = "tanh" if k.action.kind == "joint_delta" else "linear"
+            if (p.state_dim, p.chunk, p.output, p.action_dim) != (n, 1, output, n):
+                raise ValueError(
+                    f"policy.state_dim, policy.chunk, policy.output, policy.action_dim: a {k.action.kind} policy on "
+                    f"{n} joints is {n}, 1, {output} and {n} (resolve_preset sets them from the scene's arm)"
+                )
+            if self.method == "ppo":
+                raise ValueError("method: PPO trains delta_tcp policies; train a joint-space policy with dagger")
+            return self
+        if not k.is_default:
+            raise ValueError(
+                "contract: training teaches the one-image delta_tcp contract or a joint-space one; leave it out for "
+                "delta_tcp"
+            )
+        if (p.state_dim, p.chunk, p.output, p.action_dim, p.output_scale) != (0, 1, "tanh", 6, ()):
             raise ValueError(
                 "policy.state_dim, policy.chunk, policy.output: training teaches the one-image delta_tcp contract "
                 "only (one frame per camera; the expert labels one action per state); leave them at 0, 1 and tanh"
@@ -76,6 +112,14 @@ class TrainConfig(StrictModel):
                 f"policy.cameras: PPO trains the wrist camera alone; train {', '.join(p.cameras)} with method dagger"
             )
         return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # A delta_tcp run dumps as before joint-space training existed: run.json and resume hashes unchanged.
+        d = handler(self)
+        if isinstance(d, dict) and self.contract.is_default:
+            d.pop("contract", None)
+        return d
 
     def fingerprint(self) -> str:
         """Hash of the fields that shape the training trajectory (a resume must match it).
@@ -146,6 +190,33 @@ PRESETS: dict[str, dict] = {
 }
 
 
+def joint_contract(spec, action: str) -> tuple[dict, dict]:
+    """``(contract, policy fields)`` of a joint-space policy with ``action`` (``joint_delta`` or
+    ``joint_position``) on scene ``spec``'s arm: it reads ``joint_positions``, names the arm's joints
+    and units from its URDF; a ``joint_delta`` network's tanh is scaled to each joint's most motion
+    per step (velocity limit times ``arm.control_period_s``). A scene without an arm: ValueError."""
+    if action not in JOINT_ACTIONS:
+        raise ValueError(f"action: {action!r} is not a joint action ({', '.join(JOINT_ACTIONS)})")
+    if spec is None or spec.arm is None:
+        name = "the built-in scene" if spec is None else f"scene {spec.name!r}"
+        raise ValueError(f"action: a {action} policy moves the scene's arm; {name} has none (give it arm:)")
+    from sim.kinematics import read_chain, urdf_source  # lazy: CLI start-up (torch)
+
+    arm = spec.arm
+    chain = read_chain(urdf_source(arm.urdf), arm.base_link, arm.tool_link)
+    n = len(chain.joint_names)
+    contract = {
+        "state": ["joint_positions"],
+        "action": {"kind": action},
+        "joints": list(chain.joint_names),
+        "joint_units": list(chain.units),
+    }
+    policy = {"state_dim": n, "action_dim": n, "output": "linear"}
+    if action == "joint_delta":
+        policy.update(output="tanh", output_scale=[float(v) * arm.control_period_s for v in chain.qd_max])
+    return contract, policy
+
+
 def resolve_preset(
     name: str,
     arch: str | None = None,
@@ -153,6 +224,7 @@ def resolve_preset(
     seed: int = 0,
     cameras=None,
     spec=None,
+    action: str | None = None,
     **overrides,
 ) -> TrainConfig:
     """The :class:`TrainConfig` of preset ``name`` with ``arch``/``method``/``seed`` and section overrides.
@@ -160,12 +232,18 @@ def resolve_preset(
     ``overrides`` maps a section (``dagger``, ``ppo``, ``env``, ``policy``) to a dict of fields, or
     a top-level field to its value; unknown names are errors. ``cameras`` (names, in input order)
     makes the policy read those cameras of scene ``spec``, each scene camera at the size ``spec``
-    renders it (a camera ``spec`` lacks raises :class:`sim.spec.UnknownCameraError`).
+    renders it (a camera ``spec`` lacks raises :class:`sim.spec.UnknownCameraError`). ``action``
+    ``joint_delta`` or ``joint_position`` trains a joint-space policy on ``spec``'s arm
+    (:func:`joint_contract`); None or ``delta_tcp``: the delta_tcp policy.
     """
     if name not in PRESETS:
         raise ValueError(f"preset: unknown {name!r}; choose one of {sorted(PRESETS)}")
     doc = json.loads(json.dumps(PRESETS[name]))
     doc.update(preset=name, seed=seed)
+    if action not in (None, "delta_tcp"):
+        contract, fields = joint_contract(spec, action)
+        doc["contract"] = contract
+        doc["policy"].update(fields)
     if arch is not None:
         doc["policy"]["arch"] = arch
     if cameras is not None:

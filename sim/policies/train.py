@@ -45,15 +45,18 @@ def train_policy(
     refused in one line before anything is written.
     """
     out_dir = Path(out_dir)
-    check_scene(SimpleNamespace(inputs=cfg.policy.input_plan()), spec)  # before the output folder exists
+    # before the output folder exists: the cameras, and a joint-space contract against the scene's arm
+    check_scene(SimpleNamespace(inputs=cfg.policy.input_plan(cfg.contract), contract=cfg.contract), spec)
     resolved = cfg.model_dump(mode="json")
     resolved["scene"] = {"name": spec.name, "fingerprint": spec_fingerprint(spec)}
     write_run_info(out_dir, resolved, cfg.seed)
     torch.manual_seed(cfg.seed)
     fp = cfg.fingerprint()
     if cfg.method == "dagger":
-        env = make_env(spec, cfg.env, cfg.dagger.num_envs, seed=cfg.seed, cameras=cfg.policy.cameras)
-        policy = VisuomotorPolicy(cfg.policy).to(device)
+        env = make_env(
+            spec, cfg.env, cfg.dagger.num_envs, seed=cfg.seed, cameras=cfg.policy.cameras, control=cfg.contract.control
+        )
+        policy = VisuomotorPolicy(cfg.policy, cfg.contract).to(device)
         prog = train_dagger(policy, env, cfg.dagger, cfg.env, out_dir, cfg.seed, fp, device, progress, log)
     else:
         env = make_env(spec, cfg.env, cfg.ppo.num_envs, seed=cfg.seed)
@@ -90,6 +93,7 @@ def train_policy(
     card = PolicyCard(
         arch=cfg.policy,
         action=ActionScaling(max_step_m=spec.episode.max_step_m, max_step_rad=spec.episode.max_step_rad),
+        contract=cfg.contract,
         training=training,
         clean_success=clean,
         seed=cfg.seed,

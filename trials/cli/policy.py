@@ -63,6 +63,12 @@ def train(
         help="comma-separated cameras the policy reads, e.g. wrist,front with --scene scenes/two-cameras.yaml "
         "(one backbone each; DAgger only); default: wrist",
     ),
+    action: Optional[str] = typer.Option(
+        None,
+        help="what the policy commands: delta_tcp, or joint_delta / joint_position on the scene's arm (it then reads "
+        "the joint positions); default: joint_delta when the scene has an arm (e.g. scenes/panda-joint.yaml), "
+        "else delta_tcp",
+    ),
 ) -> None:
     """Train a policy (DAgger from the privileged expert, or PPO) and evaluate it."""
     from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
@@ -83,14 +89,27 @@ def train(
     if cams is not None and not cams:
         raise typer.BadParameter("name at least one camera, e.g. wrist,front", param_hint="--cameras")
     spec = load_spec(scene)  # the cameras' sizes are the scene's
+    kinds = ("delta_tcp", "joint_delta", "joint_position")
+    if action is not None and action not in kinds:
+        raise typer.BadParameter(f"expected one of {', '.join(kinds)}, got {action!r}", param_hint="--action")
+    if action is None:
+        action = "joint_delta" if spec.arm is not None else "delta_tcp"
     try:
-        cfg = resolve_preset(preset, arch=arch, method=method, seed=seed, cameras=cams, spec=spec, **extra)
+        cfg = resolve_preset(
+            preset, arch=arch, method=method, seed=seed, cameras=cams, spec=spec, action=action, **extra
+        )
     except AdvobjError as err:  # a camera the scene lacks: the line lists the scene's cameras
         raise typer.BadParameter(str(err), param_hint="--cameras") from None
     except ValidationError as err:
         raise typer.BadParameter(format_validation_error(err, "training config")) from None
     except ValueError as err:
-        raise typer.BadParameter(str(err).splitlines()[0] if "preset" in str(err) else str(err)) from None
+        msg = str(err).splitlines()[0] if "preset" in str(err) else str(err)
+        raise typer.BadParameter(msg, param_hint="--action" if msg.startswith("action:") else None) from None
+    if cfg.contract.is_joint_space:
+        typer.echo(
+            f"training a joint-space policy: {cfg.contract.describe()} ({', '.join(cfg.contract.joints)}) on the "
+            f"scene's arm {spec.arm.urdf}"
+        )
     _set_threads(threads)
     card = train_policy(cfg, out, spec, device=device, log=typer.echo, keep_state=keep_state)
     t = card.training["train_time_s"]
