@@ -46,7 +46,11 @@ def pose_loss(
 
     ``L_ori = 1 - cos(v_ee, v_target)`` with ``v_ee`` the heading the action would produce and
     ``v_target = p_adv - p_next``; ``L_dist = ||p_adv - p_next||``. ``p_next`` and ``v_ee`` come
-    from :mod:`sim.action`, the env's own action semantics.
+    from :mod:`sim.action`, the env's own action semantics. ``actions`` is the executed-next motion
+    as a normalised ``delta_tcp`` (:func:`sim.policies.contract.to_delta`); for a joint-space policy
+    it is the motion to the TCP pose the arm's FK gives for the joint step, unclipped, so ``p_next``
+    and ``v_ee`` are that pose's position and approach axis and the loss is differentiable through
+    the FK to the joint action.
     T_world_tcp: (B, 4, 4); actions: (B, 6); p_adv: (B, 3) m.
     """
     T = T_world_tcp.to(actions.dtype)

@@ -63,6 +63,7 @@ from sim.policies.contract import (
     policy_contract,
     state_vector,
     to_delta,
+    to_joint_target,
 )
 from sim.policies.interface import require_white_box
 from sim.policies.rollout import rollout
@@ -325,7 +326,11 @@ class AttackRun:
             render_obs=False,
             policy_image_size=self.image_size if WRIST_CAMERA in self.cameras else None,
             cameras=self.cameras,
+            control=self.contract.control,
         )
+        # A joint-space policy's pose loss reads the TCP its joint action leads to: the scene's arm on
+        # the run's device, FK differentiable (sim.policies.contract.to_delta).
+        self.arm = spec.arm.scene_arm(cfg.device) if self.contract.is_joint_space else None
         self.hybrids = {name: HybridRenderer(self.env.renderers[name], camera=name) for name in self.cameras}
         self.hybrid = self.hybrids[self.saliency_camera]
         self.adv = self.hybrid.adv
@@ -345,6 +350,12 @@ class AttackRun:
         self.spec = spec = _with_adversarial_mesh(spec, cfg.adversarial_mesh)
         self.image_size = int(policy.image_size)
         self.contract = policy_contract(policy)
+        if self.contract.is_joint_space:
+            raise AttackError(
+                f"recordings: a joint-space policy ({self.contract.describe()}) is attacked in the simulator only: a "
+                "recording holds no joint positions (attack it without --recordings, on a scene with its arm)"
+            )
+        self.arm = None
         check_scene(policy, spec)
         self.cameras = policy_cameras(policy)
         self.saliency_camera = WRIST_CAMERA if WRIST_CAMERA in self.cameras else self.cameras[0]
@@ -390,6 +401,7 @@ class AttackRun:
                 seed=self.cfg.seed,
                 policy_image_size=self.image_size if WRIST_CAMERA in self.cameras else None,
                 cameras=self.cameras,
+                control=self.contract.control,
             )
         env = self._val_env
         for name in self.cameras:  # every camera the policy reads shows the texture
@@ -427,7 +439,8 @@ class AttackRun:
                 env.reset_envs(range(len(chunk)), configs=chunk)
                 imgs = self.render_views(self.capture_views(range(len(chunk))), self.state.texture)
                 T = torch.from_numpy(env.T_world_tcp[: len(chunk)]).to(self.device, torch.float32)
-                a = self.next_delta(self.call_policy(imgs, self.policy_state(T)), T)
+                q = None if env.q is None else torch.from_numpy(env.q[: len(chunk)]).to(self.device)
+                a = self.next_delta(self.call_policy(imgs, self.policy_state(T, q)), T, q)
                 p_adv = torch.from_numpy(env.object_centers[: len(chunk), self.adv]).to(self.device, torch.float32)
                 lp, _ = pose_loss(
                     T, a, p_adv, self.spec.episode.max_step_m, self.spec.episode.max_step_rad, cfg.lambda_dist
@@ -492,18 +505,35 @@ class AttackRun:
         return imgs[self.cameras[0]] if len(self.cameras) == 1 else imgs
 
     # ------------------------------------------------------------------ the policy's contract
-    def policy_state(self, T_world_tcp: torch.Tensor) -> torch.Tensor | None:
-        """The policy's state input for TCP poses ``(B, 4, 4)`` (None when it reads none)."""
-        st = state_vector(self.contract, T_world_tcp.detach().cpu().numpy(), self.spec.gripper.opening_m)
+    def policy_state(self, T_world_tcp: torch.Tensor, q: torch.Tensor | None = None) -> torch.Tensor | None:
+        """The policy's state input for TCP poses ``(B, 4, 4)`` and, under joint control, joint
+        positions ``q (B, n)`` (None when it reads none)."""
+        qn = None if q is None else q.detach().cpu().numpy()
+        st = state_vector(self.contract, T_world_tcp.detach().cpu().numpy(), self.spec.gripper.opening_m, qn)
         return None if st is None else torch.from_numpy(st).to(self.device)
 
     def call_policy(self, imgs: torch.Tensor, state: torch.Tensor | None) -> torch.Tensor:
         return self.policy(imgs) if state is None else self.policy(imgs, state)
 
-    def next_delta(self, out: torch.Tensor, T_world_tcp: torch.Tensor) -> torch.Tensor:
-        """``(B, 6)`` normalised delta of the first action of each output (every action kind)."""
+    def next_delta(self, out: torch.Tensor, T_world_tcp: torch.Tensor, q: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, 6)`` normalised delta of the first action of each output (every action kind): a joint
+        action's is the motion to the TCP pose its joint step reaches, through the arm's FK,
+        differentiably (``q (B, n)``: the joint positions it starts from)."""
         ep = self.spec.episode
-        return to_delta(T_world_tcp, first_action(out), self.contract.action.kind, ep.max_step_m, ep.max_step_rad)
+        kind = self.contract.action.kind
+        return to_delta(T_world_tcp, first_action(out), kind, ep.max_step_m, ep.max_step_rad, q=q, arm=self.arm)
+
+    def env_commands(self, batch: FrameBatch, q: torch.Tensor | None) -> np.ndarray:
+        """What the env executes for ``batch``'s frames: the TCP motions ``(B, 6)`` (the batch's
+        actions), or under joint control the joint targets ``(B, n)`` of the first action of each
+        output (the env applies the joint limits)."""
+        if q is None:
+            return batch.actions.detach().cpu().numpy()
+        with torch.no_grad():
+            st = batch.state
+            out = self.policy.head(batch.features) if st is None else self.policy.head(batch.features, st)
+            a = first_action(out).to(q.dtype)
+            return to_joint_target(q, a, self.contract.action.kind).cpu().numpy()
 
     # ------------------------------------------------------------------ one iteration
     def _color_transform(self, state: AttackState):
@@ -519,7 +549,8 @@ class AttackRun:
         Returns ``grads`` (term name -> ``(3, S, S)``, the sum over the batch; zeros where a term
         has no path to the texture, e.g. the object is not visible in any image), ``values`` (term
         name -> its scalar, and ``<term>.<part>`` -> the sum of each logged part), ``actions
-        (B, 6)`` (detached) and the rendered ``images (B, 3, H, W)`` (detached; ``{camera: ...}``
+        (B, 6)`` (detached), ``commands`` (numpy: what the env executes, :meth:`env_commands`) and
+        the rendered ``images (B, 3, H, W)`` (detached; ``{camera: ...}``
         for a policy reading several cameras: the texture is rendered into each, and the loss flows
         through all of them). Draws the print colour transform from ``state``'s torch RNG.
         """
@@ -536,13 +567,14 @@ class AttackRun:
             x = {k: v if v.requires_grad else v.detach().requires_grad_(True) for k, v in imgs.items()}
         else:
             x = imgs if reaches else imgs.detach().requires_grad_(True)
+        q = getattr(frames, "q", None)  # joint control: the frames' joint positions
         batch = FrameBatch(
             images=x,
             T_world_tcp=frames.T_world_tcp,
             p_adv=frames.p_adv,
             adv_mask=np.stack([c.adv_mask for c in frames.captures]),
             goal_mask=np.stack([c.goal_mask for c in frames.captures]),
-            policy=self,
+            policy=self if q is None else _JointFrames(self, q),
             clean_images=lambda: frames.clean_images(self.device),
             saliency_camera=self.saliency_camera if several else None,
         )
@@ -558,7 +590,13 @@ class AttackRun:
             for part, v in parts.items():
                 values[f"{name}.{part}"] = float(v.sum())
         detached = {k: v.detach() for k, v in imgs.items()} if several else imgs.detach()
-        return {"grads": grads, "values": values, "actions": batch.actions.detach(), "images": detached}
+        return {
+            "grads": grads,
+            "values": values,
+            "actions": batch.actions.detach(),
+            "commands": self.env_commands(batch, q),
+            "images": detached,
+        }
 
     def apply_update(self, state: AttackState, grads: list[torch.Tensor]) -> tuple[torch.Tensor, bool]:
         """Combine the term gradients (PCGrad over all N, or their sum) and step ``state.texture``.
@@ -607,7 +645,6 @@ class AttackRun:
             and self.state.iteration < cfg.iterations
             and self.cpu_s >= cfg.max_cpu_s,
         }
-
 
     def load_checkpoint(self, ckpt: str | Path) -> None:
         """Restore a checkpoint written by :meth:`save_checkpoint` (same config required)."""
@@ -659,6 +696,28 @@ def read_cpu_record(run_dir: str | Path) -> dict | None:
     return rec if isinstance(rec, dict) else None
 
 
+class _JointFrames:
+    """The run as a batch of joint-controlled frames sees it (:class:`attack.objective.FrameBatch`'s
+    ``policy``): the run's policy adapter with the frames' joint positions ``q (B, n)`` bound, so
+    the state input and the pose loss's motion read them."""
+
+    def __init__(self, run: AttackRun, q: torch.Tensor):
+        self.run, self.q = run, q
+
+    @property
+    def policy(self):
+        return self.run.policy
+
+    def policy_state(self, T_world_tcp: torch.Tensor) -> torch.Tensor | None:
+        return self.run.policy_state(T_world_tcp, self.q)
+
+    def next_delta(self, out: torch.Tensor, T_world_tcp: torch.Tensor) -> torch.Tensor:
+        return self.run.next_delta(out, T_world_tcp, self.q)
+
+    def call_policy(self, imgs, state):
+        return self.run.call_policy(imgs, state)
+
+
 def attack_step(run: AttackRun, state: AttackState) -> dict:
     """One iteration of the attack: frames from ``run.source`` under ``state``'s texture, each
     objective term's gradient summed over them, the combined gradient, the normalised step.
@@ -678,7 +737,7 @@ def attack_step(run: AttackRun, state: AttackState) -> dict:
         for k, v in out["values"].items():
             sums[k] = sums.get(k, 0.0) + v
         pairs += len(frames)
-        run.source.advance(out["actions"].cpu().numpy())
+        run.source.advance(out["commands"])
     # Mean over image-action pairs (the normalised step makes the scale moot, but the
     # logged gradient norm is comparable across runs).
     for n in names:

@@ -38,13 +38,16 @@ class Frames:
     ``captures``: B :class:`attack.render.Capture` (of the saliency camera: the wrist camera, or the
     first the policy reads); ``T_world_tcp (B, 4, 4)`` and ``p_adv (B, 3)`` (m, world frame) as
     float32 tensors on the run's device; ``views``: ``{camera: B captures}`` of every camera the
-    policy reads when it reads several (``captures`` is one of them), else None.
+    policy reads when it reads several (``captures`` is one of them), else None; ``q (B, n)``: the
+    arm's joint positions (float64, the run's device) when the env moves the arm by its joints
+    (``ReachEnv(control="joint")``), else None.
     """
 
     captures: list
     T_world_tcp: torch.Tensor
     p_adv: torch.Tensor
     views: dict | None = None
+    q: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.captures)
@@ -123,10 +126,13 @@ class SimRollouts:
             caps = views[self.hybrid.camera]
         T = torch.from_numpy(env.T_world_tcp[active]).to(self.device, torch.float32)
         p_adv = torch.from_numpy(env.object_centers[active, self.hybrid.adv]).to(self.device, torch.float32)
-        return Frames(caps, T, p_adv, views)
+        q = None if env.q is None else torch.from_numpy(env.q[active]).to(self.device)
+        return Frames(caps, T, p_adv, views, q)
 
     def advance(self, actions: np.ndarray) -> None:
-        full = np.zeros((self.cfg.num_envs, 6))
+        """Step the env by ``actions`` of the frames' envs: TCP motions ``(B, 6)``, or joint targets ``(B, n)``
+        under joint control (the other envs have finished and ignore theirs)."""
+        full = np.zeros((self.cfg.num_envs, np.shape(actions)[1]))
         full[self._active] = actions
         self.env.step(full)
         self._step += 1
