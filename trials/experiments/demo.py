@@ -17,6 +17,7 @@ from pathlib import Path
 
 import imageio.v3 as iio
 
+from sim.htmlreport import REPORT_HTML
 from sim.imaging import contact_sheet, write_gif
 from sim.runinfo import write_run_info
 from sim.runtime import set_torch_threads
@@ -29,6 +30,7 @@ from trials.experiments.recipes import (
     eval_rows,
     resolve_experiment,
     table1_markdown,
+    verdicts_once,
 )
 from trials.jobs.scene import expert_rollout
 
@@ -36,25 +38,6 @@ __all__ = ["run_demo", "DEMO_BUDGET", "verdicts_once"]
 
 # Sized for <= 15 minutes on 2 CPU cores including setup (measured figures: docs/evaluation.md).
 DEMO_BUDGET = dict(attack_overrides={"iterations": 60}, episodes=40, max_steps=60, num_envs=8, gifs=2)
-
-
-def verdicts_once(text: str) -> str:
-    """``text`` with each verdict line (``**A vs B** (claim: ...``) kept where it first appears, and
-    the blank line after a repeat dropped: the Table I layout's per-phi and per-distance sections
-    each open with the same overall 3D-vs-patch verdict, which the demo's report printed twice."""
-    seen, out, skip_blank = set(), [], False
-    for line in text.split("\n"):
-        if skip_blank and not line.strip():
-            skip_blank = False
-            continue
-        skip_blank = False
-        if line.startswith("**") and "** (claim: " in line:
-            if line in seen:
-                skip_blank = True
-                continue
-            seen.add(line)
-        out.append(line)
-    return "\n".join(out)
 
 
 def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
@@ -88,6 +71,7 @@ def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
     body = (eval_dir / "report.md").read_text()
     body = re.sub(r"\]\((?!http)([^)]+)\)", lambda m: f"]({eval_dir.relative_to(out).as_posix()}/{m.group(1)})", body)
     body = body.replace("# Evaluation report", "## Evaluation", 1)
+    page = f"{eval_dir.relative_to(out).as_posix()}/{REPORT_HTML}"
     head = [
         "# advobj demo: 3D adversarial object vs 2D patch",
         "",
@@ -96,12 +80,15 @@ def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
         f"evaluation in `{eval_dir.relative_to(out).as_posix()}/`. Quick budget: this is a smoke-scale reproduction, "
         "not the paper's numbers.",
         "",
+        "The evaluation's page, to open in a browser (paired tests, T-ASR by angle and distance with n on every bar, "
+        f"the rollouts): [{page}]({page}).",
+        "",
         "![scene](scene.png) ![expert](expert_rollout.gif)",
         "",
         "## Table I layout (by viewing angle)",
         "",
     ]
-    table = verdicts_once(table1_markdown(summary, ctx, eval_rows(ctx, "demo")).split("\n", 2)[2])
+    table = table1_markdown(summary, ctx, eval_rows(ctx, "demo")).split("\n", 2)[2]
     (out / "report.md").write_text("\n".join(head) + table + "\n" + body)
     return {
         "summary": summary,

@@ -36,6 +36,7 @@ __all__ = [
     "run_experiment",
     "PAPER",
     "table1_markdown",
+    "verdicts_once",
 ]
 
 
@@ -740,9 +741,29 @@ def eval_rows(ctx: Context, name: str, condition: str | None = None) -> list[dic
     return rows if condition is None else {r["seed"]: r for r in rows if r["condition"] == condition}
 
 
+def verdicts_once(text: str) -> str:
+    """``text`` with each verdict line (``**A vs B** (claim: ...``) kept where it first appears, and
+    the blank line after a repeat dropped: the Table I layout's per-phi and per-distance sections
+    each open with the same overall 3D-vs-patch verdict (:func:`table1_markdown`)."""
+    seen, out, skip_blank = set(), [], False
+    for line in text.split("\n"):
+        if skip_blank and not line.strip():
+            skip_blank = False
+            continue
+        skip_blank = False
+        if line.startswith("**") and "** (claim: " in line:
+            if line in seen:
+                skip_blank = True
+                continue
+            seen.add(line)
+        out.append(line)
+    return "\n".join(out)
+
+
 def table1_markdown(s: dict, ctx: Context, rows: list[dict] | None = None) -> str:
     """Table I's layout for an evaluation summary holding the ``attack`` and ``patch`` arms; with
-    the evaluation's ``rows``, the paired 3D-vs-patch test per phi and per distance bin too."""
+    the evaluation's ``rows``, the paired 3D-vs-patch test per phi and per distance bin too (the
+    overall verdict, which opens both, once: :func:`verdicts_once`)."""
     lines = _header("Table I: 3D object vs 2D patch by viewing angle phi (deg)", ctx)
     lines += [
         "| attack type | source | " + " | ".join(f"{b} T-ASR | {b} ASR" for b in PHI_LABELS + ["Avg"]) + " |",
@@ -775,7 +796,7 @@ def table1_markdown(s: dict, ctx: Context, rows: list[dict] | None = None) -> st
         b = {r["seed"]: r for r in rows if r["condition"] == "patch"}
         lines += ["", "## Paired T-ASR test by viewing angle phi", ""] + paired_markdown("3D", "patch", a, b, "phi")
         lines += ["", "## Paired T-ASR test by initial distance r", ""] + paired_markdown("3D", "patch", a, b, "r")
-    return "\n".join(lines) + "\n"
+    return verdicts_once("\n".join(lines)) + "\n"
 
 
 def table2(ctx: Context) -> str:

@@ -38,6 +38,8 @@ def test_table1_runs_the_3d_and_patch_attacks_then_writes_the_paper_layout(tmp_p
     text = path.read_text()
     assert "| 2D Patch | paper | 73.00 | 77.00" in text and "| 3D Object | paper | 78.00 | 79.00" in text
     assert "| 3D Object | ours |" in text and "70-90 T-ASR" in text
+    # the overall 3D-vs-patch verdict opens the per-phi and the per-distance section: printed once
+    assert text.count("**3D vs patch** (claim: ") == 1 and "## Paired T-ASR test by initial distance r" in text
     assert (
         json.loads((tmp_path / "attacks" / "patch" / "run.json").read_text())["config"]["attack"]["adversarial_mesh"]
         == "patch"
