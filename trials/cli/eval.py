@@ -7,10 +7,9 @@ from typing import List, Optional
 
 import typer
 
-from sim.policies.competence import DEFAULT_MIN_CLEAN_SUCCESS
 from sim.runtime import set_torch_threads
 from trials.cli import grid as cli_grid
-from trials.cli.options import MIN_CLEAN_SUCCESS, OptionError, key_values
+from trials.cli.options import MIN_CLEAN_SUCCESS, key_values
 from trials.experiments.recipes import run_eval_grid
 
 
@@ -89,14 +88,10 @@ def eval_command(
     if workers is None and address is None and shards is None:
         summary = run_eval(cfg, out, resume=resume, min_clean_success=min_clean_success)
     else:  # the job layer: a pool job, eval-shard jobs, their merge (a re-run resumes; --resume is implied)
-        if min_clean_success != DEFAULT_MIN_CLEAN_SUCCESS:
-            # The job layer's pool job checks at the default (trials.eval.evaluate.resolve_pool).
-            raise OptionError(
-                f"--min-clean-success: the job layer (--workers/--address/--shards) checks at the default "
-                f"{DEFAULT_MIN_CLEAN_SUCCESS:g} only; run without them to use {min_clean_success:g}"
-            )
         ex, default_shards = cli_grid.executor(workers, address, typer.echo)
-        summary = run_eval_grid(cfg, out, ex, shards or default_shards, log=typer.echo)
+        summary = run_eval_grid(
+            cfg, out, ex, shards or default_shards, log=typer.echo, min_clean_success=min_clean_success
+        )
     typer.echo(format_summary(summary))
     typer.echo(f"report: {out / 'report.md'}")
 

@@ -24,6 +24,7 @@ from pydantic import Field, ValidationError, field_validator
 
 from sim.configio import StrictModel
 from sim.errors import AdvobjError, format_validation_error
+from sim.policies.competence import DEFAULT_MIN_CLEAN_SUCCESS
 from sim.runinfo import write_run_info
 from trials.eval.episodes import has_manifest, read_rows, read_summary
 
@@ -71,6 +72,13 @@ class ExperimentConfig(StrictModel):
         description="independent attack runs per arm (the attack's seed); each is evaluated on the same configurations",
     )
     rows: tuple[str, ...] | None = Field(None, description="Table II rows to run (default: all)")
+    min_clean_success: float = Field(
+        DEFAULT_MIN_CLEAN_SUCCESS,
+        ge=0.0,
+        le=1.0,
+        description="the competence gate of every pool, attack and evaluation job: refuse a policy whose clean "
+        "success on the scene is below this fraction (sim.policies.competence; 0: off)",
+    )
 
     @field_validator("attack_seeds")
     @classmethod
@@ -272,22 +280,43 @@ class Context:
         self.executor.run(self.grid)
 
 
+def gate_params(min_clean_success: float) -> dict:
+    """The competence gate's job parameter (``min_clean_success``, :mod:`sim.policies.competence`)
+    of a pool, attack or evaluation job. It is given to the job function but kept out of the job's
+    key (``Grid.add``'s ``key_params``): the gate refuses work before it starts and changes no
+    output, so a finished job is reused at any threshold, and a job refused at one threshold resumes
+    at another in the same folder."""
+    return {"min_clean_success": float(min_clean_success)}
+
+
 def job_resources(device: str) -> dict:
     """What one job asks the executor for: a CPU (torch threads follow it), a GPU on CUDA."""
     return {"num_cpus": 1.0, "num_gpus": 1.0 if str(device).startswith("cuda") else 0.0}
 
 
-def add_eval_jobs(grid, prefix: str, d: Path, fields: dict, inputs: dict, shards: int, resources: dict) -> None:
+def add_eval_jobs(
+    grid,
+    prefix: str,
+    d: Path,
+    fields: dict,
+    inputs: dict,
+    shards: int,
+    resources: dict,
+    min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS,
+) -> None:
     """An evaluation into ``d``: one ``eval`` job, or ``shards`` ``eval-shard`` jobs under
-    ``d/shards`` plus their merge (an ``eval`` job run in the driver, with the whole one's key)."""
+    ``d/shards`` plus their merge (an ``eval`` job run in the driver, with the whole one's key).
+    ``min_clean_success``: the competence gate each evaluating job applies (:func:`job_eval`); a
+    check before work, not part of the jobs' keys (:func:`gate_params`)."""
     key = {"fields": fields}
+    gate = gate_params(min_clean_success)
     if shards <= 1:
         grid.add(
             prefix,
             "eval",
             "trials.experiments.recipes:job_eval",
             d,
-            {"fields": fields},
+            {"fields": fields, **gate},
             inputs,
             key_params=key,
             **resources,
@@ -300,8 +329,9 @@ def add_eval_jobs(grid, prefix: str, d: Path, fields: dict, inputs: dict, shards
             "eval-shard",
             "trials.experiments.recipes:job_eval",
             d / "shards" / f"{k}-of-{n}",
-            {"fields": fields, "shard": [k, n]},
+            {"fields": fields, "shard": [k, n], **gate},
             inputs,
+            key_params={"fields": fields, "shard": [k, n]},
             **resources,
         )
         for k in range(n)
@@ -432,13 +462,15 @@ def ensure_attack(ctx: Context, policy_dir: Path, name: str, overrides: dict, re
         fields.setdefault("device", ctx.cfg.device)
     resolve_config(ctx.cfg.attack_preset, fields)  # a bad override fails now, not inside the grid
     d = ctx.out / "attacks" / name
+    params = {"preset": ctx.cfg.attack_preset, "fields": fields}
     ctx.grid.add(
         f"attack-{name}",
         "attack",
         "trials.experiments.recipes:job_attack",
         d,
-        {"preset": ctx.cfg.attack_preset, "fields": fields},
+        {**params, **gate_params(ctx.cfg.min_clean_success)},
         {"policy": policy_dir, **_scene_input(ctx), **({} if recordings is None else {"recordings": recordings})},
+        key_params=params,
         **ctx.resources(),
     )
     return d
@@ -452,9 +484,11 @@ def _below_cwd(path: Path) -> str:
         return str(path)
 
 
-def job_attack(out: Path, inputs: dict, preset: str, fields: dict) -> None:
+def job_attack(
+    out: Path, inputs: dict, preset: str, fields: dict, min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS
+) -> None:
     """The ``attack`` job: run, resume or reuse the attack of ``fields`` into ``out`` (on the
-    recording ``inputs["recordings"]`` when given)."""
+    recording ``inputs["recordings"]`` when given), behind the competence gate at ``min_clean_success``."""
     from attack.artifact import TEXTURE_NPY, AttackArtifact  # lazy: CLI start-up (trimesh, PIL)
     from attack.optimize import resolve_config  # lazy: CLI start-up (torch, trimesh)
     from attack.state import find_checkpoint  # lazy: CLI start-up (torch, trimesh)
@@ -475,7 +509,17 @@ def job_attack(out: Path, inputs: dict, preset: str, fields: dict) -> None:
     resume = find_checkpoint(out) is not None
     from trials.jobs.dag import show_progress  # lazy: CLI start-up (+15 ms)
 
-    attack_job(inputs["policy"], preset, cfg_path, inputs.get("scene"), None, out, resume, progress=show_progress())
+    attack_job(
+        inputs["policy"],
+        preset,
+        cfg_path,
+        inputs.get("scene"),
+        None,
+        out,
+        resume,
+        progress=show_progress(),
+        min_clean_success=min_clean_success,
+    )
 
 
 def _eval_fields(ctx: Context) -> dict:
@@ -504,22 +548,25 @@ def ensure_pool(ctx: Context, policy_dir: Path) -> str:
         # Keyed by the resolved path too: two policies in folders of the same name must not share a pool.
         digest = hashlib.sha256(str(Path(policy_dir).resolve()).encode()).hexdigest()[:8]
         d = ctx.out / "pools" / f"{Path(policy_dir).name}-{digest}"
+        params = {"fields": _eval_fields(ctx)}
         ctx.grid.add(
             f"pool-{d.name}",
             "pool",
             "trials.experiments.recipes:job_pool",
             d,
-            {"fields": _eval_fields(ctx)},
+            {**params, **gate_params(c.min_clean_success)},
             {"policy": policy_dir, **_scene_input(ctx)},
+            key_params=params,
             **ctx.resources(),
         )
         ctx.pools[key] = str(built_pool_path(d))
     return ctx.pools[key]
 
 
-def job_pool(out: Path, inputs: dict, fields: dict) -> None:
+def job_pool(out: Path, inputs: dict, fields: dict, min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS) -> None:
     """The ``pool`` job: the policy's task-feasible evaluation-part configurations, saved as
-    ``out/feasible_pool.json`` (from the policy's own pool, topped up as ``advobj eval`` does)."""
+    ``out/feasible_pool.json`` (from the policy's own pool, topped up as ``advobj eval`` does, behind
+    the competence gate at ``min_clean_success``)."""
     from sim.configs import save_pool  # lazy: CLI start-up (trimesh, PIL)
     from sim.policies.checkpoint import load_policy  # lazy: CLI start-up (torch, onnxruntime)
     from sim.policies.pool import built_pool_path  # lazy: CLI start-up (torch, trimesh)
@@ -536,7 +583,14 @@ def job_pool(out: Path, inputs: dict, fields: dict) -> None:
     base = load_spec(ecfg.scene)
     spec = base.with_updates(episode={**base.episode.model_dump(), "max_steps": ecfg.max_steps})
     out.mkdir(parents=True, exist_ok=True)
-    configs, src = resolve_pool(ecfg, load_policy(ecfg.policy, ecfg.device), spec, out, progress=show_progress())
+    configs, src = resolve_pool(
+        ecfg,
+        load_policy(ecfg.policy, ecfg.device),
+        spec,
+        out,
+        progress=show_progress(),
+        min_clean_success=min_clean_success,
+    )
     if Path(src) != built_pool_path(out):  # the policy's own pool sufficed: keep a copy as this job's output
         save_pool(
             built_pool_path(out),
@@ -562,13 +616,21 @@ def ensure_eval(
     fields = {**_eval_fields(ctx), "conditions": list(conditions)}
     d = ctx.out / "evals" / name
     ctx.log(f"eval {name}: {', '.join(conditions)} x {ctx.cfg.episodes} episodes into {d}")
-    add_eval_jobs(ctx.grid, f"eval-{name}", d, fields, inputs, ctx.shards, ctx.resources())
+    add_eval_jobs(ctx.grid, f"eval-{name}", d, fields, inputs, ctx.shards, ctx.resources(), ctx.cfg.min_clean_success)
     return EvalResult(ctx, d)
 
 
-def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, merge: int = 0) -> None:
-    """The ``eval-shard`` job (the whole evaluation, or configurations ``k::K`` with ``shard``) and
-    their merge (``merge=K``: the K shards under ``out/shards`` into ``out``)."""
+def job_eval(
+    out: Path,
+    inputs: dict,
+    fields: dict,
+    shard: list | None = None,
+    merge: int = 0,
+    min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS,
+) -> None:
+    """The ``eval-shard`` job (the whole evaluation, or configurations ``k::K`` with ``shard``),
+    behind the competence gate at ``min_clean_success``, and their merge (``merge=K``: the K shards
+    under ``out/shards`` into ``out``; it runs no policy)."""
     from trials.eval.evaluate import load_eval_config, merge_eval, run_eval  # lazy: CLI start-up (torch, onnxruntime)
     from trials.jobs.dag import show_progress  # lazy: CLI start-up (+15 ms)
 
@@ -592,14 +654,19 @@ def job_eval(out: Path, inputs: dict, fields: dict, shard: list | None = None, m
             progress=show_progress(),
             shard=None if shard is None else tuple(shard),
             final_pool=True,
+            min_clean_success=min_clean_success,
         )
 
 
-def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dict:
+def run_eval_grid(
+    cfg, out: str | Path, executor, shards: int, log=print, min_clean_success: float = DEFAULT_MIN_CLEAN_SUCCESS
+) -> dict:
     """``advobj eval`` through the job layer: a ``pool`` job, then the evaluation into ``out`` (the
     folder ``run_eval`` writes), in ``shards`` jobs merged there. The pool job resolves the pool as
     ``run_eval`` does (``cfg.pool`` or the policy's own, topped up when short of ``cfg.episodes``),
-    so the episodes do not depend on the executor; the shards take its pool as it is."""
+    so the episodes do not depend on the executor; the shards take its pool as it is. Every job
+    applies the competence gate at ``min_clean_success`` as ``run_eval`` does (the pool job before
+    it builds configurations, each evaluating job on the card before it writes)."""
     from sim.policies.pool import built_pool_path  # lazy: CLI start-up (torch, trimesh)
     from trials.jobs.dag import Grid  # lazy: CLI start-up (+15 ms)
 
@@ -618,8 +685,9 @@ def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dic
         "pool",
         "trials.experiments.recipes:job_pool",
         out / "pool",
-        {"fields": pf},
+        {"fields": pf, **gate_params(min_clean_success)},
         {"policy": cfg.policy, "pool": cfg.pool, **scene},
+        key_params={"fields": pf},
         **res,
     )
     pool = str(built_pool_path(out / "pool"))
@@ -631,7 +699,7 @@ def run_eval_grid(cfg, out: str | Path, executor, shards: int, log=print) -> dic
         **scene,
         **{f"shape_{k}": v for k, v in cfg.shapes.items()},
     }
-    add_eval_jobs(grid, "eval", out, fields, inputs, shards, res)
+    add_eval_jobs(grid, "eval", out, fields, inputs, shards, res, min_clean_success)
     executor.run(grid)
     return read_summary(out)
 

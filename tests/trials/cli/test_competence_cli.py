@@ -149,16 +149,28 @@ def test_a_threshold_outside_0_1_is_one_line_naming_the_flag(ci_policy, tmp_path
     assert not (tmp_path / "o").exists()
 
 
-def test_the_job_layer_refuses_a_threshold_it_cannot_carry(ci_policy, tmp_path, monkeypatch, capsys):
-    out = tmp_path / "ev"
+def test_the_job_layer_carries_the_threshold_to_its_pool_and_eval_jobs(ci_policy, tmp_path, monkeypatch, capsys):
+    """``--shards 2`` runs a pool job and two eval-shard jobs; each applies the threshold given."""
+    # The pool job, about to top the card-refused policy's one-configuration pool up: refused at 0.3
+    # (not at the default 0.5 it used to check at), from the card, with nothing evaluated.
+    out = tmp_path / "ev-pool"
     line = _refused(
         monkeypatch, capsys, "eval", "--policy", ci_policy, "--shards", "2", "--min-clean-success", "0.3", "--out", out
     )
-    assert line == (
-        "error: --min-clean-success: the job layer (--workers/--address/--shards) checks at the default 0.5 only; "
-        "run without them to use 0.3"
+    assert line.startswith(f"error: job pool: {ci_policy}: clean success 6.2% (1/16 episodes, from its card) ")
+    assert "below --min-clean-success 0.3" in line and not (out / "summary.json").exists()
+    # Configurations given (the pool job builds none): the eval-shard jobs check the card, refuse at
+    # the default and evaluate at 0.
+    pool = tmp_path / "pool.json"
+    save_pool(pool, default_scene(), sample_pool(default_scene(), 2, seed=0, part="evaluation"))
+    argv = ["eval", "--policy", ci_policy, "-c", "clean", "--pool", pool, "--episodes", "2", "--gifs", "0"]
+    line = _refused(monkeypatch, capsys, *argv, "--shards", "2", "--out", tmp_path / "ev-default")
+    assert line.startswith("error: job eval-shard0of2: ") and REFUSED_BY_CARD in line
+    code, err, said = _cli(
+        monkeypatch, capsys, *argv, "--shards", "2", "--min-clean-success", "0", "--out", tmp_path / "ev"
     )
-    assert not out.exists()
+    assert code == 0, err
+    assert "clean: T-ASR" in said and "(n=2, 95% CI)" in said and (tmp_path / "ev" / "summary.json").is_file()
 
 
 def test_the_python_attack_job_raises_the_same_refusal(ci_policy, tmp_path):
