@@ -273,7 +273,7 @@ def report_command(
     plan: Optional[Path] = typer.Option(
         None, help="plan YAML: its texture sha256s match sim conditions when trials did not record one"
     ),
-    out: Path = typer.Option(Path("trial_report"), help="report directory (report.md, report.json)"),
+    out: Path = typer.Option(Path("trial_report"), help="report directory (report.html, report.md, report.json)"),
 ) -> None:
     """ASR and T-ASR with Wilson intervals per session and pooled, and Table IV beside the sim evaluation."""
     from trials.real.report import (  # lazy: CLI start-up (+12 ms)
@@ -318,4 +318,6 @@ def report_command(
     typer.echo("\n".join(table_iv_md(table)))  # names and notes escaped: no terminal escape reaches the screen
     for line in summary["audit"]["incomplete"]:
         typer.echo(f"INCOMPLETE: {plain_text(line)}")
-    typer.echo(f"{summary['n_trials']} trials; report in {md} and {js}")
+    from sim.htmlreport import REPORT_HTML  # lazy: CLI start-up (numpy)
+
+    typer.echo(f"{summary['n_trials']} trials; report in {out / REPORT_HTML} (open it in a browser), {md} and {js}")
