@@ -93,7 +93,7 @@ def eval_command(
             cfg, out, ex, shards or default_shards, log=typer.echo, min_clean_success=min_clean_success
         )
     typer.echo(format_summary(summary))
-    typer.echo(f"report: {out / 'report.md'}")
+    typer.echo(f"report: {out / 'report.html'} (open it in a browser), {out / 'report.md'}")
 
 
 def format_summary(summary: dict) -> str:

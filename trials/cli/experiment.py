@@ -9,7 +9,7 @@ import typer
 
 from sim.runtime import set_torch_threads
 from trials.cli.grid import ADDRESS, SHARDS, WORKERS, executor
-from trials.cli.options import int_list, key_values
+from trials.cli.options import MIN_CLEAN_SUCCESS, int_list, key_values
 from trials.experiments.recipes import RECIPES, resolve_experiment, run_experiment
 
 app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
@@ -29,6 +29,7 @@ def _run(
     grid: tuple = (None, None, None, "cpu"),
     attack_seeds: Optional[str] = None,
     rows: Optional[str] = None,
+    min_clean_success: Optional[float] = None,
 ) -> None:
     set_torch_threads()
     targets = {arch: Path(d) for arch, d in key_values(target, "--target", "ARCH", "PATH").items()}
@@ -43,6 +44,7 @@ def _run(
         transfer_targets=None if archs is None else tuple(a.strip() for a in archs.split(",") if a.strip()),
         attack_seeds=int_list(attack_seeds, "--attack-seeds"),
         rows=None if rows is None else tuple(r.strip() for r in rows.split(",") if r.strip()),
+        min_clean_success=min_clean_success,
     )
     path = run_experiment(
         name,
@@ -109,6 +111,7 @@ def _command(name: str, recipe):
         device: str = _DEVICE,
         attack_seeds: Optional[str] = _ATTACK_SEEDS,
         rows: Optional[str] = _ROWS,
+        min_clean_success: float = MIN_CLEAN_SUCCESS,
     ) -> None:
         if rows is not None and name != "table2":
             raise typer.BadParameter("only the table2 recipe has rows", param_hint="--rows")
@@ -132,6 +135,7 @@ def _command(name: str, recipe):
             grid=(workers, address, shards, device),
             attack_seeds=attack_seeds,
             rows=rows,
+            min_clean_success=min_clean_success,
         )
 
     command.__doc__ = recipe.help
