@@ -55,9 +55,7 @@ import functools
 import io
 import json
 import math
-import os
 import re
-import stat
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -68,6 +66,7 @@ import yourdfpy
 from lxml import etree
 
 from sim.errors import AdvobjError
+from sim.files import FileRefusedError, read_regular
 
 __all__ = [
     "KinematicsError",
@@ -147,34 +146,24 @@ class ArmChain:
         return tuple(JOINT_UNITS[t] for t in self.joint_types)
 
 
+#: How a URDF that is no file to read is refused (:class:`sim.files.FileRefusedError`'s reasons).
+_FILE_WORDS = {
+    "missing": "no such URDF file",
+    "unreadable": "cannot read the URDF ({strerror})",
+    "directory": "a directory, expected a URDF file",
+    "special": "not a regular file, expected a URDF file",
+    "too_large": "{size} bytes, larger than a URDF may be ({max_bytes} bytes)",
+    "grew": "grew past {max_bytes} bytes while it was read",
+}
+
+
 def _open_checked(path: Path) -> bytes:
     """The bytes of ``path``: a regular file of at most :data:`MAX_URDF_BYTES`, checked on the open
-    file (a FIFO or device is refused without blocking on it)."""
+    file (a FIFO or device is refused without blocking on it; :func:`sim.files.read_regular`)."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
-    except FileNotFoundError:
-        raise KinematicsError(f"{path}: no such URDF file", "urdf") from None
-    except OSError as err:
-        raise KinematicsError(f"{path}: cannot read the URDF ({err.strerror or err})", "urdf") from None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            kind = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file"
-            raise KinematicsError(f"{path}: {kind}, expected a URDF file", "urdf")
-        if st.st_size > MAX_URDF_BYTES:
-            raise KinematicsError(
-                f"{path}: {st.st_size} bytes, larger than a URDF may be ({MAX_URDF_BYTES} bytes)", "urdf"
-            )
-        chunks, size = [], 0
-        while size <= MAX_URDF_BYTES and (chunk := os.read(fd, MAX_URDF_BYTES + 1 - size)):
-            chunks.append(chunk)
-            size += len(chunk)
-        data = b"".join(chunks)
-    finally:
-        os.close(fd)
-    if len(data) > MAX_URDF_BYTES:
-        raise KinematicsError(f"{path}: grew past {MAX_URDF_BYTES} bytes while it was read", "urdf")
-    return data
+        return read_regular(path, MAX_URDF_BYTES)
+    except FileRefusedError as err:
+        raise KinematicsError(f"{path}: {err.problem(_FILE_WORDS)}", "urdf") from None
 
 
 def _strict_tree(path: Path, data: bytes) -> etree._Element:
