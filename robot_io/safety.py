@@ -21,6 +21,32 @@ returns it; each of its commands advances it by one control period), so trial se
 sim can run as fast as the machine allows. After a completed positioning move the arm is at
 rest and the next step may cover a full period again.
 
+Joint targets (:meth:`SafeArm.step_joints`, an arm a URDF describes: :meth:`Arm.kinematics`)
+pass their own ordered list; steps 1 to 3 and 5 are the same, the target's checks are
+:func:`limit_joint_command`'s:
+
+1. the arm's watchdog is kicked; 2. the maximum trial duration; 3. the frame-age watchdog (a
+   chunk of actions computed from one frame is sent one action per step with that frame: the
+   step at which the frame outlives ``max_frame_age_ms`` is refused and stops the arm);
+4. a target that is not ``n`` finite numbers (NaN, Inf, wrong length) is refused: stop;
+5. the arm's fault state;
+6. a jump: a target farther than ``joints.max_jump_rad`` (revolute) or ``joints.max_jump_m``
+   (prismatic) from the measured joints, on any joint, is refused: stop (a policy that asks
+   for a far configuration is broken, and crawling there one capped step at a time is not what
+   it meant);
+7. each joint is clipped to its URDF position limits;
+8. the step ``q_target - q_now`` is scaled down as a whole (its direction in joint space kept,
+   as :meth:`sim.ik.SceneArm.limit_step` does in the sim) until every joint moves at most
+   ``min(URDF velocity limit, joints.max_speed_radps or joints.max_speed_mps) * period``, the
+   same ``period`` as the TCP path's;
+9. the workspace box through FK: the TCP of ``q_now + s (q_cmd - q_now)`` is computed at
+   ``s = 0, 1/16, ..., 1`` (one batched FK) and the step is shortened to the largest ``s`` up to
+   which no sampled TCP is farther from the box than the TCP is now (inside: outside none). It
+   is clipped along the joint-space line, not refused: a policy pushing against the wall then
+   stops at the wall and keeps its other motion's direction, as the TCP path's box does, while
+   an arm outside the box may only move toward it. The samples also check the motion between
+   two commands, not only its end.
+
 Refused commands stop the arm; clipped ones are sent clipped. Both are logged with their reason
 (logger ``robot_io.safety``) and kept in :attr:`SafeArm.events`. Leaving ``with safe_arm:`` on any
 exception, including Ctrl-C, stops the arm before disconnecting.
@@ -45,7 +71,17 @@ from sim.action import next_tcp_pose
 from sim.configio import StrictModel
 from sim.geometry import make_T, so3_exp, so3_log
 
-__all__ = ["SafetyLimits", "SafetyEvent", "StepResult", "SafeArm", "limit_command", "SafetyRefusal"]
+__all__ = [
+    "JointSafetyLimits",
+    "SafetyLimits",
+    "SafetyEvent",
+    "StepResult",
+    "SafeArm",
+    "limit_command",
+    "limit_joint_command",
+    "SafetyRefusal",
+    "WORKSPACE_SAMPLES",
+]
 
 log = logging.getLogger("robot_io.safety")
 
@@ -56,8 +92,21 @@ class SafetyRefusal(RobotIOError, ValueError):
     """A positioning command the safety layer will not execute (the message says why)."""
 
 
+class JointSafetyLimits(StrictModel):
+    """The joint path's own limits (per joint; revolute joints in rad, prismatic ones in m).
+
+    The URDF's position and velocity limits apply too: the speed cap is the smaller of the URDF's
+    and these.
+    """
+
+    max_speed_radps: Pos = 1.0
+    max_speed_mps: Pos = 0.25
+    max_jump_rad: Pos = 0.5
+    max_jump_m: Pos = 0.1
+
+
 class SafetyLimits(StrictModel):
-    """Limits in the arm's base frame (m, rad, s)."""
+    """Limits in the arm's base frame (m, rad, s); ``joints``: the joint path's (:class:`JointSafetyLimits`)."""
 
     workspace_min_m: tuple[float, float, float]
     workspace_max_m: tuple[float, float, float]
@@ -70,6 +119,7 @@ class SafetyLimits(StrictModel):
     max_frame_age_ms: Pos = 100.0
     max_trial_s: Pos = 120.0
     positioning_speed_mps: Pos = 0.05
+    joints: JointSafetyLimits = JointSafetyLimits()
 
     @model_validator(mode="after")
     def _box(self):
@@ -126,6 +176,7 @@ class StepResult:
     status: Literal["ok", "clipped", "refused"]
     T_cmd: np.ndarray | None
     reasons: tuple[str, ...] = field(default_factory=tuple)
+    q_cmd: np.ndarray | None = None  # a joint command's joints as sent (step_joints)
 
 
 def limit_command(
@@ -187,6 +238,103 @@ def limit_command(
         reasons.append(f"rotation step {np.degrees(ang):.2f} deg capped to {np.degrees(rcap):.2f} deg{early}")
         r = r * (rcap / ang)
     return make_T(R_now @ so3_exp(r), p_cmd), dp, reasons
+
+
+#: TCP samples along one joint step (``s = 0, 1/N, ..., 1``) checked against the workspace box.
+WORKSPACE_SAMPLES = 16
+
+
+def _box_distance_m(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``(...,)`` m from points ``p (..., 3)`` to the box ``[lo, hi]`` (0 inside)."""
+    return np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0), axis=-1)
+
+
+def joint_step_caps(scene_arm, limits: SafetyLimits, period_s: float | None = None) -> np.ndarray:
+    """``(n,)`` the most each joint may move in one command covering ``period_s`` (rad or m):
+    ``min(URDF velocity limit, the configured joint speed of its unit) * period``."""
+    dt = limits.command_period_s(period_s)
+    j = limits.joints
+    own = np.array([j.max_speed_radps if u == "rad" else j.max_speed_mps for u in scene_arm.units])
+    return np.minimum(scene_arm.model.limits.qd_max.cpu().numpy(), own) * dt
+
+
+def limit_joint_command(
+    q_now: np.ndarray,
+    q_target,
+    scene_arm,
+    limits: SafetyLimits,
+    period_s: float | None = None,
+) -> tuple[np.ndarray, list[str]]:
+    """Pure math: the joints actually sent for ``q_target (n,)`` from the measured ``q_now (n,)``.
+
+    Steps 4 and 6 to 9 of the joint path (module docstring) for the arm ``scene_arm``
+    (:class:`sim.ik.SceneArm`, whose TCP frame is the workspace box's); ``period_s`` as in
+    :func:`limit_command`. Returns ``(q_cmd, reasons)``, every clip in ``reasons``; raises
+    :class:`SafetyRefusal` for a target that is not ``n`` finite numbers or is a jump.
+    """
+    import torch  # lazy: robot_io start-up (torch)
+
+    n = scene_arm.n_joints
+    names, units = scene_arm.joint_names, scene_arm.units
+    try:
+        q_t = np.asarray(q_target, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SafetyRefusal(f"joint target is not numbers (type {type(q_target).__name__})") from None
+    if q_t.shape != (n,):
+        raise SafetyRefusal(f"joint target has shape {q_t.shape}; the arm has {n} joints ({', '.join(names)})")
+    if not np.isfinite(q_t).all():
+        k = int(np.flatnonzero(~np.isfinite(q_t))[0])
+        raise SafetyRefusal(f"non-finite joint target: joint {names[k]!r} is {q_t[k]}")
+    q_now = np.asarray(q_now, dtype=np.float64)
+    j = limits.joints
+    jump = np.array([j.max_jump_rad if u == "rad" else j.max_jump_m for u in units])
+    far = np.abs(q_t - q_now) > jump
+    if far.any():
+        k = int(np.flatnonzero(far)[0])
+        raise SafetyRefusal(
+            f"joint jump: {names[k]!r} target {q_t[k]:.4g} {units[k]} is {abs(q_t[k] - q_now[k]):.4g} {units[k]} "
+            f"from its position {q_now[k]:.4g} (limit {jump[k]:.4g})"
+        )
+    reasons: list[str] = []
+    lo = scene_arm.model.limits.q_min.cpu().numpy()
+    hi = scene_arm.model.limits.q_max.cpu().numpy()
+    q_c = np.clip(q_t, lo, hi)
+    out = np.flatnonzero(q_c != q_t)
+    if len(out):
+        clipped = ", ".join(f"{names[k]!r} clipped to {q_c[k]:.4g}" for k in out)
+        reasons.append(f"joint target outside the position limits: {clipped}")
+    dt = limits.command_period_s(period_s)
+    cap = joint_step_caps(scene_arm, limits, dt)
+    dq = q_c - q_now
+    scale = float(np.max(np.abs(dq) / cap))
+    if scale > 1.0:
+        k = int(np.argmax(np.abs(dq) / cap))
+        early = "" if dt >= limits.control_period_s else f" ({dt * 1000:.1f} ms since the last command)"
+        reasons.append(
+            f"joint step of {names[k]!r} {abs(dq[k]):.4g} {units[k]} capped to {cap[k]:.4g}{early}: step scaled by "
+            f"{1.0 / scale:.3g}"
+        )
+        dq = dq / scale
+    inside_now = bool(((q_now >= lo) & (q_now <= hi)).all())
+    q_cmd = q_now + dq
+    if inside_now:
+        q_cmd = np.clip(q_cmd, lo, hi)  # q + (limit - q) can round one ulp past the limit
+    s = np.linspace(0.0, 1.0, WORKSPACE_SAMPLES + 1)
+    q_line = q_now[None, :] + s[:, None] * (q_cmd - q_now)[None, :]
+    q_line[-1] = q_cmd
+    T = scene_arm.tcp_pose(torch.as_tensor(q_line, dtype=torch.float64, device=scene_arm.device))
+    p = T[:, :3, 3].detach().cpu().numpy()
+    box_lo, box_hi = np.asarray(limits.workspace_min_m), np.asarray(limits.workspace_max_m)
+    d = _box_distance_m(p, box_lo, box_hi)
+    ok = d <= d[0]
+    if not ok.all():
+        last = int(np.argmin(ok)) - 1  # the last sample of the leading run within the rule
+        reasons.append(
+            f"TCP {_vec(p[int(np.argmin(ok))])} m leaves the workspace box along the joint step: "
+            f"shortened to {s[last]:.3g} of it" + ("" if d[0] == 0 else " (arm outside the box: toward it only)")
+        )
+        q_cmd = q_line[last]
+    return q_cmd, reasons
 
 
 def _vec(v) -> str:
@@ -385,6 +533,93 @@ class SafeArm:
 
         return self._guarded(target, frame)
 
+    # ------------------------------------------------------------------ joint commands
+    def kinematics(self):
+        """The driver's :class:`sim.ik.SceneArm`, or ``None`` for an arm without joint commands."""
+        return self.__arm.kinematics()
+
+    def joint_positions(self) -> np.ndarray:
+        return self.__arm.joint_positions()
+
+    def _scene_arm(self):
+        arm = self.__arm.kinematics()
+        if arm is None:
+            raise _Refuse(f"the {self.name} arm takes no joint commands (no URDF describes it)")
+        return arm
+
+    def step_joints(self, q_target, frame) -> StepResult:
+        """One policy-loop joint command toward ``q_target (n,)``, computed from camera ``frame``.
+
+        The joint path of the module docstring. A chunk of actions computed from one frame is sent
+        as one call per action, each with that frame: the first action the frame's age outlives is
+        refused (and stops the arm), so the rest of the chunk must be dropped by the caller.
+        """
+        try:
+            return self._step_joints(q_target, frame)
+        except _Refuse as r:
+            self._record("refused", r.reason)
+            self._stop(f"refused command: {r.reason}")
+            return StepResult("refused", None, (r.reason,))
+        except BaseException as err:
+            if not isinstance(err, (ArmFaultError, SafetyStop)):  # those already stopped the arm
+                self._stop_quietly(f"{type(err).__name__} during a control step: {err}")
+            raise
+
+    def _step_joints(self, q_target, frame) -> StepResult:
+        lim = self.limits
+        scene_arm = self._scene_arm()
+        self._check_time_and_frame(frame)
+        q_now = np.asarray(self.__arm.joint_positions(), dtype=np.float64)
+        t_cmd = self._command_clock()
+        try:
+            q_cmd, reasons = limit_joint_command(q_now, q_target, scene_arm, lim, self._command_period_s(t_cmd))
+        except SafetyRefusal as err:
+            raise _Refuse(str(err)) from None
+        for r in reasons:
+            self._record("clipped", r)
+        self._last_command_s = t_cmd  # before sending: a servo that raises may still have reached the arm
+        self.__arm.servo_joints(q_cmd, lim.control_period_s)
+        self._prev_step = np.zeros(3)  # the TCP path's acceleration history does not carry over
+        return StepResult("clipped" if reasons else "ok", None, tuple(reasons), q_cmd)
+
+    def move_joints(self, q_target) -> None:
+        """Positioning move to joints ``q_target (n,)`` (not the policy loop): refused, not clipped,
+        if the target is not ``n`` finite numbers, outside the position limits, or puts the TCP
+        outside the workspace box. It takes as long as the slowest joint needs at its speed cap."""
+        import torch  # lazy: robot_io start-up (torch)
+
+        try:
+            scene_arm = self._scene_arm()
+            q = np.asarray(q_target, dtype=np.float64)
+            if q.shape != (scene_arm.n_joints,) or not np.isfinite(q).all():
+                raise _Refuse(f"positioning joint target must be {scene_arm.n_joints} finite numbers, got {q}")
+            lo = scene_arm.model.limits.q_min.cpu().numpy()
+            hi = scene_arm.model.limits.q_max.cpu().numpy()
+            if ((q < lo) | (q > hi)).any():
+                k = int(np.flatnonzero((q < lo) | (q > hi))[0])
+                raise _Refuse(
+                    f"positioning joint target: {scene_arm.joint_names[k]!r} at {q[k]:.4g} is outside its limits "
+                    f"[{lo[k]:.4g}, {hi[k]:.4g}]"
+                )
+            T = scene_arm.tcp_pose(torch.as_tensor(q, dtype=torch.float64, device=scene_arm.device))
+            p = T[:3, 3].detach().cpu().numpy()
+            if not self.limits.contains(p):
+                raise _Refuse(f"positioning joint target puts the TCP at {_vec(p)} m, outside the workspace box")
+        except _Refuse as r:
+            self._record("refused", r.reason)
+            raise SafetyRefusal(r.reason) from None
+        cap_per_s = joint_step_caps(scene_arm, self.limits, self.limits.control_period_s) / self.limits.control_period_s
+        duration_s = float(np.max(np.abs(q - self.__arm.joint_positions()) / cap_per_s))
+        self.__arm.keepalive()
+        self._require_no_fault()
+        try:
+            self.__arm.move_joints(q, duration_s)
+        except BaseException as err:
+            self._stop_quietly(f"{type(err).__name__} during a positioning move: {err}")
+            raise
+        self._prev_step = np.zeros(3)
+        self._last_command_s = None
+
     def _guarded(self, target_fn, frame) -> StepResult:
         try:
             return self._step(target_fn, frame)
@@ -397,7 +632,8 @@ class SafeArm:
                 self._stop_quietly(f"{type(err).__name__} during a control step: {err}")
             raise
 
-    def _step(self, target_fn, frame) -> StepResult:
+    def _check_time_and_frame(self, frame) -> None:
+        """Steps 1, 2, 3 and 5 of both paths: watchdog, trial duration, frame age, fault."""
         lim = self.limits
         self.__arm.keepalive()
         now = self.clock()
@@ -420,6 +656,10 @@ class SafeArm:
         if age_ms > lim.max_frame_age_ms:
             raise _Refuse(f"{what} is {age_ms:.0f} ms old (limit {lim.max_frame_age_ms:.0f} ms)")
         self._require_no_fault()
+
+    def _step(self, target_fn, frame) -> StepResult:
+        lim = self.limits
+        self._check_time_and_frame(frame)
         T_now = self.__arm.tcp_pose()
         T_target = target_fn(T_now)
         if not is_valid_pose(T_target):

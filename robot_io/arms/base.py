@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from robot_io.device import Device
+from robot_io.errors import RobotIOError
+
+if TYPE_CHECKING:
+    from sim.ik import SceneArm
 
 __all__ = ["Fault", "Arm"]
 
@@ -39,6 +43,8 @@ class Arm(Device):
 
     Motion commands: :meth:`move_to` (blocking positioning move) and :meth:`servo` (one
     non-blocking step of a streamed trajectory, reached over ``duration_s``; the policy loop).
+    An arm a URDF describes also takes joint commands: :meth:`kinematics`, :meth:`joint_positions`,
+    :meth:`servo_joints` and :meth:`move_joints`.
     """
 
     name: str = "arm"
@@ -78,6 +84,25 @@ class Arm(Device):
 
     def keepalive(self) -> None:
         """Tell the arm's watchdog we are alive; called every control loop iteration."""
+
+    # Joint commands: an arm a URDF describes (issue 31). An arm without them keeps these defaults,
+    # and the safety layer refuses a joint command to it before anything reaches the driver.
+    def kinematics(self) -> SceneArm | None:
+        """The arm's :class:`sim.ik.SceneArm` (URDF chain, base placement, TCP in the tool link), or
+        ``None`` when the arm takes TCP commands only. Its TCP is in the frame of :meth:`tcp_pose`."""
+        return None
+
+    def joint_positions(self) -> np.ndarray:
+        """``q (n,)`` measured, in the order and units of :meth:`kinematics`' joints."""
+        raise RobotIOError(f"the {self.name} arm takes no joint commands (it has no URDF)")
+
+    def servo_joints(self, q: np.ndarray, duration_s: float) -> None:
+        """Stream one joint target ``q (n,)`` to be reached in ``duration_s``; returns immediately."""
+        raise RobotIOError(f"the {self.name} arm takes no joint commands (it has no URDF)")
+
+    def move_joints(self, q: np.ndarray, duration_s: float) -> None:
+        """Move to joint positions ``q (n,)`` over ``duration_s`` and return when there (positioning)."""
+        raise RobotIOError(f"the {self.name} arm takes no joint commands (it has no URDF)")
 
     def simulated_time_s(self) -> float | None:
         """The arm's simulated clock, or ``None`` when it executes commands in wall-clock time.

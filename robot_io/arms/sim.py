@@ -6,6 +6,12 @@ duration (``realtime=True``, for hardware-in-the-loop sessions) or only advances
 Without ``realtime`` the arm reports ``sim_time_s`` as its :meth:`simulated_time_s`, so the
 safety layer's speed caps count simulated time and sessions may run faster than real time.
 The world frame plays the role of the robot base frame.
+
+Given a ``scene_arm`` (:class:`sim.ik.SceneArm`), the arm is joint-driven: it holds joint
+positions ``q``, :meth:`SimArm.servo_joints` and :meth:`SimArm.move_joints` set them exactly as
+commanded (the safety layer in front of it enforces the limits; the twin records what it was
+sent), and the gripper follows the scene arm's FK, ``T_world_tcp = T_world_base FK(q) T_tool_tcp``.
+TCP commands to a joint-driven arm go through the scene arm's IK from the current joints.
 """
 
 from __future__ import annotations
@@ -32,8 +38,19 @@ class SimArm(Arm):
 
     name = "sim"
 
-    def __init__(self, world, max_speed_mps: float = 0.5, max_speed_radps: float = 2.0, realtime: bool = False):
+    def __init__(
+        self,
+        world,
+        max_speed_mps: float = 0.5,
+        max_speed_radps: float = 2.0,
+        realtime: bool = False,
+        scene_arm=None,
+    ):
         super().__init__()
+        self.scene_arm = scene_arm
+        self._q: np.ndarray | None = None
+        if scene_arm is not None:
+            self._set_q(np.asarray(scene_arm.q_home, dtype=np.float64))
         self.world = world
         self.max_speed_mps = float(max_speed_mps)
         self.max_speed_radps = float(max_speed_radps)
@@ -60,6 +77,51 @@ class SimArm(Arm):
     def tcp_pose(self) -> np.ndarray:
         return self.world.T_world_tcp
 
+    # ------------------------------------------------------------------ joints
+    def kinematics(self):
+        return self.scene_arm
+
+    def _set_q(self, q: np.ndarray) -> None:
+        import torch  # lazy: robot_io start-up (torch)
+
+        T = self.scene_arm.tcp_pose(torch.as_tensor(q, dtype=torch.float64, device=self.scene_arm.device))
+        self.world.set_tcp_pose(T.detach().cpu().numpy())
+        self._q = np.array(q, dtype=np.float64)
+
+    def _check_q(self, q) -> np.ndarray:
+        if self.scene_arm is None:
+            return super().joint_positions()  # raises: no joint commands
+        if self._fault is not None:
+            raise ArmFaultError(self._fault)
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (self.scene_arm.n_joints,) or not np.isfinite(q).all():
+            raise ValueError(f"sim arm: joint target must be {self.scene_arm.n_joints} finite numbers, got {q}")
+        return q
+
+    def joint_positions(self) -> np.ndarray:
+        if self._q is None:
+            return super().joint_positions()
+        return self._q.copy()
+
+    def servo_joints(self, q: np.ndarray, duration_s: float) -> None:
+        self._set_q(self._check_q(q))
+        self.commands += 1
+        self.sim_time_s += float(duration_s)
+
+    def move_joints(self, q: np.ndarray, duration_s: float) -> None:
+        self._set_q(self._check_q(q))
+        self.commands += 1
+        self.sim_time_s += float(duration_s)
+        if self.realtime:
+            time.sleep(float(duration_s))
+
+    def _ik(self, T_world_tcp: np.ndarray) -> np.ndarray:
+        import torch  # lazy: robot_io start-up (torch)
+
+        like = torch.as_tensor(self._q, dtype=torch.float64, device=self.scene_arm.device)[None]
+        T = torch.as_tensor(T_world_tcp, dtype=torch.float64, device=like.device)[None]
+        return self.scene_arm.ik(T, like).require("TCP target")[0].cpu().numpy()
+
     def _check(self, T: np.ndarray) -> np.ndarray:
         if self._fault is not None:
             raise ArmFaultError(self._fault)
@@ -78,6 +140,9 @@ class SimArm(Arm):
 
     def servo(self, T_base_tcp: np.ndarray, duration_s: float) -> None:
         T = self._check(T_base_tcp)
+        if self.scene_arm is not None:
+            self.servo_joints(self._ik(T), duration_s)
+            return
         self._advance(T, float(duration_s))
         self.sim_time_s += float(duration_s)
 
@@ -88,6 +153,9 @@ class SimArm(Arm):
         dp, dr = pose_step(self.world.T_world_tcp, T)
         v = min(float(speed_mps), self.max_speed_mps)
         duration = max(dp / v, dr / self.max_speed_radps)
+        if self.scene_arm is not None:
+            self.move_joints(self._ik(T), duration)
+            return
         self._advance(T, duration + 1e-9)
         self.sim_time_s += duration
         if self.realtime:
