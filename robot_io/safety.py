@@ -99,10 +99,10 @@ class JointSafetyLimits(StrictModel):
     and these.
     """
 
-    max_speed_radps: Pos = 1.0
-    max_speed_mps: Pos = 0.25
-    max_jump_rad: Pos = 0.5
-    max_jump_m: Pos = 0.1
+    max_speed_radps: Pos = 1.0  # revolute joint speed cap; step cap = min(URDF velocity, this) * period
+    max_speed_mps: Pos = 0.25  # prismatic joint speed cap
+    max_jump_rad: Pos = 0.5  # a revolute joint target farther than this from its position is refused
+    max_jump_m: Pos = 0.1  # a prismatic joint target farther than this from its position is refused
 
 
 class SafetyLimits(StrictModel):
@@ -306,15 +306,17 @@ def limit_joint_command(
     dt = limits.command_period_s(period_s)
     cap = joint_step_caps(scene_arm, limits, dt)
     dq = q_c - q_now
-    scale = float(np.max(np.abs(dq) / cap))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # a zero period: no joint may move
+        ratio = np.where(dq == 0.0, 0.0, np.abs(dq) / cap)
+    scale = float(np.max(ratio))
     if scale > 1.0:
-        k = int(np.argmax(np.abs(dq) / cap))
+        k = int(np.argmax(ratio))
         early = "" if dt >= limits.control_period_s else f" ({dt * 1000:.1f} ms since the last command)"
         reasons.append(
             f"joint step of {names[k]!r} {abs(dq[k]):.4g} {units[k]} capped to {cap[k]:.4g}{early}: step scaled by "
             f"{1.0 / scale:.3g}"
         )
-        dq = dq / scale
+        dq = dq / scale if np.isfinite(scale) else np.zeros_like(dq)
     inside_now = bool(((q_now >= lo) & (q_now <= hi)).all())
     q_cmd = q_now + dq
     if inside_now:

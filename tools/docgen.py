@@ -282,6 +282,7 @@ FIELD_NOTES = {
         "max_frame_age_ms": "a step computed from an older camera frame is refused and the arm stops",
         "max_trial_s": "a trial running longer stops the arm",
         "positioning_speed_mps": "default speed of positioning moves (homing, hw check --jog); <= max_speed_mps",
+        "joints": "the joint path's limits (joint commands to an arm a URDF describes)",
     },
 }
 

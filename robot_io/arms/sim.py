@@ -47,10 +47,6 @@ class SimArm(Arm):
         scene_arm=None,
     ):
         super().__init__()
-        self.scene_arm = scene_arm
-        self._q: np.ndarray | None = None
-        if scene_arm is not None:
-            self._set_q(np.asarray(scene_arm.q_home, dtype=np.float64))
         self.world = world
         self.max_speed_mps = float(max_speed_mps)
         self.max_speed_radps = float(max_speed_radps)
@@ -58,6 +54,10 @@ class SimArm(Arm):
         self.sim_time_s = 0.0
         self._fault: Fault | None = None
         self.commands: int = 0  # motion commands executed (tests check that nothing moved)
+        self.scene_arm = scene_arm
+        self._q: np.ndarray | None = None
+        if scene_arm is not None:
+            self._set_q(np.asarray(scene_arm.q_home, dtype=np.float64))
 
     def _open(self) -> None:
         self._fault = None
