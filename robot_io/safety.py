@@ -514,7 +514,7 @@ class SafeArm:
         policy saw, or ``{camera: frame}`` of every camera it read; too old a frame (the oldest of
         them) stops the arm instead of moving it.
         """
-        return self._guarded(lambda T_now: T_base_tcp, frame)
+        return self._guarded(self._step, lambda T_now: T_base_tcp, frame)
 
     def step_delta(self, delta_tcp, frame) -> StepResult:
         """Like :meth:`step`, for a motion ``[dx, dy, dz (m), rx, ry, rz (rad)]`` in the current TCP frame.
@@ -533,7 +533,7 @@ class SafeArm:
             with np.errstate(over="ignore", invalid="ignore"):
                 return next_tcp_pose(T_now, d, 1.0, 1.0)
 
-        return self._guarded(target, frame)
+        return self._guarded(self._step, target, frame)
 
     # ------------------------------------------------------------------ joint commands
     def kinematics(self):
@@ -556,16 +556,7 @@ class SafeArm:
         as one call per action, each with that frame: the first action the frame's age outlives is
         refused (and stops the arm), so the rest of the chunk must be dropped by the caller.
         """
-        try:
-            return self._step_joints(q_target, frame)
-        except _Refuse as r:
-            self._record("refused", r.reason)
-            self._stop(f"refused command: {r.reason}")
-            return StepResult("refused", None, (r.reason,))
-        except BaseException as err:
-            if not isinstance(err, (ArmFaultError, SafetyStop)):  # those already stopped the arm
-                self._stop_quietly(f"{type(err).__name__} during a control step: {err}")
-            raise
+        return self._guarded(self._step_joints, q_target, frame)
 
     def _step_joints(self, q_target, frame) -> StepResult:
         lim = self.limits
@@ -622,9 +613,11 @@ class SafeArm:
         self._prev_step = np.zeros(3)
         self._last_command_s = None
 
-    def _guarded(self, target_fn, frame) -> StepResult:
+    def _guarded(self, step, *args) -> StepResult:
+        """``step(*args)`` with a refusal turned into a stop and a refused result, and any other
+        error stopping the arm before it propagates."""
         try:
-            return self._step(target_fn, frame)
+            return step(*args)
         except _Refuse as r:
             self._record("refused", r.reason)
             self._stop(f"refused command: {r.reason}")

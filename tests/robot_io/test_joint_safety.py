@@ -233,7 +233,7 @@ def test_positioning_joint_moves_are_refused_outside_limits_or_box_and_done_insi
     assert arm.sim_time_s - t0 == pytest.approx(0.2 / 1.5)  # the slowest joint at its speed cap
 
 
-def test_joint_limits_config_refuses_nan_and_non_positive_and_defaults_leave_tcp_fields(limits):
+def test_joint_limits_default_when_absent_and_refuse_nan_inf_non_positive_and_unknown_keys(limits):
     assert limits.joints == JointSafetyLimits()
     for bad in (float("nan"), float("inf"), 0.0, -1.0):
         with pytest.raises(ValidationError, match="max_jump_rad"):
