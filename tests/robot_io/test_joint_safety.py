@@ -370,3 +370,14 @@ def test_100000_hostile_joint_actions_pass_nothing_outside_the_limits(fresh_worl
     counts = run_campaign(fresh_world, panda, 100_000, seed=2)
     assert_nothing_passed(counts, 100_000)
     print(counts)
+
+
+def test_a_joint_driven_sim_arm_follows_tcp_commands_through_ik(fresh_world, panda):
+    arm = SimArm(fresh_world, scene_arm=panda)
+    with arm:
+        np.testing.assert_allclose(arm.tcp_pose()[:3, 3], tcp_m(panda, Q_READY))
+        q_goal = Q_READY + 0.05
+        T_goal = panda.tcp_pose(torch.as_tensor(q_goal, device=panda.device)).cpu().numpy()
+        arm.servo(T_goal, PERIOD_S)
+        np.testing.assert_allclose(arm.tcp_pose()[:3, 3], T_goal[:3, 3], atol=1e-4)  # the IK's tolerance
+        np.testing.assert_allclose(arm.tcp_pose()[:3, 3], tcp_m(panda, arm.joint_positions()))
