@@ -34,7 +34,7 @@ from trials.experiments.recipes import (
 )
 from trials.jobs.scene import expert_rollout
 
-__all__ = ["run_demo", "DEMO_BUDGET", "verdicts_once"]
+__all__ = ["run_demo", "DEMO_BUDGET", "demo_report_markdown", "verdicts_once"]
 
 # Sized for <= 15 minutes on 2 CPU cores including setup (measured figures: docs/evaluation.md).
 DEMO_BUDGET = dict(attack_overrides={"iterations": 60}, episodes=40, max_steps=60, num_envs=8, gifs=2)
@@ -68,16 +68,33 @@ def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
     ctx.run_jobs()
     log("[4/4] report: clean vs 3D object vs 2D patch")
     eval_dir = out / "evals" / "demo"
-    body = (eval_dir / "report.md").read_text()
-    body = re.sub(r"\]\((?!http)([^)]+)\)", lambda m: f"]({eval_dir.relative_to(out).as_posix()}/{m.group(1)})", body)
+    table = table1_markdown(summary, ctx, eval_rows(ctx, "demo"))
+    (out / "report.md").write_text(
+        demo_report_markdown(out, policy, eval_dir, table, (eval_dir / "report.md").read_text())
+    )
+    return {
+        "summary": summary,
+        "expert_reached": spec.objects[reached].name if reached >= 0 else None,
+        "report": out / "report.md",
+    }
+
+
+def demo_report_markdown(out: Path, policy: Path, eval_dir: Path, table: str, eval_report: str) -> str:
+    """The demo's ``report.md`` in folder ``out``: a head naming the reference policy ``policy``, the
+    attacks and the evaluation folder ``eval_dir`` (and its ``report.html``, the page to open), then
+    the Table I layout ``table`` (:func:`table1_markdown`'s text, its title dropped for the page's own
+    heading), then the evaluation's ``eval_report`` (its ``report.md``) as a section, its links made
+    relative to ``out``. The 3D-vs-patch verdict is printed once on the whole page (:func:`verdicts_once`)."""
+    rel = eval_dir.relative_to(out).as_posix()
+    body = re.sub(r"\]\((?!http)([^)]+)\)", lambda m: f"]({rel}/{m.group(1)})", eval_report)
     body = body.replace("# Evaluation report", "## Evaluation", 1)
-    page = f"{eval_dir.relative_to(out).as_posix()}/{REPORT_HTML}"
+    page = f"{rel}/{REPORT_HTML}"
     head = [
         "# advobj demo: 3D adversarial object vs 2D patch",
         "",
         f"Reference policy `{policy.relative_to(out) if policy.is_relative_to(out) else policy}`, attacks in "
         "`attacks/`, "
-        f"evaluation in `{eval_dir.relative_to(out).as_posix()}/`. Quick budget: this is a smoke-scale reproduction, "
+        f"evaluation in `{rel}/`. Quick budget: this is a smoke-scale reproduction, "
         "not the paper's numbers.",
         "",
         "The evaluation's page, to open in a browser (paired tests, T-ASR by angle and distance with n on every bar, "
@@ -88,10 +105,4 @@ def run_demo(out: Path, seed: int = 0, log=print, executor=None) -> dict:
         "## Table I layout (by viewing angle)",
         "",
     ]
-    table = table1_markdown(summary, ctx, eval_rows(ctx, "demo")).split("\n", 2)[2]
-    (out / "report.md").write_text("\n".join(head) + table + "\n" + body)
-    return {
-        "summary": summary,
-        "expert_reached": spec.objects[reached].name if reached >= 0 else None,
-        "report": out / "report.md",
-    }
+    return verdicts_once("\n".join(head) + table.split("\n", 2)[2] + "\n" + body)
