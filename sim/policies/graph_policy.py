@@ -365,7 +365,8 @@ class GraphPolicy(nn.Module):
 def reference_frames(image_size: int, contract: PolicyContract, spec=None, n: int = CHECK_FRAMES, cameras=None):
     """``(images, state (n, D) float32 or None)``: frames of ``spec`` (default: the built-in scene)
     rendered by the env (the wrist camera at the policy's size ``image_size``), from fixed initial
-    configurations and the expert's first steps toward the goal (near and far views). ``images``
+    configurations and the expert's first steps toward the goal (near and far views); a joint-space
+    ``contract`` on the scene's arm (the state reads its joint positions). ``images``
     is the wrist camera's ``(n, S, S, 3)`` uint8 when ``cameras`` is None or ``("wrist",)``, else
     ``{camera: (n, H_c, W_c, 3) uint8}`` of each camera named (one that ``spec`` lacks is one line)."""
     spec = load_spec(None) if spec is None else spec
@@ -377,20 +378,23 @@ def reference_frames(image_size: int, contract: PolicyContract, spec=None, n: in
         policy_image_size=image_size if WRIST_CAMERA in cams else None,
         seed=0,
         cameras=cams,
+        control=contract.control,
     )
     try:
-        images, poses = [], []
+        images, poses, joints = [], [], []
         env.reset(seed=0)
         while True:
             images.append(env.images())
             poses.append(env.T_world_tcp)
+            joints.append(env.q)
             if sum(len(i[cams[0]]) for i in images) >= n:
                 break
             env.step(env.expert_actions())
     finally:
         env.close()
     frames = {c: np.concatenate([i[c] for i in images])[:n] for c in cams}
-    state = state_vector(contract, np.concatenate(poses)[:n], spec.gripper.opening_m)
+    q = None if joints[0] is None else np.concatenate(joints)[:n]
+    state = state_vector(contract, np.concatenate(poses)[:n], spec.gripper.opening_m, q)
     return (frames[WRIST_CAMERA] if cams == (WRIST_CAMERA,) else frames), state
 
 

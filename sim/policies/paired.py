@@ -140,7 +140,10 @@ def rollout_paired(
     Args:
         policy: ``act(images[, state]) -> actions`` (:func:`sim.policies.contract.call_policy`:
             ``(B, S, S, 3)`` uint8 for a one-camera policy with ``image_size = S``, else
-            ``{camera: (B, H_c, W_c, 3)}``).
+            ``{camera: (B, H_c, W_c, 3)}``). A joint-space policy (its contract's ``control`` is
+            ``"joint"``) runs on the scene's arm (``ReachEnv(control="joint")``): it reads the
+            joint positions and its joint targets are executed within the arm's limits, as in
+            :func:`sim.policies.rollout.rollout`.
         spec: the scene as rendered (any mesh swap or stereo baseline already applied); it must
             have every camera the policy reads, at its input's size (:func:`sim.policies.contract.check_scene`).
         configs: initial configurations (:class:`sim.configs.InitialConfig`).
@@ -154,8 +157,11 @@ def rollout_paired(
         on_fill: ``on_fill(slot, j)`` after a slot is reset to start ``configs[j]``.
         on_actions: ``on_actions(slots, T_world_tcp, steps, a_adv, a_clean, views)`` after each
             policy call: the asking slots, their ``(n, 4, 4)`` TCP poses and step counts, the
-            decoded ``(n, K, 6)`` actions on the attacked and on the clean views, and the views
-            (:meth:`PairedViews.views`, one per slot).
+            decoded ``(n, K, A)`` actions on the attacked and on the clean views (``A``: 6 for a
+            TCP action, one per joint for a joint action), and the views (:meth:`PairedViews.views`,
+            one per slot). For a joint-space policy also ``q=`` the slots' ``(n, n_joints)`` joint
+            positions and ``arm=`` the scene's :class:`sim.ik.SceneArm`, what
+            :func:`sim.policies.contract.to_delta` needs to turn a joint action into its TCP motion.
         attacked_cameras: the cameras whose attacked view shows the texture (None: every camera
             the policy reads); each must be one the policy reads.
     """
@@ -177,10 +183,17 @@ def rollout_paired(
         )
     S = int(policy.image_size)
     N = max(1, min(int(num_envs), len(configs)))
-    env = ReachEnv(
-        spec, num_envs=N, image_size=S, seed=0, randomization=randomization, render_obs=False, cameras=cameras
-    )
     contract = policy_contract(policy)
+    env = ReachEnv(
+        spec,
+        num_envs=N,
+        image_size=S,
+        seed=0,
+        randomization=randomization,
+        render_obs=False,
+        cameras=cameras,
+        control=contract.control,
+    )
     try:
         obs = PairedViews(env, texture, stereo, cameras, attacked_cameras)
 
@@ -216,7 +229,9 @@ def rollout_paired(
             a_adv = a[: len(slots)]
             a_clean = a[len(slots) :] if obs.attacked else a_adv
             if on_actions is not None:
-                on_actions(slots, env.T_world_tcp[slots], env.steps[slots], a_adv, a_clean, views)
+                # a joint-space policy's actions mean nothing without the joints they move from
+                joints = {} if env.arm is None else {"q": env.q[slots], "arm": env.arm}
+                on_actions(slots, env.T_world_tcp[slots], env.steps[slots], a_adv, a_clean, views, **joints)
             return a_adv
 
         rollout(env, configs, policy, on_done, query=query, on_fill=fill)

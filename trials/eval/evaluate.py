@@ -104,7 +104,9 @@ def rollout_condition(
     and the per-step action errors.
 
     Args:
-        policy: ``act(images (B, S, S, 3) uint8) -> (B, 6)`` with ``image_size = S``.
+        policy: ``act(images (B, S, S, 3) uint8) -> (B, 6)`` with ``image_size = S`` (or its
+            contract's actions: a joint-space policy runs on the scene's arm, and its action errors
+            are those of the TCP motions its joint steps lead to, by FK).
         spec: the scene (``max_steps`` already applied); the condition's mesh swap happens here.
         cond: a :class:`trials.eval.conditions.Condition`.
         configs: initial configurations (:class:`sim.configs.InitialConfig`).
@@ -126,10 +128,11 @@ def rollout_condition(
         slot_of[i] = j
         err[i] = 0.0
 
-    def measure(slots, T, steps, a_adv, a_clean, views):
+    def measure(slots, T, steps, a_adv, a_clean, views, q=None, arm=None):
+        # a joint action's error is that of the TCP motions its joint step leads to (FK, q= and arm=)
         e_t, e_r = action_errors(
-            to_delta(T, a_adv[:, 0], kind, ep.max_step_m, ep.max_step_rad),
-            to_delta(T, a_clean[:, 0], kind, ep.max_step_m, ep.max_step_rad),
+            to_delta(T, a_adv[:, 0], kind, ep.max_step_m, ep.max_step_rad, q=q, arm=arm),
+            to_delta(T, a_clean[:, 0], kind, ep.max_step_m, ep.max_step_rad, q=q, arm=arm),
             ep.max_step_rad,
         )
         if on_frame is not None:
