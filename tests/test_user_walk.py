@@ -155,6 +155,19 @@ def test_the_warning_scan_sees_what_only_w_default_shows(tmp_path):
     assert quiet.returncode == 0 and python_warnings(quiet.stderr) == []
 
 
+def test_the_readme_says_how_to_run_the_installed_advobj_and_it_runs_without_a_warning(tmp_path):
+    """After ``make test`` (or ``make demo``) a user runs the console script the walk runs: the
+    README's quick start names it (``.venv/bin``, or the venv activated), and its help works."""
+    readme = (REPO / "README.md").read_text()
+    quick = readme[readme.index("## Quick start") :]
+    quick = quick[: quick.index("\n## ", 1)]
+    assert "make test" in quick and "`.venv/bin/advobj --help`" in quick and "source .venv/bin/activate" in quick
+    (tmp_path / "home").mkdir()
+    r = run([ADVOBJ, "--help"], tmp_path / "home")
+    assert r.returncode == 0 and "attack" in r.stdout and "trial" in r.stdout, r.stderr[-4000:]
+    assert python_warnings(r.stdout + r.stderr) == [], r.stderr[-4000:]
+
+
 def test_the_documented_onnx_export_script_prints_no_python_warning(tmp_path):
     """docs/workflow.md's export script (at a smaller input), run as the user's own script: it
     writes both policy files and prints no Python warning, torch's exporter notice included."""
