@@ -11,6 +11,11 @@ Framing (v1), ASCII, one line per message::
 command is in flight at a time. A reply that times out or fails its checksum, and an ``ERR CHK``,
 make the host resend the *same* ``SEQ``; the device answers a repeated ``SEQ`` from its reply
 cache without executing it again, so a resend never doubles a motion.
+
+Given ``kinematics`` (the arm's :class:`sim.ik.SceneArm`), the host also sends joint commands:
+``JOINTS`` (measured joints) and ``MOVEJ q1 .. qn duration``. It asks ``JOINTS`` on connect, so a
+firmware without joint commands (``ERR UNKNOWN``), or with another number of joints than the URDF,
+is refused there with one line.
 """
 
 from __future__ import annotations
@@ -19,14 +24,28 @@ import logging
 import random
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from robot_io.arms.base import Arm, Fault
-from robot_io.errors import ArmFaultError, ProtocolError
+from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 
-__all__ = ["SerialArm", "PROTOCOL_VERSION", "STOP_BYTE", "checksum", "encode", "decode", "FAULT_KINDS"]
+if TYPE_CHECKING:
+    from sim.ik import SceneArm
+
+__all__ = [
+    "SerialArm",
+    "PROTOCOL_VERSION",
+    "STOP_BYTE",
+    "checksum",
+    "encode",
+    "decode",
+    "FAULT_KINDS",
+    "NO_JOINT_COMMANDS",
+    "check_joint_target",
+]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +66,27 @@ FAULT_KINDS = {
         "clear the workspace, then reconnect (connect() sends CLEAR)",
     ),
 }
+
+
+#: What the host says when the firmware answers a joint command ``ERR UNKNOWN``.
+NO_JOINT_COMMANDS = "the arm's firmware does not take joint commands"
+
+
+def check_joint_target(who: str, scene_arm: SceneArm, q) -> np.ndarray:
+    """``q`` as ``(n,)`` float64 when it is ``scene_arm.n_joints`` finite numbers, else one
+    :class:`RobotIOError` line naming ``who`` (the driver: ``"UR 10.0.0.2"``, ``"serial arm /dev/ttyACM0"``)."""
+    n = scene_arm.n_joints
+    try:
+        q = np.asarray(q, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RobotIOError(f"{who}: a joint target must be {n} numbers, got {type(q).__name__}") from None
+    if q.shape != (n,):
+        raise RobotIOError(
+            f"{who}: a joint target must be {n} numbers ({', '.join(scene_arm.joint_names)}), got shape {q.shape}"
+        )
+    if not np.isfinite(q).all():
+        raise RobotIOError(f"{who}: a joint target must be finite, got {q.tolist()}")
+    return q
 
 
 def checksum(body: bytes) -> str:
@@ -88,6 +128,14 @@ def _fmt(x: float) -> str:
     return f"{x:.6f}"
 
 
+class _Rejected(ProtocolError):
+    """The device answered ``ERR CODE ...`` (``code``) to a command."""
+
+    def __init__(self, message: str, code: str):
+        self.code = code
+        super().__init__(message)
+
+
 class SerialArm(Arm):
     """Host side of the protocol.
 
@@ -100,6 +148,9 @@ class SerialArm(Arm):
         boot_timeout_ms: how long to wait for the boot banner after opening the port (opening
             toggles DTR, which resets Arduino-style controllers).
         expect_banner: ``False`` for boards that do not reset on open: go straight to ``HELLO``.
+        kinematics: the arm's :class:`sim.ik.SceneArm` (URDF chain, its TCP in the frame of
+            ``POSE``): given, the arm takes joint commands (``JOINTS``, ``MOVEJ``); ``None``, TCP
+            commands only.
     """
 
     name = "serial"
@@ -112,6 +163,8 @@ class SerialArm(Arm):
         retries: int = 3,
         boot_timeout_ms: float = 3000.0,
         expect_banner: bool = True,
+        *,
+        kinematics: SceneArm | None = None,
     ):
         super().__init__()
         self.port = port
@@ -120,6 +173,7 @@ class SerialArm(Arm):
         self.retries = int(retries)
         self.boot_timeout_ms = float(boot_timeout_ms)
         self.expect_banner = bool(expect_banner)
+        self._kinematics = kinematics
         self.device_info: dict[str, str] = {}
         self.stats = {"resends": 0, "checksum_errors": 0, "timeouts": 0, "stale_replies": 0}
         self._ser = None
@@ -174,6 +228,8 @@ class SerialArm(Arm):
                 )
             self.device_info = info
             self._transact(["CLEAR"])
+            if self._kinematics is not None:
+                self._read_joints()  # refuses firmware without joint commands, or with other joints
         except BaseException:
             self._ser.close()
             self._ser = None
@@ -267,7 +323,7 @@ class SerialArm(Arm):
                 code = rest[0] if rest else "?"
                 if code == "FAULT":
                     raise ArmFaultError(self._status_fault() or Fault("device_fault", " ".join(rest), ""))
-                raise ProtocolError(f"serial arm {self.port} rejected {fields[0]}: ERR {' '.join(rest)}")
+                raise _Rejected(f"serial arm {self.port} rejected {fields[0]}: ERR {' '.join(rest)}", code)
             self._link_lost = (
                 f"no valid reply to {fields[0]} after {self.retries + 1} attempts of {self.timeout_ms:.0f} ms"
             )
@@ -372,8 +428,12 @@ class SerialArm(Arm):
     def move_to(self, T_base_tcp: np.ndarray, speed_mps: float, timeout_s: float | None = None) -> None:
         dp, _ = pose_step(self.tcp_pose(), T_base_tcp)
         self._move(T_base_tcp, float(speed_mps))
-        # Polling STATUS doubles as the heartbeat while the device moves.
-        deadline = time.monotonic() + (timeout_s if timeout_s is not None else 2.0 * dp / speed_mps + 2.0)
+        self._wait_idle("move", timeout_s if timeout_s is not None else 2.0 * dp / speed_mps + 2.0)
+
+    def _wait_idle(self, what: str, timeout_s: float) -> None:
+        """Poll ``STATUS`` until the device is ``IDLE``; a fault raises, and a motion still running
+        after ``timeout_s`` is stopped and raised. Polling doubles as the heartbeat while it moves."""
+        deadline = time.monotonic() + timeout_s
         while True:
             st = self._status()
             if st.get("fault", "NONE") != "NONE":
@@ -382,8 +442,68 @@ class SerialArm(Arm):
                 return
             if time.monotonic() > deadline:
                 self.stop()
-                raise ProtocolError(f"serial arm {self.port}: move did not finish in time (state {st.get('state')})")
+                raise ProtocolError(
+                    f"serial arm {self.port}: {what} did not finish in {timeout_s:.1f} s (state {st.get('state')})"
+                )
             time.sleep(0.01)
+
+    # ------------------------------------------------------------------ joints
+    def kinematics(self) -> SceneArm | None:
+        return self._kinematics
+
+    def _joint_command(self, fields: list[str]) -> list[str]:
+        """``_transact`` for a joint command; ``ERR UNKNOWN`` (old firmware) becomes one clear line."""
+        try:
+            return self._transact(fields)[1]
+        except _Rejected as err:
+            if err.code != "UNKNOWN":
+                raise
+            raise ProtocolError(
+                f"serial arm {self.port}: {NO_JOINT_COMMANDS} (firmware {self.device_info.get('fw', '?')} answered "
+                f"{fields[0]} with ERR UNKNOWN): update the firmware, or configure the arm without a URDF"
+            ) from None
+
+    def _read_joints(self) -> np.ndarray:
+        fields = self._joint_command(["JOINTS"])
+        n = self._kinematics.n_joints
+        try:
+            q = np.array([float(x) for x in fields], dtype=np.float64)
+        except ValueError:
+            raise ProtocolError(f"serial arm {self.port}: malformed JOINTS reply {fields}") from None
+        if q.shape != (n,) or not np.isfinite(q).all():
+            raise ProtocolError(
+                f"serial arm {self.port}: JOINTS replied {len(fields)} values {fields}, the arm's URDF has {n} joints "
+                f"({', '.join(self._kinematics.joint_names)})"
+            )
+        return q
+
+    def _joint_target(self, q) -> np.ndarray:
+        if self._kinematics is None:
+            return super().servo_joints(q, 0.0)  # raises: no joint commands
+        return check_joint_target(f"serial arm {self.port}", self._kinematics, q)
+
+    def joint_positions(self) -> np.ndarray:
+        """``JOINTS``: the measured joints, in the order and units of the kinematics' joints."""
+        if self._kinematics is None:
+            return super().joint_positions()  # raises: no joint commands
+        return self._read_joints()
+
+    def _move_joints(self, q: np.ndarray, duration_s: float) -> None:
+        if not (np.isfinite(duration_s) and duration_s >= 0):
+            raise RobotIOError(f"serial arm {self.port}: duration_s must be finite and >= 0, got {duration_s}")
+        self._joint_command(["MOVEJ", *(_fmt(x) for x in q), _fmt(duration_s)])
+
+    def servo_joints(self, q: np.ndarray, duration_s: float) -> None:
+        """``MOVEJ`` to ``q`` over ``duration_s``; returns once the device has taken it."""
+        self._move_joints(self._joint_target(q), float(duration_s))
+
+    def move_joints(self, q: np.ndarray, duration_s: float, timeout_s: float | None = None) -> None:
+        """``MOVEJ`` to ``q`` over ``duration_s``, then wait until the device is there (``STATUS``
+        ``IDLE``). ``timeout_s`` (default: twice ``duration_s`` plus 2 s): a motion still running
+        then is stopped and raised."""
+        q = self._joint_target(q)
+        self._move_joints(q, float(duration_s))
+        self._wait_idle("joint move", timeout_s if timeout_s is not None else 2.0 * float(duration_s) + 2.0)
 
     def stop(self) -> None:
         # Written outside the command lock on purpose: the stop byte must not wait for a reply.

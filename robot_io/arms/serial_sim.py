@@ -8,6 +8,13 @@ any serial port, so the real bytes, framing and timing are exercised. Run it sta
 Fault injection (counters count down per affected message): ``corrupt_replies``,
 ``drop_replies``, ``corrupt_requests`` (treat the next requests as having a bad checksum),
 ``reply_delay_s``, ``boot_delay_s``, ``send_banner``, :meth:`raise_fault`.
+
+Joints: given a ``scene_arm`` (:class:`sim.ik.SceneArm`), the simulated arm holds joint positions
+``q`` and its TCP is their FK (:func:`tcp_from_joints`): ``JOINTS`` reports ``q``, ``MOVEJ`` moves
+the joints along the straight line in joint space, the leading joint at ``max |dq| / duration``
+(capped at ``max_joint_speed_radps``), and ``MOVE`` solves the IK of its pose from the current
+joints and then moves the same way (so a ``MOVE``'s TCP path is not exactly straight here). Without
+a ``scene_arm`` it is firmware without joint commands: ``JOINTS`` and ``MOVEJ`` answer ``ERR UNKNOWN``.
 """
 
 from __future__ import annotations
@@ -17,15 +24,31 @@ import select
 import threading
 import time
 import tty
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from robot_io.arms.serial import PROTOCOL_VERSION, STOP_BYTE, checksum, encode
 from robot_io.poses import interpolate_pose, pose_from_vec, pose_step, pose_to_vec
 
-__all__ = ["SerialArmSimulator", "open_pty_pair"]
+if TYPE_CHECKING:
+    from sim.ik import SceneArm
+
+__all__ = ["SerialArmSimulator", "open_pty_pair", "tcp_from_joints", "JOINT_LIMIT_TOL"]
 
 FIRMWARE = "advobj-sim-1.0"
+#: A ``MOVEJ`` joint this far (rad or m) beyond a position limit is clamped to it (the wire's
+#: ``%.6f`` rounds a target at a limit up to 5e-7 past it); farther, the command is ``ERR RANGE``.
+JOINT_LIMIT_TOL = 1e-6
+
+
+def tcp_from_joints(scene_arm: SceneArm, q) -> np.ndarray:
+    """``T_world_tcp (4, 4)`` float64 of joint positions ``q (n,)``: the scene arm's FK
+    (:meth:`sim.ik.SceneArm.tcp_pose`) as numpy."""
+    import torch  # lazy: robot_io start-up (torch)
+
+    q_t = torch.as_tensor(np.asarray(q, dtype=np.float64), dtype=torch.float64, device=scene_arm.device)
+    return scene_arm.tcp_pose(q_t).detach().cpu().numpy()
 
 
 def open_pty_pair() -> tuple[int, int, str]:
@@ -48,6 +71,11 @@ class SerialArmSimulator:
         boot_delay_s: time from start to the boot banner (requests before it are ignored, as a
             real bootloader would).
         max_speed_mps, max_speed_radps: the device's own motion limits.
+        scene_arm: the arm's :class:`sim.ik.SceneArm`: the device then takes joint commands and
+            its TCP is the FK of its joints (``T_base_tcp`` is then ignored); ``None``: firmware
+            without joint commands.
+        q: the joints at start (default: ``scene_arm.q_home``).
+        max_joint_speed_radps: the device's cap on the leading joint's speed.
     """
 
     def __init__(
@@ -63,6 +91,9 @@ class SerialArmSimulator:
         keep_fd: int | None = None,
         protocol_version: int = PROTOCOL_VERSION,
         device_id: str = "SIM-0001",
+        scene_arm: SceneArm | None = None,
+        q=None,
+        max_joint_speed_radps: float = 3.0,
     ):
         self.fd = fd
         self.protocol_version = int(protocol_version)
@@ -77,6 +108,14 @@ class SerialArmSimulator:
         self.T_base_tcp = (
             pose_from_vec([0.4, 0.0, 0.3, np.pi, 0.0, 0.0]) if T_base_tcp is None else np.array(T_base_tcp, float)
         )
+        self.scene_arm = scene_arm
+        self.max_joint_speed_radps = float(max_joint_speed_radps)
+        self.q: np.ndarray | None = None
+        self.joint_target: tuple[np.ndarray, float] | None = None  # (q_goal, leading joint speed)
+        if scene_arm is not None:
+            self._q_lo = scene_arm.model.limits.q_min.cpu().numpy()
+            self._q_hi = scene_arm.model.limits.q_max.cpu().numpy()
+            self._set_q(np.asarray(scene_arm.q_home if q is None else q, dtype=np.float64))
         # Fault injection knobs (see the module docstring).
         self.corrupt_replies = 0
         self.drop_replies = 0
@@ -130,8 +169,17 @@ class SerialArmSimulator:
         """Simulate ``ESTOP``, ``PSTOP``, ...: motion stops and commands answer ``ERR FAULT``."""
         with self._lock:
             self.fault_code = code
-            self.target = None
+            self.target = self.joint_target = None
         self._send(f"#FAULT {code}\n".encode())
+
+    @property
+    def moving(self) -> bool:
+        """A TCP or joint target is being followed."""
+        return self.target is not None or self.joint_target is not None
+
+    def _set_q(self, q: np.ndarray) -> None:
+        self.q = np.array(q, dtype=np.float64)
+        self.T_base_tcp = tcp_from_joints(self.scene_arm, self.q)
 
     # ------------------------------------------------------------------ I/O
     def _send(self, data: bytes) -> None:
@@ -179,18 +227,27 @@ class SerialArmSimulator:
 
     def _stop_motion(self) -> None:
         with self._lock:
-            self.target = None
+            self.target = self.joint_target = None
             self.stops += 1
         self._send(b"#STOPPED\n")
 
     def _tick(self, dt: float, now: float) -> None:
         with self._lock:
-            if self.target is None:
+            if not self.moving:
                 return
             if (now - self._last_rx) * 1000.0 > self.heartbeat_timeout_ms:
-                self.target = None
+                self.target = self.joint_target = None
                 self.fault_code = "HEARTBEAT"
                 notice = b"#FAULT HEARTBEAT\n"
+            elif self.joint_target is not None:
+                q_goal, rate = self.joint_target
+                need = float(np.max(np.abs(q_goal - self.q))) / rate
+                if need <= dt:
+                    self._set_q(q_goal)  # exactly the target: no rounding drift
+                    self.joint_target = None
+                else:
+                    self._set_q(self.q + (q_goal - self.q) * (dt / need))
+                return
             else:
                 T_goal, speed = self.target
                 dp, dr = pose_step(self.T_base_tcp, T_goal)
@@ -254,7 +311,7 @@ class SerialArmSimulator:
             if cmd == "HB":
                 return ["OK"]
             if cmd == "STATUS":
-                state = "FAULT" if self.fault_code != "NONE" else ("MOVING" if self.target is not None else "IDLE")
+                state = "FAULT" if self.fault_code != "NONE" else ("MOVING" if self.moving else "IDLE")
                 pose = ",".join(f"{x:.6f}" for x in pose_to_vec(self.T_base_tcp))
                 return ["OK", f"state={state}", f"fault={self.fault_code}", f"pose={pose}"]
             if cmd == "POSE":
@@ -275,9 +332,53 @@ class SerialArmSimulator:
                     return ["ERR", "ARGS", "not a number"]
                 if not np.isfinite(v).all() or v[6] <= 0:
                     return ["ERR", "RANGE"]
-                self.target = (pose_from_vec(v[:6]), min(float(v[6]), self.max_speed_mps))
+                speed = min(float(v[6]), self.max_speed_mps)
+                if self.scene_arm is not None:
+                    return self._move_through_ik(pose_from_vec(v[:6]), speed)
+                self.target = (pose_from_vec(v[:6]), speed)
                 return ["OK"]
+            if self.scene_arm is not None and cmd == "JOINTS":
+                return ["OK", *(f"{x:.6f}" for x in self.q)]
+            if self.scene_arm is not None and cmd == "MOVEJ":
+                return self._movej(args)
             return ["ERR", "UNKNOWN", cmd]
+
+    def _start_joint_move(self, q_goal: np.ndarray, duration_s: float) -> None:
+        """Move the joints to ``q_goal`` along the joint-space line in ``duration_s`` (or slower)."""
+        dq = float(np.max(np.abs(q_goal - self.q)))
+        rate = dq / duration_s if duration_s > 0 else np.inf
+        self.target = None
+        self.joint_target = (q_goal, min(rate, self.max_joint_speed_radps)) if dq > 0 else None
+
+    def _movej(self, args: list[str]) -> list[str]:
+        n = self.scene_arm.n_joints
+        if self.fault_code != "NONE":
+            return ["ERR", "FAULT", self.fault_code]
+        if len(args) != n + 1:
+            return ["ERR", "ARGS", f"MOVEJ takes {n} joints and a duration"]
+        try:
+            v = np.array([float(a) for a in args])
+        except ValueError:
+            return ["ERR", "ARGS", "not a number"]
+        q, duration_s = v[:n], float(v[n])
+        if not np.isfinite(v).all() or duration_s < 0:
+            return ["ERR", "RANGE"]
+        if ((q < self._q_lo - JOINT_LIMIT_TOL) | (q > self._q_hi + JOINT_LIMIT_TOL)).any():
+            return ["ERR", "RANGE", "joint limit"]
+        self._start_joint_move(np.clip(q, self._q_lo, self._q_hi), duration_s)
+        return ["OK"]
+
+    def _move_through_ik(self, T_goal: np.ndarray, speed_mps: float) -> list[str]:
+        import torch  # lazy: robot_io start-up (torch)
+
+        arm = self.scene_arm
+        q0 = torch.as_tensor(self.q, dtype=torch.float64, device=arm.device)[None]
+        res = arm.ik(torch.as_tensor(T_goal, dtype=torch.float64, device=arm.device)[None], q0)
+        if not bool(res.converged[0]):
+            return ["ERR", "RANGE", "unreachable"]
+        dp, dr = pose_step(self.T_base_tcp, T_goal)
+        self._start_joint_move(res.q[0].cpu().numpy(), max(dp / speed_mps, dr / self.max_speed_radps))
+        return ["OK"]
 
 
 def main() -> None:

@@ -8,9 +8,14 @@
   asynchronously and :meth:`URArm.move_to` kicks the watchdog (and checks for faults) while it
   polls ``getAsyncOperationProgressEx`` for the end of the move; a blocking ``moveL`` longer than
   the watchdog period would stop the control script mid-move.
+* Given ``kinematics`` (the UR's :class:`sim.ik.SceneArm`), the arm also takes joint commands:
+  :meth:`URArm.joint_positions` reads ``getActualQ``, :meth:`URArm.servo_joints` streams ``servoJ``
+  and :meth:`URArm.move_joints` runs an asynchronous ``moveJ`` waited for like ``moveL`` (watchdog
+  kicked, faults checked, a timeout, ``stopJ`` when interrupted).
 * A protective stop, an e-stop, a stopped control script or a dropped link becomes an
   :class:`ArmFaultError` that says what happened and how to recover (via ``DashboardClient``).
-* ``disconnect`` always runs ``servoStop``/``speedStop`` -> ``stopScript`` -> ``disconnect``,
+* ``disconnect`` always runs ``servoStop``/``speedStop`` (both after ``servoJ`` in ``speedL`` mode)
+  -> ``stopScript`` -> ``disconnect``,
   each step in a ``finally`` so one failing call cannot skip the next.
 """
 
@@ -18,16 +23,21 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Literal
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from robot_io.arms.base import Arm, Fault
-from robot_io.errors import ArmFaultError, MissingExtraError, require_extra
+from robot_io.arms.serial import check_joint_target
+from robot_io.errors import ArmFaultError, MissingExtraError, RobotIOError, require_extra
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 from sim.geometry import so3_log
 
-__all__ = ["URArm", "PROTECTIVE_STOP_RECOVERY"]
+if TYPE_CHECKING:
+    from sim.ik import SceneArm
+
+__all__ = ["URArm", "PROTECTIVE_STOP_RECOVERY", "UR_JOINTS", "joint_move_speed_radps"]
 
 log = logging.getLogger(__name__)
 
@@ -36,12 +46,39 @@ log = logging.getLogger(__name__)
 _MOVE_MARGIN_S = 2.0
 _MOVE_ROT_RADPS = 0.5
 _STOP_DECEL_MPS2 = 10.0  # ur-rtde's stopL default
+_STOP_DECEL_RADPS2 = 2.0  # ur-rtde's stopJ default (leading joint)
+_MIN_JOINT_SPEED_RADPS = 1e-3  # moveJ speed of a move that goes nowhere (ur-rtde refuses 0)
+#: Joints of every UR arm (base, shoulder, elbow, wrist 1-3).
+UR_JOINTS = 6
 
 PROTECTIVE_STOP_RECOVERY = (
     "check the cause on the teach pendant (collision, joint limit), clear the workspace, then "
     "unlock the protective stop (URArm.recover() calls DashboardClient.unlockProtectiveStop and "
     "RTDEControlInterface.reuploadScript) and reconnect"
 )
+
+
+def joint_move_speed_radps(distance_rad: float, duration_s: float) -> float:
+    """The ``moveJ`` speed (leading joint, rad/s) for a move of ``distance_rad`` (the largest joint
+    change) to take about ``duration_s``: the mean speed ``distance_rad / duration_s``.
+
+    Never faster: the caller's ``duration_s`` comes from a speed cap (:meth:`robot_io.safety.SafeArm.move_joints`),
+    so the leading joint cruises at that cap and the trapezoid's ramps make the move take
+    ``speed / acceleration`` longer than ``duration_s``. A move of zero distance gets a small speed
+    (ur-rtde refuses 0); a move no finite speed makes in ``duration_s`` (zero time, overflow) is a
+    :class:`RobotIOError`.
+    """
+    if not (np.isfinite(distance_rad) and distance_rad >= 0 and np.isfinite(duration_s) and duration_s >= 0):
+        raise RobotIOError(
+            f"joint move: distance_rad and duration_s must be finite and >= 0, got {distance_rad} and {duration_s}"
+        )
+    if distance_rad == 0:
+        return _MIN_JOINT_SPEED_RADPS
+    with np.errstate(over="ignore"):
+        v = distance_rad / duration_s if duration_s > 0 else np.inf
+    if not np.isfinite(v):
+        raise RobotIOError(f"joint move: {distance_rad:.4g} rad in {duration_s:.4g} s is no finite speed")
+    return max(v, _MIN_JOINT_SPEED_RADPS)
 
 
 class URArm(Arm):
@@ -53,6 +90,10 @@ class URArm(Arm):
         acceleration_mps2: Cartesian acceleration for ``moveL`` / ``speedL``.
         lookahead_time_s, gain: ``servoL`` smoothing (UR ranges 0.03-0.2 s and 100-2000).
         watchdog_min_hz: the controller stops the arm if not kicked at least this often.
+        kinematics: the arm's :class:`sim.ik.SceneArm` (a UR URDF chain, 6 joints; its TCP in the
+            frame of ``getActualTCPPose``): given, the arm takes joint commands (``servoJ``,
+            ``moveJ``); ``None``, TCP commands only.
+        joint_acceleration_radps2: ``moveJ`` acceleration of the leading joint.
     """
 
     name = "ur_rtde"
@@ -65,6 +106,9 @@ class URArm(Arm):
         lookahead_time_s: float = 0.1,
         gain: float = 300.0,
         watchdog_min_hz: float = 10.0,
+        *,
+        kinematics: SceneArm | None = None,
+        joint_acceleration_radps2: float = 1.4,
     ):
         super().__init__()
         if mode not in ("servoL", "speedL"):
@@ -75,6 +119,10 @@ class URArm(Arm):
         self.lookahead_time_s = float(lookahead_time_s)
         self.gain = float(gain)
         self.watchdog_min_hz = float(watchdog_min_hz)
+        self._kinematics = kinematics
+        self.joint_acceleration_radps2 = float(joint_acceleration_radps2)
+        # The stop calls that end what was streamed: servoL/servoJ -> servoStop, speedL -> speedStop.
+        self._stream_stops = {"servoStop" if mode == "servoL" else "speedStop"}
         self._rtde_c = None
         self._rtde_r = None
         self._dashboard_mod = None
@@ -82,6 +130,12 @@ class URArm(Arm):
 
     # ------------------------------------------------------------------ connection
     def _open(self) -> None:
+        kin = self._kinematics
+        if kin is not None and kin.n_joints != UR_JOINTS:
+            raise RobotIOError(
+                f"UR {self.host}: the arm's URDF chain has {kin.n_joints} joints ({', '.join(kin.joint_names)}); "
+                f"a UR arm has {UR_JOINTS}: give the UR's URDF (e.g. the shipped 'ur5')"
+            )
         rtde_control = require_extra("rtde_control", "ur", "the UR arm driver")
         rtde_receive = require_extra("rtde_receive", "ur", "the UR arm driver")
         self._dashboard_mod = require_extra("dashboard_client", "ur", "the UR arm driver")
@@ -143,7 +197,7 @@ class URArm(Arm):
         try:
             if c is not None:
                 try:
-                    c.servoStop() if self.mode == "servoL" else c.speedStop()
+                    self._stop_streams(c)
                 finally:
                     try:
                         c.stopScript()
@@ -203,23 +257,35 @@ class URArm(Arm):
         """
         self.keepalive()
         self._require_ok()
-        c = self._rtde_c
         T_goal = np.asarray(T_base_tcp, dtype=np.float64)
         v = float(speed_mps)
         if timeout_s is None:
             dp, dr = pose_step(self.tcp_pose(), T_goal)
             timeout_s = 2.0 * (dp / v + v / self.acceleration_mps2 + dr / _MOVE_ROT_RADPS) + _MOVE_MARGIN_S
+        self._run_async_move(
+            "moveL",
+            lambda c: c.moveL(pose_to_vec(T_goal), v, self.acceleration_mps2, True),
+            timeout_s,
+            lambda c: c.stopL(_STOP_DECEL_MPS2),
+        )
+
+    def _run_async_move(
+        self, what: str, start: Callable[[object], bool], timeout_s: float, stop: Callable[[object], None]
+    ) -> None:
+        """Start an asynchronous move (``start(control_interface)``) and wait for its end, kicking the
+        watchdog and checking faults; on a fault, the timeout or Ctrl-C the move is ended by ``stop``."""
+        c = self._rtde_c
         # The operation id changes when the controller starts our move; until then the status
         # register may still show the previous (finished) operation.
         before = c.getAsyncOperationProgressEx().operationId()
         poll_s = min(0.01, 0.25 / self.watchdog_min_hz)
         try:
-            if not c.moveL(pose_to_vec(T_goal), v, self.acceleration_mps2, True):
+            if not start(c):
                 self._require_ok()  # a refused move is usually a fault raised meanwhile
                 raise ArmFaultError(
                     Fault(
                         "device_fault",
-                        "moveL was rejected by the controller",
+                        f"{what} was rejected by the controller",
                         "check the target is reachable and the teach pendant log",
                     )
                 )
@@ -235,7 +301,7 @@ class URArm(Arm):
                     raise ArmFaultError(
                         Fault(
                             "device_fault",
-                            f"moveL did not finish within {timeout_s:.1f} s",
+                            f"{what} did not finish within {timeout_s:.1f} s",
                             "check the teach pendant for what held the arm back",
                         )
                     )
@@ -243,9 +309,9 @@ class URArm(Arm):
         except BaseException:
             # Fault, timeout, Ctrl-C: an asynchronous move keeps going unless stopped (servoStop does not).
             try:
-                c.stopL(_STOP_DECEL_MPS2)
+                stop(c)
             except Exception as err:  # noqa: BLE001 - a faulted controller may refuse; the error raised matters more
-                log.warning("UR %s: stopL after an interrupted move failed (%s)", self.host, err)
+                log.warning("UR %s: stopping the interrupted %s failed (%s)", self.host, what, err)
             raise
 
     def servo(self, T_base_tcp: np.ndarray, duration_s: float) -> None:
@@ -266,10 +332,67 @@ class URArm(Arm):
 
     def stop(self) -> None:
         if self._rtde_c is not None:
-            if self.mode == "servoL":
-                self._rtde_c.servoStop()
-            else:
-                self._rtde_c.speedStop()
+            self._stop_streams(self._rtde_c)
+
+    def _stop_streams(self, c) -> None:
+        """``servoStop`` and/or ``speedStop``: whatever ends what this session streamed; each is tried
+        even when another fails, and the first failure is raised after."""
+        first: Exception | None = None
+        for name in sorted(self._stream_stops):
+            try:
+                getattr(c, name)()
+            except Exception as err:  # noqa: BLE001 - re-raised below once every stop was tried
+                first = first or err
+        if first is not None:
+            raise first
+
+    # ------------------------------------------------------------------ joints
+    def kinematics(self) -> SceneArm | None:
+        return self._kinematics
+
+    def _joint_target(self, q) -> np.ndarray:
+        if self._kinematics is None:
+            return super().servo_joints(q, 0.0)  # raises: no joint commands
+        return check_joint_target(f"UR {self.host}", self._kinematics, q)
+
+    def joint_positions(self) -> np.ndarray:
+        """``getActualQ`` (rad), in the order of the kinematics' joints."""
+        if self._kinematics is None:
+            return super().joint_positions()  # raises: no joint commands
+        if self._rtde_r is None:
+            raise ArmFaultError(Fault("connection_lost", "not connected to the UR controller", "call connect()"))
+        q = np.asarray(self._rtde_r.getActualQ(), dtype=np.float64)
+        n = self._kinematics.n_joints
+        if q.shape != (n,):
+            raise RobotIOError(f"UR {self.host}: getActualQ returned {q.size} values, the arm's URDF has {n} joints")
+        return q
+
+    def servo_joints(self, q: np.ndarray, duration_s: float) -> None:
+        """Stream one ``servoJ`` target, reached over ``duration_s`` (the step period)."""
+        self.keepalive()  # first: even if this step raises, the controller knows we were alive just now
+        q = self._joint_target(q)
+        self._require_ok()
+        self._stream_stops.add("servoStop")
+        # ur-rtde ignores servoJ's speed and acceleration arguments; time is the step period.
+        self._rtde_c.servoJ([float(x) for x in q], 0.0, 0.0, float(duration_s), self.lookahead_time_s, self.gain)
+
+    def move_joints(self, q: np.ndarray, duration_s: float, timeout_s: float | None = None) -> None:
+        """``moveJ`` to ``q`` with the leading joint at :func:`joint_move_speed_radps`, waited for like
+        :meth:`move_to`. ``timeout_s`` (default: twice the move's time with its ramps, plus a margin):
+        a move still running then is stopped (``stopJ``) and raised as a fault."""
+        self.keepalive()
+        q = self._joint_target(q)
+        self._require_ok()
+        distance = float(np.max(np.abs(q - self.joint_positions())))
+        v = joint_move_speed_radps(distance, float(duration_s))
+        if timeout_s is None:
+            timeout_s = 2.0 * (distance / v + v / self.joint_acceleration_radps2) + _MOVE_MARGIN_S
+        self._run_async_move(
+            "moveJ",
+            lambda c: c.moveJ([float(x) for x in q], v, self.joint_acceleration_radps2, True),
+            timeout_s,
+            lambda c: c.stopJ(_STOP_DECEL_RADPS2),
+        )
 
     # ------------------------------------------------------------------ recovery
     def recover(self) -> None:

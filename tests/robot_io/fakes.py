@@ -12,6 +12,25 @@ import types
 
 import numpy as np
 
+from robot_io.arms.serial_sim import tcp_from_joints
+from robot_io.poses import pose_from_vec, pose_to_vec
+
+# ---------------------------------------------------------------------------- joint-commanded arms
+
+#: A UR5 configuration with the tool pointing down, its TCP about 0.49 m in front of the base and
+#: 0.43 m above it, away from every joint limit and singularity.
+Q_UR5_READY = (0.0, -1.571, 1.571, -1.571, -1.571, 0.0)
+
+
+def ur5_scene_arm(control_period_s: float = 0.05):
+    """The shipped UR5 as a :class:`sim.ik.SceneArm`: base frame = world frame, TCP = ``tool0``,
+    home :data:`Q_UR5_READY`."""
+    from sim.ik import SceneArm
+    from sim.kinematics import shipped_arm
+
+    return SceneArm(shipped_arm("ur5"), np.eye(4), np.eye(4), control_period_s, np.array(Q_UR5_READY))
+
+
 # ---------------------------------------------------------------------------- ur-rtde
 
 
@@ -30,10 +49,19 @@ class FakeURController:
       previous operation, as when the control script has not started the move thread yet).
       ``stopL`` ends it where the TCP is; ``stall_moves`` makes moves never finish;
       ``protective_stop_after_s`` raises a protective stop that long into a move (which freezes it).
+    * joints ``q`` (``getActualQ``): ``servoJ`` sets them, ``moveJ`` moves them like ``moveL`` moves
+      the TCP (the leading joint at ``speed``; ``stopJ`` ends it). Given ``kinematics`` (a
+      :class:`sim.ik.SceneArm`), the TCP follows their FK and starts at the FK of ``q_home``;
+      without it, the joints are tracked alone. TCP commands (``servoL``, ``moveL``) move the TCP
+      only, never the joints.
     """
 
-    def __init__(self, pose=(0.4, 0.0, 0.3, 3.14159, 0.0, 0.0)):
+    def __init__(self, pose=(0.4, 0.0, 0.3, 3.14159, 0.0, 0.0), kinematics=None):
+        self.kinematics = kinematics
         self.pose = list(pose)
+        self.q = [0.0] * 6
+        if kinematics is not None:
+            self.set_q(kinematics.q_home)
         self.calls: list[tuple] = []
         self.protective_stopped = False
         self.emergency_stopped = False
@@ -61,6 +89,12 @@ class FakeURController:
 
     def log(self, *call):
         self.calls.append(call)
+
+    def set_q(self, q) -> None:
+        """The joints are ``q``; with kinematics the TCP is their FK."""
+        self.q = [float(x) for x in q]
+        if self.kinematics is not None:
+            self.pose = pose_to_vec(tcp_from_joints(self.kinematics, self.q))
 
     def names(self) -> list[str]:
         return [c[0] for c in self.calls]
@@ -97,14 +131,26 @@ class FakeURController:
         s = 1.0 if m["duration"] <= 0 else min(1.0, (now - m["t0"]) / m["duration"])
         if self.stall_moves:
             s = min(s, 0.5)
-        self.pose = [a + s * (b - a) for a, b in zip(m["from"], m["to"])]
+        at = [a + s * (b - a) for a, b in zip(m["from"], m["to"])]
+        if m["joints"]:
+            self.set_q(at)
+        else:
+            self.pose = at
         if s >= 1.0:
             self.move = None
 
     def start_move(self, pose, speed) -> float:
+        """A ``moveL`` to ``pose`` at ``speed`` m/s; returns its duration."""
         d = float(np.linalg.norm(np.subtract(pose[:3], self.pose[:3])))
-        duration = d / speed
-        self.move = {"t0": time.monotonic(), "duration": duration, "from": list(self.pose), "to": list(pose)}
+        return self._start(d / speed, list(self.pose), list(pose), joints=False)
+
+    def start_joint_move(self, q, speed) -> float:
+        """A ``moveJ`` to ``q`` with the leading joint at ``speed`` rad/s; returns its duration."""
+        d = float(np.max(np.abs(np.subtract(q, self.q))))
+        return self._start(d / speed, list(self.q), [float(x) for x in q], joints=True)
+
+    def _start(self, duration, start, goal, joints: bool) -> float:
+        self.move = {"t0": time.monotonic(), "duration": duration, "from": start, "to": goal, "joints": joints}
         self.op_id = (self.op_id + 1) % 128
         return duration
 
@@ -160,6 +206,20 @@ def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
             ctrl.update()
             return True
 
+        def moveJ(self, q, speed=1.05, acceleration=1.4, asynchronous=False):
+            ctrl.log("moveJ", list(q), speed, acceleration, asynchronous)
+            ctrl.feed()
+            ctrl.update()
+            if ctrl.protective_stopped or not ctrl.program_running:
+                return False
+            duration = ctrl.start_joint_move(list(q), speed)
+            if asynchronous:
+                self._stale = ctrl.stale_polls
+                return True
+            time.sleep(duration)  # blocking: nothing else reaches the controller meanwhile
+            ctrl.update()
+            return True
+
         def getAsyncOperationProgressEx(self):
             ctrl.update()
             if self._stale > 0:  # the script has not started the move thread yet
@@ -172,6 +232,18 @@ def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
             ctrl.feed()
             ctrl.update()
             ctrl.move = None
+
+        def stopJ(self, a=2.0, asynchronous=False):
+            ctrl.log("stopJ", a)
+            ctrl.feed()
+            ctrl.update()
+            ctrl.move = None
+
+        def servoJ(self, q, speed, acceleration, time, lookahead_time, gain):
+            ctrl.log("servoJ", list(q), speed, acceleration, time, lookahead_time, gain)
+            ctrl.feed()
+            ctrl.set_q(q)
+            return True
 
         def servoL(self, pose, speed, acceleration, time, lookahead_time, gain):
             ctrl.log("servoL", list(pose), speed, acceleration, time, lookahead_time, gain)
@@ -221,6 +293,10 @@ def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
         def getActualTCPPose(self):
             ctrl.update()
             return list(ctrl.pose)
+
+        def getActualQ(self):
+            ctrl.update()
+            return list(ctrl.q)
 
         def isProtectiveStopped(self):
             ctrl.update()
@@ -503,7 +579,6 @@ def install_video_capture(monkeypatch, dev: FakeCaptureDevice | None = None) -> 
 # ---------------------------------------------------------------------------- a pure-math arm
 
 from robot_io.arms.base import Arm, Fault  # noqa: E402
-from robot_io.poses import pose_from_vec  # noqa: E402
 
 
 def make_pose(x=0.4, y=0.0, z=0.3, rotvec=(np.pi, 0.0, 0.0)) -> np.ndarray:

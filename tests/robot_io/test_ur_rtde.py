@@ -7,11 +7,15 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from robot_io.arms.ur_rtde import URArm
+from robot_io.arms.serial_sim import tcp_from_joints
+from robot_io.arms.ur_rtde import UR_JOINTS, URArm, joint_move_speed_radps
 from robot_io.config import build_arm, hardware_config_from_dict
-from robot_io.errors import ArmFaultError, MissingExtraError
-from tests.robot_io.fakes import FakeURController, install_ur
+from robot_io.errors import ArmFaultError, MissingExtraError, RobotIOError
+from robot_io.safety import SafeArm, SafetyLimits
+from tests.robot_io.fakes import Q_UR5_READY, FakeURController, install_ur, ur5_scene_arm
 
 SAFETY = {"workspace_min_m": [0.0, -0.5, 0.0], "workspace_max_m": [0.8, 0.5, 0.6], "max_frame_age_ms": 1000}
 
@@ -250,3 +254,169 @@ def test_identity_without_the_controller_serial_still_connects(monkeypatch, capl
     assert ident["host"] == "10.0.0.2" and "serial" not in ident
     assert ("model" in ident) == (case == "no_getSerialNumber")
     assert (case == "dashboard_unreachable") == any("serial number" in r.getMessage() for r in caplog.records)
+
+
+# ---------------------------------------------------------------------------- joint commands
+
+
+@pytest.fixture(scope="module")
+def ur5():
+    return ur5_scene_arm()
+
+
+@pytest.fixture
+def joint_ur(monkeypatch, ur5):
+    """A connected URArm with the UR5's kinematics, on a fake controller whose TCP is the FK of its joints."""
+    ctrl = install_ur(monkeypatch, FakeURController(kinematics=ur5))
+    arm = URArm("10.0.0.2", kinematics=ur5)
+    arm.connect()
+    yield ctrl, arm
+    arm.disconnect()
+
+
+def servo_j_calls(ctrl) -> list[tuple]:
+    return [c for c in ctrl.calls if c[0] == "servoJ"]
+
+
+def test_servo_joints_streams_servo_j_and_joint_positions_reads_them_back(joint_ur, ur5):
+    ctrl, arm = joint_ur
+    assert arm.kinematics() is ur5
+    q = np.array(Q_UR5_READY) + 0.01
+    arm.servo_joints(q, 0.05)
+    _, q_sent, _, _, t, lookahead, gain = servo_j_calls(ctrl)[-1]
+    np.testing.assert_array_equal(q_sent, q)
+    assert t == 0.05 and lookahead == arm.lookahead_time_s and gain == arm.gain
+    np.testing.assert_array_equal(arm.joint_positions(), q)
+    np.testing.assert_allclose(arm.tcp_pose(), tcp_from_joints(ur5, q), atol=1e-9)
+    assert ctrl.names().index("kickWatchdog") < ctrl.names().index("servoJ")
+
+
+@pytest.mark.parametrize("bad", [np.zeros(5), np.zeros(7), np.zeros((2, 6)), [0.0] * 5 + [np.nan], "q"])
+@pytest.mark.parametrize("method", ["servo_joints", "move_joints"])
+def test_a_malformed_joint_target_is_refused_with_one_line_and_nothing_sent(joint_ur, bad, method):
+    ctrl, arm = joint_ur
+    with pytest.raises(RobotIOError) as info:
+        getattr(arm, method)(bad, 0.05)
+    assert "\n" not in str(info.value) and "UR 10.0.0.2: a joint target must be" in str(info.value)
+    assert not {"servoJ", "moveJ"} & set(ctrl.names())
+
+
+def test_kinematics_without_six_joints_is_refused_on_connect_before_anything_opens(monkeypatch):
+    from sim.ik import SceneArm
+    from sim.kinematics import shipped_arm
+
+    panda = SceneArm(shipped_arm("panda"), np.eye(4), np.eye(4), 0.05, np.zeros(7))
+    ctrl = install_ur(monkeypatch)
+    arm = URArm("10.0.0.2", kinematics=panda)
+    with pytest.raises(RobotIOError, match=f"has 7 joints .*a UR arm has {UR_JOINTS}") as info:
+        arm.connect()
+    assert "\n" not in str(info.value) and not arm.connected and ctrl.calls == []
+
+
+def test_an_arm_without_kinematics_takes_no_joint_commands(monkeypatch):
+    ctrl = install_ur(monkeypatch)
+    with URArm("10.0.0.2") as arm:
+        assert arm.kinematics() is None
+        for call in (lambda: arm.joint_positions(), lambda: arm.servo_joints(np.zeros(6), 0.05)):
+            with pytest.raises(RobotIOError, match="takes no joint commands"):
+                call()
+    assert "servoJ" not in ctrl.names()
+
+
+def test_a_protective_stop_refuses_a_joint_servo_before_it_is_sent(joint_ur):
+    ctrl, arm = joint_ur
+    ctrl.protective_stopped = True
+    with pytest.raises(ArmFaultError) as info:
+        arm.servo_joints(np.array(Q_UR5_READY), 0.05)
+    assert info.value.fault.kind == "protective_stop" and "unlockProtectiveStop" in str(info.value)
+    assert servo_j_calls(ctrl) == []
+
+
+def test_move_joints_runs_an_asynchronous_move_j_at_the_mean_speed_and_returns_when_there(joint_ur, ur5):
+    ctrl, arm = joint_ur
+    q = np.array(Q_UR5_READY)
+    q[0] += 0.25
+    t0 = time.monotonic()
+    arm.move_joints(q, 0.5)  # five watchdog periods
+    assert time.monotonic() - t0 >= 0.45
+    _, q_sent, speed, accel, asynchronous = next(c for c in ctrl.calls if c[0] == "moveJ")
+    assert asynchronous is True and speed == pytest.approx(0.25 / 0.5) and accel == arm.joint_acceleration_radps2
+    np.testing.assert_allclose(arm.joint_positions(), q, atol=1e-12)
+    np.testing.assert_allclose(arm.tcp_pose(), tcp_from_joints(ur5, q), atol=1e-9)
+    assert not ctrl.watchdog_tripped and ctrl.max_feed_gap_s <= 1 / arm.watchdog_min_hz
+
+
+def test_a_move_j_that_does_not_end_times_out_and_is_stopped_with_stop_j(joint_ur):
+    ctrl, arm = joint_ur
+    ctrl.stall_moves = True
+    q = np.array(Q_UR5_READY)
+    q[0] += 0.1
+    with pytest.raises(ArmFaultError, match="moveJ did not finish within 0.3 s"):
+        arm.move_joints(q, 0.2, timeout_s=0.3)
+    assert "stopJ" in ctrl.names() and "stopL" not in ctrl.names() and ctrl.move is None
+    assert not ctrl.watchdog_tripped
+
+
+def test_a_protective_stop_during_move_j_is_an_explained_fault_and_the_move_is_stopped(joint_ur):
+    ctrl, arm = joint_ur
+    ctrl.protective_stop_after_s = 0.1
+    q = np.array(Q_UR5_READY)
+    q[0] += 0.25
+    t0 = time.monotonic()
+    with pytest.raises(ArmFaultError) as info:
+        arm.move_joints(q, 0.5)
+    assert time.monotonic() - t0 < 0.3  # seen while moving, not after the move's planned end
+    assert info.value.fault.kind == "protective_stop" and "stopJ" in ctrl.names()
+    assert abs(arm.joint_positions()[0] - Q_UR5_READY[0]) < 0.25  # frozen part-way
+
+
+def test_stop_after_a_joint_servo_in_speed_l_mode_ends_both_streams(monkeypatch, ur5):
+    ctrl = install_ur(monkeypatch, FakeURController(kinematics=ur5))
+    with URArm("10.0.0.2", mode="speedL", kinematics=ur5) as arm:
+        arm.servo_joints(np.array(Q_UR5_READY), 0.05)
+        arm.stop()
+        names = ctrl.names()
+        assert {"servoStop", "speedStop"} <= set(names[names.index("servoJ") :])
+
+
+@given(
+    distance=st.floats(min_value=0.0, max_value=1e300, allow_subnormal=True),
+    duration=st.floats(min_value=1e-300, max_value=1e300),
+)
+def test_the_move_j_speed_is_the_mean_speed_never_faster(distance, duration):
+    try:
+        v = joint_move_speed_radps(distance, duration)
+    except RobotIOError as err:  # only a mean speed past the float range
+        with np.errstate(over="ignore"):
+            assert distance / np.float64(duration) == np.inf and "no finite speed" in str(err)
+        return
+    assert np.isfinite(v) and v > 0
+    if distance > 0 and v > 1e-3:
+        assert v <= distance / duration * (1 + 1e-12)  # the leading joint never cruises above the mean
+
+
+@pytest.mark.parametrize("distance,duration", [(np.nan, 1.0), (1.0, np.inf), (-1.0, 1.0), (1.0, -0.1), (0.1, 0.0)])
+def test_the_move_j_speed_refuses_a_move_it_cannot_time(distance, duration):
+    with pytest.raises(RobotIOError, match="joint move"):
+        joint_move_speed_radps(distance, duration)
+
+
+def test_joint_steps_through_the_safety_layer_never_send_the_ur_a_target_outside_limits(joint_ur, ur5):
+    ctrl, arm = joint_ur
+    limits = SafetyLimits(**SAFETY)
+    safe = SafeArm(arm, limits)
+    lo, hi = ur5.model.limits.q_min.numpy(), ur5.model.limits.q_max.numpy()
+    q0 = np.array(Q_UR5_READY)
+    q0[5] = hi[5] - 0.01  # the last wrist joint near its limit: turning it leaves the TCP where it is
+    arm.servo_joints(q0, 0.05)
+    n_before = len(servo_j_calls(ctrl))
+    for bad in (np.full(6, np.nan), np.zeros(5), q0 + np.where(np.arange(6) == 0, 2.0, 0.0)):
+        assert safe.step_joints(bad, time.monotonic()).status == "refused"
+    assert len(servo_j_calls(ctrl)) == n_before  # NaN, wrong length, a jump: nothing reached the driver
+    past = q0.copy()
+    past[5] = hi[5] + 0.2
+    res = safe.step_joints(past, time.monotonic())
+    assert res.status == "clipped"
+    q_sent = np.array(servo_j_calls(ctrl)[-1][1])
+    assert ((q_sent >= lo) & (q_sent <= hi)).all() and q_sent[5] == hi[5]
+    np.testing.assert_array_equal(arm.joint_positions(), q_sent)
