@@ -38,6 +38,13 @@ and names the arm's joints and units from its URDF; the env moves the arm (``Rea
 "joint")``) and the expert's labels are its TCP motion solved by IK, as the joint action that
 executes it. A ``joint_delta`` network ends in ``tanh`` times each joint's most motion per step
 (velocity limit times the arm's control period); a ``joint_position`` one is linear.
+
+**Run length.** ``advobj policy train --iterations N`` sets ``dagger.iterations`` of any preset
+(``resolve_preset(..., dagger={"iterations": N})``, N >= 1), written into the run's ``run.json``
+and card with the rest of the resolved config. The run length is not part of the resume
+fingerprint: an interrupted run resumed with a larger N continues where it stopped, and one
+resumed with fewer iterations than it has done is refused in one line
+(:func:`sim.policies.train.check_resume_length`).
 """
 
 from __future__ import annotations

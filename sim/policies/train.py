@@ -7,6 +7,7 @@ Outputs in ``out_dir``: the checkpoint (``policy.json`` + ``weights.safetensors`
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
@@ -18,6 +19,7 @@ from sim.policies.card import ActionScaling, CleanSuccess, PolicyCard
 from sim.policies.checkpoint import save_checkpoint
 from sim.policies.contract import check_scene
 from sim.policies.dagger import train_dagger
+from sim.policies.interface import PolicyError
 from sim.policies.policy import VisuomotorPolicy
 from sim.policies.pool import built_pool_path, write_feasible_pool
 from sim.policies.ppo import train_ppo
@@ -25,7 +27,28 @@ from sim.policies.presets import TrainConfig
 from sim.policies.rollout import EVAL_SEED_BASE, evaluate_policy, make_env
 from sim.runinfo import git_commit, write_run_info
 
-__all__ = ["train_policy"]
+__all__ = ["train_policy", "check_resume_length"]
+
+
+def check_resume_length(cfg: TrainConfig, out_dir: str | Path) -> None:
+    """Refuse, in one line, resuming the interrupted DAgger run in ``out_dir`` with fewer
+    ``dagger.iterations`` than it has already done (its weights would not be what the resolved
+    config says). More iterations continue it: the run length is not part of the resume
+    fingerprint (:meth:`TrainConfig.fingerprint`). A state of another config, or one that cannot
+    be read, is left to the resume itself, which refuses it in its own line."""
+    if cfg.method != "dagger":
+        return
+    path = Path(out_dir) / "train_state" / "progress.json"
+    try:
+        progress = json.loads(path.read_text())
+        done = int(progress["iterations_done"])
+    except (OSError, ValueError, TypeError, KeyError):
+        return
+    if progress.get("fingerprint") == cfg.fingerprint() and done > cfg.dagger.iterations:
+        raise PolicyError(
+            f"dagger.iterations (--iterations): {cfg.dagger.iterations}, but the run in {out_dir} has already done "
+            f"{done}; resume it with {done} or more, or train into a new --out"
+        )
 
 
 def train_policy(
@@ -47,6 +70,7 @@ def train_policy(
     out_dir = Path(out_dir)
     # before the output folder exists: the cameras, and a joint-space contract against the scene's arm
     check_scene(SimpleNamespace(inputs=cfg.policy.input_plan(cfg.contract), contract=cfg.contract), spec)
+    check_resume_length(cfg, out_dir)
     resolved = cfg.model_dump(mode="json")
     resolved["scene"] = {"name": spec.name, "fingerprint": spec_fingerprint(spec)}
     write_run_info(out_dir, resolved, cfg.seed)

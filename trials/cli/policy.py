@@ -69,6 +69,12 @@ def train(
         "the joint positions); default: joint_delta when the scene has an arm (e.g. scenes/panda-joint.yaml), "
         "else delta_tcp",
     ),
+    iterations: Optional[int] = typer.Option(
+        None,
+        min=1,
+        help="DAgger iterations (default: the preset's); the run length, so an interrupted run resumes with more "
+        "(it continues) but not with fewer than it has done",
+    ),
 ) -> None:
     """Train a policy (DAgger from the privileged expert, or PPO) and evaluate it."""
     from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
@@ -84,7 +90,9 @@ def train(
         raise typer.BadParameter("--stop-at needs --curve-episodes > 0")
     if curve_episodes:
         curve = {"eval_episodes": curve_episodes, "stop_at_success": stop_at}
-        extra.update(dagger=curve, ppo=curve)
+        extra.update(dagger=dict(curve), ppo=dict(curve))
+    if iterations is not None:
+        extra.setdefault("dagger", {})["iterations"] = iterations
     cams = None if cameras is None else tuple(c.strip() for c in cameras.split(",") if c.strip())
     if cams is not None and not cams:
         raise typer.BadParameter("name at least one camera, e.g. wrist,front", param_hint="--cameras")
@@ -105,6 +113,10 @@ def train(
     except ValueError as err:
         msg = str(err).splitlines()[0] if "preset" in str(err) else str(err)
         raise typer.BadParameter(msg, param_hint="--action" if msg.startswith("action:") else None) from None
+    if iterations is not None and cfg.method != "dagger":
+        raise typer.BadParameter(
+            f"DAgger's iterations; {cfg.method} runs for ppo.total_timesteps", param_hint="--iterations"
+        )
     if cfg.contract.is_joint_space:
         typer.echo(
             f"training a joint-space policy: {cfg.contract.describe()} ({', '.join(cfg.contract.joints)}) on the "
