@@ -270,11 +270,6 @@ class DynamixelArm(BusArm):
             return "hardware", "a hardware error (Alert bit; Hardware_Error_Status not read yet)"
         return None
 
-    def _check_status(self, what: str, status: Status) -> None:
-        super()._check_status(what, status)
-        if status.error & ALERT_BIT:
-            self._last_poll_s = -math.inf  # the next fault() reads Hardware_Error_Status
-
     def _hardware_error_text(self, bits: int) -> str:
         return hardware_error_text(bits)
 

@@ -281,6 +281,7 @@ class BusArm(Arm):
         self._connect_fault: Fault | None = None
         self._servo_faults: dict[int, str] = {}
         self._last_poll_s = -math.inf
+        self._poll_due = True
         self._last_ticks: tuple[float, dict[int, int]] | None = None
 
     # ------------------------------------------------------------------ protocol (per vendor)
@@ -340,7 +341,7 @@ class BusArm(Arm):
         self._buf.clear()
         self._link_lost = None
         self._servo_faults = {}
-        self._last_poll_s = -math.inf
+        self._poll_due = True
         self._last_ticks = None
         self.device_info = {}
         try:
@@ -470,6 +471,7 @@ class BusArm(Arm):
         kind, text = meaning
         if kind == "hardware":
             self._servo_faults.setdefault(status.id, text)
+            self._poll_due = True  # the next fault() reads the error registers for the details
             return
         raise ProtocolError(f"{self.protocol} bus on {self.port}: {self._label(status.id)} refused {what}: {text}")
 
@@ -536,6 +538,7 @@ class BusArm(Arm):
         data = self._sync_read(self.servos, self.ADDR_ERROR_STATUS, 1)
         self._servo_faults = {i: self._hardware_error_text(d[0]) for i, d in data.items() if d[0]}
         self._last_poll_s = time.monotonic()
+        self._poll_due = False
 
     def _servo_fault(self) -> Fault | None:
         for joint in self.servos:
@@ -553,7 +556,7 @@ class BusArm(Arm):
             return self._not_connected()
         if self._link_lost:
             return self._lost_fault()
-        if time.monotonic() - self._last_poll_s > self.status_interval_s:
+        if self._poll_due or time.monotonic() - self._last_poll_s > self.status_interval_s:
             try:
                 self._poll_faults()
             except ArmFaultError as err:
