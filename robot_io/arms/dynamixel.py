@@ -242,9 +242,6 @@ class DynamixelArm(BusArm):
             return Status(servo_id, params[0], params[1:])
         return None
 
-    def _addr(self, addr: int) -> bytes:
-        return addr.to_bytes(2, "little")
-
     def _addr_len(self, addr: int, size: int) -> bytes:
         return addr.to_bytes(2, "little") + size.to_bytes(2, "little")
 

@@ -172,9 +172,6 @@ class FeetechArm(BusArm):
         packet = take_packet(buf)
         return None if packet is None else Status(*packet)
 
-    def _addr(self, addr: int) -> bytes:
-        return bytes([addr])
-
     def _addr_len(self, addr: int, size: int) -> bytes:
         return bytes([addr, size])
 

@@ -295,10 +295,6 @@ class BusArm(Arm):
         Raises :class:`BadPacket` (after removing it) for a frame failing its checksum."""
 
     @abc.abstractmethod
-    def _addr(self, addr: int) -> bytes:
-        """A control-table address as a parameter."""
-
-    @abc.abstractmethod
     def _addr_len(self, addr: int, size: int) -> bytes:
         """An address and a data length as parameters (READ, SYNC_READ, SYNC_WRITE)."""
 
