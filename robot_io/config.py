@@ -364,7 +364,8 @@ def _replay_camera(c, name: str, cfg: HardwareConfig, world):
 
 def _sim_arm(cfg: HardwareConfig, world):
     a = cfg.arm
-    return SimArm(world, a.max_speed_mps, a.max_speed_radps, a.realtime)
+    arm = world.spec.arm  # a scene with an arm: the sim arm is joint-driven (its URDF, where the scene puts it)
+    return SimArm(world, a.max_speed_mps, a.max_speed_radps, a.realtime, None if arm is None else arm.scene_arm())
 
 
 def _ur_arm(cfg: HardwareConfig, world):

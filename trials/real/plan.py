@@ -32,6 +32,10 @@ view wastes a real trial. A scene with fixed cameras (``scene_cameras``) keeps o
 object centres every one of them sees: a policy reading such a camera is shown both objects from
 the start (scenes without them draw the same plans as before).
 
+A start (``tcp_poses``) is a TCP pose, as drawn, or, edited into the plan for an arm a URDF
+describes, a joint vector (``joint_positions``, the arm's chain order) instead of or besides it: a
+joint-space policy then starts from exactly those joints (:class:`TcpPose`).
+
 The trial order is drawn from ``seed`` and keeps each environment together (an environment is a
 physical setup): the environments come in a random order, and within each environment's block
 every trial of it (all shapes, conditions, tags, poses and layouts) comes in a random order.
@@ -133,8 +137,39 @@ class ObjectPlacement(_Strict):
 
 
 class TcpPose(_Strict):
+    """A trial's start: the TCP pose in the table frame, the arm's joint positions, or both.
+
+    ``joint_positions`` (an arm a URDF describes: :meth:`robot_io.arms.base.Arm.kinematics`) are in the
+    order of the arm's URDF chain, base to tool, each in its joint's unit (rad revolute, m prismatic).
+    The session checks their number against the arm and, with both given, that their forward
+    kinematics agrees with ``T_table_tcp`` (:data:`trials.real.runner.START_AGREE_TOL_M`,
+    ``START_AGREE_TOL_RAD``); a TCP start on such an arm is solved by IK
+    (:meth:`sim.ik.SceneArm.solve_start`).
+    """
+
     index: Annotated[int, Field(ge=0)]
-    T_table_tcp: Pose
+    T_table_tcp: Pose | None = Field(None, description="the start TCP pose in the table frame")
+    joint_positions: tuple[float, ...] | None = Field(
+        None,
+        min_length=1,
+        description="the start joints in the arm's URDF chain order (rad revolute, m prismatic); with "
+        "T_table_tcp too, their forward kinematics must agree with it",
+    )
+
+    @model_validator(mode="after")
+    def _some_start(self):
+        if self.T_table_tcp is None and self.joint_positions is None:
+            raise ValueError("a start needs T_table_tcp, joint_positions or both")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # A TCP start dumps as before joint starts existed (plan files and their sha256 unchanged).
+        d = handler(self)
+        for key in ("T_table_tcp", "joint_positions"):
+            if d.get(key) is None:
+                d.pop(key, None)
+        return d
 
 
 class ObjectLayout(_Strict):
@@ -603,7 +638,8 @@ def design_summary(plan: TrialPlan) -> list[str]:
 
 _HEADER = """advobj real-robot trial plan (advobj trial plan). Run the trials in 'order' (one environment after the other).
 Frames: the table frame = the simulator's world frame (z up, origin on the table top).
-Object placements: base centre xy (m) and yaw (rad) per scene role; TCP poses: T_table_tcp.
+Object placements: base centre xy (m) and yaw (rad) per scene role; TCP poses: T_table_tcp and/or
+joint_positions (the arm's URDF chain order; rad, or m for a prismatic joint).
 Shapes: built-in meshes, or objects of the plan's scene (shape_objects: the object, its mesh file's sha256).
 Conditions: clean = the shape's benign look; adv3d = the shape with textures['<shape>/adv3d'];
 patch = the built-in 'patch' mesh with textures['<shape>/patch'] where the adversarial object stands.

@@ -6,14 +6,22 @@ Per trial, in this order:
 2. Positioning move to the trial's initial pose (``T_base_tcp = T_base_table @ T_table_tcp``),
    through the safety layer. It comes *before* the placement so the arm never moves while the
    operator's hands are on the table, and so the tag check sees the scene from where the policy
-   will start.
+   will start. A joint-space policy (and any start the plan gives as joints) starts in joint space
+   (:func:`resolve_starts`): the start's joints, or the IK of its TCP pose
+   (:meth:`sim.ik.SceneArm.solve_start`, the simulator's own start joints), reached with
+   ``SafeArm.move_joints``.
 3. Placement guide: the locator finds the objects, :func:`placement_issues` compares them with the
    layout within the plan's tolerances, the operator is told what to move, and re-checks until
    the placement is within tolerance (or skips the check: logged in the trial's events).
 4. Policy loop at ``plan.control_hz`` (no sleeping with ``rate_limit=False``, for sim arms) for
    at most ``plan.max_steps`` steps: cameras -> policy -> ``SafeArm.step_delta`` (the scene's action
-   scaling) -> record. Every step reads one frame of the wrist camera and of each fixed scene
-   camera the policy reads (and of no other), and hands the policy ``{camera: image}``
+   scaling) -> record. A joint-space policy reads the measured joints (``joint_positions`` state)
+   and each of its joint actions becomes a joint target (:func:`sim.policies.contract.to_joint_target`
+   at the measured joints, as in the simulator) sent through ``SafeArm.step_joints``; its step
+   records hold the target, the joints sent and the joints measured (a joint command refused or
+   stopped by the safety layer ends the trial as a TCP one does). Every step reads one frame of
+   the wrist camera and of each fixed scene camera the policy reads (and of no other), and hands
+   the policy ``{camera: image}``
    (:func:`sim.policies.contract.call_policy`); the safety layer checks the age of every frame the
    command was computed from (the oldest counts), and each camera's frame is written beside the
    wrist camera's in the trial's frame directory. A frame of another size than its camera's
@@ -62,6 +70,7 @@ import numpy as np
 
 from calibration.outcome import measure_reach
 from robot_io.errors import ArmFaultError, RobotIOError, SafetyStop
+from robot_io.poses import pose_step
 from sim.errors import AdvobjError
 from sim.policies.contract import (
     WRIST_CAMERA,
@@ -73,6 +82,7 @@ from sim.policies.contract import (
     policy_contract,
     state_vector,
     to_delta,
+    to_joint_target,
 )
 from sim.policyview import policy_view
 from trials.real.locate import placement_issues
@@ -80,6 +90,7 @@ from trials.real.operator import Decision
 from trials.real.store import (
     CameraFrameRecord,
     EventRecord,
+    JointStepRecord,
     ObjectPoseRecord,
     SessionInfo,
     StepRecord,
@@ -92,7 +103,19 @@ from trials.real.store import (
     session_frames_dir,
 )
 
-__all__ = ["TrialRunner", "RunSummary", "TrialTiming", "ROLES"]
+__all__ = [
+    "TrialRunner",
+    "RunSummary",
+    "TrialTiming",
+    "ROLES",
+    "Start",
+    "StartError",
+    "JointArmError",
+    "check_joint_arm",
+    "resolve_starts",
+    "START_AGREE_TOL_M",
+    "START_AGREE_TOL_RAD",
+]
 
 ROLES = ("goal", "adversarial")
 POLICY_ERROR = "policy_error"  # outcome and stop reason of a trial whose policy gave a non-finite action
@@ -133,6 +156,144 @@ def camera_view(rgb: np.ndarray, size_hw: tuple[int, int], preprocess: str, came
 
 class PlanOutsideWorkspace(AdvobjError, ValueError):
     """A planned initial TCP pose lies outside the safety layer's workspace box."""
+
+
+class StartError(AdvobjError, ValueError):
+    """A planned start the arm cannot take (the message names the start, and a trial using it)."""
+
+
+class JointArmError(AdvobjError, ValueError):
+    """A joint-space policy on an arm that takes no joint commands, or whose joints are not the policy's."""
+
+
+#: A start given as both a TCP pose and joints: the joints' forward kinematics must put the TCP
+#: within this distance (m) and angle (rad) of the TCP pose, or the plan is refused.
+START_AGREE_TOL_M = 1e-3
+START_AGREE_TOL_RAD = 1e-2
+
+
+@dataclass(frozen=True)
+class Start:
+    """Where a trial starts: ``T_base_tcp (4, 4)`` in the arm's base frame and, for a start reached in
+    joint space, the joints ``q (n,)`` (``None``: a TCP positioning move, ``SafeArm.move_to``)."""
+
+    T_base_tcp: np.ndarray
+    q: np.ndarray | None = None
+
+
+def check_joint_arm(contract, kinematics, arm_name: str) -> None:
+    """Refuse, in one line, a joint-space ``contract`` the arm cannot run: an arm without kinematics
+    (``kinematics`` None: no URDF describes it), or whose URDF joints (names, order, units) are not
+    the contract's ``joints`` and ``joint_units``. A TCP contract passes on any arm."""
+    if not contract.is_joint_space:
+        return
+    if kinematics is None:
+        raise JointArmError(
+            f"--policy: a joint-space policy ({contract.describe()}) on the {arm_name} arm, which takes no joint "
+            "commands (no URDF describes it)"
+        )
+    names, units = tuple(kinematics.joint_names), tuple(kinematics.units)
+    got = tuple(contract.joints)
+    if got != names:
+        unknown = [j for j in got if j not in names]
+        if unknown:
+            why = f"joint {unknown[0]!r} is not one of the arm's"
+        elif len(got) != len(names):
+            why = f"{len(got)} joints for the arm's {len(names)}"
+        else:
+            k = next(i for i, (a, b) in enumerate(zip(got, names)) if a != b)
+            why = f"position {k} is {got[k]!r} where the arm's URDF has {names[k]!r} (the order is base to tool)"
+        raise JointArmError(f"--policy: contract.joints: {why}; the {arm_name} arm's joints: {', '.join(names)}")
+    for k, (u, want) in enumerate(zip(contract.joint_units, units)):
+        if u != want:
+            raise JointArmError(
+                f"--policy: contract.joint_units.{k}: joint {names[k]!r} of the {arm_name} arm is in {want}, not {u}"
+            )
+
+
+def _fk(kinematics, q) -> np.ndarray:
+    """``T_base_tcp (4, 4)`` of joints ``q (n,)`` (float64)."""
+    import torch  # lazy: an arm with kinematics has torch loaded
+
+    T = kinematics.tcp_pose(torch.as_tensor(np.asarray(q, dtype=np.float64), device=kinematics.device))
+    return T.detach().cpu().numpy()
+
+
+def _vec(v) -> str:
+    return "[" + ", ".join(f"{float(x):.3f}" for x in v) + "]"
+
+
+def resolve_starts(plan, trials, T_base_table, kinematics, joint_space: bool) -> dict[int, Start]:
+    """The :class:`Start` of every start (``plan.tcp_poses`` index) ``trials`` use, before anything moves.
+
+    A start given as joints (``joint_positions``) is taken in joint space: it needs an arm with
+    ``kinematics`` (:class:`sim.ik.SceneArm`, its TCP in the base frame), one value per joint,
+    within the joints' position limits, and with a TCP pose given too, forward kinematics within
+    :data:`START_AGREE_TOL_M` / :data:`START_AGREE_TOL_RAD` of it; its pose is the FK one. A TCP start
+    of a ``joint_space`` policy is solved by IK (:meth:`sim.ik.SceneArm.solve_start`: from the arm's
+    home joints, then fixed restarts, as the simulator's starts). Any other start is a TCP pose,
+    ``T_base_table @ T_table_tcp``. A start the arm cannot take raises :class:`StartError` in one
+    line naming it and a trial using it.
+    """
+    users: dict[int, list[str]] = {}
+    for t in trials:
+        users.setdefault(t.tcp_pose, []).append(t.trial_id)
+    starts: dict[int, Start] = {}
+    solve: list[int] = []
+    for k in sorted(users):
+        tp = plan.tcp_pose(k)
+        where = f"trial plan: tcp_poses.{k} (trial {users[k][0]}"
+        where += f" and {len(users[k]) - 1} more)" if len(users[k]) > 1 else ")"
+        T_plan = None if tp.T_table_tcp is None else np.asarray(T_base_table) @ tp.T_table_tcp.T()
+        if tp.joint_positions is None:
+            if joint_space and kinematics is not None:
+                solve.append(k)
+            starts[k] = Start(T_plan)
+            continue
+        if kinematics is None:
+            raise StartError(f"{where}: joint_positions: the arm takes no joint commands (no URDF describes it)")
+        q = np.asarray(tp.joint_positions, dtype=np.float64)
+        names = kinematics.joint_names
+        if q.shape != (kinematics.n_joints,):
+            raise StartError(
+                f"{where}: joint_positions: {len(q)} values for the arm's {kinematics.n_joints} joints "
+                f"({', '.join(names)})"
+            )
+        lo = kinematics.model.limits.q_min.cpu().numpy()
+        hi = kinematics.model.limits.q_max.cpu().numpy()
+        out = np.flatnonzero((q < lo) | (q > hi))
+        if len(out):
+            j = int(out[0])
+            raise StartError(
+                f"{where}: joint_positions.{j}: {names[j]!r} at {q[j]:.4g} is outside its limits "
+                f"[{lo[j]:.4g}, {hi[j]:.4g}]"
+            )
+        T_fk = _fk(kinematics, q)
+        if T_plan is not None:
+            dp, dr = pose_step(T_plan, T_fk)
+            if dp > START_AGREE_TOL_M or dr > START_AGREE_TOL_RAD:
+                raise StartError(
+                    f"{where}: joint_positions put the TCP {dp * 1000:.1f} mm and {math.degrees(dr):.2f} deg from "
+                    f"its T_table_tcp (tolerance {START_AGREE_TOL_M * 1000:g} mm, "
+                    f"{math.degrees(START_AGREE_TOL_RAD):.2f} deg): give one of them, or both of the same start"
+                )
+        starts[k] = Start(T_fk, q)
+    if solve:
+        import torch  # lazy: an arm with kinematics has torch loaded
+
+        T = torch.as_tensor(np.stack([starts[k].T_base_tcp for k in solve]), device=kinematics.device)
+        res = kinematics.solve_start(T)
+        for i, k in enumerate(solve):
+            if not bool(res.converged[i]):
+                n_more = len(users[k]) - 1
+                raise StartError(
+                    f"trial {users[k][0]}" + (f" (and {n_more} more)" if n_more else "") + f": start TCP pose {k} at "
+                    f"{_vec(starts[k].T_base_tcp[:3, 3])} m (base frame) is out of the arm's reach (IK: "
+                    f"{float(res.pos_err_m[i]):.3g} m, {float(res.rot_err_rad[i]):.3g} rad off after "
+                    f"{res.iterations} iterations, from its home joints and the restarts)"
+                )
+            starts[k] = Start(starts[k].T_base_tcp, res.q[i].detach().cpu().numpy().astype(np.float64))
+    return starts
 
 
 class _Abort(Exception):
@@ -199,9 +360,10 @@ class TrialRunner:
         camera: the connected wrist camera (``read() -> Frame``); the locator reads it.
         arm: a connected :class:`robot_io.safety.SafeArm`.
         policy: behind the policy interface, with ``image_size`` S; its contract
-            (:mod:`sim.policies.contract`) says whether it reads the TCP pose and gripper, and
-            whether its actions are deltas (sent with ``step_delta``) or base-frame targets (``step``),
-            in chunks of which the first ``k`` are executed per frame.
+            (:mod:`sim.policies.contract`) says whether it reads the TCP pose, gripper or joints, and
+            whether its actions are TCP motions (sent with ``step_delta``) or joint targets (sent with
+            ``step_joints``; the arm's joints must be the contract's), in chunks of which the first
+            ``k`` are executed per frame.
         store: :class:`trials.real.store.TrialStore`.
         operator: an :class:`trials.real.operator.Operator`.
         locator: a :class:`trials.real.locate.Locator`.
@@ -272,6 +434,8 @@ class TrialRunner:
         self.clock = clock
         self.sleep = sleep
         self._sid: int | None = None  # the session's row id, once run() opened it
+        self._kinematics = None  # the arm's (sim.ik.SceneArm), once run() checked it against the policy
+        self._starts: dict[int, Start] = {}  # plan.tcp_poses index -> where its trials start (run())
         self.view = view
         self._trial = None  # the trial in progress, for the live view
 
@@ -279,7 +443,13 @@ class TrialRunner:
     def run(self, max_trials: int | None = None) -> RunSummary:
         """Run the remaining trials, holding the session's lock (taken here unless the caller holds it)."""
         ordered = sorted(self.plan.trials, key=lambda t: t.order)
-        self._check_initial_poses(ordered)  # before the session is opened: a refused plan records nothing
+        # Before the session is opened: a refused policy or plan records nothing.
+        contract = policy_contract(self.policy)
+        kinematics = self.arm.kinematics()
+        check_joint_arm(contract, kinematics, self.arm.name)
+        self._kinematics = kinematics
+        self._starts = resolve_starts(self.plan, ordered, self.T_base_table, kinematics, contract.is_joint_space)
+        self._check_initial_poses(ordered)
         session_frames_dir(
             self.store.path, self.session.name
         )  # a name that is no safe directory: refused, nothing recorded
@@ -355,7 +525,7 @@ class TrialRunner:
         return fdir
 
     def _check_initial_poses(self, trials) -> None:
-        """Refuse the plan if an initial TCP pose lies outside the workspace box.
+        """Refuse the plan if an initial TCP pose (:func:`resolve_starts`) lies outside the workspace box.
 
         The safety layer would refuse that positioning move in the middle of the session; checking
         every pose up front turns it into one error, before anything moves, naming the poses.
@@ -366,7 +536,7 @@ class TrialRunner:
             if t.tcp_pose in bad:
                 bad[t.tcp_pose][1].append(t.trial_id)
                 continue
-            p = (self.T_base_table @ self.plan.tcp_pose(t.tcp_pose).T_table_tcp.T())[:3, 3]
+            p = self._starts[t.tcp_pose].T_base_tcp[:3, 3]
             if not limits.contains(p):
                 bad[t.tcp_pose] = (p, [t.trial_id])
         if bad:
@@ -415,8 +585,8 @@ class TrialRunner:
         if hasattr(self.locator, "for_trial"):  # a tag locator looks for this trial's object by its name
             self.locator.for_trial(plan, trial)
         t1 = self.clock()
-        T_base_tcp0 = self.T_base_table @ plan.tcp_pose(trial.tcp_pose).T_table_tcp.T()
-        self.arm.move_to(T_base_tcp0)
+        start = self._starts[trial.tcp_pose]
+        self._move_to_start(start)
         t2 = self.clock()
         layout = plan.object_layout(trial.object_layout).objects
         placed, checks, skipped = self._placement(trial, layout, events, t0)
@@ -437,7 +607,7 @@ class TrialRunner:
         for ev in list(self.arm.events)[n_ev:]:
             events.append(EventRecord(ev.time_s - t0, "safety", ev.action, ev.reason))
 
-        result, final, T_table_tcp = self._outcome(T_base_tcp0, stop_reason, events, t0)
+        result, final, T_table_tcp = self._outcome(start, stop_reason, events, t0)
         reason = result.reason + "".join(f"; {self._last_seen(role, tracked)}" for role in result.missing)
         info = f"  outcome: {result.reached} ({reason}); distances " + ", ".join(
             f"{k} {'?' if v is None else f'{v * 100:.1f} cm'}" for k, v in result.distances_m.items()
@@ -491,6 +661,13 @@ class TrialRunner:
         )
         timing = TrialTiming(trial.trial_id, t1 - t0, t2 - t1, t3 - t2, t_loop, t5 - t4, 0.0, len(steps))
         return rec, timing
+
+    def _move_to_start(self, start: Start) -> None:
+        """The positioning move to ``start``: in joint space when it has joints, else to its TCP pose."""
+        if start.q is None:
+            self.arm.move_to(start.T_base_tcp)
+        else:
+            self.arm.move_joints(start.q)
 
     def _locate(self):
         frame = self.camera.read()
@@ -586,9 +763,11 @@ class TrialRunner:
 
         contract = policy_contract(self.policy)
         queue = ActionQueue(contract, 1)
+        joint = contract.is_joint_space
         self.arm.start_trial()
         t_start = self.clock()
         T_frame = self.arm.tcp_pose()  # the arm's pose when the next frame is taken
+        q_frame = self.arm.joint_positions() if joint else None  # and its joints (a joint-space policy's state)
         for k in range(int(self.plan.max_steps)):
             t_tick = self.clock()
             cmd = self.operator.poll()
@@ -609,7 +788,8 @@ class TrialRunner:
                 # A new chunk from these frames; its later actions keep them as the ones the policy
                 # saw (the safety layer's frame-age check is on every one of them: the oldest counts).
                 # Poses in the contract are in the task's frame: the table frame, the sim's world frame.
-                state = state_vector(contract, self.T_table_base @ T_frame, self.gripper_m)
+                q_state = None if q_frame is None else q_frame[None]
+                state = state_vector(contract, self.T_table_base @ T_frame, self.gripper_m, q_state)
                 raw = np.asarray(call_policy(self.policy, self._policy_images(frames), state), dtype=np.float64)
                 queue.push([0], decode_actions(raw, contract, 1))
                 seen = frames
@@ -623,17 +803,23 @@ class TrialRunner:
                 )
                 events.append(EventRecord(self.clock() - t0, "policy", "error", stop_reason))
                 break
-            # The sim's own step toward the action (an absolute target: the limited motion toward it
-            # from the measured pose, direction kept); the safety layer stays the backstop.
-            delta = to_delta(
-                (self.T_table_base @ T_frame)[None],
-                action[None],
-                contract.action.kind,
-                float(self.action_scale[0]),
-                float(self.action_scale[3]),
-            )[0]
             try:
-                res = self.arm.step_delta(delta * self.action_scale, seen)
+                if joint:
+                    # The joint target at the measured joints, as the sim makes it; the safety layer
+                    # enforces the limits (the sim's limit_step is the same rule) and refuses a jump.
+                    q_target = np.asarray(to_joint_target(q_frame, action, contract.action.kind), dtype=np.float64)
+                    res = self.arm.step_joints(q_target, seen)
+                else:
+                    # The sim's own step toward the action (an absolute target: the limited motion toward
+                    # it from the measured pose, direction kept); the safety layer stays the backstop.
+                    delta = to_delta(
+                        (self.T_table_base @ T_frame)[None],
+                        action[None],
+                        contract.action.kind,
+                        float(self.action_scale[0]),
+                        float(self.action_scale[3]),
+                    )[0]
+                    res = self.arm.step_delta(delta * self.action_scale, seen)
             except SafetyStop as err:
                 stop_reason = f"safety_stop: {err}"
                 break
@@ -645,6 +831,12 @@ class TrialRunner:
             # detection must not age the frame the safety layer checks.
             self._track(frame, T_frame, k, placed, tracked, moved, events, t0)
             T_meas = T_frame = self.arm.tcp_pose()
+            T_cmd, joints = res.T_cmd, None
+            if joint:
+                q_frame = self.arm.joint_positions()
+                q_cmd = None if res.q_cmd is None else np.asarray(res.q_cmd, dtype=np.float64)
+                T_cmd = None if q_cmd is None else _fk(self._kinematics, q_cmd)  # the TCP the joints sent put it at
+                joints = JointStepRecord(q_target.tolist(), None if q_cmd is None else q_cmd.tolist(), q_frame.tolist())
             name = camera_frame_name(k)
             cv2.imwrite(str(fdir / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
             extra = {}
@@ -660,12 +852,13 @@ class TrialRunner:
                     t_cmd - t_start,
                     int(frame.seq),
                     action.tolist(),
-                    res.T_cmd,
+                    T_cmd,
                     T_meas,
                     res.status,
                     "; ".join(res.reasons),
                     f"{rel_dir}/{name}",
                     extra,
+                    joints,
                 )
             )
             if res.status == "refused":
@@ -680,7 +873,7 @@ class TrialRunner:
                     self.sleep(wait)
         return steps, stop_reason, self.clock() - t_start, light
 
-    def _outcome(self, T_base_tcp0, stop_reason: str, events, t0):
+    def _outcome(self, start: Start, stop_reason: str, events, t0):
         """The criterion at the final TCP position on what the camera sees (an unseen object: unknown).
 
         At the end of a reach the wrist camera is close to the objects and often sees neither
@@ -690,6 +883,8 @@ class TrialRunner:
         a safety stop or a policy error the arm does not move again: the object stays unseen.
         """
         T_base_final = self.arm.tcp_pose()
+        # a start reached in joint space is looked from and left in joint space: the same joints
+        final_at = Start(T_base_final, None if start.q is None else self.arm.joint_positions())
         T_table_tcp = self.T_table_base @ T_base_final
         final = self._locate()
         unseen = [r for r in ROLES if r not in final]
@@ -707,9 +902,9 @@ class TrialRunner:
                 )
             else:
                 try:
-                    self.arm.move_to(T_base_tcp0)
+                    self._move_to_start(start)
                     again = self._locate()
-                    self.arm.move_to(T_base_final)
+                    self._move_to_start(final_at)
                 except RobotIOError as err:  # a fault or refusal on the way: the outcome stays unseen
                     events.append(EventRecord(self.clock() - t0, "outcome", "look_again_failed", str(err)))
                 else:

@@ -27,6 +27,12 @@ missing or bad, or whose frames (the pose file's size) cannot become a non-squar
 cameras are connected, one frame of each fixed camera is read before the session is recorded: a
 frame of another size than its calibration ends the session there, in one line naming the camera.
 
+Joint-space policies (a ``joint_position`` / ``joint_delta`` card) run on an arm a URDF describes:
+on sim hardware the scene's arm (checked against the card before any device exists,
+:func:`sim.policies.contract.check_joints`); on any arm, the runner refuses one whose kinematics
+are missing or name other joints before the session is recorded
+(:func:`trials.real.runner.check_joint_arm`). The session's config records the card's joints.
+
 Resuming checks the inputs against the stored session before any device connects
 (:meth:`trials.real.store.TrialStore.check_resume`): another plan, policy or calibration file is
 refused; a changed advobj version, git commit, hardware YAML or device is logged as a warning and
@@ -68,11 +74,13 @@ from sim.policies.checkpoint import is_checkpoint, load_checkpoint, load_policy
 from sim.policies.contract import (
     WRIST_CAMERA,
     call_policy,
+    check_joints,
     decode_actions,
     policy_cameras,
     policy_contract,
     state_vector,
 )
+from sim.policies.interface import PolicyError
 from sim.policies.onnx_policy import OnnxPolicy
 from sim.policyview import policy_view_K, view_mismatch
 from sim.runinfo import git_commit, write_run_info
@@ -318,6 +326,11 @@ def prepare_session(opts: SessionOptions, *, operator=None, log=print) -> Prepar
         hw = merged(hw, {"sim": sim_cfg}, what="hardware config", error=SessionSetupError)
     spec = _scene_spec(plan, hw)
     scene_cameras = _check_cameras(policy, policy_path, hw, hardware, spec)
+    if hw.arm.type == "sim":
+        try:  # the sim arm is the scene's (robot_io.config): its joints are known before it exists
+            check_joints(policy_contract(policy), spec, f"--policy: {policy_path}: ")
+        except PolicyError as err:
+            raise SessionSetupError(str(err)) from None
     ep = spec.episode
     action_scale = (ep.max_step_m,) * 3 + (ep.max_step_rad,) * 3
     hw = _safety_at_plan_rate(hw, plan, ep, log)
@@ -361,6 +374,7 @@ def prepare_session(opts: SessionOptions, *, operator=None, log=print) -> Prepar
             "seed": plan.seed,
             "calibration_files": {k: None if v is None else str(v) for k, v in calibration_files.items()},
             **({"cameras": list(policy_cameras(policy))} if scene_cameras else {}),
+            **_joint_config(policy_contract(policy)),
         },
     )
     return PreparedSession(
@@ -598,7 +612,8 @@ def _check_policy_outputs(policy, spec, policy_path) -> float:
     T = np.eye(4)
     T[2, 3] = 0.3
     image = {cam: np.full((1, *camera_input(policy, cam)[0], 3), 128, np.uint8) for cam in policy_cameras(policy)}
-    state = state_vector(c, T[None], spec.gripper.opening_m)
+    q = np.zeros((1, len(c.joints))) if "joint_positions" in c.state else None  # joints at 0: a test input
+    state = state_vector(c, T[None], spec.gripper.opening_m, q)
     elapsed = 0.0
     for _ in range(2):
         t0 = time.perf_counter()
@@ -611,6 +626,14 @@ def _check_policy_outputs(policy, spec, policy_path) -> float:
             ) from None
         elapsed = time.perf_counter() - t0
     return elapsed
+
+
+def _joint_config(contract) -> dict:
+    """The session config's record of a joint-space policy's joints (names and units, the order of
+    its actions and of every step's joints); empty for a TCP policy, whose config stays as it was."""
+    if not contract.is_joint_space:
+        return {}
+    return {"joints": list(contract.joints), "joint_units": list(contract.joint_units)}
 
 
 def _check_chunk_frame_age(policy, plan, hw, inference_s: float = 0.0) -> None:

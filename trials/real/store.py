@@ -35,7 +35,9 @@ why) to ``amendments``; nothing is overwritten without its old value on record.
 
 Poses are stored as 6-vectors ``[x, y, z (m), rx, ry, rz (rotation vector, rad)]`` in the
 table frame (the sim world frame) unless a column name says ``base``: easy to read in CSV,
-lossless at float64.
+lossless at float64. A joint-space policy's step keeps its action, joint target, joints sent and
+joints measured in ``joints_json`` (the arm's URDF chain order; its ``action_0..5`` are NULL) and
+the TCP of the joints sent (forward kinematics) in the ``cmd_base`` columns.
 """
 
 from __future__ import annotations
@@ -68,6 +70,7 @@ __all__ = [
     "SessionMismatch",
     "SessionInfo",
     "StepRecord",
+    "JointStepRecord",
     "CameraFrameRecord",
     "ObjectPoseRecord",
     "EventRecord",
@@ -86,7 +89,7 @@ __all__ = [
     "EXPORT_TABLES",
 ]
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 #: The trial database's file name when the operator names none (the ``--db`` default).
 DEFAULT_DB = "trials.sqlite"
 #: A trial's outcome. ``policy_error``: the policy gave a non-finite action; the trial stopped there
@@ -253,9 +256,33 @@ CREATE TABLE session_locks (
     7: """
 ALTER TABLE steps ADD COLUMN camera_frames_json TEXT;
 """,
+    # Version 8: joint-space policies (issue 31): a step's joints, {action, q_target, q_cmd, q_meas}
+    # (NULL for a TCP step), and the action columns NULL for a joint action (which has one value
+    # per joint, not 6: it is in joints_json): a table rebuild (_joint_steps).
+    8: "joint_steps",
 }
 _OLD_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown')"
 _NEW_OUTCOMES_SQL = "IN ('goal', 'adversarial', 'none', 'unknown', 'policy_error')"
+
+
+def _joint_steps(con: sqlite3.Connection) -> None:
+    """Version 8: ``steps`` with nullable ``action_0..5`` and a ``joints_json`` column.
+
+    The same rebuild as :func:`_allow_policy_error` (SQLite cannot drop a NOT NULL): a new table
+    from the old one's own DDL, rows copied, the old one dropped, the new one renamed, its index
+    made again; inside the caller's transaction.
+    """
+    ddl = con.execute("SELECT sql FROM sqlite_master WHERE type='table' AND name='steps'").fetchone()[0]
+    new = ddl.replace("CREATE TABLE steps", "CREATE TABLE steps_v8", 1)
+    for i in range(6):
+        new = new.replace(f"action_{i} REAL NOT NULL", f"action_{i} REAL", 1)
+    if new != ddl.replace("CREATE TABLE steps", "CREATE TABLE steps_v8", 1):  # a NOT NULL to drop
+        con.execute(new)
+        con.execute("INSERT INTO steps_v8 SELECT * FROM steps")
+        con.execute("DROP TABLE steps")
+        con.execute("ALTER TABLE steps_v8 RENAME TO steps")
+        con.execute("CREATE INDEX steps_trial ON steps (trial_row)")
+    con.execute("ALTER TABLE steps ADD COLUMN joints_json TEXT")
 
 
 def _allow_policy_error(con: sqlite3.Connection) -> None:
@@ -316,18 +343,28 @@ class CameraFrameRecord:
 
 
 @dataclass(frozen=True)
+class JointStepRecord:
+    """A joint-space policy's step: joints in the arm's URDF chain order (rad, or m for a prismatic joint)."""
+
+    q_target: Sequence[float]  # the target the action asks for (joint_delta: measured joints + action)
+    q_cmd: Sequence[float] | None  # what the safety layer sent (clipped to the limits); None when refused
+    q_meas: Sequence[float]  # measured after the command
+
+
+@dataclass(frozen=True)
 class StepRecord:
     step: int
     t_frame_s: float  # frame capture, s since the trial's policy loop started
     t_command_s: float  # arm accepted (or refused) the command, same clock
     frame_seq: int
-    action: Sequence[float]  # raw policy output (before the scene's action scaling)
-    T_base_tcp_cmd: np.ndarray | None  # None when refused
+    action: Sequence[float]  # raw policy output (before the scene's action scaling); a joint action: one per joint
+    T_base_tcp_cmd: np.ndarray | None  # None when refused; a joint step: the TCP at the sent joints (FK)
     T_base_tcp_meas: np.ndarray  # measured after the command
     safety_status: str
     safety_reason: str
     frame_ref: str  # the wrist camera's frame, path relative to the database's directory
     camera_frames: dict[str, CameraFrameRecord] = field(default_factory=dict)  # scene camera -> its frame
+    joints: JointStepRecord | None = None  # a joint-space policy's step; None: a TCP action
 
 
 @dataclass(frozen=True)
@@ -396,6 +433,55 @@ def _camera_frames_json(frames: dict) -> str | None:
         },
         sort_keys=True,
     )
+
+
+# The steps table's columns in the order commit_trial writes them (named: a migrated table may order them otherwise).
+_STEP_COLUMNS = ", ".join(
+    [
+        "trial_row",
+        "step",
+        "t_frame_s",
+        "t_command_s",
+        "frame_seq",
+        *(f"action_{i}" for i in range(6)),
+        *(f"cmd_base_{c}" for c in _POSE),
+        *(f"meas_base_{c}" for c in _POSE),
+        "safety_status",
+        "safety_reason",
+        "frame_ref",
+        "camera_frames_json",
+        "joints_json",
+    ]
+)
+
+
+def _joints_json(s: StepRecord) -> str | None:
+    """``{action, q_target, q_cmd, q_meas}`` of a joint step (None for a TCP step)."""
+    j = s.joints
+    if j is None:
+        return None
+
+    def floats(v):
+        return None if v is None else [float(x) for x in v]
+
+    return json.dumps(
+        {
+            "action": floats(s.action),
+            "q_target": floats(j.q_target),
+            "q_cmd": floats(j.q_cmd),
+            "q_meas": floats(j.q_meas),
+        }
+    )
+
+
+def _action_columns(s: StepRecord) -> list[float | None]:
+    """The six ``action_i`` columns: a TCP action's values; NULL for a joint action (in ``joints_json``)."""
+    if s.joints is not None:
+        return [None] * 6
+    a = [float(v) for v in s.action]
+    if len(a) != 6:
+        raise StoreError(f"step {s.step}: a TCP action has 6 values, got {len(a)}")
+    return a
 
 
 def _sha(text: str) -> str:
@@ -569,6 +655,9 @@ class TrialStore:
             for step in steps:
                 if step == "policy_error":
                     _allow_policy_error(self.con)
+                    continue
+                if step == "joint_steps":
+                    _joint_steps(self.con)
                     continue
                 for stmt in step.split(";"):
                     if stmt.strip():
@@ -947,7 +1036,7 @@ class TrialStore:
             )
             row = int(cur.lastrowid)
             c.executemany(
-                "INSERT INTO steps VALUES (" + ",".join("?" * 27) + ")",
+                f"INSERT INTO steps ({_STEP_COLUMNS}) VALUES (" + ",".join("?" * 28) + ")",
                 [
                     (
                         row,
@@ -955,13 +1044,14 @@ class TrialStore:
                         float(s.t_frame_s),
                         float(s.t_command_s),
                         int(s.frame_seq),
-                        *[float(a) for a in s.action],
+                        *_action_columns(s),
                         *pose_vec(s.T_base_tcp_cmd),
                         *pose_vec(s.T_base_tcp_meas),
                         s.safety_status,
                         s.safety_reason,
                         s.frame_ref,
                         _camera_frames_json(s.camera_frames),
+                        _joints_json(s),
                     )
                     for s in rec.steps
                 ],
@@ -1110,7 +1200,9 @@ class TrialStore:
 
     def steps(self, session: str, trial_id: str) -> list[dict]:
         """The trial's steps in order; ``camera_frames`` holds each scene camera's frame
-        (``{camera: {frame_ref, frame_seq, t_frame_s}}``, empty for a wrist-only policy)."""
+        (``{camera: {frame_ref, frame_seq, t_frame_s}}``, empty for a wrist-only policy), ``joints``
+        a joint-space policy's ``{action, q_target, q_cmd, q_meas}`` (None for a TCP action, whose
+        values are ``action_0..5``)."""
         q = (
             "SELECT st.* FROM steps st JOIN trials t ON t.id = st.trial_row JOIN sessions s ON s.id = t.session_id "
             "WHERE s.name = ? AND t.trial_id = ? ORDER BY st.step"
@@ -1119,6 +1211,7 @@ class TrialStore:
         for r in self.con.execute(q, (session, trial_id)):
             d = dict(r)
             d["camera_frames"] = json.loads(d.pop("camera_frames_json") or "{}")
+            d["joints"] = json.loads(d.pop("joints_json") or "null")
             out.append(d)
         return out
 

@@ -143,7 +143,7 @@ def test_a_version_2_store_is_migrated_keeping_its_trials(tmp_path):
     con.commit()
     con.close()
     with TrialStore(db) as store:
-        assert store.con.execute("SELECT version FROM schema_version").fetchone()[0] == store_mod.SCHEMA_VERSION == 7
+        assert store.con.execute("SELECT version FROM schema_version").fetchone()[0] == store_mod.SCHEMA_VERSION == 8
         assert [r["trial_id"] for r in store.trial_rows()] == ["t1"]
         assert store.con.execute("SELECT count(*) FROM events WHERE trial_row = 1").fetchone()[0] == 1
         assert store.con.execute("PRAGMA foreign_key_check").fetchone() is None

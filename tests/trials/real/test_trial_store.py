@@ -314,10 +314,11 @@ def test_fixed_cameras_frames_round_trip_per_step_and_a_version_6_store_gains_th
     with TrialStore(old) as store:
         store.commit_trial(store.open_session(_info()), _trial("t0", n_steps=2))
     con = sqlite3.connect(old)
+    con.execute("ALTER TABLE steps DROP COLUMN joints_json")  # version 8's
     con.execute("ALTER TABLE steps DROP COLUMN camera_frames_json")
     con.execute("UPDATE schema_version SET version = 6")
     con.commit()
     con.close()
     with TrialStore(old) as store:
-        assert store.con.execute("SELECT version FROM schema_version").fetchone()[0] == store_mod.SCHEMA_VERSION == 7
-        assert [s["camera_frames"] for s in store.steps("s1", "t0")] == [{}, {}]
+        assert store.con.execute("SELECT version FROM schema_version").fetchone()[0] == store_mod.SCHEMA_VERSION == 8
+        assert [(s["camera_frames"], s["joints"]) for s in store.steps("s1", "t0")] == [({}, None), ({}, None)]
