@@ -23,6 +23,8 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from robot_io.arms.sim import SimArm
@@ -38,8 +40,14 @@ from tests.trials.real.trial_session_helpers import REPO, sim_hardware, small_pl
 from trials.cli.main import app
 from trials.real import store as store_mod
 from trials.real.operator import AutoOperator
-from trials.real.plan import load_plan, save_plan
-from trials.real.runner import JointArmError, StartError, check_joint_arm
+from trials.real.plan import Pose, load_plan, save_plan
+from trials.real.runner import (
+    START_AGREE_TOL_M,
+    JointArmError,
+    StartError,
+    check_joint_arm,
+    resolve_starts,
+)
 from trials.real.session import SessionOptions, SessionSetupError, run_session
 from trials.real.store import TrialStore
 
@@ -162,10 +170,11 @@ class _Scripted:
             joints=arm.joint_names if joints is None else joints,
             joint_units=arm.units,
         )
-        self.fn, self.calls = fn, 0
+        self.fn, self.calls, self.states = fn, 0, []
 
     def act(self, images, state):
         q = np.asarray(state, dtype=np.float64)[0]
+        self.states.append(q)
         a = np.asarray(self.fn(self.calls, q), dtype=np.float64)
         self.calls += 1
         return a[None]
@@ -272,6 +281,70 @@ def test_joint_vector_starts_are_reached_exactly_and_their_fk_agrees_with_a_tcp_
         np.testing.assert_array_equal(q_asked, q)
         np.testing.assert_array_equal(q_at, q)
         np.testing.assert_allclose(T_at, _fk(arm, q), rtol=0, atol=1e-12)
+
+
+def test_an_object_unseen_at_the_end_is_looked_for_from_the_start_joints_and_the_arm_returns_to_its_own(
+    files, arm, spy, tmp_path
+):
+    state = {"hide": False}
+
+    def hide_the_goal_once_after_the_loop(runner):
+        locate = runner.locator.locate
+
+        def locate_hiding(frame, T_base_tcp):
+            found = locate(frame, T_base_tcp)
+            if state["hide"]:
+                state["hide"] = False
+                found = {role: obj for role, obj in found.items() if role != "goal"}
+            return found
+
+        def trial_end(trial):
+            state["hide"], state["q_end"] = True, runner.arm.joint_positions()
+
+        runner.locator.locate = locate_hiding
+        runner.on_trial_end = trial_end
+        return runner.policy
+
+    db = tmp_path / "t.sqlite"
+    _run(files, db, swap=hide_the_goal_once_after_the_loop, max_trials=1)
+    with TrialStore(db, create=False) as store:
+        ((row, _),) = _steps(store).values()
+        looks = store.con.execute("SELECT reason FROM events WHERE action = 'look_again'").fetchall()
+    assert len(looks) == 1 and "not seen from the final pose: goal; from the start pose: goal" in looks[0]["reason"]
+    # start, the start again to look, then back to the joints the trial ended at: all joint moves
+    (q_start, _, _), (q_look, _, _), (q_back, q_at, _) = spy["move_joints"]
+    np.testing.assert_array_equal(q_look, q_start)
+    np.testing.assert_array_equal(q_back, state["q_end"])
+    np.testing.assert_array_equal(q_at, state["q_end"])
+    assert spy["tcp"] == [] and row["final_outcome"] != "unknown"
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    u=st.lists(st.floats(0.0, 1.0), min_size=7, max_size=7),
+    offset=st.floats(0.0, 3.0).filter(lambda x: abs(x - 1.0) > 1e-6),
+    direction=st.sampled_from([0, 1, 2]),
+)
+def test_a_start_given_both_ways_is_taken_iff_its_fk_is_within_the_tolerance_of_its_tcp_pose(
+    files, arm, u, offset, direction
+):
+    """Any joints within the limits (their bounds included), their FK pose moved by ``offset`` times the
+    position tolerance: accepted at the joints up to the tolerance, refused beyond it."""
+    lo, hi = arm.model.limits.q_min.numpy(), arm.model.limits.q_max.numpy()
+    q = np.clip(lo + np.asarray(u[: arm.n_joints]) * (hi - lo), lo, hi)
+    T = _fk(arm, q)
+    T[direction, 3] += offset * START_AGREE_TOL_M
+    plan = load_plan(files["plan"])
+    first = plan.tcp_poses[0].model_copy(update={"T_table_tcp": Pose.from_T(T), "joint_positions": tuple(q)})
+    plan = plan.model_copy(update={"tcp_poses": [first, *plan.tcp_poses[1:]]})
+    trials = [t for t in plan.trials if t.tcp_pose == 0]
+    if offset <= 1.0:
+        (start,) = resolve_starts(plan, trials, np.eye(4), arm, joint_space=True).values()
+        np.testing.assert_array_equal(start.q, q)
+        np.testing.assert_allclose(start.T_base_tcp, _fk(arm, q), rtol=0, atol=1e-12)
+    else:
+        with pytest.raises(StartError, match=r"joint_positions put the TCP .* mm and .* deg from its T_table_tcp"):
+            resolve_starts(plan, trials, np.eye(4), arm, joint_space=True)
 
 
 def _bad_length(plan, arm):
@@ -391,9 +464,14 @@ def test_a_joint_pushed_against_its_limit_is_clipped_there_and_never_passes_it(f
     push = np.zeros(arm.n_joints)
     push[-1] = 0.3  # toward the upper limit, 0.15 rad away, below a jump
     db = tmp_path / "t.sqlite"
-    _run(files, db, plan=plan_path, swap=lambda runner: _Scripted(arm, lambda k, q: push), max_trials=1)
+    policy = _Scripted(arm, lambda k, q: push)
+    _run(files, db, plan=plan_path, swap=lambda runner: policy, max_trials=1)
     with TrialStore(db, create=False) as store:
         ((row, recorded),) = _steps(store).values()
+    # the policy read the measured joints: the start's, then each step's (float32, as the sim's state)
+    (q_start, _, _), *_ = spy["move_joints"]
+    read = [q_start, *(s["joints"]["q_meas"] for s in recorded[:-1])]
+    np.testing.assert_allclose(policy.states, np.float32(read), rtol=0, atol=0)
     hi = float(arm.model.limits.q_max[-1])
     assert row["n_steps"] == MAX_STEPS and row["stop_reason"] == "max_steps"
     assert all(s["safety_status"] == "clipped" for s in recorded)
