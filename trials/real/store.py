@@ -273,10 +273,11 @@ def _joint_steps(con: sqlite3.Connection) -> None:
     made again; inside the caller's transaction.
     """
     ddl = con.execute("SELECT sql FROM sqlite_master WHERE type='table' AND name='steps'").fetchone()[0]
-    new = ddl.replace("CREATE TABLE steps", "CREATE TABLE steps_v8", 1)
+    copy = ddl.replace("CREATE TABLE steps", "CREATE TABLE steps_v8", 1)
+    new = copy
     for i in range(6):
         new = new.replace(f"action_{i} REAL NOT NULL", f"action_{i} REAL", 1)
-    if new != ddl.replace("CREATE TABLE steps", "CREATE TABLE steps_v8", 1):  # a NOT NULL to drop
+    if new != copy:  # a NOT NULL to drop
         con.execute(new)
         con.execute("INSERT INTO steps_v8 SELECT * FROM steps")
         con.execute("DROP TABLE steps")
@@ -435,7 +436,7 @@ def _camera_frames_json(frames: dict) -> str | None:
     )
 
 
-# The steps table's columns in the order commit_trial writes them (named: a migrated table may order them otherwise).
+# The steps table's columns in the order commit_trial writes them (named: the insert does not rely on their order).
 _STEP_COLUMNS = ", ".join(
     [
         "trial_row",
