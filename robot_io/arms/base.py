@@ -18,7 +18,7 @@ from robot_io.errors import RobotIOError
 if TYPE_CHECKING:
     from sim.ik import SceneArm
 
-__all__ = ["Fault", "Arm"]
+__all__ = ["Fault", "Arm", "check_joint_target"]
 
 FaultKind = Literal[
     "protective_stop", "emergency_stop", "connection_lost", "program_stopped", "heartbeat_timeout", "device_fault"
@@ -112,3 +112,20 @@ class Arm(Device):
         on that clock rather than throttling the simulation to the wall clock.
         """
         return None
+
+
+def check_joint_target(who: str, scene_arm: SceneArm, q) -> np.ndarray:
+    """``q`` as ``(n,)`` float64 when it is ``scene_arm.n_joints`` finite numbers, else one
+    :class:`RobotIOError` line naming ``who`` (the driver: ``"UR 10.0.0.2"``, ``"serial arm /dev/ttyACM0"``)."""
+    n = scene_arm.n_joints
+    try:
+        q = np.asarray(q, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RobotIOError(f"{who}: a joint target must be {n} numbers, got {type(q).__name__}") from None
+    if q.shape != (n,):
+        raise RobotIOError(
+            f"{who}: a joint target must be {n} numbers ({', '.join(scene_arm.joint_names)}), got shape {q.shape}"
+        )
+    if not np.isfinite(q).all():
+        raise RobotIOError(f"{who}: a joint target must be finite, got {q.tolist()}")
+    return q

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from robot_io.arms.base import Arm, Fault
+from robot_io.arms.base import Arm, Fault, check_joint_target
 from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 
@@ -44,7 +44,6 @@ __all__ = [
     "decode",
     "FAULT_KINDS",
     "NO_JOINT_COMMANDS",
-    "check_joint_target",
 ]
 
 log = logging.getLogger(__name__)
@@ -70,23 +69,6 @@ FAULT_KINDS = {
 
 #: What the host says when the firmware answers a joint command ``ERR UNKNOWN``.
 NO_JOINT_COMMANDS = "the arm's firmware does not take joint commands"
-
-
-def check_joint_target(who: str, scene_arm: SceneArm, q) -> np.ndarray:
-    """``q`` as ``(n,)`` float64 when it is ``scene_arm.n_joints`` finite numbers, else one
-    :class:`RobotIOError` line naming ``who`` (the driver: ``"UR 10.0.0.2"``, ``"serial arm /dev/ttyACM0"``)."""
-    n = scene_arm.n_joints
-    try:
-        q = np.asarray(q, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise RobotIOError(f"{who}: a joint target must be {n} numbers, got {type(q).__name__}") from None
-    if q.shape != (n,):
-        raise RobotIOError(
-            f"{who}: a joint target must be {n} numbers ({', '.join(scene_arm.joint_names)}), got shape {q.shape}"
-        )
-    if not np.isfinite(q).all():
-        raise RobotIOError(f"{who}: a joint target must be finite, got {q.tolist()}")
-    return q
 
 
 def checksum(body: bytes) -> str:

@@ -28,8 +28,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from robot_io.arms.base import Arm, Fault
-from robot_io.arms.serial import check_joint_target
+from robot_io.arms.base import Arm, Fault, check_joint_target
 from robot_io.errors import ArmFaultError, MissingExtraError, RobotIOError, require_extra
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 from sim.geometry import so3_log
