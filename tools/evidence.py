@@ -9,6 +9,14 @@ with the evaluation's name in the first column), ``summary.json``, ``table.md``,
 textures and their training curves' figures (``attacks.json``), and ``run.json`` (the command,
 commit, machine, wall and CPU time of every attempt, n). Checkpoints and policies stay in
 ``runs/``. ``collect`` redoes only the copy.
+
+    .venv/bin/python tools/evidence.py retable table1 table2      # or --all; --check: exit 1 if stale
+
+rebuilds ``results/<name>/table.md`` from the committed ``summary.json``, ``episodes.csv`` and
+``attacks.json`` alone (report only: no run folder, nothing recomputed outside the recipe's own
+printing, no other file written), with the config of the command ``run.json`` records; a recipe
+whose table reads more than ``results/`` holds is refused in one line
+(``trials.experiments.retable``).
 """
 
 from __future__ import annotations
@@ -16,18 +24,34 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import sys
 from pathlib import Path
 
+import typer
+from typer._click.exceptions import ClickException
+
 from attack.artifact import CONFIG_RECORD, TEXTURE_PNG, AttackArtifact
 from sim.configs import copy_pool
+from sim.errors import AdvobjError
 from sim.policies.card import CARD_NAME, load_card
 from sim.policies.pool import built_pool_path
 from sim.runinfo import RunInfoError, read_run_info
+from trials.cli.experiment import app as experiment_app
+from trials.cli.options import int_list, key_values
 from trials.eval.episodes import collect_evals
 from trials.experiments.recipes import RECIPES as REGISTRY
-from trials.experiments.record import attempt_machine, check_evidence, read_record, run_attempt, write_record
+from trials.experiments.recipes import recipe_scene, resolve_experiment
+from trials.experiments.record import (
+    RECORD_NAME,
+    attempt_machine,
+    check_evidence,
+    read_record,
+    run_attempt,
+    write_record,
+)
+from trials.experiments.retable import REPORT_ONLY, TABLE_NAME, RetableError, check_report_only, committed_table
 from trials.jobs.dag import read_markers
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -142,6 +166,101 @@ def card(policy_dir: Path, results: Path, command: str) -> Path:
     return dst
 
 
+def recorded_command(folder: Path) -> list[str]:
+    """The ``advobj experiment`` command of the last successful attempt in ``folder/run.json`` (the
+    one whose results were collected), split into words; one :class:`RetableError` line naming the
+    file when there is none or it is not a recipe run."""
+    path = folder / RECORD_NAME
+    if not path.is_file():
+        raise RetableError(f"{path}: missing; {folder} is not a recipe run collected by tools/evidence.py")
+    try:
+        attempts = [a for a in read_record(folder).get("attempts", []) if a.get("exit_code") == 0]
+        argv = shlex.split(attempts[-1]["command"])
+    except (IndexError, KeyError, TypeError, AttributeError, ValueError):
+        raise RetableError(f"{path}: no successful attempt with a command") from None
+    if argv[:2] != ["advobj", "experiment"] or len(argv) < 3 or argv[2] not in REGISTRY:
+        raise RetableError(f"{path}: the command {' '.join(argv[:3])!r} is not an 'advobj experiment' recipe")
+    return argv
+
+
+def recorded_experiment(folder: Path) -> dict:
+    """What the table in ``folder`` was made with: the recipe, config, policy, targets and scene of
+    :func:`recorded_command`, parsed by ``advobj experiment``'s own options. One
+    :class:`RetableError` line naming the file when it does not parse, or the folder when its
+    recipe has no report-only path."""
+    path = folder / RECORD_NAME
+    argv = recorded_command(folder)
+    recipe = argv[2]
+    check_report_only(recipe, folder)  # before the options: a recipe with none is refused for that
+    try:
+        p = typer.main.get_command(experiment_app).commands[recipe].make_context(recipe, argv[3:]).params
+        cfg = resolve_experiment(
+            p["preset"],
+            episodes=p["episodes"],
+            pool=None if p["pool"] is None else str(p["pool"]),
+            device=p["device"],
+            attack_overrides=None if p["iterations"] is None else {"iterations": p["iterations"]},
+            transfer_targets=None
+            if p["archs"] is None
+            else tuple(a.strip() for a in p["archs"].split(",") if a.strip()),
+            attack_seeds=int_list(p["attack_seeds"], "--attack-seeds"),
+            rows=None if p["rows"] is None else tuple(r.strip() for r in p["rows"].split(",") if r.strip()),
+            min_clean_success=p["min_clean_success"],
+        )
+        targets = key_values(p["target"], "--target", "ARCH", "PATH")
+    except ClickException as err:
+        raise RetableError(f"{path}: the recorded command does not parse ({err.format_message()})") from None
+    except AdvobjError as err:
+        raise RetableError(f"{path}: the recorded command: {err}") from None
+    return {
+        "recipe": recipe,
+        "cfg": cfg,
+        "policy": p["policy"],
+        "targets": targets,
+        "scene": recipe_scene(recipe, p["scene"]),
+    }
+
+
+def retable_text(folder: Path) -> str:
+    """The ``table.md`` the recipe of ``folder`` writes now for its committed results."""
+    return committed_table(folder, **recorded_experiment(folder))
+
+
+def report_only_folders(results: Path) -> list[str]:
+    """The folders under ``results`` holding a table and the record of a recipe run with a
+    report-only path (other folders: another tool's results, or a recipe with none)."""
+    names = []
+    for d in sorted(p for p in results.iterdir() if (p / RECORD_NAME).is_file() and (p / TABLE_NAME).is_file()):
+        try:
+            recipe = recorded_command(d)[2]
+        except RetableError:
+            continue
+        if recipe in REPORT_ONLY:
+            names.append(d.name)
+    return names
+
+
+def retable(names: list[str], results: Path, check: bool) -> int:
+    """Rebuild (or with ``check``, compare) ``results/<name>/table.md`` of every name; only that
+    file is written. 0: done (or all current), 1: ``check`` found a stale table, 2: refused (one
+    ``evidence: ...`` line on stderr, nothing written)."""
+    try:
+        texts = {name: retable_text(results / name) for name in names}
+    except RetableError as err:
+        print(f"evidence: {err}", file=sys.stderr)
+        return 2
+    stale = []
+    for name, text in texts.items():
+        path = results / name / TABLE_NAME
+        current = path.is_file() and path.read_text() == text
+        if not current:
+            stale.append(name)
+            if not check:
+                path.write_text(text)
+        print(f"{path}: {'current' if current else 'stale' if check else 'rewritten'}")
+    return 1 if check and stale else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -161,6 +280,11 @@ def main(argv=None) -> int:
     k.add_argument("policy_dir", type=Path)
     k.add_argument("--command", required=True, help="the command that trained it")
     k.add_argument("--results", type=Path, default=ROOT / "results")
+    t = sub.add_parser("retable", help="rebuild results/<name>/table.md from its committed data (report only)")
+    t.add_argument("names", nargs="*", help="results folders, e.g. table1")
+    t.add_argument("--all", action="store_true", help="every results folder whose recipe has a report-only path")
+    t.add_argument("--check", action="store_true", help="write nothing; exit 1 if a table is not what it would be")
+    t.add_argument("--results", type=Path, default=ROOT / "results")
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = argv[argv.index("--") + 1 :] if "--" in argv else []
     a = ap.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
@@ -168,6 +292,10 @@ def main(argv=None) -> int:
     if a.cmd == "card":
         print(card(a.policy_dir, a.results, a.command))
         return 0
+    if a.cmd == "retable":
+        if bool(a.names) == a.all:
+            ap.error("retable: give results folder names or --all")
+        return retable(report_only_folders(a.results) if a.all else a.names, a.results, a.check)
     if a.cmd == "run":
         return run(a.recipe, a.episodes, a.policy, a.work, a.results, a.extra, a.name)
     collect(a.name, a.work, a.results)
