@@ -6,6 +6,14 @@ through explicit type -> class tables. ``build_arm`` returns the arm wrapped in
 :class:`robot_io.safety.SafeArm`: callers never hold a raw driver. Relative paths in the YAML are
 relative to the YAML file.
 
+Arms: ``sim`` (the sim world's), ``ur_rtde``, ``serial``, and the servo-bus arms LeRobot users own,
+``feetech`` (SO-100/SO-101) and ``dynamixel`` (Koch). An arm a URDF describes takes joint commands:
+its ``kinematics`` block (:class:`ArmKinematicsConfig`: the URDF, its base and tool links, the TCP in
+the tool link) is optional for ``ur_rtde`` and ``serial`` and required for the servo-bus arms, whose
+``joints`` map each servo to a joint of that chain. The URDF is read when the config loads, so a
+missing or malformed file, absent links, servos that are not the chain's joints or a ``q_home`` of
+the wrong length are one line naming the file and the field.
+
 Cameras: ``camera`` is the wrist camera (named ``wrist``); ``scene_cameras`` the fixed ones, by
 name (``front: {type: opencv, ..., T_table_cam: front_pose.yaml}``). A real fixed camera needs its
 pose in the table frame, the file ``advobj calibrate scene-camera`` writes, and delivers frames of
@@ -27,9 +35,12 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from calibration.intrinsics import load_camera_yaml
 from calibration.io import PoseModel, Vec3, load_model, load_scene_camera_pose, not_a_regular_file
 from calibration.io import read_yaml as read_calibration_yaml
+from robot_io.arms.dynamixel import DynamixelArm
+from robot_io.arms.feetech import FeetechArm
 from robot_io.arms.serial import SerialArm
+from robot_io.arms.servo_bus import MAX_SERVO_ID, ServoBusError, ServoJoint, _order_joints
 from robot_io.arms.sim import SimArm
-from robot_io.arms.ur_rtde import URArm
+from robot_io.arms.ur_rtde import UR_JOINTS, URArm
 from robot_io.cameras.depthai import DepthAICamera
 from robot_io.cameras.opencv import OpenCVCamera
 from robot_io.cameras.replay import ReplayCamera
@@ -38,7 +49,7 @@ from robot_io.errors import HardwareConfigError
 from robot_io.safety import SafeArm, SafetyLimits
 from sim.configio import StrictModel, file_error, merged, read_yaml
 from sim.errors import format_validation_error
-from sim.spec import CAMERA_NAME, WRIST, default_scene, load_scene
+from sim.spec import CAMERA_NAME, WRIST, ArmModelConfig, default_scene, load_scene
 from sim.world import SimWorld
 
 __all__ = [
@@ -54,6 +65,10 @@ __all__ = [
     "SimArmConfig",
     "URArmConfig",
     "SerialArmConfig",
+    "FeetechArmConfig",
+    "DynamixelArmConfig",
+    "ArmKinematicsConfig",
+    "ServoJointConfig",
     "SimConfig",
     "load_hardware_config",
     "hardware_config_from_dict",
@@ -63,6 +78,7 @@ __all__ = [
     "build_scene_camera",
     "scene_camera_pose",
     "build_arm",
+    "build_scene_arm",
     "CAMERA_TYPES",
     "ARM_TYPES",
 ]
@@ -170,11 +186,74 @@ SceneCameraConfig = Annotated[
 
 
 # ---------------------------------------------------------------------- arms
+_ARM_MODEL = ArmModelConfig.model_fields  # the scene's arm schema: its fields are reused below
+# ArmModelConfig's names of the base placement -> this block's (its frame is the arm's base frame).
+_PLACEMENT_NAMES = {"t_table_base_m": "t_base_link_m", "rotvec_table_base": "rotvec_base_link"}
+
+
+class ArmKinematicsConfig(_Strict):
+    """The arm as a URDF: the chain from ``base_link`` to ``tool_link``, the TCP in the tool link's frame.
+
+    The scene's arm (:class:`sim.spec.ArmModelConfig`, whose fields and rules it reuses) placed in
+    the arm's own base frame, the frame of its TCP pose and of the workspace box: the TCP is
+    ``T_base_tcp = T_base_link FK(q) T_tool_tcp``. A plain URDF (no xacro; meshes are ignored) with
+    both links in it, the tool link below the base link, and every joint between them revolute or
+    prismatic with finite position and velocity limits; a joint command is in the chain's order and
+    units (rad, m).
+    """
+
+    urdf: str = Field(
+        min_length=1, description="a shipped arm (panda, ur5) or a URDF file, relative to this YAML's folder"
+    )
+    base_link: str = Field(
+        min_length=1, description="the URDF link the chain starts at; it stands at t_base_link_m, rotvec_base_link"
+    )
+    tool_link: str = _ARM_MODEL["tool_link"]
+    t_base_link_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="where base_link stands in the arm's base frame (the frame of its TCP pose) (m); zero: it is "
+        "that frame",
+    )
+    rotvec_base_link: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="base_link's orientation in the arm's base frame, axis-angle (rad); a UR controller's base "
+        "is ur_description's base_link turned by pi about z: [0, 0, 3.141592653589793] with base_link 'base_link'",
+    )
+    t_tool_tcp_m: tuple[float, float, float] = _ARM_MODEL["t_tool_tcp_m"]
+    rotvec_tool_tcp: tuple[float, float, float] = _ARM_MODEL["rotvec_tool_tcp"]
+    q_home: tuple[float, ...] | None = _ARM_MODEL["q_home"]
+
+    @model_validator(mode="after")
+    def _scene_arm_rules(self):
+        try:
+            self.arm_model()
+        except ValidationError as err:
+            e = err.errors()[0]
+            field = ".".join(_PLACEMENT_NAMES.get(str(p), str(p)) for p in e["loc"])
+            raise ValueError(f"{field}: {e['msg'].removeprefix('Value error, ')}") from None
+        return self
+
+    def arm_model(self, control_period_s: float | None = None) -> ArmModelConfig:
+        """This arm as the scene's :class:`sim.spec.ArmModelConfig`, its "table" frame the arm's base
+        frame; ``control_period_s``: the safety layer's (``None``: the scene default)."""
+        data = self.model_dump()
+        data["t_table_base_m"] = data.pop("t_base_link_m")
+        data["rotvec_table_base"] = data.pop("rotvec_base_link")
+        if control_period_s is not None:
+            data["control_period_s"] = control_period_s
+        return ArmModelConfig.model_validate(data)
+
+
 class SimArmConfig(_Strict):
+    """The sim world's arm; a scene with an ``arm`` (a URDF) makes it joint-driven."""
+
     type: Literal["sim"]
     max_speed_mps: Positive = 0.5
     max_speed_radps: Positive = 2.0
     realtime: bool = False
+
+
+_KINEMATICS = "the arm's URDF: given, the arm also takes joint commands; its TCP must be the one the controller reports"
 
 
 class URArmConfig(_Strict):
@@ -185,6 +264,8 @@ class URArmConfig(_Strict):
     lookahead_time_s: Annotated[float, Field(ge=0.03, le=0.2)] = 0.1
     gain: Annotated[float, Field(ge=100, le=2000)] = 300.0
     watchdog_min_hz: Positive = 10.0
+    joint_acceleration_radps2: Positive = Field(1.4, description="moveJ acceleration of the leading joint")
+    kinematics: ArmKinematicsConfig | None = Field(None, description=f"{_KINEMATICS} (servoJ, moveJ); 6 joints")
 
 
 class SerialArmConfig(_Strict):
@@ -195,9 +276,77 @@ class SerialArmConfig(_Strict):
     retries: Annotated[int, Field(ge=0, le=20)] = 3
     boot_timeout_ms: Positive = 3000.0
     expect_banner: bool = True
+    kinematics: ArmKinematicsConfig | None = Field(
+        None, description=f"{_KINEMATICS} (JOINTS, MOVEJ; the firmware must have as many joints)"
+    )
 
 
-ArmConfig = Annotated[Union[SimArmConfig, URArmConfig, SerialArmConfig], Field(discriminator="type")]
+ServoId = Annotated[int, Field(strict=True, ge=0, le=MAX_SERVO_ID)]
+
+
+class ServoJointConfig(_Strict):
+    """One servo on the bus and the joint it turns: ``q_rad = sign * (ticks - offset_ticks) * 2 pi /
+    ticks_per_rev`` (:class:`robot_io.arms.servo_bus.ServoJoint`)."""
+
+    id: ServoId = Field(description="the servo's bus id")
+    name: str = Field(min_length=1, description="the joint's name in the URDF (the gripper's: any name)")
+    sign: Literal[1, -1] = Field(1, description="1 when rising ticks turn the joint positively, else -1")
+    offset_ticks: Annotated[int, Field(strict=True)] = Field(0, description="the servo's reading at q = 0")
+    ticks_per_rev: Annotated[int, Field(strict=True, ge=2)] = Field(
+        4096, description="encoder ticks per turn (4096: STS3215, Dynamixel X-series)"
+    )
+
+    def servo_joint(self) -> ServoJoint:
+        return ServoJoint(self.id, self.name, self.sign, self.offset_ticks, self.ticks_per_rev)
+
+
+class _BusArmConfig(_Strict):
+    """A servo-bus arm: servos on one half-duplex bus behind a USB adapter, a URDF for its kinematics."""
+
+    type: Literal["feetech", "dynamixel"]
+    port: Annotated[str, Field(min_length=1, description="the bus adapter: /dev/serial/by-id/..., /dev/ttyACM0")]
+    baudrate: Annotated[int, Field(gt=0)] = Field(1_000_000, description="the bus speed the servos are set to")
+    timeout_ms: Positive = Field(50.0, description="per reply; then the same request is resent")
+    retries: Annotated[int, Field(ge=0, le=20)] = Field(3, description="resends before the link counts as lost")
+    joints: list[ServoJointConfig] = Field(
+        min_length=1, description="one servo per joint of the URDF chain, any order: exactly the chain's joints"
+    )
+    gripper: ServoJointConfig | None = Field(None, description="the gripper's servo (on the bus, not in the URDF)")
+    settle_ticks: Annotated[int, Field(ge=0)] = Field(2, description="a positioning move ends this close to its goal")
+    settle_timeout_s: Annotated[float, Field(ge=0)] = Field(
+        1.0, description="how much longer than planned a positioning move may take before the arm stops"
+    )
+    max_speed_radps: Positive = Field(1.0, description="TCP rotation speed of a positioning move")
+    torque_off_on_close: bool = Field(
+        False, description="release torque on disconnect (the arm then falls under gravity)"
+    )
+    kinematics: ArmKinematicsConfig = Field(description="the arm's URDF (required: the servos know only ticks)")
+
+    @model_validator(mode="after")
+    def _unique_ids(self):
+        ids = [j.id for j in self.joints] + ([self.gripper.id] if self.gripper is not None else [])
+        twice = sorted({i for i in ids if ids.count(i) > 1})
+        if twice:
+            raise ValueError(f"servo ids must be unique on the bus (joints and gripper); {twice} repeat")
+        return self
+
+
+class FeetechArmConfig(_BusArmConfig):
+    """SO-100/SO-101: Feetech STS3215 servos, Feetech's STS protocol (docs/real-trials.md, LeRobot arms)."""
+
+    type: Literal["feetech"]
+
+
+class DynamixelArmConfig(_BusArmConfig):
+    """Koch v1.1: Dynamixel X-series servos, Protocol 2.0 (docs/real-trials.md, LeRobot arms)."""
+
+    type: Literal["dynamixel"]
+
+
+ArmConfig = Annotated[
+    Union[SimArmConfig, URArmConfig, SerialArmConfig, FeetechArmConfig, DynamixelArmConfig],
+    Field(discriminator="type"),
+]
 
 
 class SimConfig(_Strict):
@@ -271,9 +420,22 @@ def _resolve(cfg: HardwareConfig, base: Path | None) -> HardwareConfig:
 
     sim = {**cfg.sim.model_dump(), "scene": fix(cfg.sim.scene)}
     scene_cameras = {name: fixed(c) for name, c in cfg.scene_cameras.items()}
+    arm = cfg.arm.model_dump()
+    kin = getattr(cfg.arm, "kinematics", None)
+    if kin is not None:
+        from sim.kinematics import SHIPPED_ARMS  # lazy: robot_io start-up (torch)
+
+        if kin.urdf not in SHIPPED_ARMS:  # a shipped arm's name stays a name
+            arm["kinematics"]["urdf"] = str(fix(Path(kin.urdf)))
     return merged(
         cfg,
-        {"camera": fixed(cfg.camera), "T_tcp_cam": fix(cfg.T_tcp_cam), "sim": sim, "scene_cameras": scene_cameras},
+        {
+            "camera": fixed(cfg.camera),
+            "arm": arm,
+            "T_tcp_cam": fix(cfg.T_tcp_cam),
+            "sim": sim,
+            "scene_cameras": scene_cameras,
+        },
         what="hardware config",
         source=str(base),
         error=HardwareConfigError,
@@ -287,7 +449,58 @@ def hardware_config_from_dict(data, source: str = "<dict>", base: Path | None = 
         cfg = HardwareConfig.model_validate(data)
     except ValidationError as err:
         raise HardwareConfigError(format_validation_error(err, "hardware config", source)) from None
-    return _resolve(cfg, base)
+    cfg = _resolve(cfg, base)
+    _check_arm_kinematics(cfg, source)
+    return cfg
+
+
+def _check_arm_kinematics(cfg: HardwareConfig, source: str) -> None:
+    """Read the arm's URDF chain and check the config against it: the links, ``q_home`` (one value
+    per joint, within its limits), a UR's six joints, and a bus arm's servos (exactly the chain's
+    revolute joints; the gripper not one of them). A refusal is one line naming ``source`` and the field."""
+    a = cfg.arm
+    kin = getattr(a, "kinematics", None)
+    if kin is None:
+        return
+    from sim.kinematics import KinematicsError, read_chain, urdf_source  # lazy: robot_io start-up (torch)
+
+    where = f"arm.{a.type}"
+
+    def refuse(field: str, problem: str) -> HardwareConfigError:
+        return HardwareConfigError(f"{source}: invalid hardware config: {where}.{field}: {problem}")
+
+    try:
+        chain = read_chain(urdf_source(kin.urdf), kin.base_link, kin.tool_link)
+    except KinematicsError as err:
+        raise refuse(f"kinematics.{err.field or 'urdf'}", str(err)) from None
+    names, n = chain.joint_names, len(chain.joint_names)
+    if kin.q_home is not None:
+        if len(kin.q_home) != n:
+            raise refuse(
+                "kinematics.q_home", f"{len(kin.q_home)} values for the {n} joints of the chain ({', '.join(names)})"
+            )
+        for k, v in enumerate(kin.q_home):
+            if not chain.q_min[k] <= v <= chain.q_max[k]:
+                raise refuse(
+                    f"kinematics.q_home.{k}",
+                    f"joint {names[k]!r} at {v} {chain.units[k]} is outside its limits "
+                    f"[{chain.q_min[k]:.6g}, {chain.q_max[k]:.6g}]",
+                )
+    if a.type == "ur_rtde" and n != UR_JOINTS:
+        raise refuse(
+            "kinematics.urdf",
+            f"{chain.urdf}: the chain {kin.base_link} -> {kin.tool_link} has {n} joints ({', '.join(names)}); "
+            f"a UR arm has {UR_JOINTS}",
+        )
+    if a.type in ("feetech", "dynamixel"):
+        try:
+            _order_joints(a.type, tuple(j.servo_joint() for j in a.joints), chain)
+        except ServoBusError as err:
+            raise refuse("joints", f"{err} (the URDF {chain.urdf})") from None
+        if a.gripper is not None and a.gripper.name in names:
+            raise refuse(
+                "gripper.name", f"{a.gripper.name!r} is a joint of the URDF chain; the gripper is no joint of it"
+            )
 
 
 def load_hardware_config(path: str | Path) -> HardwareConfig:
@@ -368,18 +581,64 @@ def _sim_arm(cfg: HardwareConfig, world):
     return SimArm(world, a.max_speed_mps, a.max_speed_radps, a.realtime, None if arm is None else arm.scene_arm())
 
 
+def build_scene_arm(cfg: HardwareConfig):
+    """The :class:`sim.ik.SceneArm` of the configured arm's ``kinematics`` (its step bound over the
+    safety layer's ``control_period_s``), or ``None`` for an arm without one."""
+    kin = getattr(cfg.arm, "kinematics", None)
+    if kin is None:
+        return None
+    from sim.kinematics import KinematicsError  # lazy: robot_io start-up (torch)
+
+    try:
+        return kin.arm_model(cfg.safety.control_period_s).scene_arm()
+    except KinematicsError as err:  # the file changed since the config was loaded
+        raise HardwareConfigError(f"arm.{cfg.arm.type}.kinematics.{err.field or 'urdf'}: {err}") from None
+
+
 def _ur_arm(cfg: HardwareConfig, world):
     a = cfg.arm
-    return URArm(a.host, a.mode, a.acceleration_mps2, a.lookahead_time_s, a.gain, a.watchdog_min_hz)
+    return URArm(
+        a.host,
+        a.mode,
+        a.acceleration_mps2,
+        a.lookahead_time_s,
+        a.gain,
+        a.watchdog_min_hz,
+        kinematics=build_scene_arm(cfg),
+        joint_acceleration_radps2=a.joint_acceleration_radps2,
+    )
 
 
 def _serial_arm(cfg: HardwareConfig, world):
     a = cfg.arm
-    return SerialArm(a.port, a.baudrate, a.timeout_ms, a.retries, a.boot_timeout_ms, a.expect_banner)
+    return SerialArm(
+        a.port, a.baudrate, a.timeout_ms, a.retries, a.boot_timeout_ms, a.expect_banner, kinematics=build_scene_arm(cfg)
+    )
+
+
+def _bus_arm(cfg: HardwareConfig, world):
+    a = cfg.arm
+    driver = {"feetech": FeetechArm, "dynamixel": DynamixelArm}[a.type]
+    try:
+        return driver(
+            a.port,
+            [j.servo_joint() for j in a.joints],
+            build_scene_arm(cfg),
+            gripper=None if a.gripper is None else a.gripper.servo_joint(),
+            baudrate=a.baudrate,
+            timeout_ms=a.timeout_ms,
+            retries=a.retries,
+            settle_ticks=a.settle_ticks,
+            settle_timeout_s=a.settle_timeout_s,
+            max_speed_radps=a.max_speed_radps,
+            torque_off_on_close=a.torque_off_on_close,
+        )
+    except ServoBusError as err:
+        raise HardwareConfigError(f"arm.{a.type}: {err}") from None
 
 
 CAMERA_TYPES = {"sim": _sim_camera, "opencv": _opencv_camera, "depthai": _depthai_camera, "replay": _replay_camera}
-ARM_TYPES = {"sim": _sim_arm, "ur_rtde": _ur_arm, "serial": _serial_arm}
+ARM_TYPES = {"sim": _sim_arm, "ur_rtde": _ur_arm, "serial": _serial_arm, "feetech": _bus_arm, "dynamixel": _bus_arm}
 
 
 def _needs_world(kind: str, world) -> None:
