@@ -60,6 +60,7 @@ needed (:func:`to_delta`, :func:`to_model_image`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal, get_args
 
@@ -89,6 +90,7 @@ __all__ = [
     "to_joint_target",
     "from_joint_target",
     "check_joints",
+    "joint_mismatch",
     "call_policy",
     "ActionQueue",
     "WRIST_CAMERA",
@@ -546,11 +548,43 @@ def policy_cameras(policy) -> tuple[str, ...]:
     return plan.cameras if isinstance(plan, InputPlan) else (WRIST_CAMERA,)
 
 
+def joint_mismatch(
+    contract: PolicyContract, names: Sequence[str], units: Sequence[str], chain: str, urdf: str
+) -> str | None:
+    """Why a joint-space ``contract`` cannot drive an arm whose actuated joints are ``names`` (the
+    URDF chain's order, base link to tool link), each in its ``units`` entry (``"rad"`` or ``"m"``):
+    one line naming the card field (``contract.joints`` or ``contract.joint_units.<k>``), or ``None``
+    when it can. A TCP contract needs no joints: ``None``.
+
+    ``chain`` names the arm's chain in the line (``"the arm's chain panda_link0 -> panda_hand in
+    panda.urdf"``) and ``urdf`` the file its joints' kinds come from. The one comparison behind
+    :func:`check_joints` (a scene's arm) and ``trials.real.runner.check_joint_arm`` (a real arm's).
+    """
+    if not contract.is_joint_space:
+        return None
+    names, units, got = tuple(names), tuple(units), tuple(contract.joints)
+    if got != names:
+        unknown = [j for j in got if j not in names]
+        if unknown:
+            why = f"joint {unknown[0]!r} is not in {chain}"
+        elif len(got) != len(names):
+            why = f"{len(got)} joints for the {len(names)} of {chain}"
+        else:
+            k = next(i for i, (a, b) in enumerate(zip(got, names)) if a != b)
+            why = f"position {k} is {got[k]!r} where {chain} has {names[k]!r} (the order is base to tool)"
+        return f"contract.joints: {why}; the arm's joints: {', '.join(names)}"
+    for k, (u, want) in enumerate(zip(contract.joint_units, units)):
+        if u != want:
+            kind = "revolute" if want == "rad" else "prismatic"
+            return f"contract.joint_units.{k}: joint {names[k]!r} is {kind} in {urdf}, so its unit is {want}, not {u}"
+    return None
+
+
 def check_joints(contract: PolicyContract, spec, where: str = "") -> None:
     """Refuse, in one line naming the card field, a joint-space ``contract`` that ``spec``'s arm
     cannot run: a scene without an arm, joints that are not the arm's chain in its order (the URDF's
-    actuated joints from base link to tool link), or a unit that is not its joint's. A TCP contract
-    passes (it runs in every scene)."""
+    actuated joints from base link to tool link), or a unit that is not its joint's
+    (:func:`joint_mismatch`). A TCP contract passes (it runs in every scene)."""
     if not contract.is_joint_space:
         return
     if spec.arm is None:
@@ -562,26 +596,10 @@ def check_joints(contract: PolicyContract, spec, where: str = "") -> None:
 
     arm = spec.arm
     chain = read_chain(urdf_source(arm.urdf), arm.base_link, arm.tool_link)
-    names, units = chain.joint_names, chain.units
-    urdf = f"the arm's chain {arm.base_link} -> {arm.tool_link} in {chain.urdf.name}"
-    got = tuple(contract.joints)
-    if got != names:
-        unknown = [j for j in got if j not in names]
-        if unknown:
-            why = f"joint {unknown[0]!r} is not in {urdf}"
-        elif len(got) != len(names):
-            why = f"{len(got)} joints for the {len(names)} of {urdf}"
-        else:
-            k = next(i for i, (a, b) in enumerate(zip(got, names)) if a != b)
-            why = f"position {k} is {got[k]!r} where {urdf} has {names[k]!r} (the order is base to tool)"
-        raise PolicyError(f"{where}contract.joints: {why}; the arm's joints: {', '.join(names)}")
-    for k, (u, want) in enumerate(zip(contract.joint_units, units)):
-        if u != want:
-            kind = "revolute" if want == "rad" else "prismatic"
-            raise PolicyError(
-                f"{where}contract.joint_units.{k}: joint {names[k]!r} is {kind} in {chain.urdf.name}, so its unit is "
-                f"{want}, not {u}"
-            )
+    where_chain = f"the arm's chain {arm.base_link} -> {arm.tool_link} in {chain.urdf.name}"
+    why = joint_mismatch(contract, chain.joint_names, chain.units, where_chain, chain.urdf.name)
+    if why is not None:
+        raise PolicyError(f"{where}{why}")
 
 
 def check_scene(policy, spec) -> None:

@@ -25,6 +25,7 @@ from sim.policies.contract import (
     check_scene,
     decode_actions,
     from_joint_target,
+    joint_mismatch,
     state_vector,
     to_delta,
     to_joint_target,
@@ -149,6 +150,36 @@ def test_the_card_is_checked_against_the_scenes_urdf_in_one_line_naming_the_fiel
         with pytest.raises(PolicyError, match=match) as err:
             check_joints(contract, spec, "policy.json: ")
         assert "\n" not in str(err.value) and str(err.value).startswith("policy.json: ")
+
+
+_ARM_NAMES = tuple(f"j{k}" for k in range(6))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    picks=st.lists(st.sampled_from([*_ARM_NAMES, "gripper"]), min_size=1, max_size=8, unique=True),
+    arm_units=st.lists(st.sampled_from(["rad", "m"]), min_size=6, max_size=6),
+    card_units=st.lists(st.sampled_from(["rad", "m"]), min_size=8, max_size=8),
+)
+def test_joint_mismatch_passes_exactly_the_arms_joints_and_units_and_names_the_first_field_at_fault(
+    picks, arm_units, card_units
+):
+    """Any joints (the arm's, in any order and number, or one it lacks) with any units: no mismatch iff
+    they are the arm's chain in its order with its units; otherwise one line naming the field."""
+    contract = joint_contract(joints=tuple(picks), units=tuple(card_units[: len(picks)]))
+    why = joint_mismatch(contract, _ARM_NAMES, arm_units, "the arm's chain b -> t in a.urdf", "a.urdf")
+    if tuple(picks) != _ARM_NAMES:
+        assert why.startswith("contract.joints: ") and why.endswith(f"; the arm's joints: {', '.join(_ARM_NAMES)}")
+        assert ("'gripper' is not in the arm's chain" in why) == ("gripper" in picks)
+    elif tuple(card_units[:6]) != tuple(arm_units):
+        k = next(i for i, (u, w) in enumerate(zip(card_units, arm_units)) if u != w)
+        assert why.startswith(f"contract.joint_units.{k}: joint 'j{k}' is ") and why.endswith(
+            f"in a.urdf, so its unit is {arm_units[k]}, not {card_units[k]}"
+        )
+    else:
+        assert why is None
+    assert why is None or "\n" not in why
+    assert joint_mismatch(PolicyContract(), _ARM_NAMES, arm_units, "x", "y") is None  # a TCP contract: no joints
 
 
 def test_state_vector_holds_the_joint_positions_in_the_contracts_order():

@@ -78,6 +78,7 @@ from sim.policies.contract import (
     InputPlan,
     call_policy,
     decode_actions,
+    joint_mismatch,
     policy_cameras,
     policy_contract,
     state_vector,
@@ -184,7 +185,8 @@ class Start:
 def check_joint_arm(contract, kinematics, arm_name: str) -> None:
     """Refuse, in one line, a joint-space ``contract`` the arm cannot run: an arm without kinematics
     (``kinematics`` None: no URDF describes it), or whose URDF joints (names, order, units) are not
-    the contract's ``joints`` and ``joint_units``. A TCP contract passes on any arm."""
+    the contract's ``joints`` and ``joint_units`` (:func:`sim.policies.contract.joint_mismatch`, the
+    comparison a scene's arm gets). A TCP contract passes on any arm."""
     if not contract.is_joint_space:
         return
     if kinematics is None:
@@ -192,23 +194,11 @@ def check_joint_arm(contract, kinematics, arm_name: str) -> None:
             f"--policy: a joint-space policy ({contract.describe()}) on the {arm_name} arm, which takes no joint "
             "commands (no URDF describes it)"
         )
-    names, units = tuple(kinematics.joint_names), tuple(kinematics.units)
-    got = tuple(contract.joints)
-    if got != names:
-        unknown = [j for j in got if j not in names]
-        if unknown:
-            why = f"joint {unknown[0]!r} is not one of the arm's"
-        elif len(got) != len(names):
-            why = f"{len(got)} joints for the arm's {len(names)}"
-        else:
-            k = next(i for i, (a, b) in enumerate(zip(got, names)) if a != b)
-            why = f"position {k} is {got[k]!r} where the arm's URDF has {names[k]!r} (the order is base to tool)"
-        raise JointArmError(f"--policy: contract.joints: {why}; the {arm_name} arm's joints: {', '.join(names)}")
-    for k, (u, want) in enumerate(zip(contract.joint_units, units)):
-        if u != want:
-            raise JointArmError(
-                f"--policy: contract.joint_units.{k}: joint {names[k]!r} of the {arm_name} arm is in {want}, not {u}"
-            )
+    model = kinematics.model
+    chain = f"the {arm_name} arm's chain {model.base_link} -> {model.tool_link} in {model.urdf.name}"
+    why = joint_mismatch(contract, kinematics.joint_names, kinematics.units, chain, model.urdf.name)
+    if why is not None:
+        raise JointArmError(f"--policy: {why}")
 
 
 def _fk(kinematics, q) -> np.ndarray:

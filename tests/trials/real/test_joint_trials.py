@@ -515,6 +515,34 @@ def test_a_joint_policy_on_an_arm_without_kinematics_is_refused_in_one_line(arm)
     check_joint_arm(PolicyContract(), None, "ur_rtde")  # a TCP policy runs on any arm
 
 
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda names, units: (names[::-1], units),
+        lambda names, units: ((*names[:-1], "panda_finger_joint1"), units),
+        lambda names, units: (names[:-1], units[:-1]),
+        lambda names, units: (names, (*units[:-1], "m")),
+    ],
+    ids=["reversed", "not-the-arms", "one-short", "wrong-unit"],
+)
+def test_a_real_arm_and_a_scenes_arm_refuse_the_same_joints_with_the_same_line(spec, arm, edit):
+    """check_joint_arm (the session's arm) and check_joints (the scene's arm) are one comparison:
+    for the same URDF they refuse the same card with the same reason, each naming its arm."""
+    from sim.policies.contract import check_joints
+    from sim.policies.interface import PolicyError
+
+    joints, units = edit(arm.joint_names, arm.units)
+    contract = PolicyContract(
+        state=("joint_positions",), action=ActionContract(kind="joint_delta"), joints=joints, joint_units=units
+    )
+    with pytest.raises(PolicyError) as scene_err:
+        check_joints(contract, spec)
+    with pytest.raises(JointArmError, match=r"^--policy: contract\.joint") as arm_err:
+        check_joint_arm(contract, arm, "sim")
+    assert str(arm_err.value) == "--policy: " + str(scene_err.value).replace("the arm's chain", "the sim arm's chain")
+    assert "\n" not in str(arm_err.value)
+
+
 def test_a_joint_policy_on_a_sim_cell_whose_scene_has_no_arm_is_refused_before_any_device(files, tmp_path):
     plan = small_plan(tmp_path / "plan.yaml", tmp_path, n_tcp=1, n_layouts=1, conditions=("clean",))  # built-in scene
     with pytest.raises(SessionSetupError, match=r"^--policy: .*ck: contract: a joint-space policy .* needs a scene"):
