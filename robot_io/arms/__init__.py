@@ -1,8 +1,16 @@
-"""Arm drivers: one interface (:class:`~robot_io.arms.base.Arm`), three implementations plus the serial
-device simulator.
+"""Arm drivers: one interface (:class:`~robot_io.arms.base.Arm`) and its implementations.
 
-The drivers are imported by the factory in :mod:`robot_io.config` only when a config names them,
-and reach trial code only wrapped in :class:`robot_io.safety.SafeArm`.
+* :mod:`robot_io.arms.sim`: the sim world's arm (a floating TCP, or joint-driven by a scene's URDF arm).
+* :mod:`robot_io.arms.ur_rtde`: Universal Robots through ur-rtde (``servoL``/``speedL``/``moveL``;
+  with a URDF also ``servoJ``/``moveJ``).
+* :mod:`robot_io.arms.serial`: a controller speaking the advobj line protocol (``MOVE``;
+  with a URDF also ``MOVEJ``); its device simulator is :mod:`robot_io.arms.serial_sim`.
+* :mod:`robot_io.arms.feetech` (SO-100/SO-101, Feetech STS servos) and :mod:`robot_io.arms.dynamixel`
+  (Koch, Dynamixel Protocol 2.0): servo-bus arms (:mod:`robot_io.arms.servo_bus`), always with a
+  URDF; their byte-level twins are :mod:`robot_io.arms.feetech_sim` and :mod:`robot_io.arms.dynamixel_sim`.
+
+The hardware config (:mod:`robot_io.config`) builds them, and they reach trial code only wrapped in
+:class:`robot_io.safety.SafeArm`. No module here imports a vendor SDK or pyserial at import time.
 """
 
 from robot_io.arms.base import Arm, Fault

@@ -372,3 +372,4 @@ def test_a_refused_joint_target_never_reaches_the_driver(joint_arm, limits, monk
                 safe.move_joints(bad)
         assert sent == []
         assert _wait_joints(arm, q)  # and nothing moved
+        assert safe.step_joints(q, time.monotonic()).status == "ok" and sent == ["servo_joints"]  # the spy sees one
