@@ -253,7 +253,7 @@ class SimArmConfig(_Strict):
     realtime: bool = False
 
 
-_KINEMATICS = "the arm's URDF: given, the arm also takes joint commands; its TCP must be the one the controller reports"
+_KINEMATICS = "the arm's URDF, its TCP the one the controller reports: given, the arm also takes joint commands"
 
 
 class URArmConfig(_Strict):

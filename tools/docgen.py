@@ -434,7 +434,10 @@ SECTIONS: list[Section] = [
         "Hardware (`advobj hw check --config hw.yaml`)",
         "Wrist camera, arm, safety limits and, for `sim` devices, the simulated world. `camera` and `arm` pick "
         "their variant by `type`. Relative paths are relative to the YAML. Examples: `examples/hardware/`. "
-        "What the safety limits do: [safety.md](safety.md).",
+        "What the safety limits do: [safety.md](safety.md). An arm's `kinematics` (its URDF) gives it joint "
+        "commands; the servo-bus arms (`feetech`: SO-100/SO-101, `dynamixel`: Koch) need it: where their URDFs "
+        "come from and how to fill `joints` from LeRobot's calibration is in "
+        "[real-trials.md](real-trials.md#lerobot-arms-so-100so-101-koch).",
         _hardware,
     ),
     Section(

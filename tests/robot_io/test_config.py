@@ -389,3 +389,31 @@ def test_a_urdf_gone_after_loading_is_one_line_at_build(tmp_path):
     urdf.unlink()
     with pytest.raises(HardwareConfigError, match=r"^arm\.serial\.kinematics\.urdf: .*arm\.urdf: no such URDF file"):
         build_arm(cfg)
+
+
+def _chain_urdf(links: list[str], joints: list[str]) -> str:
+    """A plain URDF: ``links`` in a line, joint ``k`` (revolute about z, +-2 rad) from link ``k`` to ``k + 1``."""
+    body = "".join(f'<link name="{name}"/>' for name in links)
+    for k, name in enumerate(joints):
+        body += (
+            f'<joint name="{name}" type="revolute"><parent link="{links[k]}"/><child link="{links[k + 1]}"/>'
+            '<origin xyz="0 0 0.05"/><axis xyz="0 0 1"/><limit lower="-2" upper="2" velocity="3" effort="1"/></joint>'
+        )
+    return f'<robot name="chain">{body}</robot>'
+
+
+def test_the_lerobot_arm_block_in_real_trials_md_loads_once_its_urdf_is_there(tmp_path):
+    import yaml
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "real-trials.md").read_text()
+    section = doc.split("## LeRobot arms (SO-100/SO-101, Koch)", 1)[1]
+    block = yaml.safe_load(section.split("```yaml", 1)[1].split("```", 1)[0])
+    kin, names = block["arm"]["kinematics"], [j["name"] for j in block["arm"]["joints"]]
+    # Without the user's URDF it is refused naming it; with a URDF of that chain it loads.
+    assert "arm.feetech.kinematics.urdf: " in _refused(block["arm"], base=tmp_path)
+    urdf = tmp_path / kin["urdf"]
+    urdf.parent.mkdir(parents=True)
+    links = [kin["base_link"], *[f"link{k}" for k in range(len(names) - 1)], kin["tool_link"]]
+    urdf.write_text(_chain_urdf(links, names))
+    cfg = _hw(block["arm"], base=tmp_path)
+    assert build_arm(cfg).kinematics().joint_names == tuple(names)
