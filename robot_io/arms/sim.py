@@ -11,7 +11,14 @@ Given a ``scene_arm`` (:class:`sim.ik.SceneArm`), the arm is joint-driven: it ho
 positions ``q``, :meth:`SimArm.servo_joints` and :meth:`SimArm.move_joints` set them exactly as
 commanded (the safety layer in front of it enforces the limits; the twin records what it was
 sent), and the gripper follows the scene arm's FK, ``T_world_tcp = T_world_base FK(q) T_tool_tcp``.
-TCP commands to a joint-driven arm go through the scene arm's IK from the current joints.
+TCP commands to a joint-driven arm go through the scene arm's IK from the current joints (a
+positioning move that does not converge from there tries the scene arm's start seeds). A TCP
+target the IK does not reach within the joint limits is refused as the real drivers refuse one (the
+serial arm's ``ERR RANGE unreachable``, the servo-bus arm's IK refusal): the arm does not move and
+takes the next command, so no fault is latched (:meth:`SimArm.fault` stays ``None``). It is raised
+as an :class:`~robot_io.errors.ArmFaultError` (a ``device_fault`` naming the target and the IK's
+errors), which the trial runner turns into the end of that trial (``fault: ...``), not of the
+session.
 """
 
 from __future__ import annotations
@@ -115,12 +122,33 @@ class SimArm(Arm):
         if self.realtime:
             time.sleep(float(duration_s))
 
-    def _ik(self, T_world_tcp: np.ndarray) -> np.ndarray:
+    def _ik(self, T_world_tcp: np.ndarray, positioning: bool = False) -> np.ndarray:
+        """The joints that put the TCP at ``T_world_tcp``: IK from the current joints (the nearest
+        solution, as a real arm's controller takes), and for a ``positioning`` move, when that does
+        not converge, from the scene arm's start seeds (:meth:`sim.ik.SceneArm.solve_start`: its home
+        joints, then fixed restarts), as the simulator solves a start pose. A target out of reach
+        raises :class:`ArmFaultError` (not latched: the arm has not moved)."""
         import torch  # lazy: robot_io start-up (torch)
 
         like = torch.as_tensor(self._q, dtype=torch.float64, device=self.scene_arm.device)[None]
         T = torch.as_tensor(T_world_tcp, dtype=torch.float64, device=like.device)[None]
-        return self.scene_arm.ik(T, like).require("TCP target")[0].cpu().numpy()
+        res = self.scene_arm.ik(T, like)
+        seeds = "the current joints"
+        if positioning and not bool(res.converged[0]):
+            res = self.scene_arm.solve_start(T)
+            seeds = "the current joints, then the arm's home joints and restarts"
+        if not bool(res.converged[0]):
+            p = ", ".join(f"{float(v):.3f}" for v in T_world_tcp[:3, 3])
+            raise ArmFaultError(
+                Fault(
+                    "device_fault",
+                    f"sim arm: TCP target at [{p}] m (base frame) is out of reach within the joint limits (IK from "
+                    f"{seeds}: {float(res.pos_err_m[0]):.3g} m and {float(res.rot_err_rad[0]):.3g} rad off after "
+                    f"{res.iterations} iterations); the arm did not move",
+                    "none needed: the target was refused, the arm takes the next command",
+                )
+            )
+        return res.q[0].cpu().numpy()
 
     def _check(self, T: np.ndarray) -> np.ndarray:
         if self._fault is not None:
@@ -154,7 +182,7 @@ class SimArm(Arm):
         v = min(float(speed_mps), self.max_speed_mps)
         duration = max(dp / v, dr / self.max_speed_radps)
         if self.scene_arm is not None:
-            self.move_joints(self._ik(T), duration)
+            self.move_joints(self._ik(T, positioning=True), duration)
             return
         self._advance(T, duration + 1e-9)
         self.sim_time_s += duration

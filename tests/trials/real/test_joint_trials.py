@@ -180,6 +180,22 @@ class _Scripted:
         return a[None]
 
 
+class _TcpToward:
+    """A TCP policy (``absolute_tcp``, reading ``tcp_pose``) asking, every step, for its own orientation
+    at table x = ``x_m``: straight along the table's +x, away from the Panda's base."""
+
+    image_size = 32
+
+    def __init__(self, x_m: float):
+        self.contract = PolicyContract(state=("tcp_pose",), action=ActionContract(kind="absolute_tcp"))
+        self.x_m = x_m
+
+    def act(self, images, state):
+        target = np.asarray(state, dtype=np.float64)[0].copy()
+        target[0] = self.x_m
+        return target[None]
+
+
 def _joint_plan(files, arm, out: Path, edit) -> Path:
     """The module's plan with its starts edited: ``edit(plan, arm)`` returns the new ``tcp_poses`` entries."""
     plan = load_plan(files["plan"])
@@ -252,6 +268,38 @@ def test_a_joint_policy_session_runs_every_command_through_step_joints_and_recor
     with (tmp_path / "csv" / "steps.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == n_steps and all(r["action_0"] == "" and json.loads(r["joints_json"])["q_cmd"] for r in rows)
+
+
+def test_a_tcp_policy_driving_the_joint_arm_out_of_reach_ends_its_trial_with_the_reason_and_the_session_goes_on(
+    files, arm, spec, tmp_path
+):
+    """A TCP policy in a scene with an arm: the sim arm follows it through IK until a target is out of
+    reach (inside the workspace box); that target is refused as a real driver refuses it, the trial
+    ends there with the reason, and the next trial runs."""
+    base_x_m = float(spec.arm.scene_arm().T_world_base[0, 3])
+    x_m = 0.89  # inside the cell's workspace box (0.9 m), more than the Panda's reach from its base
+    max_steps = 150
+    plan = small_plan(
+        tmp_path / "plan.yaml", tmp_path, n_tcp=2, n_layouts=1, max_steps=max_steps, conditions=("clean",),
+        scene=PANDA_SCENE,
+    )  # fmt: skip
+    db = tmp_path / "t.sqlite"
+    summary = _run(files, db, plan=plan, swap=lambda runner: _TcpToward(x_m))
+    assert len(summary.committed) == len(load_plan(plan).trials) == 2 and not summary.aborted
+    with TrialStore(db, create=False) as store:
+        trials = _steps(store)
+    for row, steps in trials.values():
+        assert re.match(
+            r"^fault: arm fault \(device_fault\): sim arm: TCP target at \[.*\] m \(base frame\) is out of reach "
+            r"within the joint limits \(IK from the current joints: .*\); the arm did not move",
+            row["stop_reason"],
+        ), row["stop_reason"]
+        assert 0 < row["n_steps"] == len(steps) < max_steps
+        # it went along +x as far as the arm reaches, and no farther than the refused target
+        x = [s["meas_base_x_m"] for s in steps]
+        assert x[-1] > x[0] and x[-1] - base_x_m > 0.5
+        refused_x = float(re.search(r"TCP target at \[([-0-9.]+),", row["stop_reason"])[1])
+        assert x[-1] < refused_x < x_m
 
 
 def test_joint_vector_starts_are_reached_exactly_and_their_fk_agrees_with_a_tcp_pose_given_too(
