@@ -9,6 +9,7 @@ one-line tests and the hostile campaign.
 from __future__ import annotations
 
 import json
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -39,6 +40,7 @@ __all__ = [
     "rewrite_archive",
     "two_camera_onnx",
     "two_camera_pt2",
+    "legacy_onnx_export",
 ]
 
 
@@ -135,6 +137,19 @@ def other_torch_pt2(path) -> Path:
     return out
 
 
+def legacy_onnx_export(*args, **kwargs) -> None:
+    """``torch.onnx.export(*args, dynamo=False, **kwargs)`` with its DeprecationWarning silenced, as
+    ``sim.policies.onnx_policy.export_onnx`` does: the TorchScript exporter is deprecated in favour of
+    the torch.export one, which needs onnxscript (not installed); it still exports these plain
+    networks exactly. For modules ``export_onnx`` does not take (other inputs than a
+    ``VisuomotorPolicy``'s)."""
+    import torch
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(*args, dynamo=False, **kwargs)
+
+
 def two_camera_onnx(path, policy, card, names=(LEROBOT_WRIST, LEROBOT_FRONT, LEROBOT_STATE), output="action"):
     """``policy`` (:class:`tests.policy_zoo.TwoCameraPolicy` or one taking the same three tensors)
     exported by torch.onnx with input ``names`` and ``output``, its card in the metadata."""
@@ -144,7 +159,7 @@ def two_camera_onnx(path, policy, card, names=(LEROBOT_WRIST, LEROBOT_FRONT, LER
 
     wrist, front = policy.example_sizes if hasattr(policy, "example_sizes") else (32, 128)
     args = (torch.rand(2, 3, wrist, wrist), torch.rand(2, 3, front, front), torch.rand(2, 7))
-    torch.onnx.export(
+    legacy_onnx_export(
         policy.eval(),
         args,
         str(path),
@@ -152,7 +167,6 @@ def two_camera_onnx(path, policy, card, names=(LEROBOT_WRIST, LEROBOT_FRONT, LER
         output_names=[output],
         dynamic_axes={**{n: {0: "batch"} for n in names}, output: {0: "batch"}},
         opset_version=17,
-        dynamo=False,
     )
     return attach_card(path, card)
 
