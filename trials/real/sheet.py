@@ -8,7 +8,8 @@ Pages (A4 portrait, matplotlib ``PdfPages``):
    drawn for every shape of the plan (and the 2D patch when the plan has the patch condition),
    since one layout is used with each of them;
 2. one page of TCP start poses: translation in cm, axis-angle in degrees, and the table point
-   the TCP's +z (approach) axis meets;
+   the TCP's +z (approach) axis meets. A start given as joint positions is drawn at their TCP,
+   forward kinematics on the scene's arm (:func:`start_poses`), and marked ``J``;
 3. the run order: order, trial id, env, shape, condition, TCP pose, layout, tags and a checkbox.
 
 The layout pages are diagrams with a 5 cm grid, not true-scale templates: measure from the tag
@@ -28,9 +29,18 @@ from matplotlib.patches import Rectangle
 from scipy.spatial import ConvexHull
 
 from sim.assets import build_mesh
+from sim.geometry import so3_log
 from sim.spec import load_spec
 
-__all__ = ["placement_sheet_pdf", "placement_outlines", "footprint_xy_m", "ROWS_PER_PAGE", "sheet_page_count"]
+__all__ = [
+    "placement_sheet_pdf",
+    "placement_outlines",
+    "footprint_xy_m",
+    "ROWS_PER_PAGE",
+    "sheet_page_count",
+    "start_poses",
+    "tcp_page_rows",
+]
 
 A4_IN = (210.0 / 25.4, 297.0 / 25.4)
 ROWS_PER_PAGE = 50
@@ -149,20 +159,59 @@ def _square(center, side, **kw):
     return Rectangle((center[0] - side / 2, center[1] - side / 2), side, side, **kw)
 
 
-def _tcp_page(pdf, plan) -> None:
-    fig = Figure(figsize=A4_IN)
-    fig.suptitle(f"Initial TCP poses  (plan seed {plan.seed})", fontsize=13, y=0.97)
+def start_poses(plan, spec) -> dict[int, np.ndarray | None]:
+    """``{tcp_poses index: T_table_tcp (4, 4)}``: where each start of ``plan`` puts the TCP, in the
+    table frame, as the session takes it.
+
+    A start given as a TCP pose only is that pose. A start given as ``joint_positions`` is their
+    forward kinematics on ``spec``'s arm, its base where the scene places it
+    (:func:`trials.real.runner.resolve_starts`, which also checks their number, their limits and,
+    with a TCP pose given too, that the two agree). A joints-only start needs that arm: on a scene
+    without one it raises :class:`trials.real.runner.StartError` in one line naming the start and a
+    trial using it; one no trial uses is ``None`` (the sheet lists its joints). With no arm, a start
+    given both ways is drawn at its TCP pose (the session's arm checks the joints).
+    """
+    given = {tp.index: None if tp.T_table_tcp is None else tp.T_table_tcp.T() for tp in plan.tcp_poses}
+    if all(tp.joint_positions is None for tp in plan.tcp_poses):
+        return given
+    from trials.real.runner import StartError, resolve_starts  # lazy: only a plan with joint starts (torch)
+
+    if spec.arm is None:
+        for tp in plan.tcp_poses:
+            users = [t.trial_id for t in plan.trials if t.tcp_pose == tp.index]
+            if given[tp.index] is None and users:
+                more = f" and {len(users) - 1} more" if len(users) > 1 else ""
+                raise StartError(
+                    f"trial plan: tcp_poses.{tp.index} (trial {users[0]}{more}): a start given as joint_positions "
+                    f"only, and scene {spec.name!r} has no arm (arm: urdf, base_link, tool_link) whose forward "
+                    "kinematics would place its TCP; give its T_table_tcp too, or plan on the scene of the arm"
+                )
+        return given
+    starts = resolve_starts(plan, plan.trials, np.eye(4), spec.arm.scene_arm(), joint_space=False)
+    return {k: starts[k].T_base_tcp if k in starts else T for k, T in given.items()}
+
+
+def tcp_page_rows(plan, poses: dict) -> list[str]:
+    """The text of the TCP start page: one row per start of ``plan`` at its pose ``poses[index]``
+    (:func:`start_poses`; cm and degrees), the point the approach axis meets the table, a ``J`` for
+    a start given as joints; then the notes and the trials per start."""
     rows = ["pose   x (cm)   y (cm)   z (cm)    rotvec (deg)                 approach axis meets table at (cm)", ""]
     for tcp in plan.tcp_poses:
-        T = tcp.T_table_tcp.T()
+        mark = "J" if tcp.joint_positions is not None else " "
+        T = poses[tcp.index]
+        if T is None:
+            q = ", ".join(f"{v:.3f}" for v in tcp.joint_positions)
+            rows.append(f"t{tcp.index:<4}{mark} joints [{q}] (no trial starts here)")
+            continue
         p, z = T[:3, 3], T[:3, 2]
         hit = "(points upward)"
         if z[2] < -1e-9:
             s = -p[2] / z[2]
             hit = f"({100 * (p[0] + s * z[0]):6.1f}, {100 * (p[1] + s * z[1]):6.1f})"
-        rv = np.degrees(tcp.T_table_tcp.rotvec_rad)
+        given = tcp.T_table_tcp is not None and tcp.joint_positions is None
+        rv = np.degrees(tcp.T_table_tcp.rotvec_rad if given else so3_log(T[:3, :3]))
         rows.append(
-            f"t{tcp.index:<5} {100 * p[0]:7.1f}  {100 * p[1]:7.1f}  {100 * p[2]:7.1f}    "
+            f"t{tcp.index:<4}{mark} {100 * p[0]:7.1f}  {100 * p[1]:7.1f}  {100 * p[2]:7.1f}    "
             f"({rv[0]:7.1f}, {rv[1]:7.1f}, {rv[2]:7.1f})    {hit}"
         )
     rows += [
@@ -171,7 +220,18 @@ def _tcp_page(pdf, plan) -> None:
         "through the hand-eye and table calibration. Trials per pose: "
         + ", ".join(f"t{tcp.index}: {sum(t.tcp_pose == tcp.index for t in plan.trials)}" for tcp in plan.tcp_poses),
     ]
-    fig.text(0.06, 0.92, "\n".join(rows), fontsize=8, family="monospace", va="top")
+    if any(tcp.joint_positions is not None for tcp in plan.tcp_poses):
+        rows.append(
+            "J: a start given as joint positions; the arm moves in joint space to them, and the TCP shown is "
+            "their forward kinematics on the scene's arm."
+        )
+    return rows
+
+
+def _tcp_page(pdf, plan, poses: dict) -> None:
+    fig = Figure(figsize=A4_IN)
+    fig.suptitle(f"Initial TCP poses  (plan seed {plan.seed})", fontsize=13, y=0.97)
+    fig.text(0.06, 0.92, "\n".join(tcp_page_rows(plan, poses)), fontsize=8, family="monospace", va="top")
     pdf.savefig(fig)
 
 
@@ -198,18 +258,20 @@ def placement_sheet_pdf(plan, path, spec=None) -> int:
     """Write the placement sheet of ``plan`` to ``path``; returns the number of pages.
 
     ``spec``: the scene the plan was made for (default: ``plan.scene`` or the built-in scene); it
-    gives the goal mesh and the adversarial object's scale for the footprints.
+    gives the goal mesh and the adversarial object's scale for the footprints, and the arm that
+    places a start given as joints (:func:`start_poses`).
     """
     matplotlib.use("Agg", force=False)
 
     spec = load_spec(plan.scene) if spec is None else spec
+    poses = start_poses(plan, spec)  # a start it cannot place: refused before anything is written
     outlines = placement_outlines(plan, spec)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with PdfPages(path) as pdf:
         for layout in plan.object_layouts:
             _layout_page(pdf, plan, layout, outlines)
-        _tcp_page(pdf, plan)
+        _tcp_page(pdf, plan, poses)
         _order_pages(pdf, plan)
         n = pdf.get_pagecount()
     return n
