@@ -11,7 +11,8 @@ What the runner recorded, step by step (``trials.real.runner``): the frames the 
 taken, then the pose measured after the step's command. The pose at which the frames of step k
 were taken is therefore the one measured after step k-1, which is also the pose the policy was
 given with them; for step 0 it is the trial's start pose, the target of the positioning move
-before the policy loop (``T_base_table @ T_table_tcp`` of the plan). A pose's time is when its
+before the policy loop (``T_base_table @ T_table_tcp`` of the plan; a start given as joints: their
+TCP by the session arm's forward kinematics, as the runner took it, :func:`start_poses`). A pose's time is when its
 command was accepted (0 for the start pose), and a frame must lie within one control period of
 the plan (``1 / control_hz``) of it, unless ``--tolerance-s`` says otherwise.
 
@@ -29,6 +30,7 @@ a fixed one: unless it named a pose file). The table frame is the one stored wit
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -37,7 +39,7 @@ import yaml
 from PIL import Image
 from pydantic import ValidationError
 
-from robot_io.config import hardware_config_from_dict
+from robot_io.config import build_scene_arm, hardware_config_from_dict
 from sim.errors import format_validation_error
 from sim.geometry import invert_T, make_T, so3_exp
 from sim.paths import UnsafePathError, safe_join
@@ -55,7 +57,7 @@ from trials.recordings.calib import (
     wrist_T_tcp_cam,
 )
 
-__all__ = ["session_recording"]
+__all__ = ["session_recording", "start_poses"]
 
 _MEAS = ("meas_base_x_m", "meas_base_y_m", "meas_base_z_m", "meas_base_rx_rad", "meas_base_ry_rad", "meas_base_rz_rad")
 
@@ -63,6 +65,43 @@ _MEAS = ("meas_base_x_m", "meas_base_y_m", "meas_base_z_m", "meas_base_rx_rad", 
 def _pose(row: dict) -> np.ndarray:
     v = np.asarray([row[c] for c in _MEAS], dtype=np.float64)
     return make_T(so3_exp(v[3:]), v[:3])
+
+
+@dataclass(frozen=True)
+class _Started:
+    """A stored trial as :func:`trials.real.runner.resolve_starts` reads one."""
+
+    trial_id: str
+    tcp_pose: int
+
+
+def start_poses(plan, trials, T_base_table, kinematics, arm: str) -> dict[str, np.ndarray]:
+    """``{trial id: T_base_tcp (4, 4)}``: where each of ``trials`` (stored rows: ``trial_id``,
+    ``tcp_pose``) started, as the runner took it (:func:`trials.real.runner.resolve_starts`): a TCP
+    start is ``T_base_table @ T_table_tcp``; a start given as joints is their forward kinematics on
+    ``kinematics`` (the session arm's :class:`sim.ik.SceneArm`, TCP in its base frame).
+
+    Without ``kinematics`` a start given both ways is taken at its TCP pose (the runner held its
+    joints' TCP within ``START_AGREE_TOL_M`` of it), and a joints-only start is a
+    :class:`RecordImportError` in one line naming the trial and ``arm`` (what the session's arm is).
+    """
+    rows = [_Started(t["trial_id"], int(t["tcp_pose"])) for t in trials]
+    if kinematics is None:
+        for r in rows:
+            tp = plan.tcp_pose(r.tcp_pose)
+            if tp.T_table_tcp is None:
+                raise RecordImportError(
+                    f"trial {r.trial_id}: its start (tcp_poses.{r.tcp_pose}) is given as joint_positions only, and "
+                    f"{arm} has no kinematics to place their TCP"
+                )
+        return {r.trial_id: np.asarray(T_base_table) @ plan.tcp_pose(r.tcp_pose).T_table_tcp.T() for r in rows}
+    from trials.real.runner import StartError, resolve_starts  # lazy: an arm with kinematics (torch, cv2)
+
+    try:
+        starts = resolve_starts(plan, rows, T_base_table, kinematics, joint_space=False)
+    except StartError as err:
+        raise RecordImportError(str(err)) from None
+    return {r.trial_id: starts[r.tcp_pose].T_base_tcp for r in rows}
 
 
 def _frame_path(db: Path, ref: str, trial: str) -> Path:
@@ -249,7 +288,8 @@ def _read(store, db, session, intrinsics, extrinsics, table_frame_path, toleranc
         h, w = _frame(_frame_path(db, _frames_of(first, cam)[0], trials[0]["trial_id"])).shape[:2]
         sizes[cam] = (w, h)
     sim = hw.camera.type == "sim" or any(c.type == "sim" for c in hw.scene_cameras.values())
-    spec = load_spec(plan.scene if plan.scene is not None else hw.sim.scene) if sim else None
+    sim_arm = hw.arm.type == "sim"
+    spec = load_spec(plan.scene if plan.scene is not None else hw.sim.scene) if sim or sim_arm else None
     cams = [_camera(c, hw, spec, recorded, sizes[c], intrinsics, extrinsics, where) for c in cameras]
     if table_frame_path is not None:
         T_table_base = table_frame(table_frame_path)
@@ -264,7 +304,16 @@ def _read(store, db, session, intrinsics, extrinsics, table_frame_path, toleranc
         f"session {session!r} of {db}: {len(trials)} trials with frames, cameras "
         + ", ".join(f"{c} {w}x{h} px" for c, (w, h) in sizes.items())
     )
-    starts = {t["trial_id"]: T_base_table @ plan.tcp_pose(t["tcp_pose"]).T_table_tcp.T() for t in trials}
+    if sim_arm:  # the scene's arm, where the scene places it (robot_io.config builds the sim arm so)
+        kinematics = None if spec.arm is None else spec.arm.scene_arm()
+        arm = f"the session's sim arm (its scene {spec.name!r} has no arm)"
+    else:
+        kinematics = build_scene_arm(hw)
+        arm = f"the session's {hw.arm.type} arm (its hardware YAML gives no arm kinematics)"
+    try:
+        starts = start_poses(plan, trials, T_base_table, kinematics, arm)
+    except RecordImportError as err:
+        raise RecordImportError(f"{where}: {err}") from None
     episodes = ((t["trial_id"], _episode(store, db, session, t, starts[t["trial_id"]], sizes)) for t in trials)
     return dict(
         cameras=cams,
