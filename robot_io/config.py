@@ -38,7 +38,7 @@ from calibration.io import read_yaml as read_calibration_yaml
 from robot_io.arms.dynamixel import DynamixelArm
 from robot_io.arms.feetech import FeetechArm
 from robot_io.arms.serial import SerialArm
-from robot_io.arms.servo_bus import MAX_SERVO_ID, ServoBusError, ServoJoint, _order_joints
+from robot_io.arms.servo_bus import MAX_SERVO_ID, ServoBusError, ServoJoint, order_servo_joints
 from robot_io.arms.sim import SimArm
 from robot_io.arms.ur_rtde import UR_JOINTS, URArm
 from robot_io.cameras.depthai import DepthAICamera
@@ -494,7 +494,7 @@ def _check_arm_kinematics(cfg: HardwareConfig, source: str) -> None:
         )
     if a.type in ("feetech", "dynamixel"):
         try:
-            _order_joints(a.type, tuple(j.servo_joint() for j in a.joints), chain)
+            order_servo_joints(a.type, tuple(j.servo_joint() for j in a.joints), chain)
         except ServoBusError as err:
             raise refuse("joints", f"{err} (the URDF {chain.urdf})") from None
         if a.gripper is not None and a.gripper.name in names:

@@ -69,6 +69,7 @@ from typing import TYPE_CHECKING, Iterable, Sequence
 import numpy as np
 
 from robot_io.arms.base import Arm, Fault
+from robot_io.arms.serial_sim import open_pty_pair
 from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
 from robot_io.poses import is_valid_pose, pose_step
 
@@ -86,6 +87,7 @@ __all__ = [
     "ServoBusError",
     "BadPacket",
     "ServoJoint",
+    "order_servo_joints",
     "Request",
     "Status",
     "BusArm",
@@ -246,7 +248,7 @@ class BusArm(Arm):
         super().__init__()
         self.port = port
         self.scene_arm = scene_arm
-        self.joints = _order_joints(self.name, tuple(joints), scene_arm)
+        self.joints = order_servo_joints(self.name, tuple(joints), scene_arm)
         if gripper is not None and not isinstance(gripper, ServoJoint):
             raise ServoBusError(f"{self.name} arm: gripper must be a ServoJoint or None, got {type(gripper).__name__}")
         if gripper is not None and gripper.name in scene_arm.joint_names:
@@ -677,7 +679,7 @@ class BusArm(Arm):
     def _ik(self, T_base_tcp: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
         import torch  # lazy: robot_io start-up (torch)
 
-        from sim.ik import IkError
+        from sim.ik import IkError  # lazy: robot_io start-up (torch)
 
         limits = self.scene_arm.model.limits
         # A measured joint may read a fraction of a tick beyond its URDF limit; the IK seed may not.
@@ -716,12 +718,21 @@ class BusArm(Arm):
         self.move_joints(q, max(duration_s, 1e-3))
 
 
-def _order_joints(arm: str, joints: tuple, scene_arm) -> tuple[ServoJoint, ...]:
-    """``joints`` in the order of ``scene_arm``'s chain; one line when they are not its joints."""
+def order_servo_joints(arm: str, joints: Sequence[ServoJoint], chain) -> tuple[ServoJoint, ...]:
+    """The servos ``joints`` in the order of ``chain``'s joints (a bus arm's joint vectors follow it).
+
+    ``chain``: anything with ``joint_names`` and ``units`` in the chain's order (a
+    :class:`sim.ik.SceneArm` or a :class:`sim.kinematics.ArmChain`). ``joints`` must be exactly the
+    chain's joints, each once, in any order, and every chain joint revolute (a servo turns it);
+    otherwise one :class:`ServoBusError` line, prefixed ``"{arm} arm: "`` (``arm``: the arm type,
+    ``"feetech"``), naming the joints missing, not in the URDF chain, repeated or prismatic.
+    :class:`BusArm` and the hardware config's check (:func:`robot_io.config.hardware_config_from_dict`)
+    both call it, so a config and a driver refuse the same joints with the same line.
+    """
     for j in joints:
         if not isinstance(j, ServoJoint):
             raise ServoBusError(f"{arm} arm: joints must be ServoJoint entries, got {type(j).__name__}")
-    names = list(scene_arm.joint_names)
+    names = list(chain.joint_names)
     given = [j.name for j in joints]
     if sorted(given) != sorted(names) or len(set(given)) != len(given):
         missing = [n for n in names if n not in given]
@@ -735,7 +746,7 @@ def _order_joints(arm: str, joints: tuple, scene_arm) -> tuple[ServoJoint, ...]:
         raise ServoBusError(
             f"{arm} arm: the configured joints must be the URDF chain's joints ({', '.join(names)}); {detail}"
         )
-    bad_units = [n for n, u in zip(names, scene_arm.units) if u != "rad"]
+    bad_units = [n for n, u in zip(names, chain.units) if u != "rad"]
     if bad_units:
         raise ServoBusError(f"{arm} arm: a servo turns a revolute joint; {', '.join(bad_units)} is prismatic")
     by_name = {j.name: j for j in joints}
@@ -809,8 +820,6 @@ class ServoBusSimulator(abc.ABC):
     @classmethod
     def on_pty(cls, servos: Iterable[SimServo], **kwargs):
         """A started simulator on a fresh pty, and the port path for the driver."""
-        from robot_io.arms.serial_sim import open_pty_pair
-
         master, slave, path = open_pty_pair()
         sim = cls(master, servos, keep_fd=slave, **kwargs)
         sim.start()

@@ -11,7 +11,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from robot_io.arms.serial import NO_JOINT_COMMANDS, SerialArm, check_joint_target, checksum, decode, encode
+from robot_io.arms.base import check_joint_target
+from robot_io.arms.serial import NO_JOINT_COMMANDS, SerialArm, checksum, decode, encode
 from robot_io.arms.serial_sim import SerialArmSimulator, tcp_from_joints
 from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
 from robot_io.poses import pose_step
