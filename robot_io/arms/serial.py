@@ -15,7 +15,9 @@ cache without executing it again, so a resend never doubles a motion.
 Given ``kinematics`` (the arm's :class:`sim.ik.SceneArm`), the host also sends joint commands:
 ``JOINTS`` (measured joints) and ``MOVEJ q1 .. qn duration``. It asks ``JOINTS`` on connect, so a
 firmware without joint commands (``ERR UNKNOWN``), or with another number of joints than the URDF,
-is refused there with one line.
+is refused there with one line; so is an arm whose joints put the TCP, through the URDF's FK,
+farther from the ``POSE`` it reports than 5 mm or 0.02 rad (:func:`robot_io.check.check_kinematics_agree`:
+a wrong URDF, base placement or TCP offset), before anything moves.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from robot_io.arms.base import Arm, Fault, check_joint_target
+from robot_io.check import check_kinematics_agree
 from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 
@@ -211,7 +214,8 @@ class SerialArm(Arm):
             self.device_info = info
             self._transact(["CLEAR"])
             if self._kinematics is not None:
-                self._read_joints()  # refuses firmware without joint commands, or with other joints
+                q = self._read_joints()  # refuses firmware without joint commands, or with other joints
+                self._check_kinematics(q)
         except BaseException:
             self._ser.close()
             self._ser = None
@@ -444,6 +448,12 @@ class SerialArm(Arm):
                 f"serial arm {self.port}: {NO_JOINT_COMMANDS} (firmware {self.device_info.get('fw', '?')} answered "
                 f"{fields[0]} with ERR UNKNOWN): update the firmware, or configure the arm without a URDF"
             ) from None
+
+    def _check_kinematics(self, q: np.ndarray) -> None:
+        """Refuse to connect (:func:`robot_io.check.check_kinematics_agree`, one line) when the FK of
+        the device's ``JOINTS`` is not the ``POSE`` it reports: a wrong URDF, base placement or TCP,
+        on which the safety layer would check the workspace box. Nothing has moved."""
+        check_kinematics_agree(f"serial arm {self.port}", self._kinematics, q, self.tcp_pose())
 
     def _read_joints(self) -> np.ndarray:
         fields = self._joint_command(["JOINTS"])

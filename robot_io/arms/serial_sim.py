@@ -10,8 +10,8 @@ Fault injection (counters count down per affected message): ``corrupt_replies``,
 ``reply_delay_s``, ``boot_delay_s``, ``send_banner``, :meth:`raise_fault`.
 
 Joints: given a ``scene_arm`` (:class:`sim.ik.SceneArm`), the simulated arm holds joint positions
-``q`` and its TCP is their FK (:func:`tcp_from_joints`): ``JOINTS`` reports ``q``, ``MOVEJ`` moves
-the joints along the straight line in joint space, the leading joint at ``max |dq| / duration``
+``q`` and its TCP is their FK (:func:`robot_io.check.tcp_from_joints`): ``JOINTS`` reports ``q``,
+``MOVEJ`` moves the joints along the straight line in joint space, the leading joint at ``max |dq| / duration``
 (capped at ``max_joint_speed_radps``), and ``MOVE`` solves the IK of its pose from the current
 joints and then moves the same way (so a ``MOVE``'s TCP path is not exactly straight here). Without
 a ``scene_arm`` it is firmware without joint commands: ``JOINTS`` and ``MOVEJ`` answer ``ERR UNKNOWN``.
@@ -29,26 +29,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from robot_io.arms.serial import PROTOCOL_VERSION, STOP_BYTE, checksum, encode
+from robot_io.check import tcp_from_joints
 from robot_io.poses import interpolate_pose, pose_from_vec, pose_step, pose_to_vec
 
 if TYPE_CHECKING:
     from sim.ik import SceneArm
 
-__all__ = ["SerialArmSimulator", "open_pty_pair", "tcp_from_joints", "JOINT_LIMIT_TOL"]
+__all__ = ["SerialArmSimulator", "open_pty_pair", "JOINT_LIMIT_TOL"]
 
 FIRMWARE = "advobj-sim-1.0"
 #: A ``MOVEJ`` joint this far (rad or m) beyond a position limit is clamped to it (the wire's
 #: ``%.6f`` rounds a target at a limit up to 5e-7 past it); farther, the command is ``ERR RANGE``.
 JOINT_LIMIT_TOL = 1e-6
-
-
-def tcp_from_joints(scene_arm: SceneArm, q) -> np.ndarray:
-    """``T_world_tcp (4, 4)`` float64 of joint positions ``q (n,)``: the scene arm's FK
-    (:meth:`sim.ik.SceneArm.tcp_pose`) as numpy."""
-    import torch  # lazy: robot_io start-up (torch)
-
-    q_t = torch.as_tensor(np.asarray(q, dtype=np.float64), dtype=torch.float64, device=scene_arm.device)
-    return scene_arm.tcp_pose(q_t).detach().cpu().numpy()
 
 
 def open_pty_pair() -> tuple[int, int, str]:

@@ -19,7 +19,11 @@ TCP in the tool link) whose joints are exactly the configured servos' joints (an
 arm's joint vectors follow the chain's order). No registry package ships a URDF of these arms and
 advobj ships none: the user supplies it (the SO-ARM100/SO-101 URDF from TheRobotStudio's SO-ARM100
 repository, Koch's from its repository, AlexanderKoch-Koch/low_cost_robot) and the scene config
-names it. :meth:`BusArm.tcp_pose` is the FK of the measured joints, in the scene arm's frame;
+names it. :meth:`BusArm.tcp_pose` is the FK of the measured joints, in the scene arm's frame:
+the servos report ticks only, so there is no independent TCP to hold the URDF against on connect
+(the UR and serial arms check their controller's TCP against the FK,
+:func:`robot_io.check.check_kinematics_agree`); ``advobj hw check`` prints the joints, each with its
+distance to its limits, to check ``sign`` and ``offset_ticks`` by eye;
 :meth:`BusArm.servo` and :meth:`BusArm.move_to` solve the IK from the measured joints and refuse
 an unreachable pose in one line. An optional gripper servo is on the bus (pinged, held, watched
 for faults) but not in the kinematics (:meth:`BusArm.gripper_position`, :meth:`BusArm.servo_gripper`).
@@ -70,6 +74,7 @@ import numpy as np
 
 from robot_io.arms.base import Arm, Fault
 from robot_io.arms.serial_sim import open_pty_pair
+from robot_io.check import tcp_from_joints
 from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
 from robot_io.poses import is_valid_pose, pose_step
 
@@ -671,10 +676,7 @@ class BusArm(Arm):
 
     # ------------------------------------------------------------------ TCP
     def _fk(self, q: np.ndarray) -> np.ndarray:
-        import torch  # lazy: robot_io start-up (torch)
-
-        T = self.scene_arm.tcp_pose(torch.as_tensor(q, dtype=torch.float64, device=self.scene_arm.device))
-        return T.detach().cpu().numpy()
+        return tcp_from_joints(self.scene_arm, q)
 
     def _ik(self, T_base_tcp: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
         import torch  # lazy: robot_io start-up (torch)

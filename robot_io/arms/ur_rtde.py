@@ -12,6 +12,9 @@
   :meth:`URArm.joint_positions` reads ``getActualQ``, :meth:`URArm.servo_joints` streams ``servoJ``
   and :meth:`URArm.move_joints` runs an asynchronous ``moveJ`` waited for like ``moveL`` (watchdog
   kicked, faults checked, a timeout, ``stopJ`` when interrupted).
+  Connecting refuses, in one line and before anything moves, an arm whose ``getActualQ`` puts the
+  TCP, through the kinematics' FK, farther from ``getActualTCPPose`` than 5 mm or 0.02 rad
+  (:func:`robot_io.check.check_kinematics_agree`: a wrong URDF, base placement or TCP offset).
 * A protective stop, an e-stop, a stopped control script or a dropped link becomes an
   :class:`ArmFaultError` that says what happened and how to recover (via ``DashboardClient``).
 * ``disconnect`` always runs ``servoStop``/``speedStop`` (both after ``servoJ`` in ``speedL`` mode)
@@ -29,6 +32,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from robot_io.arms.base import Arm, Fault, check_joint_target
+from robot_io.check import check_kinematics_agree
 from robot_io.errors import ArmFaultError, MissingExtraError, RobotIOError, require_extra
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 from sim.geometry import so3_log
@@ -147,6 +151,8 @@ class URArm(Arm):
             self._rtde_r = rtde_receive.RTDEReceiveInterface(self.host)
             self._rtde_c = rtde_control.RTDEControlInterface(self.host)
             self._controller = self._read_controller_identity()  # before the watchdog runs
+            if kin is not None:
+                self._check_kinematics()  # before the watchdog runs: an FK is no kick
             self._rtde_c.setWatchdog(self.watchdog_min_hz)
         except BaseException as err:
             # Release what was opened: a dangling receive interface keeps its RTDE thread running,
@@ -180,6 +186,20 @@ class URArm(Arm):
                 "UR %s: cannot read the controller's serial number from the dashboard server (%s)", self.host, err
             )
         return out
+
+    def _check_kinematics(self) -> None:
+        """Refuse to connect (:func:`robot_io.check.check_kinematics_agree`, one line) when the FK of
+        ``getActualQ`` is not the ``getActualTCPPose`` the controller computes: a wrong URDF, base
+        placement or TCP, on which the safety layer would check the workspace box. Nothing has moved."""
+        check_kinematics_agree(
+            f"UR {self.host}",
+            self._kinematics,
+            self.joint_positions(),
+            self.tcp_pose(),
+            hint="a UR's base is ur_description's base_link turned by pi about z (rotvec_base_link [0, 0, "
+            "3.141592653589793]), its TCP the pendant's TCP offset; a URDF without the arm's factory "
+            "calibration can be centimetres off on some arms (UR's ur_calibration corrects it)",
+        )
 
     def identity(self) -> dict[str, str]:
         return {"host": self.host, **self._controller}

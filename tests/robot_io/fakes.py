@@ -12,7 +12,7 @@ import types
 
 import numpy as np
 
-from robot_io.arms.serial_sim import tcp_from_joints
+from robot_io.check import tcp_from_joints
 from robot_io.poses import pose_from_vec, pose_to_vec
 
 # ---------------------------------------------------------------------------- joint-commanded arms
@@ -22,13 +22,16 @@ from robot_io.poses import pose_from_vec, pose_to_vec
 Q_UR5_READY = (0.0, -1.571, 1.571, -1.571, -1.571, 0.0)
 
 
-def ur5_scene_arm(control_period_s: float = 0.05):
-    """The shipped UR5 as a :class:`sim.ik.SceneArm`: base frame = world frame, TCP = ``tool0``,
-    home :data:`Q_UR5_READY`."""
+def ur5_scene_arm(control_period_s: float = 0.05, T_base_link=None, T_tool_tcp=None):
+    """The shipped UR5 as a :class:`sim.ik.SceneArm`, home :data:`Q_UR5_READY`: its ``base_link`` at
+    ``T_base_link`` in the arm's base frame (default: that frame), its TCP at ``T_tool_tcp`` in
+    ``tool0`` (default: ``tool0``)."""
     from sim.ik import SceneArm
     from sim.kinematics import shipped_arm
 
-    return SceneArm(shipped_arm("ur5"), np.eye(4), np.eye(4), control_period_s, np.array(Q_UR5_READY))
+    T_base_link = np.eye(4) if T_base_link is None else np.asarray(T_base_link, dtype=np.float64)
+    T_tool_tcp = np.eye(4) if T_tool_tcp is None else np.asarray(T_tool_tcp, dtype=np.float64)
+    return SceneArm(shipped_arm("ur5"), T_base_link, T_tool_tcp, control_period_s, np.array(Q_UR5_READY))
 
 
 # ---------------------------------------------------------------------------- ur-rtde

@@ -13,9 +13,10 @@ from hypothesis.extra.numpy import arrays
 
 from robot_io.arms.base import check_joint_target
 from robot_io.arms.serial import NO_JOINT_COMMANDS, SerialArm, checksum, decode, encode
-from robot_io.arms.serial_sim import SerialArmSimulator, tcp_from_joints
-from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
-from robot_io.poses import pose_step
+from robot_io.arms.serial_sim import SerialArmSimulator
+from robot_io.check import tcp_from_joints
+from robot_io.errors import ArmFaultError, HardwareConfigError, ProtocolError, RobotIOError
+from robot_io.poses import pose_from_vec, pose_step
 from robot_io.safety import SafeArm, SafetyLimits
 from tests.robot_io.fakes import Q_UR5_READY, ur5_scene_arm
 
@@ -260,9 +261,9 @@ def wait_idle(arm, timeout_s: float = 2.0) -> None:
         time.sleep(0.01)
 
 
-def test_joints_are_asked_on_connect_and_reported_in_the_urdf_order(joint_link, ur5):
+def test_joints_are_asked_on_connect_held_against_the_pose_and_reported_in_the_urdf_order(joint_link, ur5):
     sim, arm = joint_link
-    assert arm.kinematics() is ur5 and commands(sim)[-1] == "JOINTS"
+    assert arm.kinematics() is ur5 and commands(sim)[-2:] == ["JOINTS", "POSE"]  # the connect check
     np.testing.assert_allclose(arm.joint_positions(), Q_UR5_READY, atol=1e-6)
 
 
@@ -350,6 +351,24 @@ def test_a_device_with_other_joints_than_the_urdf_is_refused_on_connect(device, 
     with pytest.raises(ProtocolError, match="JOINTS replied 7 values .* the arm's URDF has 6 joints") as info:
         arm.connect()
     assert "\n" not in str(info.value) and not arm.connected
+
+
+def test_a_urdf_placed_otherwise_than_the_device_is_refused_on_connect_and_the_right_one_connects(device, ur5):
+    # The device computes its POSE on a UR5 whose base_link is turned by pi about z (as a UR's
+    # controller does); the URDF the host is given misses the turn.
+    turned = ur5_scene_arm(T_base_link=pose_from_vec([0.0, 0.0, 0.0, 0.0, 0.0, np.pi]))
+    sim, path = device(scene_arm=turned)
+    arm = SerialArm(path, boot_timeout_ms=1000, kinematics=ur5)
+    with pytest.raises(HardwareConfigError) as info:
+        arm.connect()
+    text = str(info.value)
+    assert "\n" not in text and text.startswith(f"serial arm {path}: the arm's URDF kinematics disagree")
+    assert "rotvec_base_link" in text and text.endswith("Nothing was moved")
+    assert not arm.connected and commands(sim)[-2:] == ["JOINTS", "POSE"]
+    assert not {"MOVE", "MOVEJ"} & set(commands(sim)) and not sim.moving
+    np.testing.assert_array_equal(sim.q, turned.q_home)
+    with SerialArm(path, boot_timeout_ms=1000, expect_banner=False, kinematics=turned) as arm:
+        np.testing.assert_allclose(arm.tcp_pose(), tcp_from_joints(turned, arm.joint_positions()), atol=1e-5)
 
 
 def test_an_arm_without_kinematics_takes_no_joint_commands(link):

@@ -10,10 +10,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from robot_io.arms.serial_sim import tcp_from_joints
 from robot_io.arms.ur_rtde import UR_JOINTS, URArm, joint_move_speed_radps
+from robot_io.check import KINEMATICS_TOL_M, KINEMATICS_TOL_RAD, tcp_from_joints
 from robot_io.config import build_arm, hardware_config_from_dict
-from robot_io.errors import ArmFaultError, MissingExtraError, RobotIOError
+from robot_io.errors import ArmFaultError, HardwareConfigError, MissingExtraError, RobotIOError
+from robot_io.poses import pose_from_vec
 from robot_io.safety import SafeArm, SafetyLimits
 from tests.robot_io.fakes import Q_UR5_READY, FakeURController, install_ur, ur5_scene_arm
 
@@ -311,6 +312,59 @@ def test_kinematics_without_six_joints_is_refused_on_connect_before_anything_ope
     with pytest.raises(RobotIOError, match=f"has 7 joints .*a UR arm has {UR_JOINTS}") as info:
         arm.connect()
     assert "\n" not in str(info.value) and not arm.connected and ctrl.calls == []
+
+
+# A UR controller's base frame is ur_description's base_link turned by pi about z: the config says
+# so with rotvec_base_link, and the fake controller below computes its TCP that way.
+UR5_LINKS = {"urdf": "ur5", "base_link": "base_link", "tool_link": "tool0"}
+A_URS_BASE = pose_from_vec([0.0, 0.0, 0.0, 0.0, 0.0, np.pi])
+MOTION = {"moveL", "moveJ", "servoL", "servoJ", "speedL"}
+
+
+def _placed(**fields) -> dict:
+    """The UR5's kinematics block of a hardware config placed as a real UR's, with ``fields`` changed."""
+    return {**UR5_LINKS, "rotvec_base_link": [0.0, 0.0, np.pi], **fields}
+
+
+@pytest.mark.parametrize(
+    "kinematics",
+    [
+        pytest.param({**UR5_LINKS}, id="base_not_turned"),
+        pytest.param(_placed(t_tool_tcp_m=[0.0, 0.0, 2 * KINEMATICS_TOL_M]), id="tcp_offset_twice_the_tolerance"),
+        pytest.param(_placed(rotvec_tool_tcp=[0.0, 0.0, 2 * KINEMATICS_TOL_RAD]), id="tcp_turned_twice_the_tolerance"),
+    ],
+)
+def test_kinematics_that_disagree_with_the_controller_are_refused_on_connect_and_nothing_moves(monkeypatch, kinematics):
+    ctrl = install_ur(monkeypatch, FakeURController(kinematics=ur5_scene_arm(T_base_link=A_URS_BASE)))
+    q_before = list(ctrl.q)
+    arm = build_arm(ur_config(kinematics=kinematics))
+    with pytest.raises(HardwareConfigError) as info:
+        arm.connect()
+    text = str(info.value)
+    assert "\n" not in text and text.startswith("UR 10.0.0.2: the arm's URDF kinematics disagree with its controller")
+    assert "rotvec_base_link" in text and "t_tool_tcp_m" in text and text.endswith("Nothing was moved")
+    names = ctrl.names()
+    assert not arm.connected and not MOTION & set(names) and ctrl.q == q_before
+    assert "setWatchdog" not in names  # refused before the watchdog was armed
+    assert {"stopScript", "control_disconnect", "receive_disconnect"} <= set(names)  # and released
+
+
+@pytest.mark.parametrize(
+    "kinematics",
+    [
+        pytest.param(_placed(), id="placed_as_the_controller"),
+        pytest.param(
+            _placed(t_tool_tcp_m=[0.0, 0.0, KINEMATICS_TOL_M / 2], rotvec_tool_tcp=[0.0, 0.0, KINEMATICS_TOL_RAD / 2]),
+            id="tcp_within_half_the_tolerance",
+        ),
+    ],
+)
+def test_kinematics_that_agree_with_the_controller_within_the_tolerance_connect(monkeypatch, kinematics):
+    ctrl = install_ur(monkeypatch, FakeURController(kinematics=ur5_scene_arm(T_base_link=A_URS_BASE)))
+    with build_arm(ur_config(kinematics=kinematics)) as arm:
+        assert arm.connected and arm.kinematics().n_joints == UR_JOINTS
+        np.testing.assert_allclose(arm.joint_positions(), Q_UR5_READY)
+    assert not MOTION & set(ctrl.names())
 
 
 def test_an_arm_without_kinematics_takes_no_joint_commands(monkeypatch):
