@@ -114,3 +114,132 @@ def test_check_reports_a_camera_without_intrinsics_instead_of_aborting(monkeypat
     assert result.exit_code == 0, result.output
     assert "intrinsics: not configured" in result.output and "32x24" in result.output
     assert "arm (ur_rtde): xyz = [" in result.output
+
+
+# ---------------------------------------------------------------------------- arms a URDF describes
+
+
+def _frames(tmp_path: Path) -> Path:
+    """A replay camera's folder of three frames (the arm tests need a camera, not its pictures)."""
+    import numpy as np
+    from PIL import Image
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((24, 32, 3), 40 * i, np.uint8)).save(frames / f"{i}.png")
+    return frames
+
+
+def _hw_yaml(tmp_path: Path, arm: dict) -> Path:
+    import yaml
+
+    hw = tmp_path / "hw.yaml"
+    hw.write_text(
+        yaml.safe_dump(
+            {
+                "camera": {"type": "replay", "path": str(_frames(tmp_path)), "loop": True},
+                "arm": arm,
+                "safety": {"workspace_min_m": [-0.8, -0.8, 0.0], "workspace_max_m": [0.8, 0.8, 0.8]},
+            }
+        )
+    )
+    return hw
+
+
+@pytest.fixture
+def ur_serial_twin():
+    """The serial arm's twin computing its POSE on a UR5 placed as a UR controller's base (base_link
+    turned by pi about z), and its port."""
+    import numpy as np
+
+    from robot_io.arms.serial_sim import SerialArmSimulator
+    from robot_io.poses import pose_from_vec
+    from tests.robot_io.fakes import ur5_scene_arm
+
+    ur5 = ur5_scene_arm(T_base_link=pose_from_vec([0.0, 0.0, 0.0, 0.0, 0.0, np.pi]))
+    sim, path = SerialArmSimulator.on_pty(boot_delay_s=0.02, scene_arm=ur5)
+    yield sim, path
+    sim.close()
+
+
+UR5_AS_A_UR = {
+    "urdf": "ur5",
+    "base_link": "base_link",
+    "tool_link": "tool0",
+    "rotvec_base_link": [0, 0, 3.141592653589793],
+}
+
+
+def test_check_prints_each_joint_with_its_unit_and_distance_to_its_limits(tmp_path, ur_serial_twin):
+    from robot_io.check import format_joint, joint_readings
+
+    sim, path = ur_serial_twin
+    hw = _hw_yaml(
+        tmp_path, {"type": "serial", "port": path, "timeout_ms": 250, "expect_banner": False, "kinematics": UR5_AS_A_UR}
+    )
+    result = CliRunner().invoke(app, ["hw", "check", "-c", str(hw), "--frames", "3"])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    readings = joint_readings(sim.scene_arm, sim.q)
+    header = lines.index(f"  joints ({len(readings)}, in the URDF's order and units):")
+    width = max(len(r.name) for r in readings)
+    assert lines[header + 1 : header + 1 + len(readings)] == [f"    {format_joint(r, width)}" for r in readings]
+    assert all(r.inside for r in readings) and "OUTSIDE the URDF's limits" not in result.output
+    assert "nothing moved" in result.output and not {"MOVE", "MOVEJ"} & {c for _, c in sim.executed}
+
+
+def test_check_refuses_an_arm_whose_urdf_disagrees_with_its_controller_and_moves_nothing(tmp_path, ur_serial_twin):
+    from robot_io.errors import HardwareConfigError
+
+    sim, path = ur_serial_twin
+    not_turned = {k: v for k, v in UR5_AS_A_UR.items() if k != "rotvec_base_link"}
+    hw = _hw_yaml(
+        tmp_path, {"type": "serial", "port": path, "timeout_ms": 250, "expect_banner": False, "kinematics": not_turned}
+    )
+    result = CliRunner().invoke(app, ["hw", "check", "-c", str(hw), "--frames", "3"])
+    assert result.exit_code != 0 and isinstance(result.exception, HardwareConfigError)
+    text = str(result.exception)
+    assert "\n" not in text and "URDF kinematics disagree" in text and "rotvec_base_link" in text
+    assert "joints (" not in result.output and not {"MOVE", "MOVEJ"} & {c for _, c in sim.executed}
+
+
+def test_check_shows_a_servo_whose_offset_ticks_put_its_joint_outside_the_urdf_limits(tmp_path):
+    import math
+
+    import numpy as np
+
+    from robot_io.arms.feetech_sim import FeetechSimulator
+    from robot_io.arms.servo_bus import ServoJoint, SimServo
+    from robot_io.check import format_joint, joint_readings
+    from sim.ik import SceneArm
+    from sim.kinematics import shipped_arm
+    from tests.robot_io.test_feetech import centred_joints
+
+    panda = SceneArm(shipped_arm("panda"), np.eye(4), np.eye(4), 0.05, np.zeros(7))
+    joints = centred_joints(panda)  # the middle of each joint's range at the middle of its servo's turn
+    lo, hi = panda.model.limits.q_min.numpy(), panda.model.limits.q_max.numpy()
+    k = int(np.argmin(hi - lo))  # the joint with the narrowest range
+    j = joints[k]
+    # An offset_ticks wrong by the ticks of half that range and 0.1 rad more: the joint reads outside.
+    shift = math.ceil((0.5 * (hi[k] - lo[k]) + 0.1) * j.ticks_per_rev / (2 * math.pi))
+    joints[k] = ServoJoint(j.id, j.name, j.sign, j.offset_ticks + shift, j.ticks_per_rev)
+    mid = joints[0].ticks_per_rev // 2
+    sim, path = FeetechSimulator.on_pty([SimServo(s.id, position_ticks=mid) for s in joints])
+    try:
+        servos = [dict(id=s.id, name=s.name, sign=s.sign, offset_ticks=s.offset_ticks) for s in joints]
+        kinematics = {"urdf": "panda", "base_link": "panda_link0", "tool_link": "panda_hand"}
+        hw = _hw_yaml(
+            tmp_path, {"type": "feetech", "port": path, "timeout_ms": 250, "joints": servos, "kinematics": kinematics}
+        )
+        result = CliRunner().invoke(app, ["hw", "check", "-c", str(hw), "--frames", "3"])
+    finally:
+        sim.close()
+    assert result.exit_code == 0, result.output
+    readings = joint_readings(panda, [s.to_rad(mid) for s in joints])
+    width = max(len(r.name) for r in readings)
+    for r in readings:
+        assert f"    {format_joint(r, width)}" in result.output.splitlines()
+    assert [r.name for r in readings if not r.inside] == [j.name]
+    assert f"  {j.name} OUTSIDE the URDF's limits: check the joint's sign and offset_ticks" in result.output
+    assert "OUTSIDE them" in format_joint(readings[k])

@@ -20,8 +20,15 @@ def check(
     jog: bool = typer.Option(False, "--jog", help="also move the TCP up and back (through the safety layer)"),
     jog_mm: float = typer.Option(10.0, help="jog distance along base +z in mm"),
 ) -> None:
-    """Connect, print the camera's measured fps and latency and the arm pose. Moves nothing unless --jog."""
-    from robot_io.check import format_pose, jog_z, measure_camera  # lazy: CLI start-up (+6 ms)
+    """Connect, print the camera's measured fps and latency, the arm pose and, for an arm a URDF
+    describes, its joints (value, unit, distance to each limit). Moves nothing unless --jog."""
+    from robot_io.check import (  # lazy: CLI start-up (+6 ms)
+        format_joint,
+        format_pose,
+        jog_z,
+        joint_readings,
+        measure_camera,
+    )
     from robot_io.config import (  # lazy: CLI start-up (trimesh, PIL)
         build_arm,
         build_camera,
@@ -62,6 +69,21 @@ def check(
             typer.echo(f"  fault: {fault if fault else 'none'}")
             inside = cfg.safety.contains(arm.tcp_pose()[:3, 3])
             typer.echo(f"  TCP {'inside' if inside else 'OUTSIDE'} the safety workspace box")
+            kin = arm.kinematics()
+            if kin is not None:
+                # Where each joint reads, against where the arm stands, shows a servo's sign and
+                # offset_ticks (or a wrong URDF) before any joint command is sent.
+                readings = joint_readings(kin, arm.joint_positions())
+                typer.echo(f"  joints ({kin.n_joints}, in the URDF's order and units):")
+                width = max(len(r.name) for r in readings)
+                for reading in readings:
+                    typer.echo(f"    {format_joint(reading, width)}")
+                outside = [r.name for r in readings if not r.inside]
+                if outside:
+                    typer.echo(
+                        f"  {', '.join(outside)} OUTSIDE the URDF's limits: check the joint's sign and offset_ticks "
+                        "(servo-bus arms) or the URDF"
+                    )
             if jog:
                 T0, T1, T2 = jog_z(arm, jog_mm / 1000.0)
                 typer.echo(f"jog: up to {format_pose(T1)}")
