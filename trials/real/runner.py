@@ -67,6 +67,7 @@ from typing import Callable
 
 import cv2
 import numpy as np
+import torch
 
 from calibration.outcome import measure_reach
 from robot_io.errors import ArmFaultError, RobotIOError, SafetyStop
@@ -203,8 +204,6 @@ def check_joint_arm(contract, kinematics, arm_name: str) -> None:
 
 def _fk(kinematics, q) -> np.ndarray:
     """``T_base_tcp (4, 4)`` of joints ``q (n,)`` (float64)."""
-    import torch  # lazy: an arm with kinematics has torch loaded
-
     T = kinematics.tcp_pose(torch.as_tensor(np.asarray(q, dtype=np.float64), device=kinematics.device))
     return T.detach().cpu().numpy()
 
@@ -269,8 +268,6 @@ def resolve_starts(plan, trials, T_base_table, kinematics, joint_space: bool) ->
                 )
         starts[k] = Start(T_fk, q)
     if solve:
-        import torch  # lazy: an arm with kinematics has torch loaded
-
         T = torch.as_tensor(np.stack([starts[k].T_base_tcp for k in solve]), device=kinematics.device)
         res = kinematics.solve_start(T)
         for i, k in enumerate(solve):

@@ -174,7 +174,7 @@ def start_poses(plan, spec) -> dict[int, np.ndarray | None]:
     given = {tp.index: None if tp.T_table_tcp is None else tp.T_table_tcp.T() for tp in plan.tcp_poses}
     if all(tp.joint_positions is None for tp in plan.tcp_poses):
         return given
-    from trials.real.runner import StartError, resolve_starts  # lazy: only a plan with joint starts (torch)
+    from trials.real.runner import StartError, resolve_starts  # lazy: optional dependency (torch, for joint starts)
 
     if spec.arm is None:
         for tp in plan.tcp_poses:

@@ -46,6 +46,7 @@ from sim.paths import UnsafePathError, safe_join
 from sim.recording import MAX_SYNC_TOLERANCE_S, RecordedStep, RecordingCamera
 from sim.spec import WRIST, load_spec
 from trials.real.plan import TrialPlan
+from trials.real.runner import StartError, resolve_starts
 from trials.real.session import file_sha256
 from trials.real.store import TrialStore, check_database
 from trials.recordings.calib import (
@@ -95,8 +96,6 @@ def start_poses(plan, trials, T_base_table, kinematics, arm: str) -> dict[str, n
                     f"{arm} has no kinematics to place their TCP"
                 )
         return {r.trial_id: np.asarray(T_base_table) @ plan.tcp_pose(r.tcp_pose).T_table_tcp.T() for r in rows}
-    from trials.real.runner import StartError, resolve_starts  # lazy: an arm with kinematics (torch, cv2)
-
     try:
         starts = resolve_starts(plan, rows, T_base_table, kinematics, joint_space=False)
     except StartError as err:
