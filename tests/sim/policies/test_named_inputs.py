@@ -29,7 +29,7 @@ from sim.policies.onnx_policy import OnnxPolicy, attach_card
 from sim.policies.onnx_torch import ATOL
 from sim.policies.policy import IMAGENET_MEAN, IMAGENET_STD
 from sim.spec import UnknownCameraError, default_scene, load_spec
-from tests.policy_files import two_camera_onnx, two_camera_pt2
+from tests.policy_files import legacy_onnx_export, two_camera_onnx, two_camera_pt2
 from tests.policy_zoo import TwoCameraPolicy, card_of, contract_of, tiny_policy, two_camera_card, two_camera_contract
 
 TWO_CAMERAS = "scenes/two-cameras.yaml"
@@ -183,7 +183,7 @@ def test_a_card_binds_any_names_and_converts_each_image_to_the_model_convention(
     )
     path = tmp_path / "conv.onnx"
     args = (torch.rand(2, 3, 32, 32), torch.rand(2, 128, 128, 3) * 255, torch.rand(2, 6), torch.rand(2, 1))
-    torch.onnx.export(
+    legacy_onnx_export(
         wrapped.eval(),
         args,
         str(path),
@@ -191,7 +191,6 @@ def test_a_card_binds_any_names_and_converts_each_image_to_the_model_convention(
         output_names=["out"],
         dynamic_axes={n: {0: "b"} for n in ["cam_a", "cam_b", "pose", "grip", "out"]},
         opset_version=17,
-        dynamo=False,
     )
     attach_card(path, card)
     o = OnnxPolicy(path)
