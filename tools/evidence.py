@@ -29,7 +29,6 @@ import shutil
 import sys
 from pathlib import Path
 
-import typer
 from typer._click.exceptions import ClickException
 
 from attack.artifact import CONFIG_RECORD, TEXTURE_PNG, AttackArtifact
@@ -38,11 +37,10 @@ from sim.errors import AdvobjError
 from sim.policies.card import CARD_NAME, load_card
 from sim.policies.pool import built_pool_path
 from sim.runinfo import RunInfoError, read_run_info
-from trials.cli.experiment import app as experiment_app
-from trials.cli.options import int_list, key_values
+from trials.cli.experiment import experiment_targets, parse_experiment
 from trials.eval.episodes import collect_evals
 from trials.experiments.recipes import RECIPES as REGISTRY
-from trials.experiments.recipes import recipe_scene, resolve_experiment
+from trials.experiments.recipes import recipe_scene
 from trials.experiments.record import (
     RECORD_NAME,
     attempt_machine,
@@ -185,7 +183,8 @@ def recorded_command(folder: Path) -> list[str]:
 
 def recorded_experiment(folder: Path) -> dict:
     """What the table in ``folder`` was made with: the recipe, config, policy, targets and scene of
-    :func:`recorded_command`, parsed by ``advobj experiment``'s own options. One
+    :func:`recorded_command`, parsed by ``advobj experiment``'s own options
+    (:func:`trials.cli.experiment.parse_experiment`). One
     :class:`RetableError` line naming the file when it does not parse, or the folder when its
     recipe has no report-only path."""
     path = folder / RECORD_NAME
@@ -193,21 +192,8 @@ def recorded_experiment(folder: Path) -> dict:
     recipe = argv[2]
     check_report_only(recipe, folder)  # before the options: a recipe with none is refused for that
     try:
-        p = typer.main.get_command(experiment_app).commands[recipe].make_context(recipe, argv[3:]).params
-        cfg = resolve_experiment(
-            p["preset"],
-            episodes=p["episodes"],
-            pool=None if p["pool"] is None else str(p["pool"]),
-            device=p["device"],
-            attack_overrides=None if p["iterations"] is None else {"iterations": p["iterations"]},
-            transfer_targets=None
-            if p["archs"] is None
-            else tuple(a.strip() for a in p["archs"].split(",") if a.strip()),
-            attack_seeds=int_list(p["attack_seeds"], "--attack-seeds"),
-            rows=None if p["rows"] is None else tuple(r.strip() for r in p["rows"].split(",") if r.strip()),
-            min_clean_success=p["min_clean_success"],
-        )
-        targets = key_values(p["target"], "--target", "ARCH", "PATH")
+        cfg, p = parse_experiment(recipe, argv[3:])
+        targets = experiment_targets(p["target"])
     except ClickException as err:
         raise RetableError(f"{path}: the recorded command does not parse ({err.format_message()})") from None
     except AdvobjError as err:

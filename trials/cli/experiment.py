@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import List, Optional
 
@@ -10,9 +11,65 @@ import typer
 from sim.runtime import set_torch_threads
 from trials.cli.grid import ADDRESS, SHARDS, WORKERS, executor
 from trials.cli.options import MIN_CLEAN_SUCCESS, int_list, key_values
-from trials.experiments.recipes import RECIPES, resolve_experiment, run_experiment
+from trials.experiments.recipes import RECIPES, ExperimentConfig, resolve_experiment, run_experiment
+
+__all__ = ["app", "CONFIG_OPTIONS", "experiment_config", "experiment_targets", "parse_experiment"]
 
 app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
+
+
+def _names(text: str | None) -> tuple[str, ...] | None:
+    """``"a, b,"`` -> ``("a", "b")`` (None when not given): a comma-separated list of names."""
+    return None if text is None else tuple(n.strip() for n in text.split(",") if n.strip())
+
+
+def experiment_config(
+    preset: str,
+    episodes: Optional[int] = None,
+    pool: Optional[Path] = None,
+    device: str = "cpu",
+    archs: Optional[str] = None,
+    iterations: Optional[int] = None,
+    attack_seeds: Optional[str] = None,
+    rows: Optional[str] = None,
+    min_clean_success: Optional[float] = None,
+) -> ExperimentConfig:
+    """The config ``advobj experiment`` runs a recipe with, from the values of its options as the
+    command takes them: ``--pool`` a path, ``--archs`` and ``--rows`` comma-separated names,
+    ``--attack-seeds`` comma-separated integers, ``--iterations`` every attack's; None keeps the
+    preset's. A malformed value is one :class:`~trials.cli.options.OptionError` line naming
+    ``--attack-seeds`` or one :class:`~trials.experiments.recipes.ExperimentError` line naming the
+    field. The command's checks of which recipe takes which option are not made here."""
+    return resolve_experiment(
+        preset,
+        episodes=episodes,
+        pool=None if pool is None else str(pool),
+        device=device,
+        attack_overrides=None if iterations is None else {"iterations": iterations},
+        transfer_targets=_names(archs),
+        attack_seeds=int_list(attack_seeds, "--attack-seeds"),
+        rows=_names(rows),
+        min_clean_success=min_clean_success,
+    )
+
+
+def experiment_targets(target: List[str]) -> dict[str, Path]:
+    """The ``--target ARCH=PATH`` items as ``{arch: path}``; a malformed or repeated one is one
+    :class:`~trials.cli.options.OptionError` line naming ``--target``."""
+    return {arch: Path(d) for arch, d in key_values(target, "--target", "ARCH", "PATH").items()}
+
+
+#: The options :func:`experiment_config` reads, by parameter name.
+CONFIG_OPTIONS = tuple(inspect.signature(experiment_config).parameters)
+
+
+def parse_experiment(recipe: str, args: List[str]) -> tuple[ExperimentConfig, dict]:
+    """What ``advobj experiment RECIPE ARGS...`` runs with, without running it: its config
+    (:func:`experiment_config`) and the values of all its options by parameter name, parsed by the
+    command's own options with their defaults (for a record of a command that ran: its ``run.json``).
+    A ``click`` exception when ``args`` do not parse; :func:`experiment_config`'s errors otherwise."""
+    params = typer.main.get_command(app).commands[recipe].make_context(recipe, list(args)).params
+    return experiment_config(**{k: params[k] for k in CONFIG_OPTIONS}), params
 
 
 def _run(
@@ -32,18 +89,18 @@ def _run(
     min_clean_success: Optional[float] = None,
 ) -> None:
     set_torch_threads()
-    targets = {arch: Path(d) for arch, d in key_values(target, "--target", "ARCH", "PATH").items()}
+    targets = experiment_targets(target)
     workers, address, shards, device = grid
     ex, default_shards = executor(workers, address, typer.echo)
-    cfg = resolve_experiment(
+    cfg = experiment_config(
         preset,
         episodes=episodes,
-        pool=None if pool is None else str(pool),
+        pool=pool,
         device=device,
-        attack_overrides=None if iterations is None else {"iterations": iterations},
-        transfer_targets=None if archs is None else tuple(a.strip() for a in archs.split(",") if a.strip()),
-        attack_seeds=int_list(attack_seeds, "--attack-seeds"),
-        rows=None if rows is None else tuple(r.strip() for r in rows.split(",") if r.strip()),
+        archs=archs,
+        iterations=iterations,
+        attack_seeds=attack_seeds,
+        rows=rows,
         min_clean_success=min_clean_success,
     )
     path = run_experiment(
