@@ -13,6 +13,7 @@ __all__ = [
     "CameraLostError",
     "MissingIntrinsicsError",
     "ArmFaultError",
+    "ArmRefusedError",
     "ProtocolError",
     "SafetyStop",
     "require_extra",
@@ -45,6 +46,16 @@ class ArmFaultError(RobotIOError):
     def __init__(self, fault):
         self.fault = fault
         super().__init__(str(fault))
+
+
+class ArmRefusedError(RobotIOError):
+    """The arm refused one command it will not execute: nothing moved, no fault is latched, and the
+    arm takes the next command. Every driver raises it for such a target (a pose out of reach, a
+    joint past its range: the serial arm's ``ERR RANGE``, a servo-bus arm's IK or servo-turn
+    refusal, a UR controller rejecting a move without a fault, the sim arm's IK); the message names
+    the arm and the target. The trial runner ends that trial with ``refused: ...``, as it does for
+    the safety layer's refusal, and the session goes on (an :class:`ArmFaultError` is a fault instead:
+    the arm cannot move until it is cleared)."""
 
 
 class ProtocolError(RobotIOError):

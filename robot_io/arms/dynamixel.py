@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 
-from robot_io.arms.servo_bus import BadPacket, BusArm, ServoJoint, Status
+from robot_io.arms.servo_bus import BadPacket, BusArm, ServoJoint, Status, error_bits_text
 
 __all__ = [
     "DynamixelArm",
@@ -204,8 +204,7 @@ def decode_position(data: bytes) -> int:
 
 def hardware_error_text(bits: int) -> str:
     """The set bits of Hardware_Error_Status, in words."""
-    names = [HARDWARE_ERROR_BITS.get(1 << k, f"hardware error bit {k}") for k in range(8) if bits & (1 << k)]
-    return ", ".join(names) + f" (Hardware_Error_Status 0x{bits:02X})"
+    return error_bits_text(bits, HARDWARE_ERROR_BITS, "hardware error bit", "Hardware_Error_Status")
 
 
 class DynamixelArm(BusArm):
@@ -227,9 +226,9 @@ class DynamixelArm(BusArm):
         "remove the cause (load, heat, supply voltage), then power-cycle the arm (a Dynamixel keeps a hardware "
         "error, with its torque off, until it is rebooted) and reconnect"
     )
-
-    def _frame(self, servo_id: int, instruction: int, params: bytes) -> bytes:
-        return encode_packet(servo_id, instruction, params)
+    encode_packet = staticmethod(encode_packet)
+    decode_position = staticmethod(decode_position)
+    hardware_error_text = staticmethod(hardware_error_text)
 
     def _take_status(self, buf: bytearray) -> Status | None:
         while (packet := take_packet(buf)) is not None:
@@ -244,9 +243,6 @@ class DynamixelArm(BusArm):
 
     def _addr_len(self, addr: int, size: int) -> bytes:
         return addr.to_bytes(2, "little") + size.to_bytes(2, "little")
-
-    def _decode_position(self, data: bytes) -> int:
-        return decode_position(data)
 
     def _goal_data(self, joint: ServoJoint, ticks: int, speed_ticks_per_s: float | None) -> bytes:
         # Profile_Velocity 0 is no limit; a commanded speed is at least one unit (0.229 rev/min).
@@ -266,9 +262,6 @@ class DynamixelArm(BusArm):
         if error & ALERT_BIT:
             return "hardware", "a hardware error (Alert bit; Hardware_Error_Status not read yet)"
         return None
-
-    def _hardware_error_text(self, bits: int) -> str:
-        return hardware_error_text(bits)
 
     def _identify(self, joint: ServoJoint, ping: Status) -> dict[str, str]:
         if len(ping.data) < 3:

@@ -15,8 +15,6 @@ it was addressed to. Run it standalone with::
 
 from __future__ import annotations
 
-import time
-
 from robot_io.arms.dynamixel import (
     ADDR_FIRMWARE_VERSION,
     ADDR_GOAL_POSITION,
@@ -35,7 +33,8 @@ from robot_io.arms.dynamixel import (
     encode_status,
     take_packet,
 )
-from robot_io.arms.servo_bus import Request, ServoBusSimulator, SimServo
+from robot_io.arms.pty_twin import serve_until_interrupted
+from robot_io.arms.servo_bus import ServoBusSimulator, SimServo
 
 __all__ = ["DynamixelSimulator", "FIRMWARE", "DATA_LIMIT_ERROR", "CRC_ERROR"]
 
@@ -51,12 +50,8 @@ TICKS_PER_REV = 4096
 class DynamixelSimulator(ServoBusSimulator):
     """X-series servos on a pty (:meth:`~robot_io.arms.servo_bus.ServoBusSimulator.on_pty`)."""
 
-    def _take_request(self, buf: bytearray) -> Request | None:
-        packet = take_packet(buf)
-        return None if packet is None else Request(*packet)
-
-    def _encode_status(self, servo_id: int, error: int, data: bytes) -> bytes:
-        return encode_status(servo_id, error, data)
+    take_packet = staticmethod(take_packet)
+    encode_status = staticmethod(encode_status)
 
     def _split_addr_len(self, params: bytes) -> tuple[int, int, bytes]:
         return int.from_bytes(params[0:2], "little"), int.from_bytes(params[2:4], "little"), params[4:]
@@ -113,14 +108,7 @@ class DynamixelSimulator(ServoBusSimulator):
 
 def main() -> None:
     sim, path = DynamixelSimulator.on_pty([SimServo(i) for i in range(1, 7)])
-    print(f"Dynamixel X-series bus simulator (servos 1-6) on {path}; Ctrl-C to quit", flush=True)
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        sim.close()
+    serve_until_interrupted(sim, f"Dynamixel X-series bus simulator (servos 1-6) on {path}; Ctrl-C to quit")
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 
-from robot_io.arms.servo_bus import BadPacket, BusArm, ServoJoint, Status
+from robot_io.arms.servo_bus import BadPacket, BusArm, ServoJoint, Status, error_bits_text
 
 __all__ = [
     "FeetechArm",
@@ -141,8 +141,7 @@ def decode_position(data: bytes) -> int:
 
 def error_text(bits: int) -> str:
     """The set bits of an error byte or Status register, in words."""
-    names = [ERROR_BITS.get(1 << k, f"error bit {k}") for k in range(8) if bits & (1 << k)]
-    return ", ".join(names) + f" (status 0x{bits:02X})"
+    return error_bits_text(bits, ERROR_BITS, "error bit", "status")
 
 
 class FeetechArm(BusArm):
@@ -164,9 +163,9 @@ class FeetechArm(BusArm):
         "remove the cause (load, heat, supply voltage): a Feetech servo clears the error once it is gone; "
         "then reconnect"
     )
-
-    def _frame(self, servo_id: int, instruction: int, params: bytes) -> bytes:
-        return encode_packet(servo_id, instruction, params)
+    encode_packet = staticmethod(encode_packet)
+    decode_position = staticmethod(decode_position)
+    hardware_error_text = staticmethod(error_text)
 
     def _take_status(self, buf: bytearray) -> Status | None:
         packet = take_packet(buf)
@@ -175,9 +174,6 @@ class FeetechArm(BusArm):
     def _addr_len(self, addr: int, size: int) -> bytes:
         return bytes([addr, size])
 
-    def _decode_position(self, data: bytes) -> int:
-        return decode_position(data)
-
     def _goal_data(self, joint: ServoJoint, ticks: int, speed_ticks_per_s: float | None) -> bytes:
         # Goal_Speed 0 is the servo's full speed; a commanded speed is at least 1 step/s.
         speed = 0 if speed_ticks_per_s is None else min(max(math.ceil(speed_ticks_per_s), 1), (1 << SIGN_BIT) - 1)
@@ -185,9 +181,6 @@ class FeetechArm(BusArm):
 
     def _packet_error(self, error: int) -> tuple[str, str] | None:
         return None if error == 0 else ("hardware", error_text(error))
-
-    def _hardware_error_text(self, bits: int) -> str:
-        return error_text(bits)
 
     def _identify(self, joint: ServoJoint, ping: Status) -> dict[str, str]:
         data = self._read(joint, ADDR_FIRMWARE_MAJOR, ADDR_MODEL_NUMBER + 2)

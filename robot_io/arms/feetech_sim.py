@@ -13,8 +13,6 @@ and its Status register, a request with a bad checksum is ignored. Run it standa
 
 from __future__ import annotations
 
-import time
-
 from robot_io.arms.feetech import (
     ADDR_FIRMWARE_MAJOR,
     ADDR_GOAL_POSITION,
@@ -32,7 +30,8 @@ from robot_io.arms.feetech import (
     from_sign_magnitude,
     take_packet,
 )
-from robot_io.arms.servo_bus import Request, ServoBusSimulator, SimServo
+from robot_io.arms.pty_twin import serve_until_interrupted
+from robot_io.arms.servo_bus import ServoBusSimulator, SimServo
 
 __all__ = ["FeetechSimulator", "FIRMWARE"]
 
@@ -47,12 +46,8 @@ def _u16(data) -> int:
 class FeetechSimulator(ServoBusSimulator):
     """STS3215 servos on a pty (:meth:`~robot_io.arms.servo_bus.ServoBusSimulator.on_pty`)."""
 
-    def _take_request(self, buf: bytearray) -> Request | None:
-        packet = take_packet(buf)
-        return None if packet is None else Request(*packet)
-
-    def _encode_status(self, servo_id: int, error: int, data: bytes) -> bytes:
-        return encode_packet(servo_id, error, data)
+    take_packet = staticmethod(take_packet)
+    encode_status = staticmethod(encode_packet)  # a status packet has the instruction's framing, the error as code
 
     def _split_addr_len(self, params: bytes) -> tuple[int, int, bytes]:
         return params[0], params[1], params[2:]
@@ -93,14 +88,7 @@ class FeetechSimulator(ServoBusSimulator):
 
 def main() -> None:
     sim, path = FeetechSimulator.on_pty([SimServo(i) for i in range(1, 7)])
-    print(f"Feetech STS3215 bus simulator (servos 1-6) on {path}; Ctrl-C to quit", flush=True)
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        sim.close()
+    serve_until_interrupted(sim, f"Feetech STS3215 bus simulator (servos 1-6) on {path}; Ctrl-C to quit")
 
 
 if __name__ == "__main__":

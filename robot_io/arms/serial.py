@@ -16,8 +16,12 @@ Given ``kinematics`` (the arm's :class:`sim.ik.SceneArm`), the host also sends j
 ``JOINTS`` (measured joints) and ``MOVEJ q1 .. qn duration``. It asks ``JOINTS`` on connect, so a
 firmware without joint commands (``ERR UNKNOWN``), or with another number of joints than the URDF,
 is refused there with one line; so is an arm whose joints put the TCP, through the URDF's FK,
-farther from the ``POSE`` it reports than 5 mm or 0.02 rad (:func:`robot_io.check.check_kinematics_agree`:
+farther from the ``POSE`` it reports than 5 mm or 0.02 rad (:func:`robot_io.arms.base.check_kinematics_agree`:
 a wrong URDF, base placement or TCP offset), before anything moves.
+
+A command the device answers ``ERR RANGE`` (a pose it cannot reach, a joint past its limit, a
+non-finite value) is an :class:`~robot_io.errors.ArmRefusedError`: the device did not take it and
+takes the next command, so the trial runner ends that trial and not the session.
 """
 
 from __future__ import annotations
@@ -30,9 +34,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from robot_io.arms.base import Arm, Fault, check_joint_target
-from robot_io.check import check_kinematics_agree
-from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
+from robot_io.arms.base import Arm, Fault, check_joint_target, check_kinematics_agree
+from robot_io.errors import ArmFaultError, ArmRefusedError, ProtocolError, RobotIOError
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 
 if TYPE_CHECKING:
@@ -309,6 +312,10 @@ class SerialArm(Arm):
                 code = rest[0] if rest else "?"
                 if code == "FAULT":
                     raise ArmFaultError(self._status_fault() or Fault("device_fault", " ".join(rest), ""))
+                if code == "RANGE":  # a target the device will not execute; it takes the next command
+                    raise ArmRefusedError(
+                        f"serial arm {self.port} rejected {fields[0]}: ERR {' '.join(rest)}; the arm did not take it"
+                    )
                 raise _Rejected(f"serial arm {self.port} rejected {fields[0]}: ERR {' '.join(rest)}", code)
             self._link_lost = (
                 f"no valid reply to {fields[0]} after {self.retries + 1} attempts of {self.timeout_ms:.0f} ms"
@@ -450,7 +457,7 @@ class SerialArm(Arm):
             ) from None
 
     def _check_kinematics(self, q: np.ndarray) -> None:
-        """Refuse to connect (:func:`robot_io.check.check_kinematics_agree`, one line) when the FK of
+        """Refuse to connect (:func:`robot_io.arms.base.check_kinematics_agree`, one line) when the FK of
         the device's ``JOINTS`` is not the ``POSE`` it reports: a wrong URDF, base placement or TCP,
         on which the safety layer would check the workspace box. Nothing has moved."""
         check_kinematics_agree(f"serial arm {self.port}", self._kinematics, q, self.tcp_pose())
@@ -469,11 +476,6 @@ class SerialArm(Arm):
             )
         return q
 
-    def _joint_target(self, q) -> np.ndarray:
-        if self._kinematics is None:
-            return super().servo_joints(q, 0.0)  # raises: no joint commands
-        return check_joint_target(f"serial arm {self.port}", self._kinematics, q)
-
     def joint_positions(self) -> np.ndarray:
         """``JOINTS``: the measured joints, in the order and units of the kinematics' joints."""
         if self._kinematics is None:
@@ -487,13 +489,13 @@ class SerialArm(Arm):
 
     def servo_joints(self, q: np.ndarray, duration_s: float) -> None:
         """``MOVEJ`` to ``q`` over ``duration_s``; returns once the device has taken it."""
-        self._move_joints(self._joint_target(q), float(duration_s))
+        self._move_joints(check_joint_target(f"serial arm {self.port}", self._kinematics, q), float(duration_s))
 
     def move_joints(self, q: np.ndarray, duration_s: float, timeout_s: float | None = None) -> None:
         """``MOVEJ`` to ``q`` over ``duration_s``, then wait until the device is there (``STATUS``
         ``IDLE``). ``timeout_s`` (default: twice ``duration_s`` plus 2 s): a motion still running
         then is stopped and raised."""
-        q = self._joint_target(q)
+        q = check_joint_target(f"serial arm {self.port}", self._kinematics, q)
         self._move_joints(q, float(duration_s))
         self._wait_idle("joint move", timeout_s if timeout_s is not None else 2.0 * float(duration_s) + 2.0)
 

@@ -1,7 +1,8 @@
 """A device-side simulator of the serial arm protocol, for tests and for trying the driver.
 
-It runs in a thread on the master end of a pseudo-terminal; the driver opens the slave end like
-any serial port, so the real bytes, framing and timing are exercised. Run it standalone with::
+It runs in a thread on the master end of a pseudo-terminal (:class:`robot_io.arms.pty_twin.PtyTwin`);
+the driver opens the slave end like any serial port, so the real bytes, framing and timing are
+exercised. Run it standalone with::
 
     python -m robot_io.arms.serial_sim        # prints the port to put in the hardware config
 
@@ -10,7 +11,7 @@ Fault injection (counters count down per affected message): ``corrupt_replies``,
 ``reply_delay_s``, ``boot_delay_s``, ``send_banner``, :meth:`raise_fault`.
 
 Joints: given a ``scene_arm`` (:class:`sim.ik.SceneArm`), the simulated arm holds joint positions
-``q`` and its TCP is their FK (:func:`robot_io.check.tcp_from_joints`): ``JOINTS`` reports ``q``,
+``q`` and its TCP is their FK (:func:`robot_io.arms.base.tcp_from_joints`): ``JOINTS`` reports ``q``,
 ``MOVEJ`` moves the joints along the straight line in joint space, the leading joint at ``max |dq| / duration``
 (capped at ``max_joint_speed_radps``), and ``MOVE`` solves the IK of its pose from the current
 joints and then moves the same way (so a ``MOVE``'s TCP path is not exactly straight here). Without
@@ -19,23 +20,21 @@ a ``scene_arm`` it is firmware without joint commands: ``JOINTS`` and ``MOVEJ`` 
 
 from __future__ import annotations
 
-import os
-import select
 import threading
 import time
-import tty
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from robot_io.arms.base import tcp_from_joints
+from robot_io.arms.pty_twin import PtyTwin, serve_until_interrupted
 from robot_io.arms.serial import PROTOCOL_VERSION, STOP_BYTE, checksum, encode
-from robot_io.check import tcp_from_joints
 from robot_io.poses import interpolate_pose, pose_from_vec, pose_step, pose_to_vec
 
 if TYPE_CHECKING:
     from sim.ik import SceneArm
 
-__all__ = ["SerialArmSimulator", "open_pty_pair", "JOINT_LIMIT_TOL"]
+__all__ = ["SerialArmSimulator", "JOINT_LIMIT_TOL"]
 
 FIRMWARE = "advobj-sim-1.0"
 #: A ``MOVEJ`` joint this far (rad or m) beyond a position limit is clamped to it (the wire's
@@ -43,22 +42,11 @@ FIRMWARE = "advobj-sim-1.0"
 JOINT_LIMIT_TOL = 1e-6
 
 
-def open_pty_pair() -> tuple[int, int, str]:
-    """``(master_fd, slave_fd, slave_path)``; the slave is raw so nothing is echoed back.
-
-    Keep ``slave_fd`` open while the simulator runs: once the last slave fd closes (the driver
-    disconnecting), reads on the master fail with EIO and bytes written are lost.
-    """
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    return master, slave, os.ttyname(slave)
-
-
-class SerialArmSimulator:
+class SerialArmSimulator(PtyTwin):
     """The firmware: parses requests, moves a kinematic TCP, enforces the heartbeat timeout.
 
     Args:
-        fd: the pty master (see :func:`open_pty_pair`).
+        fd: the pty master (:func:`robot_io.arms.pty_twin.open_pty_pair`; :meth:`on_pty` opens one).
         heartbeat_timeout_ms: stop and fault when no valid request arrives for this long while moving.
         boot_delay_s: time from start to the boot banner (requests before it are ignored, as a
             real bootloader would).
@@ -87,10 +75,9 @@ class SerialArmSimulator:
         q=None,
         max_joint_speed_radps: float = 3.0,
     ):
-        self.fd = fd
+        super().__init__(fd, keep_fd)
         self.protocol_version = int(protocol_version)
         self.device_id = device_id
-        self._keep_fd = keep_fd
         self.heartbeat_timeout_ms = float(heartbeat_timeout_ms)
         self.boot_delay_s = float(boot_delay_s)
         self.send_banner = send_banner
@@ -122,40 +109,13 @@ class SerialArmSimulator:
         self._last: tuple[int, bytes] | None = None
         self._last_rx = time.monotonic()
         self._buf = bytearray()
-        self._stop_evt = threading.Event()
         self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-
-    @classmethod
-    def on_pty(cls, **kwargs) -> tuple["SerialArmSimulator", str]:
-        """A started simulator on a fresh pty, and the port path for the driver."""
-        master, slave, path = open_pty_pair()
-        sim = cls(master, keep_fd=slave, **kwargs)
-        sim.start()
-        return sim, path
+        self._t_boot_s = 0.0  # when the banner is due (time.monotonic()), set by start()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "SerialArmSimulator":
-        self._thread = threading.Thread(target=self._run, name="serial-arm-sim", daemon=True)
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        self._stop_evt.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        for fd in (self.fd, self._keep_fd):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
+        self._t_boot_s = time.monotonic() + self.boot_delay_s
+        return super().start()
 
     def raise_fault(self, code: str) -> None:
         """Simulate ``ESTOP``, ``PSTOP``, ...: motion stops and commands answer ``ERR FAULT``."""
@@ -174,48 +134,28 @@ class SerialArmSimulator:
         self.T_base_tcp = tcp_from_joints(self.scene_arm, self.q)
 
     # ------------------------------------------------------------------ I/O
-    def _send(self, data: bytes) -> None:
-        try:
-            os.write(self.fd, data)
-        except OSError:
-            pass  # nobody listening (port closed); a real UART would drop the bytes too
-
-    def _run(self) -> None:
-        t_boot = time.monotonic() + self.boot_delay_s
-        booted = False
-        t_prev = time.monotonic()
-        while not self._stop_evt.is_set():
-            try:
-                ready, _, _ = select.select([self.fd], [], [], 0.002)
-                data = os.read(self.fd, 4096) if ready else b""
-            except OSError:
-                data = b""
-                time.sleep(0.002)
-            now = time.monotonic()
-            if not booted:
-                if now >= t_boot:
-                    booted = True
-                    self._last_rx = now
-                    if self.send_banner:
-                        self._send(
-                            self.boot_noise
-                            + f"#BOOT advobj-arm fw={FIRMWARE} proto={self.protocol_version} "
-                            f"hb_ms={self.heartbeat_timeout_ms:.0f} id={self.device_id}\n".encode()
-                        )
-                    self.booted.set()
-                t_prev = now
-                continue  # input during boot is lost, as on a real board
-            for b in data:
-                if bytes([b]) == STOP_BYTE:
-                    self._stop_motion()
-                    self._buf.clear()  # a partial request is abandoned
-                elif b == 0x0A:
-                    line, self._buf = bytes(self._buf), bytearray()
-                    self._handle(line.rstrip(b"\r"))
-                else:
-                    self._buf.append(b)
-            self._tick(now - t_prev, now)
-            t_prev = now
+    def _serve(self, data: bytes, dt_s: float, now_s: float) -> None:
+        if not self.booted.is_set():
+            if now_s >= self._t_boot_s:
+                self._last_rx = now_s
+                if self.send_banner:
+                    self._send(
+                        self.boot_noise
+                        + f"#BOOT advobj-arm fw={FIRMWARE} proto={self.protocol_version} "
+                        f"hb_ms={self.heartbeat_timeout_ms:.0f} id={self.device_id}\n".encode()
+                    )
+                self.booted.set()
+            return  # input during boot is lost, as on a real board
+        for b in data:
+            if bytes([b]) == STOP_BYTE:
+                self._stop_motion()
+                self._buf.clear()  # a partial request is abandoned
+            elif b == 0x0A:
+                line, self._buf = bytes(self._buf), bytearray()
+                self._handle(line.rstrip(b"\r"))
+            else:
+                self._buf.append(b)
+        self._tick(dt_s, now_s)
 
     def _stop_motion(self) -> None:
         with self._lock:
@@ -375,14 +315,7 @@ class SerialArmSimulator:
 
 def main() -> None:
     sim, path = SerialArmSimulator.on_pty(boot_delay_s=1.0)
-    print(f"serial arm simulator on {path} (protocol {PROTOCOL_VERSION}); Ctrl-C to quit", flush=True)
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        sim.close()
+    serve_until_interrupted(sim, f"serial arm simulator on {path} (protocol {PROTOCOL_VERSION}); Ctrl-C to quit")
 
 
 if __name__ == "__main__":

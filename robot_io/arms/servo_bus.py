@@ -11,8 +11,10 @@ new dependency is needed. This module is what both share: :class:`BusArm`, the j
 Joints. Each servo turns one joint: ``q = sign * (ticks - offset_ticks) * 2 pi / ticks_per_rev``
 (:meth:`ServoJoint.to_rad`, :meth:`ServoJoint.to_ticks`; rad). In position mode a servo moves
 within one turn, ticks ``[0, ticks_per_rev - 1]``; a joint target outside it is refused in one
-line naming the joint (a target the servo cannot reach, or a wrong ``offset_ticks``). No wrap is
-applied: a joint's range must lie within one turn of its servo, which calibration ensures.
+line naming the joint (a target the servo cannot reach, or a wrong ``offset_ticks``): an
+:class:`~robot_io.errors.ArmRefusedError`, like an unreachable TCP pose (below), since nothing was
+sent and the arm takes the next command. No wrap is applied: a joint's range must lie within one
+turn of its servo, which calibration ensures.
 
 Kinematics. A :class:`BusArm` requires a :class:`sim.ik.SceneArm` (URDF chain, base placement,
 TCP in the tool link) whose joints are exactly the configured servos' joints (any order; the
@@ -22,11 +24,12 @@ repository, Koch's from its repository, AlexanderKoch-Koch/low_cost_robot) and t
 names it. :meth:`BusArm.tcp_pose` is the FK of the measured joints, in the scene arm's frame:
 the servos report ticks only, so there is no independent TCP to hold the URDF against on connect
 (the UR and serial arms check their controller's TCP against the FK,
-:func:`robot_io.check.check_kinematics_agree`); ``advobj hw check`` prints the joints, each with its
+:func:`robot_io.arms.base.check_kinematics_agree`); ``advobj hw check`` prints the joints, each with its
 distance to its limits, to check ``sign`` and ``offset_ticks`` by eye;
 :meth:`BusArm.servo` and :meth:`BusArm.move_to` solve the IK from the measured joints and refuse
-an unreachable pose in one line. An optional gripper servo is on the bus (pinged, held, watched
-for faults) but not in the kinematics (:meth:`BusArm.gripper_position`, :meth:`BusArm.servo_gripper`).
+an unreachable pose in one line (an :class:`~robot_io.errors.ArmRefusedError`, nothing sent). An
+optional gripper servo is on the bus (pinged, held, watched for faults) but not in the kinematics
+(:meth:`BusArm.gripper_position`, :meth:`BusArm.servo_gripper`).
 
 Commands. :meth:`BusArm.servo_joints` is one SYNC_WRITE of every joint's goal block (goal
 position and a speed that gets each joint there in ``duration_s``); :meth:`BusArm.move_joints` the
@@ -51,7 +54,7 @@ the error byte of every status packet, and every ``status_interval_s`` a SYNC_RE
 servo's error register (Feetech Status, Dynamixel Hardware_Error_Status).
 
 Twins. :class:`ServoBusSimulator` runs servos with ids, register images, position limits and a
-speed limit in a thread on a pty master (:func:`robot_io.arms.serial_sim.open_pty_pair`), so a
+speed limit in a thread on a pty master (:class:`robot_io.arms.pty_twin.PtyTwin`), so a
 driver under test exchanges real bytes with it; the protocol modules' simulators add the framing
 and the control table. Injected faults: :attr:`SimServo.error` (hardware error bits),
 :attr:`SimServo.silent` (a servo that answers nothing), :attr:`ServoBusSimulator.corrupt_replies`
@@ -63,19 +66,16 @@ from __future__ import annotations
 import abc
 import logging
 import math
-import os
-import select
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Iterable, Sequence
+from typing import TYPE_CHECKING, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from robot_io.arms.base import Arm, Fault
-from robot_io.arms.serial_sim import open_pty_pair
-from robot_io.check import tcp_from_joints
-from robot_io.errors import ArmFaultError, ProtocolError, RobotIOError
+from robot_io.arms.base import Arm, Fault, tcp_from_joints
+from robot_io.arms.pty_twin import PtyTwin
+from robot_io.errors import ArmFaultError, ArmRefusedError, ProtocolError, RobotIOError
 from robot_io.poses import is_valid_pose, pose_step
 
 if TYPE_CHECKING:
@@ -93,6 +93,7 @@ __all__ = [
     "BadPacket",
     "ServoJoint",
     "order_servo_joints",
+    "error_bits_text",
     "Request",
     "Status",
     "BusArm",
@@ -117,7 +118,8 @@ _TWO_PI = 2.0 * math.pi
 
 
 class ServoBusError(RobotIOError, ValueError):
-    """A bus arm's joints or kinematics that do not fit, or a target it cannot take; one line naming the joint."""
+    """A bus arm's joints or kinematics that do not fit, or a malformed command; one line naming the joint.
+    (A well-formed target the arm cannot reach is an :class:`~robot_io.errors.ArmRefusedError`.)"""
 
 
 class BadPacket(ValueError):
@@ -182,6 +184,14 @@ class ServoJoint:
         return int(self.offset_ticks) + int(round(self.sign * q * int(self.ticks_per_rev) / _TWO_PI))
 
 
+def error_bits_text(bits: int, names: Mapping[int, str], unnamed: str, register: str) -> str:
+    """The set bits of an 8-bit error byte or register ``bits`` in words, then the register's value:
+    ``"overheating, overload (Status 0x24)"``. ``names``: bit -> words; a bit it lacks is
+    ``"{unnamed} {k}"``; ``register``: the register's name."""
+    words = [names.get(1 << k, f"{unnamed} {k}") for k in range(8) if bits & (1 << k)]
+    return ", ".join(words) + f" ({register} 0x{bits:02X})"
+
+
 @dataclass(frozen=True)
 class Request:
     """An instruction packet: the servo id it is for, the instruction, its parameters (unstuffed)."""
@@ -235,6 +245,13 @@ class BusArm(Arm):
     ADDR_ERROR_STATUS: int
     #: What the operator does about a servo's hardware error.
     HARDWARE_RECOVERY = "remove the cause (load, heat, supply voltage), then power-cycle the arm and reconnect"
+    # The protocol's codec: its module's functions, set by each protocol as staticmethods.
+    #: ``(servo_id, instruction, params) -> bytes``: an instruction packet on the wire.
+    encode_packet: Callable[[int, int, bytes], bytes]
+    #: ``data -> ticks`` of a present-position register.
+    decode_position: Callable[[bytes], int]
+    #: ``bits -> text``: the error register's set bits in words.
+    hardware_error_text: Callable[[int], str]
 
     def __init__(
         self,
@@ -293,10 +310,6 @@ class BusArm(Arm):
 
     # ------------------------------------------------------------------ protocol (per vendor)
     @abc.abstractmethod
-    def _frame(self, servo_id: int, instruction: int, params: bytes) -> bytes:
-        """The instruction packet on the wire."""
-
-    @abc.abstractmethod
     def _take_status(self, buf: bytearray) -> Status | None:
         """The first status packet in ``buf``, removed from it; ``None`` while incomplete.
         Raises :class:`BadPacket` (after removing it) for a frame failing its checksum."""
@@ -304,10 +317,6 @@ class BusArm(Arm):
     @abc.abstractmethod
     def _addr_len(self, addr: int, size: int) -> bytes:
         """An address and a data length as parameters (READ, SYNC_READ, SYNC_WRITE)."""
-
-    @abc.abstractmethod
-    def _decode_position(self, data: bytes) -> int:
-        """Ticks from a present-position register."""
 
     @abc.abstractmethod
     def _goal_data(self, joint: ServoJoint, ticks: int, speed_ticks_per_s: float | None) -> bytes:
@@ -318,10 +327,6 @@ class BusArm(Arm):
         """What a status packet's error byte means: ``None`` (no error), ``("hardware", text)``,
         ``("refused", text)`` (the servo refused the instruction) or ``("resend", text)`` (it
         received a corrupted request)."""
-
-    @abc.abstractmethod
-    def _hardware_error_text(self, bits: int) -> str:
-        """The error register's set bits in words."""
 
     @abc.abstractmethod
     def _identify(self, joint: ServoJoint, ping: Status) -> dict[str, str]:
@@ -435,7 +440,7 @@ class BusArm(Arm):
         """
         if self._ser is None:
             raise ArmFaultError(self._not_connected())
-        frame = self._frame(servo_id, instruction, params)
+        frame = self.encode_packet(servo_id, instruction, params)
         with self._lock:
             got: dict[int, Status] = {}
             attempts = self.retries + 1 if expect else 1
@@ -527,7 +532,7 @@ class BusArm(Arm):
     def _read_ticks(self) -> dict[int, int]:
         """Every servo's present position (ticks), in one SYNC_READ."""
         data = self._sync_read(self.servos, self.ADDR_PRESENT_POSITION, self.SIZE_POSITION)
-        ticks = {i: self._decode_position(d) for i, d in data.items()}
+        ticks = {i: self.decode_position(d) for i, d in data.items()}
         self._last_ticks = (time.monotonic(), ticks)
         return ticks
 
@@ -539,7 +544,7 @@ class BusArm(Arm):
 
     def _poll_faults(self) -> None:
         data = self._sync_read(self.servos, self.ADDR_ERROR_STATUS, 1)
-        self._servo_faults = {i: self._hardware_error_text(d[0]) for i, d in data.items() if d[0]}
+        self._servo_faults = {i: self.hardware_error_text(d[0]) for i, d in data.items() if d[0]}
         self._last_poll_s = time.monotonic()
         self._poll_due = False
 
@@ -600,10 +605,10 @@ class BusArm(Arm):
     def _goal_ticks(self, joint: ServoJoint, q_rad: float) -> int:
         ticks = joint.to_ticks(q_rad)
         if not 0 <= ticks <= joint.max_ticks:
-            raise ServoBusError(
+            raise ArmRefusedError(
                 f"{self.name} arm: joint {joint.name!r} at {q_rad:.6g} rad is tick {ticks}, outside its servo's turn "
                 f"[0, {joint.max_ticks}] (offset_ticks {joint.offset_ticks}, sign {joint.sign}): the servo cannot "
-                "reach it, or offset_ticks is wrong"
+                "reach it, or offset_ticks is wrong; nothing was sent"
             )
         return ticks
 
@@ -690,8 +695,8 @@ class BusArm(Arm):
         T = torch.as_tensor(T_base_tcp, dtype=torch.float64, device=like.device)[None]
         try:
             return self.scene_arm.ik(T, like).require("TCP target")[0].cpu().numpy()
-        except IkError as err:
-            raise ServoBusError(f"{self.name} arm: {err}") from None
+        except IkError as err:  # nothing was sent: the arm takes the next command
+            raise ArmRefusedError(f"{self.name} arm: {err}; the arm did not move") from None
 
     def _check_pose(self, T_base_tcp) -> np.ndarray:
         if not is_valid_pose(T_base_tcp):
@@ -778,11 +783,12 @@ class SimServo:
     memory: bytearray = field(default_factory=lambda: bytearray(256))
 
 
-class ServoBusSimulator(abc.ABC):
+class ServoBusSimulator(PtyTwin):
     """The servos on a simulated bus, in a thread on a pty master; the protocol modules add the bytes.
 
     Args:
-        fd: the pty master (:func:`robot_io.arms.serial_sim.open_pty_pair`).
+        fd: the pty master (:func:`robot_io.arms.pty_twin.open_pty_pair`; :meth:`on_pty` opens one and
+            takes the other arguments).
         servos: the servos on the bus.
         keep_fd: the slave fd to keep open while the simulator runs (see ``open_pty_pair``).
         max_speed_ticks_per_s: the servos' top speed (a goal speed of 0, or above it, runs at it).
@@ -799,8 +805,7 @@ class ServoBusSimulator(abc.ABC):
         keep_fd: int | None = None,
         max_speed_ticks_per_s: float = 3000.0,
     ):
-        self.fd = fd
-        self._keep_fd = keep_fd
+        super().__init__(fd, keep_fd)
         self.servos: dict[int, SimServo] = {}
         for s in servos:
             if s.id in self.servos:
@@ -816,25 +821,19 @@ class ServoBusSimulator(abc.ABC):
         self.requests: list[tuple[int, int]] = []
         self._buf = bytearray()
         self._lock = threading.Lock()
-        self._stop_evt = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    @classmethod
-    def on_pty(cls, servos: Iterable[SimServo], **kwargs):
-        """A started simulator on a fresh pty, and the port path for the driver."""
-        master, slave, path = open_pty_pair()
-        sim = cls(master, servos, keep_fd=slave, **kwargs)
-        sim.start()
-        return sim, path
 
     # ------------------------------------------------------------------ protocol (per vendor)
-    @abc.abstractmethod
+    # The protocol's codec: its module's functions, set by each protocol as staticmethods.
+    #: ``buf -> (id, instruction, params) | None``: the first whole packet in ``buf``, removed from
+    #: it (``None`` while incomplete); raises :class:`BadPacket` for one failing its checksum.
+    take_packet: Callable[[bytearray], tuple[int, int, bytes] | None]
+    #: ``(servo_id, error, data) -> bytes``: a status packet on the wire.
+    encode_status: Callable[[int, int, bytes], bytes]
+
     def _take_request(self, buf: bytearray) -> Request | None:
         """The first instruction packet in ``buf``, removed from it; raises :class:`BadPacket`."""
-
-    @abc.abstractmethod
-    def _encode_status(self, servo_id: int, error: int, data: bytes) -> bytes:
-        """A status packet on the wire."""
+        packet = self.take_packet(buf)
+        return None if packet is None else Request(*packet)
 
     @abc.abstractmethod
     def _split_addr_len(self, params: bytes) -> tuple[int, int, bytes]:
@@ -871,29 +870,7 @@ class ServoBusSimulator(abc.ABC):
     def _on_bad_request(self, servo_id: int | None) -> None:
         """A request arrived corrupted; a servo ignores it unless the protocol answers it."""
 
-    # ------------------------------------------------------------------ lifecycle
-    def start(self) -> ServoBusSimulator:
-        self._thread = threading.Thread(target=self._run, name=f"{type(self).__name__}", daemon=True)
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        self._stop_evt.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        for fd in (self.fd, self._keep_fd):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
+    # ------------------------------------------------------------------ state
     def servo(self, servo_id: int) -> SimServo:
         return self.servos[servo_id]
 
@@ -905,14 +882,8 @@ class ServoBusSimulator(abc.ABC):
             self._store_present(s)
 
     # ------------------------------------------------------------------ I/O
-    def _send(self, data: bytes) -> None:
-        try:
-            os.write(self.fd, data)
-        except OSError:
-            pass  # nobody listening (port closed); a real bus drops the bytes too
-
     def _reply(self, servo: SimServo, error: int, data: bytes = b"") -> None:
-        frame = self._encode_status(servo.id, error, data)
+        frame = self.encode_status(servo.id, error, data)
         if self.corrupt_replies > 0:
             self.corrupt_replies -= 1
             frame = frame[:-1] + bytes([frame[-1] ^ 0xFF])
@@ -920,34 +891,24 @@ class ServoBusSimulator(abc.ABC):
             time.sleep(self.reply_delay_s)
         self._send(frame)
 
-    def _run(self) -> None:
-        t_prev = time.monotonic()
-        while not self._stop_evt.is_set():
-            try:
-                ready, _, _ = select.select([self.fd], [], [], 0.002)
-                data = os.read(self.fd, 4096) if ready else b""
-            except OSError:
-                data = b""
-                time.sleep(0.002)
-            now = time.monotonic()
-            with self._lock:
-                self._tick(now - t_prev)  # first: a request reads the state as of its arrival
-                self._buf.extend(data)
-                while True:
-                    try:
-                        req = self._take_request(self._buf)
-                    except BadPacket as err:
-                        self._on_bad_request(err.servo_id)
-                        continue
-                    if req is None:
-                        break
-                    if self.corrupt_requests > 0:
-                        self.corrupt_requests -= 1
-                        self._on_bad_request(req.id)
-                        continue
-                    self.requests.append((req.id, req.instruction))
-                    self._handle(req)
-            t_prev = now
+    def _serve(self, data: bytes, dt_s: float, now_s: float) -> None:
+        with self._lock:
+            self._tick(dt_s)  # first: a request reads the state as of its arrival
+            self._buf.extend(data)
+            while True:
+                try:
+                    req = self._take_request(self._buf)
+                except BadPacket as err:
+                    self._on_bad_request(err.servo_id)
+                    continue
+                if req is None:
+                    break
+                if self.corrupt_requests > 0:
+                    self.corrupt_requests -= 1
+                    self._on_bad_request(req.id)
+                    continue
+                self.requests.append((req.id, req.instruction))
+                self._handle(req)
 
     def _tick(self, dt: float) -> None:
         for s in self.servos.values():

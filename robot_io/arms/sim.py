@@ -14,11 +14,10 @@ sent), and the gripper follows the scene arm's FK, ``T_world_tcp = T_world_base 
 TCP commands to a joint-driven arm go through the scene arm's IK from the current joints (a
 positioning move that does not converge from there tries the scene arm's start seeds). A TCP
 target the IK does not reach within the joint limits is refused as the real drivers refuse one (the
-serial arm's ``ERR RANGE unreachable``, the servo-bus arm's IK refusal): the arm does not move and
-takes the next command, so no fault is latched (:meth:`SimArm.fault` stays ``None``). It is raised
-as an :class:`~robot_io.errors.ArmFaultError` (a ``device_fault`` naming the target and the IK's
-errors), which the trial runner turns into the end of that trial (``fault: ...``), not of the
-session.
+serial arm's ``ERR RANGE unreachable``, the servo-bus arm's IK refusal): an
+:class:`~robot_io.errors.ArmRefusedError` naming the target and the IK's errors; the arm does not
+move and takes the next command, no fault is latched (:meth:`SimArm.fault` stays ``None``), and the
+trial runner ends that trial (``refused: ...``), not the session.
 """
 
 from __future__ import annotations
@@ -27,8 +26,8 @@ import time
 
 import numpy as np
 
-from robot_io.arms.base import Arm, Fault
-from robot_io.errors import ArmFaultError
+from robot_io.arms.base import Arm, Fault, tcp_from_joints
+from robot_io.errors import ArmFaultError, ArmRefusedError
 from robot_io.poses import interpolate_pose, is_valid_pose, pose_step
 
 __all__ = ["SimArm"]
@@ -89,10 +88,7 @@ class SimArm(Arm):
         return self.scene_arm
 
     def _set_q(self, q: np.ndarray) -> None:
-        import torch  # lazy: robot_io start-up (torch)
-
-        T = self.scene_arm.tcp_pose(torch.as_tensor(q, dtype=torch.float64, device=self.scene_arm.device))
-        self.world.set_tcp_pose(T.detach().cpu().numpy())
+        self.world.set_tcp_pose(tcp_from_joints(self.scene_arm, q))
         self._q = np.array(q, dtype=np.float64)
 
     def _check_q(self, q) -> np.ndarray:
@@ -127,7 +123,7 @@ class SimArm(Arm):
         solution, as a real arm's controller takes), and for a ``positioning`` move, when that does
         not converge, from the scene arm's start seeds (:meth:`sim.ik.SceneArm.solve_start`: its home
         joints, then fixed restarts), as the simulator solves a start pose. A target out of reach
-        raises :class:`ArmFaultError` (not latched: the arm has not moved)."""
+        raises :class:`ArmRefusedError` (no fault: the arm has not moved)."""
         import torch  # lazy: robot_io start-up (torch)
 
         like = torch.as_tensor(self._q, dtype=torch.float64, device=self.scene_arm.device)[None]
@@ -139,14 +135,10 @@ class SimArm(Arm):
             seeds = "the current joints, then the arm's home joints and restarts"
         if not bool(res.converged[0]):
             p = ", ".join(f"{float(v):.3f}" for v in T_world_tcp[:3, 3])
-            raise ArmFaultError(
-                Fault(
-                    "device_fault",
-                    f"sim arm: TCP target at [{p}] m (base frame) is out of reach within the joint limits (IK from "
-                    f"{seeds}: {float(res.pos_err_m[0]):.3g} m and {float(res.rot_err_rad[0]):.3g} rad off after "
-                    f"{res.iterations} iterations); the arm did not move",
-                    "none needed: the target was refused, the arm takes the next command",
-                )
+            raise ArmRefusedError(
+                f"sim arm: TCP target at [{p}] m (base frame) is out of reach within the joint limits (IK from "
+                f"{seeds}: {float(res.pos_err_m[0]):.3g} m and {float(res.rot_err_rad[0]):.3g} rad off after "
+                f"{res.iterations} iterations); the arm did not move"
             )
         return res.q[0].cpu().numpy()
 

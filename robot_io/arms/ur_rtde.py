@@ -14,7 +14,10 @@
   kicked, faults checked, a timeout, ``stopJ`` when interrupted).
   Connecting refuses, in one line and before anything moves, an arm whose ``getActualQ`` puts the
   TCP, through the kinematics' FK, farther from ``getActualTCPPose`` than 5 mm or 0.02 rad
-  (:func:`robot_io.check.check_kinematics_agree`: a wrong URDF, base placement or TCP offset).
+  (:func:`robot_io.arms.base.check_kinematics_agree`: a wrong URDF, base placement or TCP offset).
+* A ``moveL``/``moveJ`` the controller rejects while no fault is raised (a target it cannot
+  reach) is an :class:`~robot_io.errors.ArmRefusedError`: nothing moved, the arm takes the next
+  command.
 * A protective stop, an e-stop, a stopped control script or a dropped link becomes an
   :class:`ArmFaultError` that says what happened and how to recover (via ``DashboardClient``).
 * ``disconnect`` always runs ``servoStop``/``speedStop`` (both after ``servoJ`` in ``speedL`` mode)
@@ -31,9 +34,8 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from robot_io.arms.base import Arm, Fault, check_joint_target
-from robot_io.check import check_kinematics_agree
-from robot_io.errors import ArmFaultError, MissingExtraError, RobotIOError, require_extra
+from robot_io.arms.base import Arm, Fault, check_joint_target, check_kinematics_agree
+from robot_io.errors import ArmFaultError, ArmRefusedError, MissingExtraError, RobotIOError, require_extra
 from robot_io.poses import pose_from_vec, pose_step, pose_to_vec
 from sim.geometry import so3_log
 
@@ -188,7 +190,7 @@ class URArm(Arm):
         return out
 
     def _check_kinematics(self) -> None:
-        """Refuse to connect (:func:`robot_io.check.check_kinematics_agree`, one line) when the FK of
+        """Refuse to connect (:func:`robot_io.arms.base.check_kinematics_agree`, one line) when the FK of
         ``getActualQ`` is not the ``getActualTCPPose`` the controller computes: a wrong URDF, base
         placement or TCP, on which the safety layer would check the workspace box. Nothing has moved."""
         check_kinematics_agree(
@@ -301,12 +303,10 @@ class URArm(Arm):
         try:
             if not start(c):
                 self._require_ok()  # a refused move is usually a fault raised meanwhile
-                raise ArmFaultError(
-                    Fault(
-                        "device_fault",
-                        f"{what} was rejected by the controller",
-                        "check the target is reachable and the teach pendant log",
-                    )
+                # No fault: the controller will not execute this target (out of reach, past a joint limit).
+                raise ArmRefusedError(
+                    f"UR {self.host}: the controller rejected the {what} with no fault raised (a target it cannot "
+                    "reach; see the teach pendant log); the arm did not move"
                 )
             deadline = time.monotonic() + timeout_s
             while True:
@@ -369,11 +369,6 @@ class URArm(Arm):
     def kinematics(self) -> SceneArm | None:
         return self._kinematics
 
-    def _joint_target(self, q) -> np.ndarray:
-        if self._kinematics is None:
-            return super().servo_joints(q, 0.0)  # raises: no joint commands
-        return check_joint_target(f"UR {self.host}", self._kinematics, q)
-
     def joint_positions(self) -> np.ndarray:
         """``getActualQ`` (rad), in the order of the kinematics' joints."""
         if self._kinematics is None:
@@ -389,7 +384,7 @@ class URArm(Arm):
     def servo_joints(self, q: np.ndarray, duration_s: float) -> None:
         """Stream one ``servoJ`` target, reached over ``duration_s`` (the step period)."""
         self.keepalive()  # first: even if this step raises, the controller knows we were alive just now
-        q = self._joint_target(q)
+        q = check_joint_target(f"UR {self.host}", self._kinematics, q)
         self._require_ok()
         self._stream_stops.add("servoStop")
         # ur-rtde ignores servoJ's speed and acceleration arguments; time is the step period.
@@ -400,7 +395,7 @@ class URArm(Arm):
         :meth:`move_to`. ``timeout_s`` (default: twice the move's time with its ramps, plus a margin):
         a move still running then is stopped (``stopJ``) and raised as a fault."""
         self.keepalive()
-        q = self._joint_target(q)
+        q = check_joint_target(f"UR {self.host}", self._kinematics, q)
         self._require_ok()
         distance = float(np.max(np.abs(q - self.joint_positions())))
         v = joint_move_speed_radps(distance, float(duration_s))

@@ -12,7 +12,7 @@ import types
 
 import numpy as np
 
-from robot_io.check import tcp_from_joints
+from robot_io.arms.base import Arm, Fault, tcp_from_joints
 from robot_io.poses import pose_from_vec, pose_to_vec
 
 # ---------------------------------------------------------------------------- joint-commanded arms
@@ -51,7 +51,9 @@ class FakeURController:
       when it starts; for ``stale_polls`` reads after ``moveL`` returns the register still shows the
       previous operation, as when the control script has not started the move thread yet).
       ``stopL`` ends it where the TCP is; ``stall_moves`` makes moves never finish;
-      ``protective_stop_after_s`` raises a protective stop that long into a move (which freezes it).
+      ``protective_stop_after_s`` raises a protective stop that long into a move (which freezes it);
+      ``reject_moves`` makes ``moveL``/``moveJ`` return False with no fault raised, as the
+      controller does for a target it cannot reach.
     * joints ``q`` (``getActualQ``): ``servoJ`` sets them, ``moveJ`` moves them like ``moveL`` moves
       the TCP (the leading joint at ``speed``; ``stopJ`` ends it). Given ``kinematics`` (a
       :class:`sim.ik.SceneArm`), the TCP follows their FK and starts at the FK of ``q_home``;
@@ -89,6 +91,7 @@ class FakeURController:
         self.stale_polls = 2
         self.stall_moves = False
         self.protective_stop_after_s: float | None = None
+        self.reject_moves = False  # moveL/moveJ answer False with no fault (a target the controller cannot reach)
 
     def log(self, *call):
         self.calls.append(call)
@@ -195,13 +198,14 @@ def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
             ctrl.feed()
             return True
 
-        def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
-            ctrl.log("moveL", list(pose), speed, acceleration, asynchronous)
+        def _move(self, name, target, speed, acceleration, asynchronous, start) -> bool:
+            """``moveL``/``moveJ``: ``start(target, speed)`` begins the motion and returns its duration."""
+            ctrl.log(name, list(target), speed, acceleration, asynchronous)
             ctrl.feed()
             ctrl.update()
-            if ctrl.protective_stopped or not ctrl.program_running:
+            if ctrl.protective_stopped or not ctrl.program_running or ctrl.reject_moves:
                 return False
-            duration = ctrl.start_move(list(pose), speed)
+            duration = start(list(target), speed)
             if asynchronous:
                 self._stale = ctrl.stale_polls
                 return True
@@ -209,19 +213,11 @@ def make_ur_modules(ctrl: FakeURController) -> dict[str, types.ModuleType]:
             ctrl.update()
             return True
 
+        def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False):
+            return self._move("moveL", pose, speed, acceleration, asynchronous, ctrl.start_move)
+
         def moveJ(self, q, speed=1.05, acceleration=1.4, asynchronous=False):
-            ctrl.log("moveJ", list(q), speed, acceleration, asynchronous)
-            ctrl.feed()
-            ctrl.update()
-            if ctrl.protective_stopped or not ctrl.program_running:
-                return False
-            duration = ctrl.start_joint_move(list(q), speed)
-            if asynchronous:
-                self._stale = ctrl.stale_polls
-                return True
-            time.sleep(duration)  # blocking: nothing else reaches the controller meanwhile
-            ctrl.update()
-            return True
+            return self._move("moveJ", q, speed, acceleration, asynchronous, ctrl.start_joint_move)
 
         def getAsyncOperationProgressEx(self):
             ctrl.update()
@@ -580,8 +576,6 @@ def install_video_capture(monkeypatch, dev: FakeCaptureDevice | None = None) -> 
 
 
 # ---------------------------------------------------------------------------- a pure-math arm
-
-from robot_io.arms.base import Arm, Fault  # noqa: E402
 
 
 def make_pose(x=0.4, y=0.0, z=0.3, rotvec=(np.pi, 0.0, 0.0)) -> np.ndarray:

@@ -45,7 +45,7 @@ from robot_io.arms.servo_bus import (
     ServoJoint,
     SimServo,
 )
-from robot_io.errors import ArmFaultError, ProtocolError
+from robot_io.errors import ArmFaultError, ArmRefusedError, ProtocolError
 from robot_io.safety import SafeArm
 from sim.ik import SceneArm
 from sim.kinematics import shipped_arm
@@ -232,16 +232,18 @@ class BusBehaviour:
             assert "\n" not in str(err.value)
         assert len(sim.requests) == n
 
-    def test_a_target_outside_the_servos_turn_is_refused_naming_the_joint(self, link):
+    def test_a_target_outside_the_servos_turn_is_refused_naming_the_joint_and_the_next_command_runs(self, link):
         sim, arm = link
         j = arm.joints[1]
         beyond = j.to_rad(j.max_ticks + 1)
         target = Q_READY.copy()
         target[1] = beyond
         n = len(sim.requests)
-        with pytest.raises(ServoBusError, match=rf"'panda_joint2' .* outside its servo's turn \[0, {j.max_ticks}\]"):
+        with pytest.raises(ArmRefusedError, match=rf"'panda_joint2' .* outside its servo's turn \[0, {j.max_ticks}\]"):
             arm.servo_joints(target, PERIOD_S)
-        assert len(sim.requests) == n
+        assert len(sim.requests) == n and arm.fault() is None  # nothing sent, no fault latched
+        arm.servo_joints(Q_READY + 0.01, PERIOD_S)
+        assert wait_for(lambda: SYNC_WRITE in [instr for _, instr in sim.requests[n:]])  # no servo answers it
 
     @pytest.mark.parametrize("duration_s", [0.0, -1.0, math.nan, math.inf])
     def test_a_duration_that_is_not_positive_and_finite_is_refused(self, link, duration_s):
@@ -293,16 +295,21 @@ class BusBehaviour:
         arm.servo(T, PERIOD_S)
         assert wait_for(lambda: np.allclose(arm.joint_positions(), expect, atol=1e-12, rtol=0))
 
-    def test_an_unreachable_pose_is_refused_in_one_line_and_nothing_moves(self, link):
+    def test_an_unreachable_pose_is_refused_in_one_line_nothing_moves_and_the_next_command_runs(self, link):
         sim, arm = link
         T = arm.tcp_pose()
         T[:3, 3] = [3.0, 0.0, 0.5]  # the Panda reaches under a metre
         n = len(sim.requests)
         for command, arg in ((arm.servo, PERIOD_S), (arm.move_to, 0.1)):
-            with pytest.raises(ServoBusError, match="does not reach it") as err:
+            with pytest.raises(ArmRefusedError, match="does not reach it.*the arm did not move") as err:
                 command(T, arg)
             assert "\n" not in str(err.value)
         assert SYNC_WRITE not in [instr for _, instr in sim.requests[n:]]
+        assert arm.fault() is None
+        T_near = arm.tcp_pose()
+        T_near[2, 3] += 0.003
+        arm.servo(T_near, PERIOD_S)
+        assert wait_for(lambda: SYNC_WRITE in [instr for _, instr in sim.requests[n:]])  # no servo answers it
 
     def test_the_safety_layers_joint_path_drives_the_twin(self, link):
         sim, arm = link

@@ -1,5 +1,5 @@
-"""robot_io.check: the connect check a UR or serial arm with a URDF runs (its tolerances, extremes),
-and the joint readings ``advobj hw check`` prints; pure functions on the shipped UR5, no device.
+"""robot_io.arms.base's connect check a UR or serial arm with a URDF runs (its tolerances, extremes),
+and robot_io.check's joint readings ``advobj hw check`` prints; pure functions on the shipped UR5, no device.
 
 On real hardware only (``-m hardware``): ``advobj hw check`` against the config named by
 ADVOBJ_HW_CONFIG. Never runs in CI (the default ``-m 'not slow and not hardware'`` deselects it).
@@ -17,15 +17,14 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from robot_io.check import (
+from robot_io.arms.base import (
     KINEMATICS_TOL_M,
     KINEMATICS_TOL_RAD,
     check_kinematics_agree,
-    format_joint,
-    joint_readings,
     kinematics_disagreement,
     tcp_from_joints,
 )
+from robot_io.check import format_joint, joint_readings
 from robot_io.errors import HardwareConfigError
 from sim.geometry import make_T, so3_exp
 from tests.robot_io.fakes import Q_UR5_READY, ur5_scene_arm

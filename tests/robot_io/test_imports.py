@@ -13,7 +13,7 @@ def test_importing_robot_io_loads_neither_cv2_nor_depthai_nor_vendor_sdks_nor_to
         "import robot_io.cameras.opencv, robot_io.cameras.depthai, robot_io.cameras.sim, robot_io.cameras.replay\n"
         "import robot_io.arms.ur_rtde, robot_io.arms.serial, robot_io.arms.sim, robot_io.arms.serial_sim\n"
         "import robot_io.arms.servo_bus, robot_io.arms.feetech, robot_io.arms.feetech_sim\n"
-        "import robot_io.arms.dynamixel, robot_io.arms.dynamixel_sim\n"
+        "import robot_io.arms.dynamixel, robot_io.arms.dynamixel_sim, robot_io.arms.pty_twin\n"
         "bad = [m for m in ('cv2', 'depthai', 'rtde_control', 'rtde_receive', 'dashboard_client', 'pyrender', 'serial',"
         " 'torch') if m in sys.modules]\n"
         "print(','.join(bad))\n"

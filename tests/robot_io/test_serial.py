@@ -11,11 +11,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from robot_io.arms.base import check_joint_target
+from robot_io.arms.base import check_joint_target, tcp_from_joints
 from robot_io.arms.serial import NO_JOINT_COMMANDS, SerialArm, checksum, decode, encode
 from robot_io.arms.serial_sim import SerialArmSimulator
-from robot_io.check import tcp_from_joints
-from robot_io.errors import ArmFaultError, HardwareConfigError, ProtocolError, RobotIOError
+from robot_io.errors import ArmFaultError, ArmRefusedError, HardwareConfigError, ProtocolError, RobotIOError
 from robot_io.poses import pose_from_vec, pose_step
 from robot_io.safety import SafeArm, SafetyLimits
 from tests.robot_io.fakes import Q_UR5_READY, ur5_scene_arm
@@ -319,8 +318,12 @@ def test_the_device_refuses_a_joint_past_its_limit_but_takes_one_rounded_onto_it
     arm.move_joints(q, 0.3)
     assert sim.q[2] == hi[2] and arm.joint_positions()[2] == pytest.approx(hi[2], abs=1e-6)  # clamped onto it
     q[2] = hi[2] + 1e-3
-    with pytest.raises(ProtocolError, match="rejected MOVEJ: ERR RANGE joint limit"):
+    with pytest.raises(ArmRefusedError, match="rejected MOVEJ: ERR RANGE joint limit; the arm did not take it"):
         arm.servo_joints(q, 0.05)
+    assert arm.fault() is None  # a refusal: the device takes the next command
+    q[2] = hi[2] - 1e-3
+    arm.move_joints(q, 0.05)
+    np.testing.assert_allclose(sim.q, q, atol=1e-6)
 
 
 def test_firmware_without_joint_commands_is_refused_on_connect_with_one_line(device, ur5):
@@ -436,6 +439,24 @@ def test_a_tcp_move_on_a_joint_device_goes_through_its_ik_and_keeps_the_fk(joint
     dp, dr = pose_step(arm.tcp_pose(), T)
     assert dp < 1e-4 and dr < 1e-3  # the IK's tolerance
     np.testing.assert_allclose(arm.tcp_pose(), tcp_from_joints(ur5, arm.joint_positions()), atol=1e-6)
+
+
+@pytest.mark.parametrize("x_m", [2.0, 1e6])
+def test_a_tcp_target_out_of_the_devices_reach_is_a_refusal_and_the_next_command_runs(joint_link, x_m):
+    """ERR RANGE unreachable: the device did not take the MOVE, no fault stands; the arm moves again."""
+    sim, arm = joint_link
+    q0, T0 = arm.joint_positions(), arm.tcp_pose()
+    far = T0.copy()
+    far[:3, 3] = (x_m, 0.0, 0.3)  # a UR5 reaches 0.85 m
+    for move in (lambda: arm.servo(far, 0.05), lambda: arm.move_to(far, 0.2)):
+        with pytest.raises(ArmRefusedError, match=r"rejected MOVE: ERR RANGE unreachable; the arm did not take it$"):
+            move()
+    assert arm.fault() is None and sim.moving is False
+    np.testing.assert_allclose(arm.joint_positions(), q0, atol=1e-6)
+    near = T0.copy()
+    near[2, 3] += 0.01
+    arm.move_to(near, 0.2)
+    assert pose_step(arm.tcp_pose(), near)[0] < 1e-4  # the IK's tolerance
 
 
 def test_joint_steps_through_the_safety_layer_never_send_the_device_a_target_outside_limits(joint_link, ur5):

@@ -11,7 +11,7 @@ import pytest
 from robot_io.arms.sim import SimArm
 from robot_io.cameras.sim import SimCamera
 from robot_io.config import build_arm, build_camera, load_hardware_config
-from robot_io.errors import ArmFaultError
+from robot_io.errors import ArmFaultError, ArmRefusedError
 from robot_io.poses import pose_step
 from robot_io.safety import SafeArm
 from sim.ik import TOL_M, TOL_RAD
@@ -103,7 +103,7 @@ def _panda_arm(world) -> SimArm:
 
 @pytest.mark.parametrize("command", ["servo", "move_to"])
 @pytest.mark.parametrize("x_m", [1.5, 1e3, 1e9])
-def test_a_tcp_target_out_of_the_joint_driven_arms_reach_is_refused_as_an_unlatched_fault(fresh_world, command, x_m):
+def test_a_tcp_target_out_of_the_joint_driven_arms_reach_is_refused_and_no_fault_is_latched(fresh_world, command, x_m):
     """Like a real driver's refusal of an unreachable pose: one line naming the target, nothing moved,
     no fault left behind, and the next reachable command is executed."""
     with _panda_arm(fresh_world) as arm:
@@ -111,12 +111,12 @@ def test_a_tcp_target_out_of_the_joint_driven_arms_reach_is_refused_as_an_unlatc
         far = T0.copy()
         far[:3, 3] = (x_m, 0.0, 0.3)
         move = arm.servo if command == "servo" else arm.move_to
-        with pytest.raises(ArmFaultError, match=r"^arm fault \(device_fault\): sim arm: TCP target at \[") as err:
+        with pytest.raises(ArmRefusedError, match=r"^sim arm: TCP target at \[") as err:
             move(far, 0.05)
         text = str(err.value)
         assert f"[{x_m:.3f}, 0.000, 0.300] m (base frame) is out of reach within the joint limits" in text
         assert "the arm did not move" in text and "\n" not in text
-        assert err.value.fault.kind == "device_fault" and arm.fault() is None  # not latched
+        assert not isinstance(err.value, ArmFaultError) and arm.fault() is None  # a refusal, not a fault
         np.testing.assert_array_equal(arm.joint_positions(), q0)
         np.testing.assert_array_equal(arm.tcp_pose(), T0)
         assert (arm.commands, arm.sim_time_s) == (n0, t0)
@@ -127,20 +127,21 @@ def test_a_tcp_target_out_of_the_joint_driven_arms_reach_is_refused_as_an_unlatc
         assert arm.commands == n0 + 1
 
 
-def test_an_unreachable_step_through_the_safety_layer_raises_the_arms_fault_and_the_arm_moves_again(
+def test_an_unreachable_step_through_the_safety_layer_raises_the_arms_refusal_and_the_arm_moves_again(
     fresh_world, limits
 ):
-    """The safety layer passes the refusal on as the arm fault it is (the runner ends the trial on it);
-    the fault not being latched, the next trial's positioning move and steps are executed."""
+    """The safety layer passes the driver's refusal on (the runner ends the trial on it) after stopping
+    the arm; no fault being latched, the next trial's positioning move and steps are executed."""
     arm = _panda_arm(fresh_world)
     wide = limits.model_copy(update={"max_step_m": 10.0, "max_speed_mps": 1e3, "max_accel_mps2": 1e6})
     with SafeArm(arm, wide, clock=lambda: 50.0) as safe:
         T0 = safe.tcp_pose()
         far = T0.copy()
         far[0, 3] = 0.99  # in the workspace box, beyond the Panda's reach
-        with pytest.raises(ArmFaultError, match=r"sim arm: TCP target at \[0\.990, .* is out of reach"):
+        with pytest.raises(ArmRefusedError, match=r"sim arm: TCP target at \[0\.990, .* is out of reach"):
             safe.step(far, 50.0)
         np.testing.assert_array_equal(safe.tcp_pose(), T0)
+        assert safe.fault() is None and safe.events[-1].action == "stopped"
         start = T0.copy()
         start[2, 3] += 0.01
         safe.move_to(start)  # the next trial's positioning move: no fault stands in its way
@@ -164,7 +165,7 @@ def test_a_positioning_move_the_ik_misses_from_the_current_joints_is_solved_from
     T_far = kin.tcp_pose(torch.as_tensor(q_far, dtype=torch.float64)).numpy()
     with arm:
         arm.move_joints(stretched, 1.0)
-        with pytest.raises(ArmFaultError, match=r"out of reach .* \(IK from the current joints: "):
+        with pytest.raises(ArmRefusedError, match=r"out of reach .* \(IK from the current joints: "):
             arm.servo(T_far, 0.05)
         np.testing.assert_array_equal(arm.joint_positions(), stretched)
         arm.move_to(T_far, 0.1)

@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from robot_io.arms.base import KINEMATICS_TOL_M, KINEMATICS_TOL_RAD, tcp_from_joints
 from robot_io.arms.ur_rtde import UR_JOINTS, URArm, joint_move_speed_radps
-from robot_io.check import KINEMATICS_TOL_M, KINEMATICS_TOL_RAD, tcp_from_joints
 from robot_io.config import build_arm, hardware_config_from_dict
-from robot_io.errors import ArmFaultError, HardwareConfigError, MissingExtraError, RobotIOError
+from robot_io.errors import ArmFaultError, ArmRefusedError, HardwareConfigError, MissingExtraError, RobotIOError
 from robot_io.poses import pose_from_vec
 from robot_io.safety import SafeArm, SafetyLimits
 from tests.robot_io.fakes import Q_UR5_READY, FakeURController, install_ur, ur5_scene_arm
@@ -409,6 +409,33 @@ def test_a_move_j_that_does_not_end_times_out_and_is_stopped_with_stop_j(joint_u
         arm.move_joints(q, 0.2, timeout_s=0.3)
     assert "stopJ" in ctrl.names() and "stopL" not in ctrl.names() and ctrl.move is None
     assert not ctrl.watchdog_tripped
+
+
+@pytest.mark.parametrize("command", ["move_to", "move_joints"])
+def test_a_move_the_controller_rejects_without_a_fault_is_a_refusal_and_the_next_move_runs(joint_ur, command):
+    """moveL/moveJ answering False with no fault raised: the controller will not execute the target
+    (out of its reach). An ArmRefusedError in one line, nothing moved, no fault; the arm moves again."""
+    ctrl, arm = joint_ur
+    q0, T0 = arm.joint_positions(), arm.tcp_pose()
+    q, T = q0.copy(), T0.copy()
+    q[0] += 0.05
+    T[2, 3] += 0.01
+
+    def move():
+        return arm.move_to(T, 0.1) if command == "move_to" else arm.move_joints(q, 0.1)
+
+    ctrl.reject_moves = True
+    with pytest.raises(ArmRefusedError, match=r"^UR 10\.0\.0\.2: the controller rejected the move[LJ] ") as err:
+        move()
+    assert "the arm did not move" in str(err.value) and "\n" not in str(err.value)
+    assert not isinstance(err.value, ArmFaultError) and arm.fault() is None
+    np.testing.assert_array_equal(arm.joint_positions(), q0)
+    ctrl.reject_moves = False
+    move()
+    if command == "move_to":
+        np.testing.assert_allclose(arm.tcp_pose()[:3, 3], T[:3, 3], atol=1e-9)
+    else:
+        np.testing.assert_allclose(arm.joint_positions(), q, atol=1e-12)
 
 
 def test_a_protective_stop_during_move_j_is_an_explained_fault_and_the_move_is_stopped(joint_ur):

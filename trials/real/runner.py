@@ -9,7 +9,13 @@ Per trial, in this order:
    will start. A joint-space policy (and any start the plan gives as joints) starts in joint space
    (:func:`resolve_starts`): the start's joints, or the IK of its TCP pose
    (:meth:`sim.ik.SceneArm.solve_start`, the simulator's own start joints), reached with
-   ``SafeArm.move_joints``.
+   ``SafeArm.move_joints``. A move that fails (the safety layer or the arm's driver refuses it,
+   :class:`~robot_io.errors.ArmRefusedError`, or it ends in an error) while the arm then reports no
+   fault ends the trial there: it is committed with stop reason ``positioning_failed: refused|fault|error:
+   ...``, outcome ``unknown``, no steps and nothing to confirm, and the session goes on from where
+   the arm stands. If the arm reports a fault, the error ends the session, as a fault in the policy
+   loop does at the next trial's positioning move; that trial is not committed (it did not run),
+   so resuming after the recovery runs it.
 3. Placement guide: the locator finds the objects, :func:`placement_issues` compares them with the
    layout within the plan's tolerances, the operator is told what to move, and re-checks until
    the placement is within tolerance (or skips the check: logged in the trial's events).
@@ -31,8 +37,10 @@ Per trial, in this order:
    object moved by more than the placement tolerance is logged as a ``track`` event: the paper's
    dynamic-object scenario). Like the simulator's episodes, the loop ends early when the criterion
    says an object is reached (TCP against the tracked poses; the placement pose of an object not
-   seen since). It ends too on a refused
-   command, a safety stop or an arm fault (the reason is stored). A non-finite action (NaN/inf)
+   seen since). It ends too on a refused command (``refused: ...``: by the safety layer, or by the
+   arm's driver, an :class:`~robot_io.errors.ArmRefusedError`: a target out of its reach, nothing
+   moved), a safety stop or an arm fault (the reason is stored), and the trial is committed; after
+   a fault the next trial's positioning move ends the session (step 2). A non-finite action (NaN/inf)
    is never sent to the arm: the trial stops there with outcome ``policy_error`` (step 6 is
    skipped: there is nothing to confirm), is committed, and the session goes on.
 5. Outcome: what the camera sees at the end. The final TCP pose is measured, the objects are
@@ -70,8 +78,10 @@ import numpy as np
 import torch
 
 from calibration.outcome import measure_reach
-from robot_io.errors import ArmFaultError, RobotIOError, SafetyStop
+from robot_io.arms.base import tcp_from_joints
+from robot_io.errors import ArmFaultError, ArmRefusedError, RobotIOError, SafetyStop
 from robot_io.poses import pose_step
+from robot_io.safety import SafetyRefusal
 from sim.errors import AdvobjError
 from sim.policies.contract import (
     WRIST_CAMERA,
@@ -121,6 +131,7 @@ __all__ = [
 
 ROLES = ("goal", "adversarial")
 POLICY_ERROR = "policy_error"  # outcome and stop reason of a trial whose policy gave a non-finite action
+POSITIONING_FAILED = "positioning_failed"  # stop reason of a trial whose move to its start failed (it did not run)
 _SIM_GUIDANCE_ROUNDS = 5  # the simulated operator follows the guidance this often before asking the real one
 
 
@@ -202,12 +213,6 @@ def check_joint_arm(contract, kinematics, arm_name: str) -> None:
         raise JointArmError(f"--policy: {why}")
 
 
-def _fk(kinematics, q) -> np.ndarray:
-    """``T_base_tcp (4, 4)`` of joints ``q (n,)`` (float64)."""
-    T = kinematics.tcp_pose(torch.as_tensor(np.asarray(q, dtype=np.float64), device=kinematics.device))
-    return T.detach().cpu().numpy()
-
-
 def _vec(v) -> str:
     return "[" + ", ".join(f"{float(x):.3f}" for x in v) + "]"
 
@@ -257,7 +262,7 @@ def resolve_starts(plan, trials, T_base_table, kinematics, joint_space: bool) ->
                 f"{where}: joint_positions.{j}: {names[j]!r} at {q[j]:.4g} is outside its limits "
                 f"[{lo[j]:.4g}, {hi[j]:.4g}]"
             )
-        T_fk = _fk(kinematics, q)
+        T_fk = tcp_from_joints(kinematics, q)
         if T_plan is not None:
             dp, dr = pose_step(T_plan, T_fk)
             if dp > START_AGREE_TOL_M or dr > START_AGREE_TOL_RAD:
@@ -573,7 +578,13 @@ class TrialRunner:
             self.locator.for_trial(plan, trial)
         t1 = self.clock()
         start = self._starts[trial.tcp_pose]
-        self._move_to_start(start)
+        n_ev = len(self.arm.events)
+        try:
+            self._move_to_start(start)
+        except RobotIOError as err:
+            if self.arm.fault() is not None:
+                raise  # the arm must be recovered: the session stops here, and this trial (not run) stays to do
+            return self._not_started(trial, err, n_ev, events, rel_dir, t_wall, t0, t1)
         t2 = self.clock()
         layout = plan.object_layout(trial.object_layout).objects
         placed, checks, skipped = self._placement(trial, layout, events, t0)
@@ -591,8 +602,7 @@ class TrialRunner:
         self.arm.stop("trial ended")
         if self.on_trial_end is not None:
             self.on_trial_end(trial)
-        for ev in list(self.arm.events)[n_ev:]:
-            events.append(EventRecord(ev.time_s - t0, "safety", ev.action, ev.reason))
+        events += self._safety_events(n_ev, t0)
 
         result, final, T_table_tcp = self._outcome(start, stop_reason, events, t0)
         reason = result.reason + "".join(f"; {self._last_seen(role, tracked)}" for role in result.missing)
@@ -618,8 +628,37 @@ class TrialRunner:
 
         poses = [self._pose_record(role, "placement", placed.get(role)) for role in ROLES]
         poses += [self._pose_record(role, "final", final.get(role)) for role in ROLES]
-        ref = plan.texture_for(trial)
-        rec = TrialRecord(
+        rec = self._trial_record(
+            trial,
+            t_wall,
+            t0,
+            rel_dir,
+            stop_reason=stop_reason,
+            auto_outcome=result.reached,
+            auto_reason=reason,
+            distances_m=result.distances_m,
+            operator_outcome=operator_outcome,
+            note=decision.note,
+            placement_checks=checks,
+            placement_skipped=skipped,
+            T_table_tcp_final=T_table_tcp,
+            steps=steps,
+            object_poses=poses,
+            events=events,
+            light_level=light,
+        )
+        timing = TrialTiming(trial.trial_id, t1 - t0, t2 - t1, t3 - t2, t_loop, t5 - t4, 0.0, len(steps))
+        return rec, timing
+
+    def _safety_events(self, since: int, t0: float) -> list[EventRecord]:
+        """The safety layer's events from its ``since``-th on, as the trial's (times from ``t0``)."""
+        return [EventRecord(ev.time_s - t0, "safety", ev.action, ev.reason) for ev in list(self.arm.events)[since:]]
+
+    def _trial_record(self, trial, t_wall: float, t0: float, rel_dir: str, **fields) -> TrialRecord:
+        """The :class:`TrialRecord` of ``trial``, begun at ``t_wall`` (``t0`` on :attr:`clock`): the plan's
+        fields, when it started and how long it took, its frame directory, and ``fields`` (what it did)."""
+        ref = self.plan.texture_for(trial)
+        return TrialRecord(
             trial_id=trial.trial_id,
             plan_order=trial.order,
             env=trial.env,
@@ -631,23 +670,44 @@ class TrialRunner:
             texture_sha256=None if ref is None else ref.sha256,
             started_at=_iso_utc(t_wall),
             duration_s=self.clock() - t0,
-            stop_reason=stop_reason,
-            auto_outcome=result.reached,
-            auto_reason=reason,
-            distances_m=result.distances_m,
-            operator_outcome=operator_outcome,
-            note=decision.note,
-            placement_checks=checks,
-            placement_skipped=skipped,
-            T_table_tcp_final=T_table_tcp,
             frames_dir=rel_dir,
-            steps=steps,
-            object_poses=poses,
-            events=events,
-            light_level=light,
+            **fields,
         )
-        timing = TrialTiming(trial.trial_id, t1 - t0, t2 - t1, t3 - t2, t_loop, t5 - t4, 0.0, len(steps))
-        return rec, timing
+
+    def _not_started(self, trial, err: RobotIOError, n_ev: int, events, rel_dir: str, t_wall: float, t0, t1):
+        """The record of a trial whose positioning move failed with ``err`` while the arm reports no
+        fault (step 2 of the module docstring): ``positioning_failed: refused|fault|error: <err>``, no
+        placement, steps or outcome (``unknown``, nothing to confirm), the safety layer's events since
+        ``n_ev``; the arm stays where the move left it and the next trial starts from there."""
+        kind = (
+            "refused"
+            if isinstance(err, (ArmRefusedError, SafetyRefusal))
+            else "fault"
+            if isinstance(err, ArmFaultError)
+            else "error"
+        )
+        stop_reason = f"{POSITIONING_FAILED}: {kind}: {err}"
+        t2 = self.clock()
+        events += [*self._safety_events(n_ev, t0), EventRecord(t2 - t0, "positioning", "failed", stop_reason)]
+        self.operator.show(f"  {stop_reason}; the trial did not run, recorded as unknown")
+        rec = self._trial_record(
+            trial,
+            t_wall,
+            t0,
+            rel_dir,
+            stop_reason=stop_reason,
+            auto_outcome="unknown",
+            auto_reason=stop_reason,
+            distances_m={role: None for role in ROLES},
+            operator_outcome=None,
+            note="",
+            placement_checks=0,
+            placement_skipped=False,
+            T_table_tcp_final=self.T_table_base @ self.arm.tcp_pose(),
+            object_poses=[self._pose_record(role, phase, None) for phase in ("placement", "final") for role in ROLES],
+            events=events,
+        )
+        return rec, TrialTiming(trial.trial_id, t1 - t0, t2 - t1, 0.0, 0.0, 0.0, 0.0, 0)
 
     def _move_to_start(self, start: Start) -> None:
         """The positioning move to ``start``: in joint space when it has joints, else to its TCP pose."""
@@ -810,6 +870,9 @@ class TrialRunner:
             except SafetyStop as err:
                 stop_reason = f"safety_stop: {err}"
                 break
+            except ArmRefusedError as err:  # the driver refused the target: the arm is fine, the trial ends
+                stop_reason = f"refused: {err}"
+                break
             except ArmFaultError as err:
                 stop_reason = f"fault: {err}"
                 break
@@ -822,7 +885,8 @@ class TrialRunner:
             if joint:
                 q_frame = self.arm.joint_positions()
                 q_cmd = None if res.q_cmd is None else np.asarray(res.q_cmd, dtype=np.float64)
-                T_cmd = None if q_cmd is None else _fk(self._kinematics, q_cmd)  # the TCP the joints sent put it at
+                # the TCP the joints sent put it at
+                T_cmd = None if q_cmd is None else tcp_from_joints(self._kinematics, q_cmd)
                 joints = JointStepRecord(q_target.tolist(), None if q_cmd is None else q_cmd.tolist(), q_frame.tolist())
             name = camera_frame_name(k)
             cv2.imwrite(str(fdir / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))

@@ -9,6 +9,11 @@ arm received went through the joint path, and nothing else moved it. Hostile joi
 jump, targets far outside the limits, pushing a joint against its limit) are swapped in after the
 session has loaded the real one; starts are TCP poses (solved by IK) or joint vectors (reached
 exactly), and a start the arm cannot take is refused in one line before anything is recorded.
+
+A driver's refusal (:class:`robot_io.errors.ArmRefusedError`) ends the trial, not the session: on
+the sim arm, and with the session's arm swapped for a real driver on its byte-level twin (the
+serial protocol's, a Feetech bus's) driving the same Panda, mid-trial and at a trial's start; a
+fault still ends the session at the next start.
 """
 
 from __future__ import annotations
@@ -27,7 +32,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
+from robot_io.arms.base import tcp_from_joints
+from robot_io.arms.feetech import FeetechArm
+from robot_io.arms.feetech_sim import FeetechSimulator
+from robot_io.arms.serial import SerialArm
+from robot_io.arms.serial_sim import SerialArmSimulator
+from robot_io.arms.servo_bus import SimServo
 from robot_io.arms.sim import SimArm
+from robot_io.errors import ArmFaultError
 from robot_io.poses import pose_step
 from robot_io.safety import SafeArm
 from sim.ik import TOL_M, TOL_RAD
@@ -36,6 +48,7 @@ from sim.policies.contract import ActionContract, PolicyContract
 from sim.spec import load_spec
 from tests.attack.test_joint_attack import joint_policy
 from tests.policy_zoo import card_of
+from tests.robot_io.test_feetech import centred_joints
 from tests.trials.real.trial_session_helpers import REPO, sim_hardware, small_plan
 from trials.cli.main import app
 from trials.real import store as store_mod
@@ -93,10 +106,6 @@ def _patient_hardware(out: Path) -> Path:
     return out
 
 
-def _fk(arm, q) -> np.ndarray:
-    return arm.tcp_pose(torch.as_tensor(np.asarray(q, dtype=np.float64))).numpy()
-
-
 def _ik_start(arm, T_table_tcp) -> np.ndarray:
     """The joints the session starts a TCP pose at: the arm's solve_start (the simulator's start joints)."""
     res = arm.solve_start(torch.as_tensor(T_table_tcp)[None])
@@ -152,8 +161,7 @@ def _run(files, db, plan=None, swap=None, **options):
         plan=plan or files["plan"],
         session="s",
         db=db,
-        rate_limit=False,
-        **options,
+        **{"rate_limit": False, **options},  # a twin moving in real time needs the loop's rate
     )
     return run_session(opts, operator=AutoOperator(log=None), on_ready=ready, log=None)
 
@@ -206,6 +214,12 @@ def _steps(store, session="s"):
     return {r["trial_id"]: (r, store.steps(session, r["trial_id"])) for r in store.trial_rows([session])}
 
 
+def _events(store) -> list[dict]:
+    """Every event row, with its trial_id."""
+    cols, rows = store.table("events")
+    return [dict(zip(cols, r)) for r in rows]
+
+
 def test_a_joint_policy_session_runs_every_command_through_step_joints_and_records_the_joints(
     files, arm, spy, tmp_path
 ):
@@ -249,11 +263,11 @@ def test_a_joint_policy_session_runs_every_command_through_step_joints_and_recor
             assert len(j["q_meas"]) == arm.n_joints and np.all((lo <= j["q_cmd"]) & (j["q_cmd"] <= hi))
             np.testing.assert_array_equal(j["q_meas"], j["q_cmd"])
             # the TCP columns: the commanded TCP is the sent joints' FK, the measured one follows FK
-            T_meas = _fk(arm, j["q_meas"])
+            T_meas = tcp_from_joints(arm, j["q_meas"])
             meas = [s[f"meas_base_{c}"] for c in ("x_m", "y_m", "z_m")]
             cmd = [s[f"cmd_base_{c}"] for c in ("x_m", "y_m", "z_m")]
             np.testing.assert_allclose(meas, T_meas[:3, 3], rtol=0, atol=1e-9)
-            np.testing.assert_allclose(cmd, _fk(arm, j["q_cmd"])[:3, 3], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(cmd, tcp_from_joints(arm, j["q_cmd"])[:3, 3], rtol=0, atol=1e-9)
             q_prev = np.asarray(j["q_meas"])
 
     cli = CliRunner()
@@ -290,8 +304,8 @@ def test_a_tcp_policy_driving_the_joint_arm_out_of_reach_ends_its_trial_with_the
         trials = _steps(store)
     for row, steps in trials.values():
         assert re.match(
-            r"^fault: arm fault \(device_fault\): sim arm: TCP target at \[.*\] m \(base frame\) is out of reach "
-            r"within the joint limits \(IK from the current joints: .*\); the arm did not move",
+            r"^refused: sim arm: TCP target at \[.*\] m \(base frame\) is out of reach "
+            r"within the joint limits \(IK from the current joints: .*\); the arm did not move$",
             row["stop_reason"],
         ), row["stop_reason"]
         assert 0 < row["n_steps"] == len(steps) < max_steps
@@ -300,6 +314,158 @@ def test_a_tcp_policy_driving_the_joint_arm_out_of_reach_ends_its_trial_with_the
         assert x[-1] > x[0] and x[-1] - base_x_m > 0.5
         refused_x = float(re.search(r"TCP target at \[([-0-9.]+),", row["stop_reason"])[1])
         assert x[-1] < refused_x < x_m
+
+
+@pytest.fixture
+def twin_driver(arm):
+    """``make(kind)``: a driver of the scene's Panda (not connected) on its byte-level twin over a pty
+    (``serial``: the advobj line protocol; ``feetech``: an STS3215 bus, each joint's range centred in
+    its servo's turn), at the arm's home joints; every one made is disconnected and closed after the test."""
+    made = []
+
+    def make(kind: str):
+        if kind == "serial":
+            # the heartbeat only faults a device left moving: a slow machine's pause between steps is not one
+            twin, path = SerialArmSimulator.on_pty(boot_delay_s=0.02, heartbeat_timeout_ms=60_000.0, scene_arm=arm)
+            driver = SerialArm(path, timeout_ms=500.0, expect_banner=False, kinematics=arm)  # booted long before
+        else:
+            joints = centred_joints(arm)
+            twin, path = FeetechSimulator.on_pty(
+                [SimServo(j.id, position_ticks=j.to_ticks(q)) for j, q in zip(joints, arm.q_home)]
+            )
+            driver = FeetechArm(path, joints, arm)
+        made.append((twin, driver))
+        return driver
+
+    yield make
+    for twin, driver in made:
+        driver.disconnect()
+        twin.close()
+
+
+def _on_twin(driver, policy):
+    """A ``swap`` for :func:`_run`: the session's arm becomes ``driver`` behind the session's own safety
+    limits (the sim camera and stage stay the cell's), and its policy ``policy``."""
+
+    def swap(runner):
+        runner.arm = SafeArm(driver, runner.arm.limits)
+        runner.arm.connect()
+        return policy
+
+    return swap
+
+
+def _joint_starts(plan, arm):
+    """Every start given as the joints the session would solve its TCP pose to (reached with move_joints)."""
+    return [
+        tp.model_copy(update={"T_table_tcp": None, "joint_positions": tuple(_ik_start(arm, tp.T_table_tcp.T()))})
+        for tp in plan.tcp_poses
+    ]
+
+
+@pytest.mark.parametrize(
+    ("kind", "refusal"),
+    [
+        ("serial", r"^refused: serial arm \S+ rejected MOVE: ERR RANGE unreachable; the arm did not take it$"),
+        ("feetech", r"^refused: feetech arm: TCP target\[0\]: the arm does not reach it .*; the arm did not move$"),
+    ],
+)
+def test_a_twin_refusing_a_target_mid_trial_ends_that_trial_and_the_session_goes_on(
+    files, arm, tmp_path, twin_driver, kind, refusal
+):
+    """A TCP policy heading out of the Panda's reach on a real driver and its byte-level twin: the serial
+    device answers ERR RANGE unreachable, the bus arm's IK refuses; an ArmRefusedError, so each trial
+    ends at its refused target with the reason, and the next trial runs (every trial is committed)."""
+    base_x_m = float(arm.T_world_base[0, 3])
+    x_m = 0.89  # inside the cell's workspace box (0.9 m), more than the Panda's reach from its base
+    plan = small_plan(
+        tmp_path / "tcp.yaml", tmp_path, n_tcp=2, n_layouts=1, max_steps=60, conditions=("clean",), scene=PANDA_SCENE
+    )
+    plan_path = save_plan(load_plan(plan).model_copy(update={"tcp_poses": _joint_starts(load_plan(plan), arm)}), plan)
+    db = tmp_path / "t.sqlite"
+    swap = _on_twin(twin_driver(kind), _TcpToward(x_m))
+    summary = _run(files, db, plan=plan_path, swap=swap, rate_limit=True)  # a twin moves in real time
+    assert len(summary.committed) == len(load_plan(plan_path).trials) == 2 and not summary.aborted
+    with TrialStore(db, create=False) as store:
+        trials = _steps(store)
+        stopped = [e["trial_id"] for e in _events(store) if (e["kind"], e["action"]) == ("safety", "stopped")]
+    for row, steps in trials.values():
+        assert re.match(refusal, row["stop_reason"]), row["stop_reason"]
+        assert 0 < row["n_steps"] == len(steps) < 60
+        x = [s["meas_base_x_m"] for s in steps]
+        assert x[-1] > x[0] and x[-1] - base_x_m > 0.5  # along +x as far as the arm reaches
+        assert row["trial_id"] in stopped  # the safety layer stopped the arm on the refusal
+
+
+@pytest.mark.parametrize("kind", ["sim", "serial"])
+def test_a_start_the_arm_refuses_to_move_to_ends_that_trial_and_the_session_goes_on(
+    files, arm, tmp_path, twin_driver, kind
+):
+    """The first trial's start is a TCP pose out of the Panda's reach (inside the workspace box, so the
+    plan passes); a TCP policy's start is not solved up front, so the positioning move meets the arm's
+    refusal (the sim arm's IK from its start seeds; the serial device's ERR RANGE unreachable). That trial
+    is committed without steps, 'positioning_failed: refused: ...', outcome unknown, and the next one runs."""
+    order = sorted(load_plan(files["plan"]).trials, key=lambda t: t.order)
+    first = order[0].tcp_pose
+
+    def edit(plan, arm):
+        starts = _joint_starts(plan, arm)
+        T = plan.tcp_poses[first].T_table_tcp.model_copy(update={"translation_m": OUT_OF_REACH_M})
+        starts[first] = plan.tcp_poses[first].model_copy(update={"T_table_tcp": T})
+        return starts
+
+    plan_path = _joint_plan(files, arm, tmp_path / "plan.yaml", edit)
+    db = tmp_path / "t.sqlite"
+    policy = _TcpToward(0.5)
+    swap = (lambda runner: policy) if kind == "sim" else _on_twin(twin_driver(kind), policy)
+    summary = _run(files, db, plan=plan_path, swap=swap, rate_limit=kind != "sim")
+    assert summary.committed == [t.trial_id for t in order] and not summary.aborted
+    with TrialStore(db, create=False) as store:
+        trials = _steps(store)
+        events = _events(store)
+    row, steps = trials[order[0].trial_id]
+    where = ", ".join(f"{v:.3f}" for v in OUT_OF_REACH_M)
+    reason = {
+        "sim": rf"sim arm: TCP target at \[{where}\] m \(base frame\) is out of reach within the joint limits",
+        "serial": r"serial arm \S+ rejected MOVE: ERR RANGE unreachable; the arm did not take it$",
+    }[kind]
+    assert re.match(rf"^positioning_failed: refused: {reason}", row["stop_reason"]), row["stop_reason"]
+    assert row["n_steps"] == 0 and steps == [] and row["final_outcome"] == "unknown"
+    assert row["auto_reason"] == row["stop_reason"] and row["operator_outcome"] is None
+    mine = [(e["kind"], e["action"]) for e in events if e["trial_id"] == order[0].trial_id]
+    assert ("positioning", "failed") in mine and ("safety", "stopped") in mine
+    for t in order[1:]:
+        row, steps = trials[t.trial_id]
+        assert row["stop_reason"] == "max_steps" and len(steps) == MAX_STEPS
+
+
+def test_a_fault_ends_the_session_at_the_next_start_and_that_trial_stays_to_do(files, arm, tmp_path):
+    """A protective stop in the first trial's loop ends that trial (committed, 'fault: ...'); the arm still
+    reporting it, the next trial's positioning move ends the session with the fault and records nothing,
+    so resuming after the recovery runs that trial."""
+    from robot_io.arms.base import Fault
+
+    order = sorted(load_plan(files["plan"]).trials, key=lambda t: t.order)
+
+    def fault_at_step_2(runner):
+        driver = runner.arm._SafeArm__arm  # the sim driver behind the safety layer
+
+        def on_step(trial, k):
+            if k == 2:
+                driver.inject_fault(Fault("protective_stop", "simulated protective stop", "clear it on the pendant"))
+
+        runner.on_step = on_step
+        return runner.policy
+
+    db = tmp_path / "t.sqlite"
+    with pytest.raises(ArmFaultError, match="protective_stop"):
+        _run(files, db, swap=fault_at_step_2)
+    with TrialStore(db, create=False) as store:
+        trials = _steps(store)
+    assert list(trials) == [order[0].trial_id]
+    assert trials[order[0].trial_id][0]["stop_reason"].startswith("fault: arm fault (protective_stop)")
+    summary = _run(files, db)  # the fault cleared (a new connection): the trial left to do runs
+    assert summary.already_done == 1 and summary.committed == [t.trial_id for t in order[1:]]
 
 
 def test_joint_vector_starts_are_reached_exactly_and_their_fk_agrees_with_a_tcp_pose_given_too(
@@ -328,7 +494,7 @@ def test_joint_vector_starts_are_reached_exactly_and_their_fk_agrees_with_a_tcp_
         q = np.asarray(plan.tcp_pose(t.tcp_pose).joint_positions)
         np.testing.assert_array_equal(q_asked, q)
         np.testing.assert_array_equal(q_at, q)
-        np.testing.assert_allclose(T_at, _fk(arm, q), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(T_at, tcp_from_joints(arm, q), rtol=0, atol=1e-12)
 
 
 def test_an_object_unseen_at_the_end_is_looked_for_from_the_start_joints_and_the_arm_returns_to_its_own(
@@ -380,7 +546,7 @@ def test_a_start_given_both_ways_is_taken_iff_its_fk_is_within_the_tolerance_of_
     position tolerance: accepted at the joints up to the tolerance, refused beyond it."""
     lo, hi = arm.model.limits.q_min.numpy(), arm.model.limits.q_max.numpy()
     q = np.clip(lo + np.asarray(u[: arm.n_joints]) * (hi - lo), lo, hi)
-    T = _fk(arm, q)
+    T = tcp_from_joints(arm, q)
     T[direction, 3] += offset * START_AGREE_TOL_M
     plan = load_plan(files["plan"])
     first = plan.tcp_poses[0].model_copy(update={"T_table_tcp": Pose.from_T(T), "joint_positions": tuple(q)})
@@ -389,7 +555,7 @@ def test_a_start_given_both_ways_is_taken_iff_its_fk_is_within_the_tolerance_of_
     if offset <= 1.0:
         (start,) = resolve_starts(plan, trials, np.eye(4), arm, joint_space=True).values()
         np.testing.assert_array_equal(start.q, q)
-        np.testing.assert_allclose(start.T_base_tcp, _fk(arm, q), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(start.T_base_tcp, tcp_from_joints(arm, q), rtol=0, atol=1e-12)
     else:
         with pytest.raises(StartError, match=r"joint_positions put the TCP .* mm and .* deg from its T_table_tcp"):
             resolve_starts(plan, trials, np.eye(4), arm, joint_space=True)

@@ -38,6 +38,20 @@ def cell(tmp_path_factory):
     data = yaml.safe_load(hw.read_text())
     data["T_tcp_cam"] = hand_eye.name  # resolved beside the hardware YAML
     hw.write_text(yaml.safe_dump(data))
+    opts = SessionOptions(
+        hardware=hw,
+        policy=straight_ahead_onnx(d / "p.onnx"),
+        plan=small_plan(d / "plan.yaml", d, n_tcp=2, n_layouts=1, max_steps=5, conditions=("clean",)),
+        session="day1",
+        db=d / "trials.sqlite",
+        rate_limit=False,
+    )
+    rendered = _run_noting_renders(opts)
+    return {"dir": d, "db": d / "trials.sqlite", "hand_eye": hand_eye, "rendered": rendered}
+
+
+def _run_noting_renders(opts: SessionOptions) -> dict:
+    """Run the session ``opts``; ``{frame seq: T_world_tcp}`` of every frame the sim camera rendered."""
     rendered = {}
     original = SimCamera._read
 
@@ -48,18 +62,10 @@ def cell(tmp_path_factory):
 
     SimCamera._read = read
     try:
-        opts = SessionOptions(
-            hardware=hw,
-            policy=straight_ahead_onnx(d / "p.onnx"),
-            plan=small_plan(d / "plan.yaml", d, n_tcp=2, n_layouts=1, max_steps=5, conditions=("clean",)),
-            session="day1",
-            db=d / "trials.sqlite",
-            rate_limit=False,
-        )
         run_session(opts, operator=AutoOperator(log=None), log=None)
     finally:
         SimCamera._read = original
-    return {"dir": d, "db": d / "trials.sqlite", "hand_eye": hand_eye, "rendered": rendered}
+    return rendered
 
 
 def _files(folder):
@@ -204,22 +210,10 @@ def joint_cell(tmp_path_factory):
     data = yaml.safe_load(hw.read_text())
     data["safety"]["max_frame_age_ms"] = 60_000.0  # a loaded machine's first inference is no frame-age test
     hw.write_text(yaml.safe_dump(data))
-    rendered = {}
-    original = SimCamera._read
-
-    def read(self):
-        frame = original(self)
-        rendered[frame.seq] = self.world.T_world_tcp.copy()
-        return frame
-
-    SimCamera._read = read
-    try:
-        opts = SessionOptions(
-            hardware=hw, policy=d / "ck", plan=plan_path, session="j", db=d / "trials.sqlite", rate_limit=False
-        )
-        run_session(opts, operator=AutoOperator(log=None), log=None)
-    finally:
-        SimCamera._read = original
+    opts = SessionOptions(
+        hardware=hw, policy=d / "ck", plan=plan_path, session="j", db=d / "trials.sqlite", rate_limit=False
+    )
+    rendered = _run_noting_renders(opts)
     return {"dir": d, "db": d / "trials.sqlite", "rendered": rendered, "arm": arm, "q_start": q, "plan": plan_path}
 
 
