@@ -243,3 +243,34 @@ def test_check_shows_a_servo_whose_offset_ticks_put_its_joint_outside_the_urdf_l
     assert [r.name for r in readings if not r.inside] == [j.name]
     assert f"  {j.name} OUTSIDE the URDF's limits: check the joint's sign and offset_ticks" in result.output
     assert "OUTSIDE them" in format_joint(readings[k])
+
+
+def test_serial_sim_prints_its_port_serves_a_driver_and_ends_cleanly_on_ctrl_c():
+    import signal
+    import subprocess
+    import sys
+
+    from robot_io.arms.serial import SerialArm
+
+    root = Path(__file__).resolve().parents[2]
+    code = "import sys; from trials.cli.main import main; sys.argv[0] = 'advobj'; main()"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "hw", "serial-sim", "--boot-delay-ms", "0"],
+        cwd=root,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("serial arm simulator on ") and line.endswith("; set arm.port to it\n"), line
+        path = line.removeprefix("serial arm simulator on ").removesuffix("; set arm.port to it\n")
+        with SerialArm(path, boot_timeout_ms=2000) as arm:
+            assert arm.device_info["fw"].startswith("advobj-sim") and arm.fault() is None
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "Traceback" not in err, err

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import time
 from pathlib import Path
 
 import typer
@@ -97,14 +96,8 @@ def serial_sim(
     boot_delay_ms: float = typer.Option(1000.0, min=0.0, max=60000.0, help="time to the boot banner, 0-60000 ms"),
 ) -> None:
     """Run the serial arm simulator on a pseudo-terminal and print its port (Ctrl-C to stop)."""
+    from robot_io.arms.pty_twin import serve_until_interrupted  # lazy: CLI start-up (robot_io.arms)
     from robot_io.arms.serial_sim import SerialArmSimulator  # lazy: CLI start-up (+16 ms)
 
     sim, path = SerialArmSimulator.on_pty(boot_delay_s=boot_delay_ms / 1000.0)
-    typer.echo(f"serial arm simulator on {path}; set arm.port to it")
-    try:
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        sim.close()
+    serve_until_interrupted(sim, f"serial arm simulator on {path}; set arm.port to it", say=typer.echo)
