@@ -64,7 +64,7 @@ from typing import Annotated, Callable, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from robot_io.arms.base import Arm, Fault
+from robot_io.arms.base import Arm, Fault, tcp_from_joints
 from robot_io.errors import ArmFaultError, RobotIOError, SafetyStop
 from robot_io.poses import is_valid_pose
 from sim.action import next_tcp_pose
@@ -579,8 +579,6 @@ class SafeArm:
         """Positioning move to joints ``q_target (n,)`` (not the policy loop): refused, not clipped,
         if the target is not ``n`` finite numbers, outside the position limits, or puts the TCP
         outside the workspace box. It takes as long as the slowest joint needs at its speed cap."""
-        import torch  # lazy: robot_io start-up (torch)
-
         try:
             scene_arm = self._scene_arm()
             q = np.asarray(q_target, dtype=np.float64)
@@ -594,8 +592,7 @@ class SafeArm:
                     f"positioning joint target: {scene_arm.joint_names[k]!r} at {q[k]:.4g} is outside its limits "
                     f"[{lo[k]:.4g}, {hi[k]:.4g}]"
                 )
-            T = scene_arm.tcp_pose(torch.as_tensor(q, dtype=torch.float64, device=scene_arm.device))
-            p = T[:3, 3].detach().cpu().numpy()
+            p = tcp_from_joints(scene_arm, q)[:3, 3]
             if not self.limits.contains(p):
                 raise _Refuse(f"positioning joint target puts the TCP at {_vec(p)} m, outside the workspace box")
         except _Refuse as r:
