@@ -10,17 +10,12 @@ import typer
 
 from sim.runtime import set_torch_threads
 from trials.cli.grid import ADDRESS, SHARDS, WORKERS, executor
-from trials.cli.options import MIN_CLEAN_SUCCESS, int_list, key_values
+from trials.cli.options import MIN_CLEAN_SUCCESS, int_list, key_values, name_list
 from trials.experiments.recipes import RECIPES, ExperimentConfig, resolve_experiment, run_experiment
 
 __all__ = ["app", "CONFIG_OPTIONS", "experiment_config", "experiment_targets", "parse_experiment"]
 
 app = typer.Typer(no_args_is_help=True, help="Reproduce the paper's experiments (Tables I, II, III and V).")
-
-
-def _names(text: str | None) -> tuple[str, ...] | None:
-    """``"a, b,"`` -> ``("a", "b")`` (None when not given): a comma-separated list of names."""
-    return None if text is None else tuple(n.strip() for n in text.split(",") if n.strip())
 
 
 def experiment_config(
@@ -46,9 +41,9 @@ def experiment_config(
         pool=None if pool is None else str(pool),
         device=device,
         attack_overrides=None if iterations is None else {"iterations": iterations},
-        transfer_targets=_names(archs),
+        transfer_targets=name_list(archs),
         attack_seeds=int_list(attack_seeds, "--attack-seeds"),
-        rows=_names(rows),
+        rows=name_list(rows),
         min_clean_success=min_clean_success,
     )
 

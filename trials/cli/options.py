@@ -1,5 +1,6 @@
 """Option types shared by the commands: one KEY=VALUE parser for every repeatable mapping flag, one
-parser of comma-separated integers (``--attack-seeds 0,1,2``), and the competence gate's option
+parser of comma-separated integers (``--attack-seeds 0,1,2``), one of comma-separated names
+(``--cameras wrist,front``), and the competence gate's option
 (``--min-clean-success``) of the commands that attack or evaluate a policy."""
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import typer
 from sim.errors import AdvobjError
 from sim.policies.competence import CHECK_EPISODES, DEFAULT_MIN_CLEAN_SUCCESS
 
-__all__ = ["OptionError", "int_list", "key_values", "MIN_CLEAN_SUCCESS"]
+__all__ = ["OptionError", "int_list", "key_values", "name_list", "MIN_CLEAN_SUCCESS"]
 
 MIN_CLEAN_SUCCESS = typer.Option(
     DEFAULT_MIN_CLEAN_SUCCESS,
@@ -38,6 +39,12 @@ def key_values(items, option: str, key: str = "KEY", value: str = "VALUE") -> di
             raise OptionError(f"{option}: {k!r} given twice")
         out[k] = v
     return out
+
+
+def name_list(text: str | None) -> tuple[str, ...] | None:
+    """``"a, b,"`` -> ``("a", "b")`` (None when not given): a comma-separated list of names, each
+    stripped, empty ones dropped (so ``","`` is ``()``: the caller says whether none is allowed)."""
+    return None if text is None else tuple(n.strip() for n in text.split(",") if n.strip())
 
 
 def int_list(text: str | None, option: str) -> tuple[int, ...] | None:

@@ -13,6 +13,7 @@ from sim.errors import AdvobjError, format_validation_error
 from sim.policies.competence import DEFAULT_MIN_CLEAN_SUCCESS
 from sim.runinfo import write_run_info
 from sim.runtime import set_torch_threads
+from trials.cli.options import name_list
 
 app = typer.Typer(no_args_is_help=True, help="Train, evaluate and export reference visuomotor policies.")
 
@@ -93,7 +94,7 @@ def train(
         extra.update(dagger=dict(curve), ppo=dict(curve))
     if iterations is not None:
         extra.setdefault("dagger", {})["iterations"] = iterations
-    cams = None if cameras is None else tuple(c.strip() for c in cameras.split(",") if c.strip())
+    cams = name_list(cameras)
     if cams is not None and not cams:
         raise typer.BadParameter("name at least one camera, e.g. wrist,front", param_hint="--cameras")
     spec = load_spec(scene)  # the cameras' sizes are the scene's

@@ -13,8 +13,8 @@ from typer._click.exceptions import ClickException
 from trials.cli import experiment
 from trials.cli.experiment import CONFIG_OPTIONS, experiment_config, experiment_targets, parse_experiment
 from trials.cli.main import main
-from trials.cli.options import OptionError
-from trials.experiments.recipes import PRESETS, TABLE2_ROWS, ExperimentError, resolve_experiment
+from trials.cli.options import OptionError, name_list
+from trials.experiments.recipes import PRESETS, TABLE2_ROWS, TRANSFER_TARGETS, ExperimentError, resolve_experiment
 
 
 def _ran_with(monkeypatch, argv):
@@ -85,6 +85,37 @@ def test_any_distinct_attack_seeds_parse_as_given(seeds):
     text = ",".join(str(s) for s in seeds)
     cfg, _ = parse_experiment("table1", ["--attack-seeds", text])
     assert cfg.attack_seeds == tuple(seeds) == experiment_config("quick", attack_seeds=text).attack_seeds
+
+
+_NAME = st.text(st.characters(whitelist_categories=("L", "Nd"), whitelist_characters="_-."), min_size=1, max_size=8)
+_PADS = st.lists(st.sampled_from(["", " ", "  "]), min_size=10, max_size=10)
+
+
+def _padded(names, pads) -> str:
+    """``names`` joined by commas, each padded with spaces, with empty or blank items at both ends."""
+    return pads[0] + "," + ",".join(f"{pads[i + 1]}{n}{pads[-i - 1]}" for i, n in enumerate(names)) + "," + pads[5]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(_NAME, min_size=1, max_size=4), _PADS)
+def test_comma_separated_names_parse_stripped_with_empty_items_dropped(names, pads):
+    assert name_list(_padded(names, pads)) == tuple(names)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.lists(st.sampled_from(TRANSFER_TARGETS), min_size=1, unique=True),
+    st.lists(st.sampled_from([row[0] for row in TABLE2_ROWS]), min_size=1, max_size=4, unique=True),
+    _PADS,
+)
+def test_archs_and_rows_reach_the_config_as_their_names(archs, rows, pads):
+    cfg = experiment_config("quick", archs=_padded(archs, pads), rows=_padded(rows, pads))
+    assert cfg.transfer_targets == tuple(archs) and cfg.rows == tuple(rows)
+
+
+def test_no_names_is_none_and_only_commas_or_blanks_are_no_names():
+    assert name_list(None) is None
+    assert name_list("") == name_list(" , ,") == ()
 
 
 @pytest.mark.parametrize(
