@@ -253,7 +253,12 @@ def test_serial_sim_prints_its_port_serves_a_driver_and_ends_cleanly_on_ctrl_c()
     from robot_io.arms.serial import SerialArm
 
     root = Path(__file__).resolve().parents[2]
-    code = "import sys; from trials.cli.main import main; sys.argv[0] = 'advobj'; main()"
+    # Ctrl-C as a terminal delivers it: a background job (CI, nohup) starts with SIGINT ignored, which
+    # the child would inherit, so it sets Python's own handler first
+    code = (
+        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from trials.cli.main import main; sys.argv[0] = 'advobj'; main()"
+    )
     proc = subprocess.Popen(
         [sys.executable, "-c", code, "hw", "serial-sim", "--boot-delay-ms", "0"],
         cwd=root,
