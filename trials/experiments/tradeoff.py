@@ -38,7 +38,7 @@ settings must match ``<out>/sweep.json``). Each row is a ``tradeoff-row`` job of
 The committed evidence (``results/tradeoff/``) comes from this module's command line::
 
     python -m trials.experiments.tradeoff evidence --policy runs/evidence/policy-quick \\
-        --out runs/evidence/tradeoff --episodes 300 --attack-seeds 0,1,2 --train-missing
+        --out runs/evidence/tradeoff --episodes 300 --attack-seeds 0,1,2 --train-missing --workers 2
     python -m trials.experiments.tradeoff collect --out runs/evidence/tradeoff   # the copy only
 
 ``evidence`` refuses a checkout with uncommitted changes, runs ``sweep`` (the same options as
@@ -1368,6 +1368,16 @@ def _int_list(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 0,1,2, got {text!r}") from None
 
 
+def _workers(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a number of worker CPUs >= 1, got {text!r}")
+    return n
+
+
 def sweep_parser(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The sweep's options: those of ``advobj bench tradeoff`` plus ``--attack-seeds``."""
     ap.add_argument("--policy", required=True, help="baseline policy checkpoint directory")
@@ -1393,7 +1403,23 @@ def sweep_parser(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
     ap.add_argument("--plot", default=None, help="Pareto plot PNG (default OUT/tradeoff_pareto.png)")
     ap.add_argument("--redo", action="store_true", help="measure the selected --rows again even if done")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the report from OUT/rows.jsonl")
+    ap.add_argument(
+        "--workers",
+        type=_workers,
+        default=None,
+        help="run the rows on a local Ray started for this run with N worker CPUs, one row (threads CPUs) per "
+        "worker (default: one row at a time)",
+    )
     return ap
+
+
+def sweep_executor(a: argparse.Namespace, log=print):
+    """The executor ``--workers`` asks for: a local Ray with N worker CPUs, or None (one row at a time)."""
+    if a.workers is None:
+        return None
+    from trials.jobs.dag import RayExecutor  # lazy: ray is an extra, imported only when asked for
+
+    return RayExecutor(workers=a.workers, echo=log)
 
 
 def job_from_args(a: argparse.Namespace) -> TradeoffJob:
@@ -1460,7 +1486,7 @@ def main(argv: list[str] | None = None) -> int:
     a = parser().parse_args(argv)
     try:
         if a.cmd == "sweep":
-            job_from_args(a).run()
+            job_from_args(a).run(executor=sweep_executor(a))
         elif a.cmd == "evidence":
             return evidence(_without(argv[1:], "--results"), a.results)
         else:

@@ -338,3 +338,21 @@ def test_a_tiny_two_seed_sweep_is_collected_rendered_and_recomputed(tmp_path, ti
     (tmp_path / "unpaired" / "eval_sets" / "ref.json").write_text(json.dumps(doc_set))
     with pytest.raises(AssertionError, match="not on the fixed set"):
         check_requirements(tmp_path / "unpaired", min_n=4, min_seeds=2, provenance=False)
+
+
+# ----------------------------------------------------------------------------- --workers
+def test_workers_runs_the_rows_on_a_local_ray_of_that_many_cpus_and_refuses_less_than_one(capsys):
+    from trials.jobs.dag import RayExecutor
+
+    base = ["sweep", "--policy", "p", "--out", "o"]
+    assert tradeoff.sweep_executor(tradeoff.parser().parse_args(base)) is None  # default: one row at a time
+    ex = tradeoff.sweep_executor(tradeoff.parser().parse_args(base + ["--workers", "2"]))
+    assert isinstance(ex, RayExecutor) and ex.workers == 2
+    for bad in ("0", "-1", "two"):
+        with pytest.raises(SystemExit) as e:
+            tradeoff.parser().parse_args(base + ["--workers", bad])
+        assert e.value.code == 2
+        assert "--workers" in capsys.readouterr().err
+    # evidence passes it on to the sweep it records
+    ev = tradeoff.parser().parse_args(["evidence", "--policy", "p", "--out", "o", "--workers", "2"])
+    assert ev.workers == 2
