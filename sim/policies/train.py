@@ -31,11 +31,12 @@ __all__ = ["train_policy", "check_resume_length"]
 
 
 def check_resume_length(cfg: TrainConfig, out_dir: str | Path) -> None:
-    """Refuse, in one line, resuming the interrupted DAgger run in ``out_dir`` with fewer
+    """Refuse, in one line and before anything in ``out_dir`` is written (its ``run.json``
+    included), resuming the interrupted DAgger run there with another config (its resume
+    fingerprint, :meth:`TrainConfig.fingerprint`: e.g. other ``--grad-steps``) or with fewer
     ``dagger.iterations`` than it has already done (its weights would not be what the resolved
-    config says). More iterations continue it: the run length is not part of the resume
-    fingerprint (:meth:`TrainConfig.fingerprint`). A state of another config, or one that cannot
-    be read, is left to the resume itself, which refuses it in its own line."""
+    config says). More iterations continue it: the run length is not part of the fingerprint. A
+    state that cannot be read is left to the resume itself, which refuses it in its own line."""
     if cfg.method != "dagger":
         return
     path = Path(out_dir) / "train_state" / "progress.json"
@@ -44,7 +45,11 @@ def check_resume_length(cfg: TrainConfig, out_dir: str | Path) -> None:
         done = int(progress["iterations_done"])
     except (OSError, ValueError, TypeError, KeyError):
         return
-    if progress.get("fingerprint") == cfg.fingerprint() and done > cfg.dagger.iterations:
+    if progress.get("fingerprint") != cfg.fingerprint():
+        raise PolicyError(
+            f"{path.parent}: holds a run with a different config; use a new --out or delete that directory"
+        )
+    if done > cfg.dagger.iterations:
         raise PolicyError(
             f"dagger.iterations (--iterations): {cfg.dagger.iterations}, but the run in {out_dir} has already done "
             f"{done}; resume it with {done} or more, or train into a new --out"

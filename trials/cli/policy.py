@@ -76,6 +76,12 @@ def train(
         help="DAgger iterations (default: the preset's); the run length, so an interrupted run resumes with more "
         "(it continues) but not with fewer than it has done",
     ),
+    grad_steps: Optional[int] = typer.Option(
+        None,
+        min=1,
+        help="DAgger gradient steps after each iteration's episodes (default: the preset's); part of the run's "
+        "config, so a resume must give the same",
+    ),
 ) -> None:
     """Train a policy (DAgger from the privileged expert, or PPO) and evaluate it."""
     from sim.policies.presets import resolve_preset  # lazy: CLI start-up (torch, trimesh)
@@ -94,6 +100,8 @@ def train(
         extra.update(dagger=dict(curve), ppo=dict(curve))
     if iterations is not None:
         extra.setdefault("dagger", {})["iterations"] = iterations
+    if grad_steps is not None:
+        extra.setdefault("dagger", {})["grad_steps_per_iter"] = grad_steps
     cams = name_list(cameras)
     if cams is not None and not cams:
         raise typer.BadParameter("name at least one camera, e.g. wrist,front", param_hint="--cameras")
@@ -114,10 +122,9 @@ def train(
     except ValueError as err:
         msg = str(err).splitlines()[0] if "preset" in str(err) else str(err)
         raise typer.BadParameter(msg, param_hint="--action" if msg.startswith("action:") else None) from None
-    if iterations is not None and cfg.method != "dagger":
-        raise typer.BadParameter(
-            f"DAgger's iterations; {cfg.method} runs for ppo.total_timesteps", param_hint="--iterations"
-        )
+    for flag, value in (("--iterations", iterations), ("--grad-steps", grad_steps)):
+        if value is not None and cfg.method != "dagger":
+            raise typer.BadParameter(f"a DAgger setting; {cfg.method} runs for ppo.total_timesteps", param_hint=flag)
     if cfg.contract.is_joint_space:
         typer.echo(
             f"training a joint-space policy: {cfg.contract.describe()} ({', '.join(cfg.contract.joints)}) on the "

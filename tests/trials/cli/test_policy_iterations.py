@@ -96,3 +96,40 @@ def test_iterations_with_ppo_is_refused_in_one_line(tmp_path, monkeypatch, capsy
     assert code == 2 and len(errors) == 1, errors
     assert "--iterations" in errors[0] and "ppo.total_timesteps" in errors[0]
     assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- --grad-steps
+def test_grad_steps_sets_the_dagger_steps_per_iteration_and_a_resume_with_others_is_refused(
+    short_scene, tmp_path, monkeypatch, capsys
+):
+    out = tmp_path / "run"
+    assert _train(monkeypatch, capsys, short_scene, out, "--iterations", 1, "--grad-steps", 3) == (0, [])
+    assert _run_config(out)["dagger"]["grad_steps_per_iter"] == 3
+    card = json.loads((out / "policy.json").read_text())
+    assert card["training"]["dagger"]["grad_steps_per_iter"] == 3
+    run_json = (out / "run.json").read_bytes()
+    # the same run resumed with other gradient steps is another run: refused in one line, nothing changed
+    code, errors = _train(monkeypatch, capsys, short_scene, out, "--iterations", 2, "--grad-steps", 4)
+    assert code == 2 and len(errors) == 1, errors
+    assert str(out) in errors[0]
+    assert (out / "run.json").read_bytes() == run_json
+
+
+@pytest.mark.parametrize("value", ["0", "-3", "two"])
+def test_a_grad_step_count_below_one_or_not_a_number_is_one_line_naming_the_flag(
+    short_scene, tmp_path, monkeypatch, capsys, value
+):
+    out = tmp_path / "run"
+    code, errors = _train(monkeypatch, capsys, short_scene, out, "--grad-steps", value)
+    assert code == 2 and len(errors) == 1 and "--grad-steps" in errors[0], errors
+    assert not out.exists()
+
+
+def test_grad_steps_with_ppo_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "run"
+    code, errors = _cli(
+        monkeypatch, capsys, "policy", "train", "--preset", "ci", "--method", "ppo", "--grad-steps", 2, "--out", out
+    )
+    assert code == 2 and len(errors) == 1, errors
+    assert "--grad-steps" in errors[0] and "ppo.total_timesteps" in errors[0]
+    assert not out.exists()
