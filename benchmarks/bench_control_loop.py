@@ -1,7 +1,7 @@
 """Latency from camera frame to arm command: SimCamera -> ONNX resnet18 policy (128x128) -> safety -> SimArm.
 
 Run: ``.venv/bin/python benchmarks/bench_control_loop.py [--arm tcp|joint] [--onnx policy.onnx]
-[--stem small|standard] [--threads 1]``.
+[--stem small|standard] [--threads 1] [--out FILE.json]``.
 
 Without ``--onnx`` a randomly initialised resnet18 policy from ``sim.policies`` is exported to a
 temporary ONNX file (weights do not change the cost). ``--stem small`` is the project's policy
@@ -20,12 +20,20 @@ frame -> joint state + policy -> decode (the contract's actions, the joint targe
 joints) -> ``SafeArm.step_joints`` (joint position, speed and jump limits, FK of the command and
 the workspace box) -> the sim arm's command (its TCP and wrist camera follow FK). A chunked
 ``--onnx`` policy is asked every step and only its first action sent: the worst case.
+
+``--out FILE.json`` also writes the figures as JSON (atomically): the command, the commit (``+dirty``
+when the checkout had uncommitted changes), the machine, the arm mode, the policy and its image size,
+steps, warm-up and threads, each stage's wall and process CPU median and p95, the clipped and refused
+commands, and the run's wall and CPU time: a record that can be committed as evidence.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import shlex
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -37,6 +45,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 SIM_YAML = HERE.parent / "examples" / "hardware" / "sim.yaml"
 JOINT_SCENE = HERE.parent / "scenes" / "panda-joint.yaml"
+TARGET_MS = 30.0  # frame -> arm command, median (>= 30 Hz)
 
 
 def export_resnet18(path: Path, size: int, small_stem: bool) -> Path:
@@ -72,14 +81,40 @@ def export_joint_resnet18(path: Path, size: int, small_stem: bool, spec) -> Path
     return export_onnx(policy, path, card=card)
 
 
-def stats(xs_s: list[float], cpu_s: list[float] | None = None) -> str:
-    """Median and p95 (ms) of wall times ``xs_s`` (s) and, when given, of process CPU times ``cpu_s``."""
-    a = np.asarray(xs_s) * 1000.0
-    text = f"median {np.median(a):6.2f} ms   p95 {np.percentile(a, 95):6.2f} ms"
-    if cpu_s is not None:
-        c = np.asarray(cpu_s) * 1000.0
-        text += f"   (process CPU median {np.median(c):6.2f} ms, p95 {np.percentile(c, 95):6.2f} ms)"
-    return text
+def summarize(xs_s: list[float], cpu_s: list[float]) -> dict:
+    """Median and p95 (ms) of wall times ``xs_s`` (s) and of process CPU times ``cpu_s`` (s)."""
+    a, c = np.asarray(xs_s) * 1000.0, np.asarray(cpu_s) * 1000.0
+    return {
+        "wall_median_ms": float(np.median(a)),
+        "wall_p95_ms": float(np.percentile(a, 95)),
+        "cpu_median_ms": float(np.median(c)),
+        "cpu_p95_ms": float(np.percentile(c, 95)),
+    }
+
+
+def stats(s: dict) -> str:
+    """One printed stage: the figures of :func:`summarize` (the same numbers the JSON holds)."""
+    return (
+        f"median {s['wall_median_ms']:6.2f} ms   p95 {s['wall_p95_ms']:6.2f} ms   "
+        f"(process CPU median {s['cpu_median_ms']:6.2f} ms, p95 {s['cpu_p95_ms']:6.2f} ms)"
+    )
+
+
+def write_json(path: Path, doc: dict) -> None:
+    """Write ``doc`` to ``path`` atomically: a fresh temporary file beside it (``O_EXCL``, a random
+    name), renamed over ``path``; a failure leaves neither a half-written file nor the temporary."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
 
 
 class TcpLoop:
@@ -177,6 +212,7 @@ def main() -> None:
     # sim render more than it sped up the policy (measured, see the module docstring).
     ap.add_argument("--threads", type=int, default=1, help="onnxruntime (and, with --arm joint, torch) threads")
     ap.add_argument("--spin", action="store_true", help="let idle onnxruntime threads spin-wait (off by default)")
+    ap.add_argument("--out", type=Path, help="also write the figures as JSON here (its folder must exist)")
     args = ap.parse_args()
     for flag, value, least in (
         ("--steps", args.steps, 1),
@@ -185,6 +221,12 @@ def main() -> None:
     ):
         if value < least:
             ap.error(f"{flag} must be >= {least}, got {value}")
+    if args.out is not None:
+        if not args.out.parent.is_dir():
+            ap.error(f"--out {args.out}: folder {args.out.parent} does not exist")
+        if args.out.is_dir():
+            ap.error(f"--out {args.out}: is a folder; give a file name")
+    t_start, c_start = time.perf_counter(), time.process_time()
 
     from robot_io.config import build_arm, build_camera, build_world, load_hardware_config
     from sim.policies.onnx_policy import OnnxPolicy
@@ -259,21 +301,62 @@ def main() -> None:
                     clipped += res.status == "clipped"
                     refused += res.status == "refused"
         world.close()
-    total_med = float(np.median(t_total)) * 1000.0
+    wall_s, cpu_s = time.perf_counter() - t_start, time.process_time() - c_start
+    pol, dec, cmd = loop.stages
+    stages = {
+        "camera": ("camera read (sim render)", summarize(t_cam, c_cam)),
+        "policy": (pol, summarize(t_pol, c_pol)),
+        "decode": (dec or "decode (none: the action as the policy gave it)", summarize(t_dec, c_dec)),
+        "safety_arm_command": (cmd, summarize(t_arm, c_arm)),
+        "loop": ("frame -> arm command", summarize(t_total, c_total)),
+    }
+    total_med = stages["loop"][1]["wall_median_ms"]
     print(
         f"control loop ({args.arm} arm, scene {world.spec.name}), {args.steps} steps, {S}x{S} px, policy "
         f"{onnx_path.name}, onnxruntime threads={args.threads} spin={args.spin}, "
         f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}"
     )
-    pol, dec, cmd = loop.stages
-    print(f"  camera read (sim render)   {stats(t_cam, c_cam)}")
-    print(f"  {pol:<26} {stats(t_pol, c_pol)}")
-    if dec is not None:
-        print(f"  {dec:<26} {stats(t_dec, c_dec)}")
-    print(f"  {cmd:<26} {stats(t_arm, c_arm)}")
-    print(f"  frame -> arm command       {stats(t_total, c_total)}   (= {1000.0 / total_med:.1f} Hz at the median)")
+    for key, (label, s) in stages.items():
+        if key == "decode" and dec is None:
+            continue  # a delta_tcp action goes to the arm as it is: nothing to show
+        tail = f"   (= {1000.0 / total_med:.1f} Hz at the median)" if key == "loop" else ""
+        print(f"  {label:<26} {stats(s)}{tail}")
     print(f"  commands clipped {clipped}, refused {refused}")
-    print(f"  target <= 30 ms median: {'met' if total_med <= 30.0 else 'NOT met'}")
+    print(f"  target <= {TARGET_MS:.0f} ms median: {'met' if total_med <= TARGET_MS else 'NOT met'}")
+    if args.out is not None:
+        from sim.runinfo import git_commit
+        from trials.experiments.tradeoff import machine_info  # after the timed loop: a heavy import
+
+        if args.onnx is not None:
+            policy_text = str(args.onnx)
+        else:
+            moves = "reads the arm's joints, commands joint_delta" if args.arm == "joint" else "commands delta_tcp"
+            policy_text = (
+                f"untrained resnet18 ({args.stem} stem, {args.size} px, torch seed 0; {moves}), exported to ONNX"
+            )
+        write_json(
+            args.out,
+            {
+                "command": "python benchmarks/bench_control_loop.py " + shlex.join(sys.argv[1:]),
+                "commit": git_commit(),
+                "machine": machine_info(),
+                "arm": args.arm,
+                "scene": world.spec.name,
+                "policy": policy_text,
+                "image_size": S,
+                "steps": args.steps,
+                "warmup": args.warmup,
+                "threads": args.threads,
+                "spin": args.spin,
+                "stages": {key: {"label": label, **s} for key, (label, s) in stages.items()},
+                "commands": {"clipped": int(clipped), "refused": int(refused)},
+                "target_median_ms": TARGET_MS,
+                "target_met": total_med <= TARGET_MS,
+                "wall_s": round(wall_s, 2),
+                "cpu_s": round(cpu_s, 2),  # this process, every thread
+            },
+        )
+        print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
