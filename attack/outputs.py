@@ -22,6 +22,7 @@ from attack.losses import grad_cam
 from attack.optimize import fixed_light_warning
 from sim.htmlreport import Bullets, Figure, Flag, Heading, Table, Text, write_page
 from sim.imaging import hstack, labelled, upscale
+from sim.policies.contract import first_action, to_joint_target
 from sim.runinfo import RunInfoError, read_run_info, write_run_info
 
 __all__ = [
@@ -468,10 +469,16 @@ def _rollout_figures(run, out: Path, texture_before: torch.Tensor) -> None:
     cam = run.saliency_camera
     seed = run.pool[0].seed
     T0 = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32)
-    st = run.policy_state(T0)
+    joint = env.control == "joint"  # a joint-space policy reads the joints and moves them through FK
+
+    def joints():
+        return torch.from_numpy(env.q[:1]).to(run.device, torch.float32) if joint else None
+
+    q0 = joints()
+    st = run.policy_state(T0, q0)
 
     def motion(o):
-        return run.next_delta(o, T0)
+        return run.next_delta(o, T0, q0)
 
     iio.imwrite(
         out / "gradcam_before_after.png",
@@ -494,9 +501,14 @@ def _rollout_figures(run, out: Path, texture_before: torch.Tensor) -> None:
         img = imgs[cam][0] if isinstance(imgs, dict) else imgs[0]
         frames.append(labelled(texture_to_uint8(img), f"attack, step {len(frames)}", min_side=128))
         with torch.no_grad():
-            T = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32)
-            a = run.next_delta(run.call_policy(imgs, run.policy_state(T)), T).cpu().numpy()
-        actions = np.zeros((env.num_envs, 6))
+            T, q = torch.from_numpy(env.T_world_tcp[:1]).to(run.device, torch.float32), joints()
+            raw = run.call_policy(imgs, run.policy_state(T, q))
+            if joint:  # the joint target of the first action; the other envs hold their joints
+                a = to_joint_target(q, first_action(raw).to(q.dtype), run.contract.action.kind).cpu().numpy()
+                actions = env.q.copy()
+            else:
+                a = run.next_delta(raw, T).cpu().numpy()
+                actions = np.zeros((env.num_envs, 6))
         actions[0] = a[0]
         env.step(actions)
     iio.imwrite(out / "rollout_strip.png", upscale(hstack(frames)))

@@ -122,6 +122,29 @@ def test_a_joint_policy_attack_runs_validates_and_probes_end_to_end(tmp_path, sp
         run.close()
 
 
+def test_a_joint_policy_attacks_outputs_are_written_its_rollout_strip_moves_the_arms_joints(tmp_path, spec, pool):
+    """write_outputs' figures (Grad-CAM before/after, the rollout strip) ran the joint policy without
+    its joint state and stepped the joint env with TCP motions: an experiment's attack job failed at
+    its end (state: ... no joint positions given)."""
+    from attack.outputs import write_outputs
+
+    cfg = resolve_config("ci", {**CFG, "validation_every": 0})
+    run = AttackRun(joint_policy(spec), spec, cfg, pool=pool, out_dir=tmp_path / "ckpt")
+    try:
+        before = run.state.texture.detach().clone()
+        run_attack(run, progress=False)
+        run.env.reset_envs([0], configs=[run.pool[0]])
+        q_start = run.env.q[0].copy()
+        metrics = write_outputs(run, tmp_path / "out", before)
+        for name in ("gradcam_before_after.png", "rollout_strip.png", "texture.png", "metrics.json"):
+            assert (tmp_path / "out" / name).is_file(), name
+        assert np.isfinite(metrics["final_loss_pose"])
+        # the strip executed the policy's joint targets: the arm's joints moved from the first configuration's start
+        assert not np.allclose(run.env.q[0], q_start)
+    finally:
+        run.close()
+
+
 def test_a_joint_policy_on_recordings_is_refused_in_one_line(spec):
     with pytest.raises(
         AttackError, match=r"^recordings: a joint-space policy .* is attacked in the simulator only"
