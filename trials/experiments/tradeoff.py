@@ -99,7 +99,7 @@ from trials.eval.episodes import collect_evals, read_rows
 from trials.eval.evaluate import load_eval_config, resolve_pool, rollout_condition, run_eval
 from trials.experiments.record import check_evidence, read_record, run_attempt, write_record
 from trials.experiments.tradeoff_report import KNOBS, attack_outcomes, latest_records, write_report
-from trials.jobs.dag import Grid, GridError, SerialExecutor, clear_finished, is_finished, usable_cpus
+from trials.jobs.dag import Grid, GridError, RayExecutor, SerialExecutor, clear_finished, is_finished, usable_cpus
 
 __all__ = [
     "TradeoffError",
@@ -1417,8 +1417,6 @@ def sweep_executor(a: argparse.Namespace, log=print):
     """The executor ``--workers`` asks for: a local Ray with N worker CPUs, or None (one row at a time)."""
     if a.workers is None:
         return None
-    from trials.jobs.dag import RayExecutor  # lazy: ray is an extra, imported only when asked for
-
     return RayExecutor(workers=a.workers, echo=log)
 
 
