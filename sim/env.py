@@ -35,13 +35,19 @@ from sim.spec import WRIST
 from sim.variations import Randomization
 from sim.world import SimWorld, _image_size, camera_renderer
 
-__all__ = ["ReachEnv", "EnvError", "EXPERT_IK_ITERS"]
+__all__ = ["ReachEnv", "EnvError", "EXPERT_IK_ITERS", "START_TOL_M", "START_TOL_RAD"]
 
 #: Iteration cap of the expert's IK under joint control (sim.ik's default tolerance). One expert step
 #: is a small TCP motion from the current joints: a reachable one is solved in a few iterations
 #: (measured over 16 expert episodes on scenes/panda-joint.yaml: median 2, at most 26), so the cap
 #: bounds the time an unreachable one costs rather than the accuracy of a reachable one.
 EXPERT_IK_ITERS = 30
+#: A start pose the arm's IK does not reach to its own tolerance is still accepted when its best
+#: iterate is this close (the episode then starts at FK of those joints, a few mm from the sampled
+#: pose, as every joint-control start does): of 4,140 start poses of scenes/panda-joint.yaml
+#: (evaluation seeds 0-1999, 30 DAgger iterations' seeds, 700 of the split's attack and validation
+#: parts) one missed, seed 10050039 (a DAgger seed of iteration 6), by 3.5 mm and 0.0008 rad.
+START_TOL_M, START_TOL_RAD = 0.01, 0.05
 
 
 class EnvError(AdvobjError, ValueError):
@@ -281,18 +287,22 @@ class ReachEnv:
             self._render(i)
 
     def _start_joints(self, indices: list[int]) -> None:
-        """Joint control: solve the start poses of envs ``indices`` by IK and put their TCPs at FK(q)."""
+        """Joint control: solve the start poses of envs ``indices`` by IK and put their TCPs at FK(q); a
+        pose the IK leaves unreached but within :data:`START_TOL_M` / :data:`START_TOL_RAD` starts at
+        FK of its best iterate, one further is an :class:`EnvError` naming its seed."""
         torch = _torch()
         T = torch.from_numpy(np.stack([self.worlds[i].T_world_tcp for i in indices]))
         res = self.arm.solve_start(T)
-        if not bool(res.converged.all()):
-            k = int((~res.converged).nonzero()[0, 0])
+        near = res.converged | ((res.pos_err_m <= START_TOL_M) & (res.rot_err_rad <= START_TOL_RAD))
+        if not bool(near.all()):
+            k = int((~near).nonzero()[0, 0])
             seed = self.worlds[indices[k]].config.seed
             raise EnvError(
                 f"arm: the start pose of configuration seed {seed} is out of the arm's reach (IK: "
                 f"{float(res.pos_err_m[k]):.3g} m, {float(res.rot_err_rad[k]):.3g} rad off after "
-                f"{res.iterations} iterations, from q_home and the restarts); "
-                "move the arm (arm.t_table_base_m) or narrow the scene's init ranges"
+                f"{res.iterations} iterations, from q_home and the restarts; at most {START_TOL_M} m and "
+                f"{START_TOL_RAD} rad are accepted); move the arm (arm.t_table_base_m) or narrow the scene's init "
+                "ranges"
             )
         q = res.q.numpy()
         T_tcp = self.arm.tcp_pose(res.q).numpy()

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from sim.action import ActionError
 from sim.configs import object_local_centers, sample_config, sample_pool
-from sim.env import EnvError, ReachEnv
+from sim.env import START_TOL_M, START_TOL_RAD, EnvError, ReachEnv
 from sim.ik import TOL_M, TOL_RAD
 from sim.policies.dagger import TRAIN_SEED_BASE
 from sim.policies.presets import PRESETS
@@ -144,23 +144,38 @@ def test_tcp_control_on_a_scene_with_an_arm_moves_exactly_as_without_it(spec):
 
 
 def test_the_scene_arm_reaches_the_start_of_every_configuration_its_runs_use(spec):
-    # the evaluation seeds, the attack's and validation's parts of the split, and the quick preset's
-    # DAgger seeds (sim.policies.dagger: seed 0, every iteration and batch)
+    # the evaluation seeds (a 300-configuration pool needs more than 300), the attack's and
+    # validation's parts of the split, and the quick preset's DAgger seeds (sim.policies.dagger:
+    # seed 0, every batch) for 30 iterations (--iterations N lengthens the run)
     centers = object_local_centers(spec)
     d = PRESETS["quick"]["dagger"]
     N = d["num_envs"]
     train = [
         TRAIN_SEED_BASE + it * 10_000 + b * N + j
-        for it in range(d["iterations"])
+        for it in range(30)
         for b in range(-(-d["episodes_per_iter"] // N))
         for j in range(N)
     ]
-    configs = [sample_config(spec, s, centers) for s in [*range(200), *train]]
-    configs += sample_pool(spec, 100, part="attack") + sample_pool(spec, 32, part="validation")
+    configs = [sample_config(spec, s, centers) for s in [*range(2000), *train]]
+    configs += sample_pool(spec, 600, part="attack") + sample_pool(spec, 100, part="validation")
     T = torch.from_numpy(np.stack([c.T_world_tcp_array for c in configs]))
     res = spec.arm.scene_arm().solve_start(T)
-    missed = [c.seed for c, ok in zip(configs, res.converged.tolist()) if not ok]
+    near = (res.pos_err_m <= START_TOL_M) & (res.rot_err_rad <= START_TOL_RAD)
+    missed = [c.seed for c, ok in zip(configs, (res.converged | near).tolist()) if not ok]
     assert not missed, f"start poses out of the arm's reach: seeds {missed[:10]}"
+    # the one IK leaves short of its own tolerance (see sim.env.START_TOL_M)
+    assert [c.seed for c, ok in zip(configs, res.converged.tolist()) if not ok] == [10050039]
+
+
+def test_a_start_the_ik_leaves_a_few_mm_short_starts_at_fk_of_its_best_joints(spec):
+    """DAgger's seed 10050039 (iteration 6 of a longer run) ended a training run before START_TOL_M."""
+    target = sample_config(spec, 10050039, object_local_centers(spec)).T_world_tcp_array
+    with ReachEnv(spec, num_envs=1, image_size=32, control="joint", render_obs=False) as e:
+        e.reset(seed=10050039)
+        T_fk = e.arm.tcp_pose(torch.from_numpy(e.q)).numpy()[0]
+        np.testing.assert_allclose(e.T_world_tcp[0], T_fk, atol=1e-9)  # the TCP is at FK of the joints
+        off_m = np.linalg.norm(e.T_world_tcp[0][:3, 3] - target[:3, 3])
+        assert 1e-4 < off_m <= START_TOL_M  # short of the sampled pose, within the accepted distance
 
 
 def test_a_start_out_of_reach_is_one_error_naming_the_seed(spec):
