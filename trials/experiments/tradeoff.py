@@ -598,8 +598,7 @@ def job_row(out: Path, inputs: dict, cfg: dict, row: dict, root: str, mode: str 
         rec = _run_isolated(c, r, Path(root))
     elif mode == "inline":
         rec = _run_inline(c, r, Path(root))
-    else:  # a fresh worker process: the row's own thread count, as a child process sets it (_child)
-        set_torch_threads(c.threads)
+    else:
         rec = _measure_row(c, r, Path(root))
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "result.json.tmp"

@@ -356,29 +356,3 @@ def test_workers_runs_the_rows_on_a_local_ray_of_that_many_cpus_and_refuses_less
     # evidence passes it on to the sweep it records
     ev = tradeoff.parser().parse_args(["evidence", "--policy", "p", "--out", "o", "--workers", "2"])
     assert ev.workers == 2
-
-
-def test_a_row_in_a_ray_worker_runs_with_the_sweeps_torch_threads(tmp_path, monkeypatch):
-    """A worker process (--workers) sets the row's threads as a row's child process does: the rows'
-    timings are comparable only when every row runs with the same threads."""
-    import torch
-
-    seen = {}
-
-    def measure(cfg, row, out):
-        seen["threads"] = torch.get_num_threads()
-        return {"key": row.key, "status": "ok"}
-
-    monkeypatch.setattr(tradeoff, "_measure_row", measure)
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(2)
-        cfg = tradeoff.load_tradeoff_config(policy="p", threads=1)
-        row = tradeoff.Row("deployment", "torch-fp32", "deployment", "ref")
-        from dataclasses import asdict
-
-        tradeoff.job_row(tmp_path / "row", {}, cfg.model_dump(mode="json"), asdict(row), str(tmp_path), "worker")
-        assert seen["threads"] == 1
-        assert json.loads((tmp_path / "row" / "result.json").read_text())["status"] == "ok"
-    finally:
-        torch.set_num_threads(before)
