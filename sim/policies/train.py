@@ -32,23 +32,29 @@ __all__ = ["train_policy", "check_resume_length"]
 
 def check_resume_length(cfg: TrainConfig, out_dir: str | Path) -> None:
     """Refuse, in one line and before anything in ``out_dir`` is written (its ``run.json``
-    included), resuming the interrupted DAgger run there with another config (its resume
-    fingerprint, :meth:`TrainConfig.fingerprint`: e.g. other ``--grad-steps``) or with fewer
-    ``dagger.iterations`` than it has already done (its weights would not be what the resolved
-    config says). More iterations continue it: the run length is not part of the fingerprint. A
-    state that cannot be read is left to the resume itself, which refuses it in its own line."""
-    if cfg.method != "dagger":
-        return
+    included), resuming the interrupted run there (DAgger or PPO) with another config (its resume
+    fingerprint, :meth:`TrainConfig.fingerprint`: e.g. other ``--grad-steps``, another method), or
+    a DAgger run with fewer ``dagger.iterations`` than it has already done (its weights would not
+    be what the resolved config says). More iterations continue it: the run length is not part of
+    the fingerprint. A state that cannot be read is left to the resume itself, which refuses it in
+    its own line."""
     path = Path(out_dir) / "train_state" / "progress.json"
     try:
         progress = json.loads(path.read_text())
-        done = int(progress["iterations_done"])
-    except (OSError, ValueError, TypeError, KeyError):
+    except (OSError, ValueError):
+        return
+    if not isinstance(progress, dict):
         return
     if progress.get("fingerprint") != cfg.fingerprint():
         raise PolicyError(
             f"{path.parent}: holds a run with a different config; use a new --out or delete that directory"
         )
+    if cfg.method != "dagger":
+        return
+    try:
+        done = int(progress["iterations_done"])
+    except (KeyError, TypeError, ValueError):
+        return
     if done > cfg.dagger.iterations:
         raise PolicyError(
             f"dagger.iterations (--iterations): {cfg.dagger.iterations}, but the run in {out_dir} has already done "

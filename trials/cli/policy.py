@@ -122,9 +122,12 @@ def train(
     except ValueError as err:
         msg = str(err).splitlines()[0] if "preset" in str(err) else str(err)
         raise typer.BadParameter(msg, param_hint="--action" if msg.startswith("action:") else None) from None
-    for flag, value in (("--iterations", iterations), ("--grad-steps", grad_steps)):
+    for flag, value, ppo_own in (
+        ("--iterations", iterations, "runs for ppo.total_timesteps"),
+        ("--grad-steps", grad_steps, "updates by ppo.n_epochs over each ppo.n_steps rollout"),
+    ):
         if value is not None and cfg.method != "dagger":
-            raise typer.BadParameter(f"a DAgger setting; {cfg.method} runs for ppo.total_timesteps", param_hint=flag)
+            raise typer.BadParameter(f"a DAgger setting; {cfg.method} {ppo_own}", param_hint=flag)
     if cfg.contract.is_joint_space:
         typer.echo(
             f"training a joint-space policy: {cfg.contract.describe()} ({', '.join(cfg.contract.joints)}) on the "

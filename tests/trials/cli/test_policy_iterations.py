@@ -131,5 +131,23 @@ def test_grad_steps_with_ppo_is_refused_in_one_line(tmp_path, monkeypatch, capsy
         monkeypatch, capsys, "policy", "train", "--preset", "ci", "--method", "ppo", "--grad-steps", 2, "--out", out
     )
     assert code == 2 and len(errors) == 1, errors
-    assert "--grad-steps" in errors[0] and "ppo.total_timesteps" in errors[0]
+    assert "--grad-steps" in errors[0] and "ppo.n_epochs" in errors[0]
     assert not out.exists()
+
+
+def test_a_ppo_state_resumed_with_another_config_is_refused_before_run_json_is_rewritten(tmp_path):
+    """The fingerprint check runs for every method, and for a DAgger run pointed at PPO state."""
+    from sim.errors import AdvobjError
+    from sim.policies.presets import resolve_preset
+    from sim.policies.train import check_resume_length
+
+    out = tmp_path / "run"
+    (out / "train_state").mkdir(parents=True)
+    (out / "train_state" / "progress.json").write_text(json.dumps({"fingerprint": "another", "timesteps": 10}))
+    for method in ("ppo", "dagger"):
+        cfg = resolve_preset("ci", method=method)
+        with pytest.raises(AdvobjError, match="holds a run with a different config"):
+            check_resume_length(cfg, out)
+    same = resolve_preset("ci", method="ppo")
+    (out / "train_state" / "progress.json").write_text(json.dumps({"fingerprint": same.fingerprint()}))
+    check_resume_length(same, out)  # its own state: resumed
