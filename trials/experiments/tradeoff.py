@@ -534,7 +534,13 @@ def run_sweep(
             todo.append(r)
     info_path = out / "machine.json"
     machine = json.loads(info_path.read_text()) if info_path.is_file() else {"runs": []}
-    machine["runs"].append({"start": machine_info(cfg.threads)})
+    machine["runs"].append(
+        {
+            "start": machine_info(cfg.threads),
+            "executor": "serial" if executor is None else type(executor).__name__,
+            "workers": 1 if executor is None else int(getattr(executor, "slots", 1)),
+        }
+    )
     info_path.write_text(json.dumps(machine, indent=2))
     write_run_info(out, {"job": "tradeoff", "settings": settings, "rows": [r.key for r in todo]}, cfg.seed)
     # The fixed evaluation set of each policy, once, before any row (every row then only reads it).
@@ -600,6 +606,7 @@ def job_row(out: Path, inputs: dict, cfg: dict, row: dict, root: str, mode: str 
         rec = _run_inline(c, r, Path(root))
     else:
         rec = _measure_row(c, r, Path(root))
+    rec["runner"] = mode  # worker: a Ray worker, possibly beside another row; child/inline: one at a time
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "result.json.tmp"
     tmp.write_text(json.dumps(rec, default=_json_default))
@@ -1328,7 +1335,8 @@ EVIDENCE_MIN_EPISODES, EVIDENCE_MIN_SEEDS = 300, 3
 def evidence(argv: list[str], results: str | Path = RESULTS, log=print) -> int:
     """Run ``python -m trials.experiments.tradeoff sweep <argv>`` for the committed evidence, record
     the attempt in ``results/run.json`` (the format of ``tools/evidence.py``: command, commit,
-    machine, start, wall and CPU time of the sweep and all its row processes, exit code, end) and,
+    machine, start, wall and CPU time of the sweep and the row processes it waited for (rows on Ray
+    workers count only in their own records), exit code, end) and,
     when it succeeds, :func:`collect` it. Refused (exit 2): a checkout with uncommitted changes,
     ``--quick-check``, fewer than 300 episodes or 3 attack seeds. A re-run resumes the sweep; its
     time is added as another attempt."""
@@ -1345,7 +1353,8 @@ def evidence(argv: list[str], results: str | Path = RESULTS, log=print) -> int:
     if refused:
         return refused
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    # its CPU time: the sweep process and every row process it waited for (its children's)
+    # its CPU time: the sweep process and every row process it waited for (its children's); rows on
+    # Ray workers (--workers) are not its children: their CPU is in their records (collect: rows_cpu_s)
     rc = run_attempt(
         results,
         [sys.executable, "-m", "trials.experiments.tradeoff", "sweep", *argv],

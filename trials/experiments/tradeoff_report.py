@@ -495,7 +495,9 @@ def _provenance(results: Path) -> str:
         f"Rows reported: {rec.get('rows_ok', '?')} (failed: {', '.join(rec.get('rows_failed') or []) or 'none'}); "
         f"their own wall / CPU time summed: {_num(rec.get('rows_wall_s'), 1)} / {_num(rec.get('rows_cpu_s'), 1)} s; "
         f"commit(s) of the rows: {', '.join(f'`{c}`' for c in rec.get('row_commits', [])) or 'n/a'}; "
-        f"per-episode rows in `episodes.csv`: {rec.get('episodes_rows', '?')}."
+        f"per-episode rows in `episodes.csv`: {rec.get('episodes_rows', '?')}. An attempt's CPU time counts the "
+        "sweep process and the row processes it waited for; rows run on Ray workers (`--workers`) count only in "
+        "the rows' sum."
     )
     return "\n".join(lines) + "\n"
 
