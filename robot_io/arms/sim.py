@@ -122,18 +122,21 @@ class SimArm(Arm):
         """The joints that put the TCP at ``T_world_tcp``: IK from the current joints (the nearest
         solution, as a real arm's controller takes), and for a ``positioning`` move, when that does
         not converge, from the scene arm's start seeds (:meth:`sim.ik.SceneArm.solve_start`: its home
-        joints, then fixed restarts), as the simulator solves a start pose. A target out of reach
-        raises :class:`ArmRefusedError` (no fault: the arm has not moved)."""
+        joints, then fixed restarts), as the simulator solves a start pose, accepted as the simulator
+        accepts one (:meth:`sim.ik.IkResult.start_reached`: a few mm short is a start). A target out of
+        reach raises :class:`ArmRefusedError` (no fault: the arm has not moved)."""
         import torch  # lazy: robot_io start-up (torch)
 
         like = torch.as_tensor(self._q, dtype=torch.float64, device=self.scene_arm.device)[None]
         T = torch.as_tensor(T_world_tcp, dtype=torch.float64, device=like.device)[None]
         res = self.scene_arm.ik(T, like)
         seeds = "the current joints"
-        if positioning and not bool(res.converged[0]):
+        reached = res.converged
+        if positioning and not bool(reached[0]):
             res = self.scene_arm.solve_start(T)
+            reached = res.start_reached()  # a start pose: the simulator's rule (sim.ik.START_TOL_M)
             seeds = "the current joints, then the arm's home joints and restarts"
-        if not bool(res.converged[0]):
+        if not bool(reached[0]):
             p = ", ".join(f"{float(v):.3f}" for v in T_world_tcp[:3, 3])
             raise ArmRefusedError(
                 f"sim arm: TCP target at [{p}] m (base frame) is out of reach within the joint limits (IK from "

@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 from sim.action import ActionError
 from sim.configs import object_local_centers, sample_config, sample_pool
-from sim.env import START_TOL_M, START_TOL_RAD, EnvError, ReachEnv
-from sim.ik import TOL_M, TOL_RAD
+from sim.env import EnvError, ReachEnv
+from sim.ik import START_TOL_M, TOL_M, TOL_RAD
 from sim.policies.dagger import TRAIN_SEED_BASE
 from sim.policies.presets import PRESETS
 from sim.spec import default_scene, load_spec
@@ -143,28 +143,42 @@ def test_tcp_control_on_a_scene_with_an_arm_moves_exactly_as_without_it(spec):
     np.testing.assert_array_equal(poses[0], poses[1])
 
 
-def test_the_scene_arm_reaches_the_start_of_every_configuration_its_runs_use(spec):
-    # the evaluation seeds (a 300-configuration pool needs more than 300), the attack's and
-    # validation's parts of the split, and the quick preset's DAgger seeds (sim.policies.dagger:
-    # seed 0, every batch) for 30 iterations (--iterations N lengthens the run)
+def _start_misses(spec, iterations: int, eval_seeds: int, attack: int, validation: int):
+    """``(seeds the IK leaves short of its tolerance, seeds not even a start)``: the evaluation
+    seeds, the attack's and validation's parts of the split, and the quick preset's DAgger seeds
+    (sim.policies.dagger: seed 0, every batch) of ``iterations`` iterations."""
     centers = object_local_centers(spec)
     d = PRESETS["quick"]["dagger"]
     N = d["num_envs"]
     train = [
         TRAIN_SEED_BASE + it * 10_000 + b * N + j
-        for it in range(30)
+        for it in range(iterations)
         for b in range(-(-d["episodes_per_iter"] // N))
         for j in range(N)
     ]
-    configs = [sample_config(spec, s, centers) for s in [*range(2000), *train]]
-    configs += sample_pool(spec, 600, part="attack") + sample_pool(spec, 100, part="validation")
+    configs = [sample_config(spec, s, centers) for s in [*range(eval_seeds), *train]]
+    configs += sample_pool(spec, attack, part="attack") + sample_pool(spec, validation, part="validation")
     T = torch.from_numpy(np.stack([c.T_world_tcp_array for c in configs]))
     res = spec.arm.scene_arm().solve_start(T)
-    near = (res.pos_err_m <= START_TOL_M) & (res.rot_err_rad <= START_TOL_RAD)
-    missed = [c.seed for c, ok in zip(configs, (res.converged | near).tolist()) if not ok]
-    assert not missed, f"start poses out of the arm's reach: seeds {missed[:10]}"
-    # the one IK leaves short of its own tolerance (see sim.env.START_TOL_M)
-    assert [c.seed for c, ok in zip(configs, res.converged.tolist()) if not ok] == [10050039]
+    short = [c.seed for c, ok in zip(configs, res.converged.tolist()) if not ok]
+    out = [c.seed for c, ok in zip(configs, res.start_reached().tolist()) if not ok]
+    return short, out
+
+
+def test_the_scene_arm_reaches_the_start_of_every_configuration_its_runs_use(spec):
+    # the quick preset's 5 DAgger iterations, 400 evaluation seeds (a 300-configuration pool needs
+    # more than 300) and the attack's and validation's pools
+    short, out = _start_misses(spec, PRESETS["quick"]["dagger"]["iterations"], 400, 100, 32)
+    assert not short and not out, (short, out)
+
+
+@pytest.mark.slow
+def test_the_scene_arm_reaches_the_start_of_every_configuration_of_longer_runs(spec):
+    # 30 DAgger iterations (--iterations N lengthens a run), 2,000 evaluation seeds, 700 of the
+    # split's parts: 4,140 start poses; the one the IK leaves a few mm short is still a start
+    short, out = _start_misses(spec, 30, 2000, 600, 100)
+    assert not out, f"start poses out of the arm's reach: seeds {out[:10]}"
+    assert short == [10050039], short
 
 
 def test_a_start_the_ik_leaves_a_few_mm_short_starts_at_fk_of_its_best_joints(spec):

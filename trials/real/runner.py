@@ -275,8 +275,9 @@ def resolve_starts(plan, trials, T_base_table, kinematics, joint_space: bool) ->
     if solve:
         T = torch.as_tensor(np.stack([starts[k].T_base_tcp for k in solve]), device=kinematics.device)
         res = kinematics.solve_start(T)
+        reached = res.start_reached()  # the simulator's rule (sim.ik.START_TOL_M): a few mm short is a start
         for i, k in enumerate(solve):
-            if not bool(res.converged[i]):
+            if not bool(reached[i]):
                 n_more = len(users[k]) - 1
                 raise StartError(
                     f"trial {users[k][0]}" + (f" (and {n_more} more)" if n_more else "") + f": start TCP pose {k} at "
@@ -284,7 +285,9 @@ def resolve_starts(plan, trials, T_base_table, kinematics, joint_space: bool) ->
                     f"{float(res.pos_err_m[i]):.3g} m, {float(res.rot_err_rad[i]):.3g} rad off after "
                     f"{res.iterations} iterations, from its home joints and the restarts)"
                 )
-            starts[k] = Start(starts[k].T_base_tcp, res.q[i].detach().cpu().numpy().astype(np.float64))
+            q = res.q[i].detach().cpu().numpy().astype(np.float64)
+            # where the arm will be: the pose asked for, or FK of the joints a few mm short of it
+            starts[k] = Start(starts[k].T_base_tcp if bool(res.converged[i]) else tcp_from_joints(kinematics, q), q)
     return starts
 
 

@@ -802,3 +802,26 @@ def test_a_version_7_store_is_migrated_its_tcp_steps_kept_and_joint_actions_may_
         (step,) = store.con.execute("SELECT * FROM steps").fetchall()
         assert step["action_5"] == 0.5 and step["frame_seq"] == 3 and step["joints_json"] is None
         assert store.con.execute("SELECT name FROM sqlite_master WHERE name = 'steps_trial'").fetchone() is not None
+
+
+def test_a_tcp_start_the_ik_leaves_a_few_mm_short_starts_as_in_the_simulator_at_fk_of_its_joints(files, spec, arm):
+    """The runner takes a start pose by the simulator's rule (sim.ik.IkResult.start_reached): the
+    evaluation seed 10050039's start is 3.5 mm short of the IK's tolerance, a start in both; the
+    trial then starts where the arm will be, at FK of its joints, not at the pose asked for."""
+    from sim.configs import object_local_centers, sample_config
+    from sim.ik import START_TOL_M
+
+    T_ask = sample_config(spec, 10050039, object_local_centers(spec)).T_world_tcp_array
+    plan = load_plan(files["plan"])
+    first = plan.tcp_poses[0].model_copy(update={"T_table_tcp": Pose.from_T(T_ask), "joint_positions": None})
+    plan = plan.model_copy(update={"tcp_poses": [first, *plan.tcp_poses[1:]]})
+    trials = [t for t in plan.trials if t.tcp_pose == 0]
+    (start,) = resolve_starts(plan, trials, np.eye(4), arm, joint_space=True).values()
+    np.testing.assert_allclose(start.T_base_tcp, tcp_from_joints(arm, start.q), rtol=0, atol=1e-12)
+    assert 1e-4 < np.linalg.norm(start.T_base_tcp[:3, 3] - T_ask[:3, 3]) <= START_TOL_M
+    # and the simulator starts the same configuration at the same joints
+    from sim.env import ReachEnv
+
+    with ReachEnv(spec, num_envs=1, image_size=32, control="joint", render_obs=False) as e:
+        e.reset(seed=10050039)
+        np.testing.assert_allclose(e.q[0], start.q, rtol=0, atol=1e-9)
