@@ -226,6 +226,8 @@ def main() -> None:
             ap.error(f"--out {args.out}: folder {args.out.parent} does not exist")
         if args.out.is_dir():
             ap.error(f"--out {args.out}: is a folder; give a file name")
+        if not os.access(args.out.parent, os.W_OK):
+            ap.error(f"--out {args.out}: folder {args.out.parent} is not writable")
     t_start, c_start = time.perf_counter(), time.process_time()
 
     from robot_io.config import build_arm, build_camera, build_world, load_hardware_config
@@ -325,7 +327,7 @@ def main() -> None:
     print(f"  target <= {TARGET_MS:.0f} ms median: {'met' if total_med <= TARGET_MS else 'NOT met'}")
     if args.out is not None:
         from sim.runinfo import git_commit
-        from trials.experiments.tradeoff import machine_info  # after the timed loop: a heavy import
+        from trials.experiments.tradeoff import machine_info  # lazy: after the timed loop (torch, onnxruntime)
 
         if args.onnx is not None:
             policy_text = str(args.onnx)
@@ -339,7 +341,7 @@ def main() -> None:
             {
                 "command": "python benchmarks/bench_control_loop.py " + shlex.join(sys.argv[1:]),
                 "commit": git_commit(),
-                "machine": machine_info(),
+                "machine": machine_info(args.threads),
                 "arm": args.arm,
                 "scene": world.spec.name,
                 "policy": policy_text,

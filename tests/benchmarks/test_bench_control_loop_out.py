@@ -98,3 +98,16 @@ def test_out_in_a_missing_folder_is_one_line_naming_out_and_writes_nothing(tmp_p
     assert r.stderr.splitlines()[-1] == errors[0]
     assert r.stdout == ""  # refused before any work: nothing measured or printed
     assert list(tmp_path.iterdir()) == []
+
+
+def test_out_naming_a_folder_is_one_line_naming_out_and_measures_nothing(tmp_path):
+    r = _run(["--arm", "tcp", *TINY, "--out", str(tmp_path)])
+    assert r.returncode == 2
+    errors = [line for line in r.stderr.splitlines() if "error:" in line]
+    assert len(errors) == 1 and "--out" in errors[0] and "is a folder" in errors[0], r.stderr
+    assert r.stdout == "" and list(tmp_path.iterdir()) == []
+
+
+def test_the_machine_block_records_the_threads_the_loop_ran_with(bench_run):
+    args, _, rec, _ = bench_run
+    assert rec["machine"]["torch_threads"] == rec["threads"] == 1
