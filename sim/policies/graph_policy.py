@@ -310,7 +310,8 @@ class GraphPolicy(nn.Module):
         return out
 
     def head(self, A, state: torch.Tensor | None = None) -> torch.Tensor:
-        """Feature map(s) (and state ``(B, D)``) -> actions ``(B, 6)``, or ``(B, K, 6)`` for chunks."""
+        """Feature map(s) (and state ``(B, D)``) -> actions ``(B, n)``, or ``(B, K, n)`` for chunks
+        (``n``: 6 for a TCP action, one per joint for a joint action)."""
         maps = [A[b.camera] for b in self.inputs.images] if isinstance(A, dict) else [A]
         B = maps[0].shape[0]
         D = self.contract.state_dim
@@ -325,12 +326,12 @@ class GraphPolicy(nn.Module):
             out = self.head_graph(*maps, *states)
         if isinstance(out, (tuple, list)):
             out = out[0]
-        K = self.contract.action.chunk
-        if K == 1 and tuple(out.shape) in ((B, 1, 6), (B, 6)):
-            return out.reshape(B, 6)
-        if K > 1 and tuple(out.shape) in ((B, K, 6), (B, 6 * K)):
-            return out.reshape(B, K, 6)
-        want = f"({B}, 6)" if K == 1 else f"({B}, {K}, 6) or ({B}, {6 * K})"
+        K, n = self.contract.action.chunk, self.contract.action_dim  # n: 6 for a TCP action, one per joint
+        if K == 1 and tuple(out.shape) in ((B, 1, n), (B, n)):
+            return out.reshape(B, n)
+        if K > 1 and tuple(out.shape) in ((B, K, n), (B, n * K)):
+            return out.reshape(B, K, n)
+        want = f"({B}, {n})" if K == 1 else f"({B}, {K}, {n}) or ({B}, {n * K})"
         raise PolicyError(
             f"{self.source}: actions: the contract ({self.contract.describe()}) needs outputs of shape {want}, "
             f"got {tuple(out.shape)}"

@@ -238,26 +238,32 @@ def export(
             raise typer.BadParameter(f"{path}: the file name must end in {suffix}", param_hint=flag)
     pol, card = load_checkpoint(policy)
     rng = np.random.default_rng(0)
+    out = f"output actions (B, {pol.config.action_dim})"
     if pol.config.is_one_camera:
         x = rng.random((32, 3, pol.image_size, pol.image_size), dtype=np.float32)
-        shape = f"input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1], output actions (B, 6)"
+        shape = f"input images (B, 3, {pol.image_size}, {pol.image_size}) in [0, 1]"
     else:  # one input per camera, named by it
         x = {b.camera: rng.random((32, 3, *b.size), dtype=np.float32) for b in pol.inputs.images}
         sizes = ", ".join(f"{b.name} (B, 3, {b.size[0]}, {b.size[1]})" for b in pol.inputs.images)
-        shape = f"inputs {sizes} in [0, 1], output actions (B, 6)"
+        shape = f"inputs {sizes} in [0, 1]"
+    # a policy reading a state (joint positions, the TCP) is checked on random states too
+    D = int(pol.config.state_dim)
+    st = rng.uniform(-1.0, 1.0, (32, D)).astype(np.float32) if D else None
+    shape += (f", state (B, {D})" if D else "") + f", {out}"
+    what_in = "32 random images" + (" and states" if D else "")
     written = []
     if onnx is not None:
         export_onnx(pol, onnx, card=card, opset=opset)
-        written.append((onnx, f"opset {opset}", lambda: OnnxPolicy(onnx).act(x), "onnx"))
+        written.append((onnx, f"opset {opset}", lambda: OnnxPolicy(onnx).act(x, st), "onnx"))
     if pt2 is not None:
         export_pt2(pol, pt2, card=card)
-        written.append((pt2, f"torch {torch.__version__}", lambda: load_pt2(pt2).act(x), "pt2"))
+        written.append((pt2, f"torch {torch.__version__}", lambda: load_pt2(pt2).act(x, st), "pt2"))
     failed = False
     for path, what, run, name in written:
         msg = f"wrote {path} ({what}, {shape})"
         if check:
-            diff = float(np.abs(run() - pol.act(x)).max())
-            msg += f"; max |{name} - torch| on 32 random images = {diff:.2e}"
+            diff = float(np.abs(run() - pol.act(x, st)).max())
+            msg += f"; max |{name} - torch| on {what_in} = {diff:.2e}"
             if diff > 1e-4:
                 typer.secho(msg, fg=typer.colors.RED)
                 failed = True

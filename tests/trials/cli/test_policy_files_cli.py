@@ -61,3 +61,33 @@ def test_attack_run_on_each_file_gives_the_checkpoints_texture(files, tiny_polic
         assert np.isfinite(tex).all()
         np.testing.assert_allclose(tex, ref, atol=1e-4)  # same seeds, same gradients to float tolerance
         assert json.loads((tmp_path / f.suffix[1:] / "run.json").read_text())["config"]["policy"] == str(f)
+
+
+def test_a_joint_space_checkpoint_exports_to_both_files_checked_on_random_states_too(tmp_path):
+    """The export's check fed images only, so a policy reading joint positions failed it (state: no
+    state given) and could not be exported from the CLI."""
+    from pathlib import Path
+
+    from sim.policies.checkpoint import save_checkpoint
+    from sim.policies.onnx_policy import OnnxPolicy
+    from sim.policies.pt2 import load_pt2
+    from sim.spec import load_spec
+    from tests.attack.test_joint_attack import joint_policy
+    from tests.policy_zoo import card_of
+
+    spec = load_spec(Path(__file__).resolve().parents[3] / "scenes" / "panda-joint.yaml")
+    policy = joint_policy(spec)
+    save_checkpoint(tmp_path / "ck", policy, card_of(policy))
+    files = ["--onnx", str(tmp_path / "j.onnx"), "--pt2", str(tmp_path / "j.pt2")]
+    res = CliRunner().invoke(app, ["policy", "export", str(tmp_path / "ck"), *files])
+    assert res.exit_code == 0, res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 2 and all("state (B, 7), output actions (B, 7)" in line for line in lines), lines
+    assert all("on 32 random images and states" in line for line in lines), lines
+    # the files act as the checkpoint does on the same images and joint states
+    rng = np.random.default_rng(1)
+    x = rng.random((4, 3, 32, 32), dtype=np.float32)
+    q = rng.uniform(-1, 1, (4, 7)).astype(np.float32)
+    want = policy.act(x, q)
+    for got in (OnnxPolicy(tmp_path / "j.onnx").act(x, q), load_pt2(tmp_path / "j.pt2").act(x, q)):
+        assert got.shape == (4, 7) and np.abs(got - want).max() < 1e-4
