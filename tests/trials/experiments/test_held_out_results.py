@@ -12,8 +12,9 @@ from sim.spec import default_scene, load_spec
 
 ROOT = Path(__file__).resolve().parents[3]
 RESULTS = ROOT / "results"
-# Every scene a committed recipe ran in (the pools name theirs by fingerprint).
-SCENES = [default_scene(), load_spec(str(ROOT / "scenes" / "three-objects.yaml"))]
+# Every scene a committed recipe can run in: the built-in one and every shipped scene (the pools name
+# theirs by fingerprint; a pool of a scene not among them fails below).
+SCENES = [default_scene(), *(load_spec(str(p)) for p in sorted((ROOT / "scenes").glob("*.yaml")))]
 
 
 def _recipes():
