@@ -101,20 +101,11 @@ def stats(s: dict) -> str:
 
 
 def write_json(path: Path, doc: dict) -> None:
-    """Write ``doc`` to ``path`` atomically: a fresh temporary file beside it (``O_EXCL``, a random
-    name), renamed over ``path``; a failure leaves neither a half-written file nor the temporary."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(doc, indent=1, allow_nan=False) + "\n")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    """Write ``doc`` to ``path`` atomically (:func:`sim.files.write_atomic`): a failure leaves
+    neither a half-written file nor the temporary."""
+    from sim.files import write_atomic  # lazy: after the argument checks (sim.errors)
+
+    write_atomic(path, (json.dumps(doc, indent=1, allow_nan=False) + "\n").encode())
 
 
 class TcpLoop:

@@ -14,6 +14,8 @@ of such a path goes through this module:
 * :func:`read_regular`: the bytes of :func:`open_regular`'s file, never more than ``max_bytes``,
   even when the file grows while it is read.
 
+And the one way a small output file is written whole or not at all: :func:`write_atomic`.
+
 Each refusal is one :class:`FileRefusedError`: its ``reason`` (one of :data:`REASONS`) and the
 facts behind it (``size``, ``kind``, ``strerror``) let each reader word it in its own error class
 (:meth:`FileRefusedError.problem` takes a reader's own wording for some reasons); ``str(err)`` is
@@ -25,6 +27,7 @@ from __future__ import annotations
 import errno
 import os
 import stat
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import BinaryIO
@@ -40,6 +43,7 @@ __all__ = [
     "check_regular",
     "open_regular",
     "read_regular",
+    "write_atomic",
 ]
 
 #: Why a path was refused: nothing there, an OS error, a directory, anything else that is not a
@@ -202,3 +206,23 @@ def read_regular(path: str | Path, max_bytes: int, *, follow_symlinks: bool = Tr
     if left <= 0:
         raise FileRefusedError(path, "grew", max_bytes)
     return b"".join(chunks)
+
+
+def write_atomic(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` whole or not at all: a fresh temporary file beside it (``O_EXCL``,
+    a random name starting ``.<name>.``), readable by all (0644), renamed over ``path``. A failure
+    leaves neither a half-written file nor the temporary. Returns ``path``."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return path

@@ -25,17 +25,15 @@ from __future__ import annotations
 import base64
 import html
 import io
-import os
 import re
 import struct
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from sim.errors import AdvobjError
-from sim.files import FileRefusedError, read_regular
+from sim.files import FileRefusedError, read_regular, write_atomic
 
 __all__ = [
     "REPORT_HTML",
@@ -317,16 +315,4 @@ def write_page(out_dir: str | Path, title: str, blocks) -> Path:
     if len(text) > MAX_PAGE_BYTES:
         raise ReportPageError(f"{out / REPORT_HTML}: {len(text)} bytes, above the {MAX_PAGE_BYTES} a page may hold")
     out.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".report.", suffix=".tmp", dir=out)  # O_EXCL, a random name
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out / REPORT_HTML)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    return out / REPORT_HTML
+    return write_atomic(out / REPORT_HTML, text)

@@ -222,3 +222,17 @@ def test_file_kind_names_each_kind_of_file(tmp_path, fifo):
     link = tmp_path / "l"
     link.symlink_to(fifo)
     assert file_kind(os.lstat(link).st_mode) == "a symbolic link"
+
+
+def test_write_atomic_replaces_the_file_whole_and_a_failed_write_leaves_the_old_one_and_no_temporary(tmp_path):
+    import stat as st
+
+    from sim.files import write_atomic
+
+    p = tmp_path / "out.json"
+    p.write_bytes(b"old")
+    assert write_atomic(p, b"new contents") == p and p.read_bytes() == b"new contents"
+    assert st.S_IMODE(p.stat().st_mode) == 0o644
+    with pytest.raises(TypeError):
+        write_atomic(p, "not bytes")  # fails inside the write
+    assert p.read_bytes() == b"new contents" and sorted(x.name for x in tmp_path.iterdir()) == ["out.json"]
