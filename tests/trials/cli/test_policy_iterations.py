@@ -78,23 +78,25 @@ def test_the_iterations_flag_sets_the_runs_length_a_resume_extends_it_and_cannot
     assert (out / "run.json").read_bytes() == run_json
 
 
+@pytest.mark.parametrize("flag", ["--iterations", "--grad-steps"])
 @pytest.mark.parametrize("value", ["0", "-3", "two"])
-def test_an_iteration_count_below_one_or_not_a_number_is_one_line_naming_the_flag(
-    short_scene, tmp_path, monkeypatch, capsys, value
+def test_a_count_below_one_or_not_a_number_is_one_line_naming_the_flag(
+    short_scene, tmp_path, monkeypatch, capsys, flag, value
 ):
     out = tmp_path / "run"
-    code, errors = _train(monkeypatch, capsys, short_scene, out, "--iterations", value)
-    assert code == 2 and len(errors) == 1 and "--iterations" in errors[0], errors
+    code, errors = _train(monkeypatch, capsys, short_scene, out, flag, value)
+    assert code == 2 and len(errors) == 1 and flag in errors[0], errors
     assert not out.exists()
 
 
-def test_iterations_with_ppo_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("flag, ppo_words", [("--iterations", "ppo.total_timesteps"), ("--grad-steps", "ppo.n_epochs")])
+def test_a_dagger_setting_with_ppo_is_refused_in_one_line(tmp_path, monkeypatch, capsys, flag, ppo_words):
     out = tmp_path / "run"
     code, errors = _cli(
-        monkeypatch, capsys, "policy", "train", "--preset", "ci", "--method", "ppo", "--iterations", 2, "--out", out
+        monkeypatch, capsys, "policy", "train", "--preset", "ci", "--method", "ppo", flag, 2, "--out", out
     )
     assert code == 2 and len(errors) == 1, errors
-    assert "--iterations" in errors[0] and "ppo.total_timesteps" in errors[0]
+    assert flag in errors[0] and ppo_words in errors[0]
     assert not out.exists()
 
 
@@ -113,26 +115,6 @@ def test_grad_steps_sets_the_dagger_steps_per_iteration_and_a_resume_with_others
     assert code == 2 and len(errors) == 1, errors
     assert str(out) in errors[0]
     assert (out / "run.json").read_bytes() == run_json
-
-
-@pytest.mark.parametrize("value", ["0", "-3", "two"])
-def test_a_grad_step_count_below_one_or_not_a_number_is_one_line_naming_the_flag(
-    short_scene, tmp_path, monkeypatch, capsys, value
-):
-    out = tmp_path / "run"
-    code, errors = _train(monkeypatch, capsys, short_scene, out, "--grad-steps", value)
-    assert code == 2 and len(errors) == 1 and "--grad-steps" in errors[0], errors
-    assert not out.exists()
-
-
-def test_grad_steps_with_ppo_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
-    out = tmp_path / "run"
-    code, errors = _cli(
-        monkeypatch, capsys, "policy", "train", "--preset", "ci", "--method", "ppo", "--grad-steps", 2, "--out", out
-    )
-    assert code == 2 and len(errors) == 1, errors
-    assert "--grad-steps" in errors[0] and "ppo.n_epochs" in errors[0]
-    assert not out.exists()
 
 
 def test_a_ppo_state_resumed_with_another_config_is_refused_before_run_json_is_rewritten(tmp_path):
