@@ -1214,6 +1214,63 @@ class Saturation:
         return [f"## Saturation of the table2 attacks ({self.recipe})", "", head + body]
 
 
+@dataclass(frozen=True)
+class Agreement:
+    """Where the textures of a multi-seed run agree: of the configurations every texture (every arm
+    under every attack seed) was evaluated on, how many all of them divert to the adversarial
+    object, how many none does, and how many differ between textures. Two textures' T-ASR can differ
+    only on the last group, so its share bounds every difference the run can show."""
+
+    recipe: str
+    title: str
+
+    def __call__(self, rows_of: Rows, results: Path) -> list[str]:
+        ag = _agreement(rows_of(self.recipe))
+        if not ag:
+            return []
+        n, k = ag["n"], ag["textures"]
+        return [
+            f"## {self.title} (results/{self.recipe}/)",
+            "",
+            f"The {k} textures of this run ({', '.join(ag['arms'])}; {ag['seeds']} attack seeds each) on the same "
+            f"{n} configurations: every texture diverts the policy to the adversarial object in {ag['all']} of them, "
+            f"none does in {ag['none']}, and the textures differ in only {ag['differ']} "
+            f"({100 * ag['differ'] / max(1, n):.1f}%). Any two of these textures can therefore differ in T-ASR by at "
+            f"most {100 * ag['differ'] / max(1, n):.1f} pp, and both the arms' differences and the seed-to-seed "
+            f"spread come from those {ag['differ']} configurations. The {ag['none']} that no texture diverts start "
+            f"at a mean phi of {ag['phi_none']:.1f} deg (all {n}: {ag['phi_all']:.1f} deg).",
+        ]
+
+
+def _agreement(rows: list[dict] | None) -> dict | None:
+    """Counts of :class:`Agreement` from a recipe's rows (``None`` without attacked rows)."""
+    if not rows:
+        return None
+    textures: dict[str, dict[int, bool]] = {}
+    phi: dict[int, float] = {}
+    for r in rows:
+        if r["condition"] == "attack":
+            textures.setdefault(r["eval"], {})[r["seed"]] = bool(r["targeted"])
+            phi[r["seed"]] = math.degrees(r["phi_rad"])
+    if len(textures) < 2:
+        return None
+    common = sorted(set.intersection(*(set(v) for v in textures.values())))
+    hits = [sum(t[s] for t in textures.values()) for s in common]
+    none = [s for s, h in zip(common, hits) if h == 0]
+    arms = sorted({e.split("-seed")[0].removeprefix("table2_") for e in textures})
+    return {
+        "n": len(common),
+        "textures": len(textures),
+        "arms": arms,
+        "seeds": len(textures) // max(1, len(arms)),
+        "all": sum(h == len(textures) for h in hits),
+        "none": len(none),
+        "differ": sum(0 < h < len(textures) for h in hits),
+        "phi_none": sum(phi[s] for s in none) / max(1, len(none)),
+        "phi_all": sum(phi[s] for s in common) / max(1, len(common)),
+    }
+
+
 def _saturation(rows: list[dict] | None, recipe: str) -> dict | None:
     """T-ASR of every table2 arm, and how many configurations any optimised attack reaches."""
     if not rows:
@@ -1330,6 +1387,8 @@ NOTES: tuple[Callable[[Rows, Path], list[str]], ...] = (
         (C2F_NS, NS_F2C, C2F_F2C, SALIENCY, TARGETED),
         seeds=True,
     ),
+    Agreement("table2-seeds", "F2 over attack seeds: where the textures agree, and how much room that leaves"),
+    Agreement("table2-f4", "F4 over attack seeds: where the textures agree, and how much room that leaves"),
     lighting_note,
     untargeted_note,
 )

@@ -377,3 +377,53 @@ def test_the_40_iteration_follow_up_over_seeds_recomputes_from_its_csv():
         margin = 0.0 if claim == ">" else -0.05
         want = "holds" if plo > margin else "does not hold" if phi_ < 0 else "inconclusive"
         assert f"**{want}**" in line, line
+
+
+@pytest.mark.parametrize(
+    "recipe, title, arms",
+    [
+        (
+            "table2-seeds",
+            "## F2 over attack seeds: where the textures agree",
+            ("table2_c2f", "table2_f2c", "table2_ns"),
+        ),
+        ("table2-f4", "## F4 over attack seeds: where the textures agree", ("table2_c2f", "table2_c2f_no_saliency")),
+    ],
+)
+def test_where_the_textures_agree_recomputes_from_the_csv(recipe, title, arms):
+    """The agreement sections: configurations every texture diverts, none does, or that differ,
+    counted here from the attacked rows of every arm and seed, and the mean start phi of the
+    undiverted ones."""
+    text = (RESULTS / "findings.md").read_text()
+    assert text.count(title) == 1, title
+    section = text.split(title, 1)[1].split("\n## ", 1)[0]
+    rows = _rows(recipe)
+    textures = {}
+    for arm in arms:
+        by_seed = _by_seed(rows, arm, "attack")
+        assert len(by_seed) >= 3, (recipe, arm)
+        for s, outcomes in by_seed.items():
+            textures[(arm, s)] = outcomes
+    # every arm ran under the same attack seeds
+    assert len({frozenset(s for a, s in textures if a == arm) for arm in arms}) == 1
+    configs = sorted(set.intersection(*(set(v) for v in textures.values())))
+    hits = {c: sum(int(t[c]) for t in textures.values()) for c in configs}
+    k = len(textures)
+    n_all = sum(h == k for h in hits.values())
+    n_none = sum(h == 0 for h in hits.values())
+    n_differ = len(configs) - n_all - n_none
+    phi = {int(r["seed"]): _phi_deg(r) for r in rows if r["condition"] == "attack"}
+    none = [c for c, h in hits.items() if h == 0]
+    want = (
+        f"The {k} textures of this run ({', '.join(a.removeprefix('table2_') for a in arms)}; "
+        f"{k // len(arms)} attack seeds each) on the same {len(configs)} configurations: every texture diverts the "
+        f"policy to the adversarial object in {n_all} of them, none does in {n_none}, and the textures differ in only "
+        f"{n_differ} ({100 * n_differ / len(configs):.1f}%)."
+    )
+    assert want in section, section
+    assert f"at most {100 * n_differ / len(configs):.1f} pp" in section
+    assert f"mean phi of {sum(phi[c] for c in none) / len(none):.1f} deg" in section
+    assert f"(all {len(configs)}: {sum(phi[c] for c in configs) / len(configs):.1f} deg)" in section
+    # the bound holds: no two textures' T-ASR differ by more than the share that differs
+    rates = [sum(int(t[c]) for c in configs) / len(configs) for t in textures.values()]
+    assert max(rates) - min(rates) <= n_differ / len(configs)
