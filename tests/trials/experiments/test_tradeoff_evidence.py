@@ -303,7 +303,7 @@ def test_a_tiny_two_seed_sweep_is_collected_rendered_and_recomputed(tmp_path, ti
         assert (results / name).is_file(), name
     assert (results / "eval_sets" / "ref.json").is_file() and len(list((results / "attack_configs").iterdir())) == 4
     assert len(list((results / "textures").glob("*.png"))) == 4
-    for name in ("rows.jsonl", "sweep.json", "eval_sets/ref.json"):
+    for name in ("rows.jsonl", "sweep.json", "summary.json", "eval_sets/ref.json"):
         text = (results / name).read_text()
         assert str(tmp_path) not in text and "traceback" not in text, name  # no machine path is committed
     run = json.loads((results / "run.json").read_text())
