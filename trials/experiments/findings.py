@@ -1235,9 +1235,11 @@ class Agreement:
             f"The {k} textures of this run ({', '.join(ag['arms'])}; {ag['seeds']} attack seeds each) on the same "
             f"{n} configurations: every texture diverts the policy to the adversarial object in {ag['all']} of them, "
             f"none does in {ag['none']}, and the textures differ in only {ag['differ']} "
-            f"({100 * ag['differ'] / max(1, n):.1f}%). Any two of these textures can therefore differ in T-ASR by at "
-            f"most {100 * ag['differ'] / max(1, n):.1f} pp, and both the arms' differences and the seed-to-seed "
-            f"spread come from those {ag['differ']} configurations. The {ag['none']} that no texture diverts start "
+            f"({100 * ag['differ'] / max(1, n):.1f}%). Their T-ASR spans {100 * ag['lo']:.1f} to {100 * ag['hi']:.1f}% "
+            f"({100 * (ag['hi'] - ag['lo']):.1f} pp apart). On these configurations no two of these textures could "
+            f"differ by more than {100 * ag['differ'] / max(1, n):.1f} pp, and both the arms' differences and the "
+            f"seed-to-seed spread come from those {ag['differ']} configurations (an in-sample bound: a texture from "
+            f"another seed may differ elsewhere). The {ag['none']} that no texture diverts start "
             f"at a mean phi of {ag['phi_none']:.1f} deg (all {n}: {ag['phi_all']:.1f} deg).",
         ]
 
@@ -1258,6 +1260,7 @@ def _agreement(rows: list[dict] | None) -> dict | None:
     hits = [sum(t[s] for t in textures.values()) for s in common]
     none = [s for s, h in zip(common, hits) if h == 0]
     arms = sorted({e.split("-seed")[0].removeprefix("table2_") for e in textures})
+    rates = [sum(t[s] for s in common) / max(1, len(common)) for t in textures.values()]
     return {
         "n": len(common),
         "textures": len(textures),
@@ -1266,6 +1269,8 @@ def _agreement(rows: list[dict] | None) -> dict | None:
         "all": sum(h == len(textures) for h in hits),
         "none": len(none),
         "differ": sum(0 < h < len(textures) for h in hits),
+        "lo": min(rates),
+        "hi": max(rates),
         "phi_none": sum(phi[s] for s in none) / max(1, len(none)),
         "phi_all": sum(phi[s] for s in common) / max(1, len(common)),
     }

@@ -67,16 +67,37 @@ def baseline_of(rec: dict, recs: dict[str, dict]) -> dict:
     return base
 
 
-def direction(rec: dict, recs: dict[str, dict], outcomes: dict[str, dict[int, bool]]) -> str:
-    """'lower', 'higher' or 'same' against the baseline of the same seed (exact McNemar)."""
+def counts(rec: dict, recs: dict[str, dict], outcomes: dict[str, dict[int, bool]]) -> tuple[int, int, int]:
+    """(targeted under the baseline of the same seed only, under the row only, pairs)."""
     row, base = outcomes[rec["eval_name"]], outcomes[baseline_of(rec, recs)["eval_name"]]
     common = set(row) & set(base)
     assert len(common) == 300, f"{rec['key']}: {len(common)} paired configurations, not 300"
-    b = sum(base[s] and not row[s] for s in common)
-    c = sum(row[s] and not base[s] for s in common)
+    return sum(base[s] and not row[s] for s in common), sum(row[s] and not base[s] for s in common), len(common)
+
+
+def direction(rec: dict, recs: dict[str, dict], outcomes: dict[str, dict[int, bool]]) -> str:
+    """'lower', 'higher' or 'same' against the baseline of the same seed (exact McNemar)."""
+    b, c, _ = counts(rec, recs, outcomes)
     if mcnemar_p(b, c) >= ALPHA:
         return "same"
     return "higher" if c > b else "lower"
+
+
+def diff_pp(rec: dict, recs: dict[str, dict], outcomes: dict[str, dict[int, bool]]) -> float:
+    b, c, n = counts(rec, recs, outcomes)
+    return 100 * (c - b) / n
+
+
+ATTACK_SETTINGS_KINDS = ("attack", "snapshot")
+
+
+def paired_settings(recs: dict[str, dict]) -> set[str]:
+    """The settings paired with the baseline: every attack-changing one but the baseline itself."""
+    return {
+        k.split("@")[0]
+        for k, r in recs.items()
+        if r["kind"] in ATTACK_SETTINGS_KINDS and not k.startswith(("baseline", "policy_resolution"))
+    }
 
 
 def section() -> str:
@@ -102,69 +123,94 @@ def data():
     return records(), attacked()
 
 
-def test_no_setting_raised_t_asr_in_any_seed(data):
+def test_no_run_was_higher_and_two_settings_were_numerically_higher_in_every_seed(data):
     recs, outcomes = data
-    assert "No run of any knob scored higher" in bullet("No setting raised T-ASR")
-    paired = [
-        r
-        for k, r in recs.items()
-        if r["kind"] in ("attack", "snapshot") and not k.startswith(("baseline", "policy_resolution"))
-    ]
-    assert len(paired) == 33
-    assert [r["key"] for r in paired if direction(r, recs, outcomes) == "higher"] == []
+    text = bullet("No run was higher than its seed's baseline")
+    runs = [r for s in paired_settings(recs) for r in runs_of(s, recs)]
+    assert len(runs) == 33
+    assert [r["key"] for r in runs if direction(r, recs, outcomes) == "higher"] == []
+    lead = text.split(" were numerically higher in all three seeds", 1)[0]
+    up = {s for s in paired_settings(recs) if all(diff_pp(r, recs, outcomes) > 0 for r in runs_of(s, recs))}
+    assert settings_in(lead) == up == {"texture_size=32", "saliency=off"}
+    diffs = [diff_pp(r, recs, outcomes) for s in up for r in runs_of(s, recs)]
+    assert f"(by {min(diffs):.1f} to {max(diffs):.1f} pp)" in text
 
 
 def test_the_settings_lower_in_every_seed_are_exactly_those_the_doc_names(data):
     recs, outcomes = data
-    named = settings_in(bullet("Lower in every attack seed").split(". ", 1)[0])
+    text = bullet("Lower in every attack seed")
     measured = {
         s
-        for s in {k.split("@")[0] for k, r in recs.items() if r["kind"] in ("attack", "snapshot")}
-        if not s.startswith(("baseline", "policy_resolution"))
-        and len(runs := runs_of(s, recs)) == 3
-        and all(direction(r, recs, outcomes) == "lower" for r in runs)
+        for s in paired_settings(recs)
+        if len(runs := runs_of(s, recs)) == 3 and all(direction(r, recs, outcomes) == "lower" for r in runs)
     }
-    assert named == measured == {"iterations=30", "iterations=60", "eot_envs=1", "sampler=bilinear", "texture_size=256"}
+    assert settings_in(text.split(". ", 1)[0]) == measured
+    assert measured == {"iterations=30", "iterations=60", "eot_envs=1", "sampler=bilinear", "texture_size=256"}
+    # "snapshots of the baseline's own 120-iteration runs": the last 60 iterations still buy T-ASR
+    assert "snapshots of the baseline's own 120-iteration runs" in text
+    assert all(r["kind"] == "snapshot" for s in ("iterations=30", "iterations=60") for r in runs_of(s, recs))
+    assert {b["attack_config"]["iterations"] for b in runs_of("baseline=quick", recs)} == {120}
 
 
 def test_the_settings_not_different_in_any_seed_are_exactly_those_the_doc_names(data):
     recs, outcomes = data
-    text = bullet("Not different in any attack seed")
-    named = settings_in(text.split(". ", 1)[0])
     measured = {
         s
-        for s in {k.split("@")[0] for k, r in recs.items() if r["kind"] == "attack"}
-        if not s.startswith(("baseline", "policy_resolution"))
-        and len(runs := runs_of(s, recs)) == 3
-        and all(direction(r, recs, outcomes) == "same" for r in runs)
+        for s in paired_settings(recs)
+        if len(runs := runs_of(s, recs)) == 3 and all(direction(r, recs, outcomes) == "same" for r in runs)
     }
-    assert named == measured == {"eot_envs=2", "rollout_steps=5", "texture_size=32", "saliency=off", "pcgrad=off"}
-    # "eot_envs=2 also took less attack CPU time than the baseline in every seed", and it is the only one
-    cheaper = {
-        s for s in measured if all(r["attack_cpu_s"] < baseline_of(r, recs)["attack_cpu_s"] for r in runs_of(s, recs))
-    }
-    lead = "Of them, `eot_envs=2`, `rollout_steps=5` and `texture_size=32` took less attack CPU time"
-    assert lead in text
-    assert cheaper == settings_in(text.split(lead[: len("Of them, ")], 1)[1].split(" took ", 1)[0])
-    assert cheaper == {"eot_envs=2", "rollout_steps=5", "texture_size=32"}
-    # "the clear saving is eot_envs=2, whose mean attack CPU time was about half the baseline's"
-    assert "`eot_envs=2`, whose mean attack CPU time was about half the baseline's" in text
-
-    def mean_cpu(setting: str) -> float:
-        runs = runs_of(setting, recs)
-        return sum(r["attack_cpu_s"] for r in runs) / len(runs)
-
-    ratio = mean_cpu("eot_envs=2") / mean_cpu("baseline=quick")
-    assert 0.4 <= ratio <= 0.6
-    assert all(mean_cpu(s) / mean_cpu("baseline=quick") > 0.6 for s in cheaper - {"eot_envs=2"})
+    assert settings_in(bullet("Not different in any attack seed").split(". ", 1)[0]) == measured
+    assert measured == {"eot_envs=2", "rollout_steps=5", "texture_size=32", "saliency=off", "pcgrad=off"}
 
 
-def test_ten_rollout_steps_lower_in_one_seed_and_slower_in_all(data):
+def test_ten_rollout_steps_lower_in_one_seed_numerically_lower_in_all_and_slower_in_all(data):
     recs, outcomes = data
-    assert "lower in one seed of three, and no run was higher" in bullet("`rollout_steps=10`")
+    assert "lower in one seed of three and numerically lower in all three" in bullet("`rollout_steps=10`")
     runs = runs_of("rollout_steps=10", recs)
     assert sorted(direction(r, recs, outcomes) for r in runs) == ["lower", "same", "same"]
+    assert all(diff_pp(r, recs, outcomes) < 0 for r in runs)
     assert all(r["attack_wall_s"] > baseline_of(r, recs)["attack_wall_s"] for r in runs)
+
+
+def test_the_attack_cpu_time_ratios(data):
+    recs, outcomes = data
+    text = bullet("Attack CPU time")
+    base = [r["attack_cpu_s"] for r in runs_of("baseline=quick", recs)]
+    mean = sum(base) / len(base)
+    assert f"took {min(base) / mean:.2f} to {max(base) / mean:.2f} times their mean" in text
+
+    def ratio(setting: str) -> str:
+        runs = runs_of(setting, recs)
+        assert len(runs) == 3
+        return f"{sum(r['attack_cpu_s'] for r in runs) / 3 / mean:.2f}"
+
+    assert f"`eot_envs=2` took {ratio('eot_envs=2')} and `rollout_steps=5` {ratio('rollout_steps=5')}" in text
+    assert (
+        f"`saliency=off` {ratio('saliency=off')}, `texture_size=32` {ratio('texture_size=32')} and "
+        f"`pcgrad=off` {ratio('pcgrad=off')}"
+    ) in text
+    # "the one clear saving" of the settings that kept T-ASR
+    assert "`eot_envs=2` is the one clear saving" in text
+    kept = {"eot_envs=2", "rollout_steps=5", "texture_size=32", "saliency=off", "pcgrad=off"}
+    # clear: below three quarters of the baseline's lowest run
+    clear = {s for s in kept if float(ratio(s)) < 0.75 * min(base) / mean}
+    assert clear == {"eot_envs=2"}
+
+
+def test_the_why_items_say_they_are_explanations_and_their_premises_hold(data):
+    recs, _ = data
+    tex = bullet("Why `texture_size=256` loses")
+    assert "(likely, not tested: no run re-tuned `lr`)" in tex
+    runs = [r for s in paired_settings(recs) for r in runs_of(s, recs) if r["kind"] == "attack"]
+    runs += runs_of("baseline=quick", recs)
+    assert len({r["attack_config"]["lr"] for r in runs}) == 1
+    assert {r["attack_config"]["iterations"] for r in runs} == {120}
+    (big,) = {r["attack_config"]["texture_size"] for r in runs_of("texture_size=256", recs)}
+    (ref,) = {r["attack_config"]["texture_size"] for r in runs_of("baseline=quick", recs)}
+    assert "each of 16 times as many texels" in tex and (big / ref) ** 2 == 16
+    sam = bullet("Why `sampler=bilinear` loses")
+    assert "(likely, not tested on its own)" in sam and "`tests/attack/test_render.py`" in sam
+    assert 'errs["trilinear"] <= errs["bilinear"]' in (ROOT / "tests" / "attack" / "test_render.py").read_text()
 
 
 def test_the_evaluation_took_more_wall_time_than_the_attack_in_every_300_episode_row(data):
@@ -182,29 +228,48 @@ def test_the_deployment_statements(data):
     assert set(dep) == {"torch-fp32", "onnx-fp32", "onnx-int8", "onnx-fp16"}
     lat = {v: {b: r["latency_ms"][b]["median"] for b in ("b1", "b8")} for v, r in dep.items()}
     text = bullet("Deployment")
+    # measured one after another within half a minute, at the stated load
+    times = sorted(r["time_utc"] for r in dep.values())
+    starts = [int(t[11:13]) * 3600 + int(t[14:16]) * 60 + int(t[17:19]) for t in times]
+    assert max(starts) - min(starts) <= 30 and "within half a minute" in text
+    loads = [r["load_start"][0] for r in dep.values()]
+    assert f"1-minute load {min(loads):.1f} to {max(loads):.1f}" in text
     assert "ONNX fp32 had lower wall latency per image than torch fp32 at batch 1 and at batch 8" in text
     assert all(lat["onnx-fp32"][b] < lat["torch-fp32"][b] for b in ("b1", "b8"))
-    assert "ONNX int8 (dynamic quantisation) was slower than ONNX fp32 at both batch sizes" in text
-    assert all(lat["onnx-int8"][b] > lat["onnx-fp32"][b] for b in ("b1", "b8"))
+    assert "ONNX int8 (dynamic quantisation) was slower than both fp32 variants at both batch sizes" in text
+    assert all(lat["onnx-int8"][b] > max(lat["onnx-fp32"][b], lat["torch-fp32"][b]) for b in ("b1", "b8"))
     assert "changed the actions most" in text
     assert max(dep, key=lambda v: dep[v]["action_err_max"]) == "onnx-int8"
     assert max(dep, key=lambda v: dep[v]["action_err_mean"]) == "onnx-int8"
+    assert "it has the smallest file" in text
+    files = {v: r["model_bytes"] for v, r in dep.items() if r["model_bytes"]}
+    assert min(files, key=files.get) == "onnx-int8"
     assert "ONNX fp16's file is about half of fp32's" in text
-    assert 0.45 <= dep["onnx-fp16"]["model_bytes"] / dep["onnx-fp32"]["model_bytes"] <= 0.55
+    assert 0.45 <= files["onnx-fp16"] / files["onnx-fp32"] <= 0.55
     assert "Every variant kept the clean success of torch fp32 on its 50 episodes" in text
     ref = dep["torch-fp32"]["clean_success"]
     assert ref["n"] == 50
     assert all(r["clean_success"]["k"] == ref["k"] and r["clean_success"]["n"] == 50 for r in dep.values())
 
 
-def test_the_larger_policies_cost_more_in_every_measure(data):
+def test_the_larger_policies_took_more_time_than_any_baseline_run_and_are_not_paired(data):
     recs, _ = data
-    assert "cost more to attack and to evaluate than the 64 px one in every measure above" in bullet(
-        "Policy resolution"
-    )
+    text = bullet("Policy resolution")
+    assert "attack and evaluation each took more wall and more CPU time than any of the three baseline runs" in text
     bases = runs_of("baseline=quick", recs)
     assert len(bases) == 3
     for px in ("96", "128"):
         r = recs[f"policy_resolution={px}"]
         for m in ("attack_wall_s", "attack_cpu_s", "eval_wall_s", "eval_cpu_s"):
             assert r[m] > max(b[m] for b in bases), (px, m)
+        # "on their own configuration sets"
+        assert r["eval_set"] != bases[0]["eval_set"] and r["eval_set"].endswith(f"px{px}.json")
+
+
+def test_the_policy_card_the_sweep_attacked_has_the_quick_cards_weights():
+    cards = ROOT / "results" / "policies"
+    sweep = json.loads((RESULTS / "sweep.json").read_text())["settings"]["policy"]
+    assert sweep.endswith("policy-quick-2") and "`results/policies/policy-quick-2.json`" in section()
+    a, b = (json.loads((cards / n).read_text())["weights_sha256"] for n in ("policy-quick-2.json", "policy-quick.json"))
+    assert a == b
+    assert "equal `weights_sha256`" in DOC.read_text()
