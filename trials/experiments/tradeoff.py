@@ -1289,9 +1289,8 @@ def collect(out: str | Path, results: str | Path = RESULTS) -> Path:
     (dst / "rows.jsonl").write_text("".join(json.dumps(_portable(r, out), default=_json_default) + "\n" for r in lines))
     latest = latest_records(_result_lines(out))
     ok = [r for r in latest if r.get("status") == "ok"]
-    n_rows = collect_evals(dst, [out / "evals" / _eval_name(r) for r in ok if _eval_name(r)])
-    # the evaluations record the fixed set they read by its absolute path: committed relative
-    _write_json(dst / "summary.json", _portable(json.loads((dst / "summary.json").read_text()), out))
+    # the evaluations name the fixed set they read by its absolute path: committed relative to the sweep
+    n_rows = collect_evals(dst, [out / "evals" / _eval_name(r) for r in ok if _eval_name(r)], relative_to=out)
     for name in (SETTINGS_NAME, "machine.json"):
         if (out / name).is_file():
             _write_json(dst / name, _portable(json.loads((out / name).read_text()), out))
