@@ -1,5 +1,8 @@
 """The evidence tool refuses to record a result from a checkout with uncommitted changes, and records every attempt."""
 
+import json
+from pathlib import Path
+
 from tools import evidence
 from trials.experiments import record
 
@@ -44,9 +47,6 @@ def _absolute_paths(doc):
 def test_no_committed_result_names_an_absolute_path():
     """A committed record names files relative to the repository (or its own folder), never by a
     machine's absolute path: every string value of every JSON and JSON-lines file under results/."""
-    import json
-    from pathlib import Path
-
     results = Path(__file__).resolve().parents[2] / "results"
     found = []
     for f in sorted(results.rglob("*.json")) + sorted(results.rglob("*.jsonl")):

@@ -9,48 +9,23 @@ or dropped from the doc. The tests skip while ``results/tradeoff/`` is not commi
 
 from __future__ import annotations
 
-import csv
 import json
-import math
 import re
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[3]
-RESULTS = ROOT / "results" / "tradeoff"
-DOC = ROOT / "docs" / "speed-vs-accuracy.md"
+# the sweep evidence's own independent readers (csv, json, math.comb only)
+from tests.trials.experiments.test_tradeoff_evidence import DOC, RESULTS, ROOT, mcnemar_p, read_attacked, read_records
+
 SECTION = "### What the committed sweep shows on this policy"
 ALPHA = 0.05
 
 pytestmark = pytest.mark.skipif(not (RESULTS / "rows.jsonl").is_file(), reason="results/tradeoff/ not committed yet")
 
 
-def mcnemar_p(b: int, c: int) -> float:
-    n = b + c
-    if n == 0:
-        return 1.0
-    return min(1.0, 2 * sum(math.comb(n, i) for i in range(min(b, c) + 1)) / 2**n)
-
-
 def records() -> dict[str, dict]:
-    out = {}
-    for line in (RESULTS / "rows.jsonl").read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        out[rec["key"]] = rec
-    return {k: r for k, r in out.items() if r.get("status") == "ok"}
-
-
-def attacked() -> dict[str, dict[int, bool]]:
-    out: dict[str, dict[int, bool]] = {}
-    with open(RESULTS / "episodes.csv", newline="") as f:
-        for row in csv.DictReader(f):
-            if row["condition"] == "attack":
-                out.setdefault(row["eval"], {})[int(row["seed"])] = row["targeted"] == "1"
-    return out
+    """The newest record per key of rows.jsonl, finished rows only."""
+    return {k: r for k, r in read_records(RESULTS).items() if r.get("status") == "ok"}
 
 
 def seed_of(rec: dict) -> int:
@@ -120,7 +95,7 @@ def settings_in(text: str) -> set[str]:
 
 @pytest.fixture(scope="module")
 def data():
-    return records(), attacked()
+    return records(), read_attacked(RESULTS)
 
 
 def test_no_run_was_higher_and_two_settings_were_numerically_higher_in_every_seed(data):
